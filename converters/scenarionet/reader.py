@@ -1,0 +1,301 @@
+"""Read ScenarioNet scenario pickles (``sd_*.pkl``) into :class:`~magail_sumo.scene.Scene`.
+
+Pickles are loaded only through :mod:`converters.scenarionet.safe_pickle`. The dict layout is
+the one ScenarioNet's Waymo converter writes (see ``schema.py``); every access is checked and a
+wrong shape or type raises an error naming the key path.
+"""
+
+from __future__ import annotations
+
+import pickle
+from os import PathLike
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from converters.scenarionet import schema
+from converters.scenarionet.safe_pickle import UnsafePickleError, safe_load
+from magail_sumo.errors import SceneFormatError
+from magail_sumo.scene import (
+    BoundarySegment, Crosswalk, Driveway, Lane, LaneNeighbor, ObjectType, RequiredPrediction,
+    RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError, SignalStates, SpeedBump, StopSign,
+    Tracks, validate_scene,
+)
+
+SUMMARY_FILE = "dataset_summary.pkl"
+MAPPING_FILE = "dataset_mapping.pkl"
+
+_OBJECT_TYPES = schema.inverse(schema.OBJECT_TYPES)
+_LANE_TYPES = schema.inverse(schema.LANE_TYPES)
+_LINE_TYPES = schema.inverse(schema.ROAD_LINE_TYPES)
+_BOUNDARY_TYPES = {**schema.inverse(schema.BOUNDARY_TYPES), "UNKNOWN_LINE": 0}
+_EDGE_TYPES = schema.inverse(schema.ROAD_EDGE_TYPES)
+_SIGNAL_STATES = schema.inverse(schema.SIGNAL_STATES)
+_AREA_TYPES = {schema.CROSSWALK: ("crosswalks", Crosswalk), schema.SPEED_BUMP: ("speed_bumps", SpeedBump),
+               schema.DRIVEWAY: ("driveways", Driveway)}
+
+
+def _get(d: Any, key: str, path: str) -> Any:
+    where = f"{path}: " if path else ""
+    if not isinstance(d, dict):
+        raise SceneValidationError(f"{where}expected a dict, got {type(d).__name__}")
+    if key not in d:
+        raise SceneValidationError(f"{where}missing key '{key}'")
+    return d[key]
+
+
+def _array(value: Any, shape: tuple[int, ...], dtype: Any, path: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+        if arr.dtype.kind not in "biuf":
+            raise TypeError(f"dtype {arr.dtype}")
+        arr = arr.astype(dtype, copy=False)
+    except (TypeError, ValueError) as exc:
+        raise SceneValidationError(f"{path}: expected a numeric array ({exc})") from None
+    if len(shape) == 1 and arr.ndim == 2 and arr.shape[1] == 1:
+        arr = arr[:, 0]  # (T, 1) variants written by some converters
+    if arr.ndim != len(shape) or any(s not in (-1, n) for s, n in zip(shape, arr.shape)):
+        raise SceneValidationError(f"{path}: expected shape {shape}, got {arr.shape}")
+    return arr
+
+
+def _int(value: Any, path: str) -> int:
+    try:
+        if isinstance(value, (bool, float)) or value is None:
+            raise ValueError
+        return int(value)  # ScenarioNet stores some ids as decimal strings
+    except (TypeError, ValueError):
+        raise SceneValidationError(f"{path}: expected an integer, got {value!r}") from None
+
+
+def _enum(value: Any, table: dict, path: str):
+    try:
+        return table[value]
+    except (KeyError, TypeError):
+        raise SceneValidationError(f"{path}: unknown type {value!r}") from None
+
+
+def scene_from_scenarionet(sd: Any) -> Scene:
+    """Convert a ScenarioNet scenario dict (no validation beyond structure)."""
+    if not isinstance(sd, dict):
+        raise SceneValidationError(f"expected a scenario dict, got {type(sd).__name__}")
+    length = _int(_get(sd, "length", ""), "length")
+    meta = _get(sd, "metadata", "")
+    ts = _array(_get(meta, "ts", "metadata"), (length,), np.float64, "metadata.ts")
+    tracks_d = _get(sd, "tracks", "")
+    if not isinstance(tracks_d, dict):
+        raise SceneValidationError("tracks: expected a dict")
+    tracks, index_of = _tracks(tracks_d, length)
+    sdc = meta.get("sdc_id")
+    sdc_index = meta.get("sdc_track_index")
+    if sdc_index is None:
+        sdc_index = index_of.get(str(sdc), -1) if sdc is not None else -1
+    ttp = meta.get("tracks_to_predict") or {}
+    if not isinstance(ttp, dict):
+        raise SceneValidationError("metadata.tracks_to_predict: expected a dict")
+    return Scene(
+        scenario_id=str(meta.get("scenario_id", _get(sd, "id", ""))),
+        timestamps=ts,
+        tracks=tracks,
+        roadmap=_roadmap(_get(sd, "map_features", "")),
+        signals=_signals(_get(sd, "dynamic_map_states", ""), length),
+        sdc_track_index=_int(sdc_index, "metadata.sdc_track_index"),
+        current_time_index=_int(meta.get("current_time_index", 0), "metadata.current_time_index"),
+        tracks_to_predict=tuple(
+            RequiredPrediction(
+                _int(_get(v, "track_index", f"metadata.tracks_to_predict['{k}']"),
+                     f"metadata.tracks_to_predict['{k}'].track_index"),
+                _int(v.get("difficulty", 0), f"metadata.tracks_to_predict['{k}'].difficulty"))
+            for k, v in ttp.items()
+        ),
+        objects_of_interest=tuple(
+            _int(v, "metadata.objects_of_interest") for v in meta.get("objects_of_interest") or ()
+        ),
+    )
+
+
+def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, dict[str, int]]:
+    n = len(tracks_d)
+    cols: dict[str, np.ndarray] = {k: np.zeros((n, length), np.float64) for k in ("x", "y", "z")}
+    cols.update({k: np.zeros((n, length), np.float32)
+                 for k in ("length", "width", "height", "heading", "vx", "vy")})
+    valid = np.zeros((n, length), bool)
+    ids = np.zeros(n, np.int64)
+    types = np.zeros(n, np.int8)
+    index_of: dict[str, int] = {}
+    for i, (key, obj) in enumerate(tracks_d.items()):
+        path = f"tracks['{key}']"
+        index_of[str(key)] = i
+        ids[i] = _int(key, path + " key")
+        types[i] = _enum(_get(obj, "type", path), _OBJECT_TYPES, path + ".type")
+        state = _get(obj, "state", path)
+        sp = path + ".state"
+        pos = _array(_get(state, "position", sp), (length, -1), np.float64, sp + ".position")
+        if pos.shape[1] not in (2, 3):
+            raise SceneValidationError(f"{sp}.position: expected 2 or 3 columns, got {pos.shape[1]}")
+        cols["x"][i], cols["y"][i] = pos[:, 0], pos[:, 1]
+        if pos.shape[1] == 3:
+            cols["z"][i] = pos[:, 2]
+        for name in ("length", "width", "height", "heading"):
+            if name in state or name == "heading":
+                cols[name][i] = _array(_get(state, name, sp), (length,), np.float32, f"{sp}.{name}")
+        if "velocity" in state:
+            vel = _array(state["velocity"], (length, 2), np.float32, sp + ".velocity")
+            cols["vx"][i], cols["vy"][i] = vel[:, 0], vel[:, 1]
+        valid[i] = _array(_get(state, "valid", sp), (length,), bool, sp + ".valid")
+    return Tracks(id=ids, type=types, valid=valid, **cols), index_of
+
+
+def _points(value: Any, path: str) -> np.ndarray:
+    arr = _array(value, (-1, -1), np.float64, path)
+    if arr.shape[1] == 2:
+        arr = np.concatenate([arr, np.zeros((arr.shape[0], 1))], axis=1)
+    elif arr.shape[1] != 3:
+        raise SceneValidationError(f"{path}: expected 2 or 3 columns, got {arr.shape[1]}")
+    return arr
+
+
+def _segments(items: Any, path: str) -> tuple[BoundarySegment, ...]:
+    out = []
+    for j, seg in enumerate(items or ()):
+        p = f"{path}[{j}]"
+        out.append(BoundarySegment(
+            _int(_get(seg, "lane_start_index", p), p + ".lane_start_index"),
+            _int(_get(seg, "lane_end_index", p), p + ".lane_end_index"),
+            _int(_get(seg, "boundary_feature_id", p), p + ".boundary_feature_id"),
+            _enum(seg.get("boundary_type", "UNKNOWN"), _BOUNDARY_TYPES, p + ".boundary_type"),
+        ))
+    return tuple(out)
+
+
+def _neighbors(items: Any, path: str) -> tuple[LaneNeighbor, ...]:
+    out = []
+    for j, nb in enumerate(items or ()):
+        p = f"{path}[{j}]"
+        out.append(LaneNeighbor(
+            *(_int(_get(nb, k, p), f"{p}.{k}") for k in
+              ("feature_id", "self_start_index", "self_end_index", "neighbor_start_index",
+               "neighbor_end_index")),
+            boundaries=_segments(nb.get("boundaries"), p + ".boundaries"),
+        ))
+    return tuple(out)
+
+
+def _roadmap(features: Any) -> RoadMap:
+    if not isinstance(features, dict):
+        raise SceneValidationError("map_features: expected a dict")
+    kinds: dict[str, list] = {k: [] for k in ("lanes", "road_lines", "road_edges", "stop_signs",
+                                              "crosswalks", "speed_bumps", "driveways")}
+    for key, f in features.items():
+        path = f"map_features['{key}']"
+        fid = _int(key, path + " key")
+        ftype = _get(f, "type", path)
+        if ftype in _LANE_TYPES:
+            kinds["lanes"].append(Lane(
+                id=fid, polyline=_points(_get(f, "polyline", path), path + ".polyline"),
+                type=_LANE_TYPES[ftype],
+                speed_limit_mph=float(f.get("speed_limit_mph", 0.0) or 0.0),
+                interpolating=bool(f.get("interpolating", False)),
+                entry_lanes=tuple(_int(v, path + ".entry_lanes") for v in f.get("entry_lanes") or ()),
+                exit_lanes=tuple(_int(v, path + ".exit_lanes") for v in f.get("exit_lanes") or ()),
+                left_neighbors=_neighbors(f.get("left_neighbor"), path + ".left_neighbor"),
+                right_neighbors=_neighbors(f.get("right_neighbor"), path + ".right_neighbor"),
+                left_boundaries=_segments(f.get("left_boundaries"), path + ".left_boundaries"),
+                right_boundaries=_segments(f.get("right_boundaries"), path + ".right_boundaries"),
+            ))
+        elif ftype in _LINE_TYPES:
+            kinds["road_lines"].append(RoadLine(fid, _points(_get(f, "polyline", path),
+                                                             path + ".polyline"), _LINE_TYPES[ftype]))
+        elif ftype in _EDGE_TYPES:
+            kinds["road_edges"].append(RoadEdge(fid, _points(_get(f, "polyline", path),
+                                                             path + ".polyline"), _EDGE_TYPES[ftype]))
+        elif ftype == schema.STOP_SIGN:
+            pos = _array(_get(f, "position", path), (-1,), np.float64, path + ".position")
+            kinds["stop_signs"].append(StopSign(
+                fid, tuple(_int(v, path + ".lane") for v in f.get("lane") or ()),
+                np.pad(pos, (0, 3 - pos.shape[0])) if pos.shape[0] < 3 else pos))
+        elif ftype in _AREA_TYPES:
+            kind, cls = _AREA_TYPES[ftype]
+            kinds[kind].append(cls(fid, _points(_get(f, "polygon", path), path + ".polygon")))
+        else:
+            raise SceneValidationError(f"{path}: unsupported map feature type {ftype!r}")
+    return RoadMap(**{k: tuple(v) for k, v in kinds.items()})
+
+
+def _signals(dyn: Any, length: int) -> SignalStates:
+    if not isinstance(dyn, dict):
+        raise SceneValidationError("dynamic_map_states: expected a dict")
+    per_step: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in range(length)]
+    for key, light in dyn.items():
+        path = f"dynamic_map_states['{key}']"
+        lane = _int(light.get("lane", key), path + ".lane")
+        states = _get(_get(light, "state", path), "object_state", path + ".state")
+        if len(states) != length:
+            raise SceneValidationError(
+                f"{path}.state.object_state: expected {length} steps, got {len(states)}")
+        stop = _array(light.get("stop_point", np.zeros(3)), (-1,), np.float64, path + ".stop_point")
+        stop = np.pad(stop, (0, 3 - stop.shape[0])) if stop.shape[0] < 3 else stop[:3]
+        for t, s in enumerate(states):
+            if s is not None:
+                per_step[t].append((lane, _enum(s, _SIGNAL_STATES, f"{path}.state[{t}]"), stop))
+    rows = [(t, lane, s, p) for t, recs in enumerate(per_step) for lane, s, p in recs]
+    if not rows:
+        return SignalStates.empty()
+    step, lane, state, point = zip(*rows)
+    return SignalStates(np.array(step), np.array(lane), np.array(state), np.array(point))
+
+
+# ------------------------------------------------------------------ files
+
+def load_scenarionet(path: str | PathLike) -> Scene:
+    """Load and validate one ScenarioNet pickle (restricted unpickler).
+
+    :raises SceneFormatError: naming the file and the problem.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            sd = safe_load(fh)
+    except UnsafePickleError as exc:
+        raise SceneFormatError(p, 0, f"unsafe pickle, nothing executed: {exc}") from None
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
+            IndexError, ImportError) as exc:
+        raise SceneFormatError(p, 0, f"unreadable pickle ({exc})") from None
+    try:
+        scene = scene_from_scenarionet(sd)
+        validate_scene(scene)
+    except (SceneValidationError, ValueError) as exc:
+        raise SceneFormatError(p, 0, str(exc)) from None
+    return scene
+
+
+def dataset_files(folder: str | PathLike) -> list[Path]:
+    """Scenario files of a ScenarioNet dataset folder, from its summary and mapping."""
+    root = Path(folder)
+    try:
+        with open(root / SUMMARY_FILE, "rb") as fh:
+            summary = safe_load(fh)
+        mapping: dict = {}
+        if (root / MAPPING_FILE).exists():
+            with open(root / MAPPING_FILE, "rb") as fh:
+                mapping = safe_load(fh) or {}
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError) as exc:
+        raise SceneFormatError(root / SUMMARY_FILE, None, f"unreadable dataset summary ({exc})") \
+            from None
+    if not isinstance(summary, dict) or not isinstance(mapping, dict):
+        raise SceneFormatError(root, None, "dataset summary/mapping is not a dict")
+    return [root / str(mapping.get(name, "")) / name for name in summary]
+
+
+def iter_scenarionet(path: str | PathLike) -> Iterator[tuple[int, Scene | SceneFormatError]]:
+    """Yield ``(index, Scene or SceneFormatError)`` for a pickle or a dataset folder."""
+    p = Path(path)
+    files = dataset_files(p) if p.is_dir() else [p]
+    for i, f in enumerate(files):
+        try:
+            yield i, load_scenarionet(f)
+        except SceneFormatError as exc:
+            yield i, exc
+        except OSError as exc:
+            yield i, SceneFormatError(f, None, f"cannot read ({exc.strerror or exc})")

@@ -1,0 +1,92 @@
+"""Open any supported recorded-scene file: format detection and lazy iteration.
+
+Supported: WOMD ``Scenario`` TFRecord files/shards (optionally gzip-compressed), ScenarioNet
+scenario pickles, and ScenarioNet dataset folders (with ``dataset_summary.pkl``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+from typing import Iterable, Iterator
+
+from converters.scenarionet.reader import SUMMARY_FILE, iter_scenarionet
+from converters.womd.reader import iter_womd
+from magail_sumo.errors import SceneFormatError
+from magail_sumo.scene import Scene
+
+_PICKLE_MAGIC = (b"\x80\x02", b"\x80\x03", b"\x80\x04", b"\x80\x05")
+
+
+@dataclass(frozen=True)
+class SceneRecord:
+    """One record of a scene file: the scene, or the error that kept it from being read."""
+
+    path: Path
+    index: int | None
+    scene: Scene | None = None
+    error: SceneFormatError | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def detect_format(path: str | PathLike) -> str:
+    """``"womd"``, ``"scenarionet"`` or ``"scenarionet-dataset"``.
+
+    :raises SceneFormatError: missing path, or a directory that is not a ScenarioNet dataset.
+    """
+    p = Path(path)
+    if p.is_dir():
+        if (p / SUMMARY_FILE).exists():
+            return "scenarionet-dataset"
+        raise SceneFormatError(p, None, "is a directory, expected a scene file "
+                                        "(or a ScenarioNet dataset folder with dataset_summary.pkl)")
+    if not p.exists():
+        raise SceneFormatError(p, None, "no such file")
+    with open(p, "rb") as fh:
+        head = fh.read(2)
+    if p.suffix == ".pkl" or head in _PICKLE_MAGIC:
+        return "scenarionet"
+    return "womd"
+
+
+def iter_scene_records(path: str | PathLike) -> Iterator[SceneRecord]:
+    """Every record of one file (or ScenarioNet dataset folder), lazily; never raises on bad data.
+
+    Errors about the file as a whole come back as one record with ``index=None``.
+    """
+    p = Path(path)
+    try:
+        fmt = detect_format(p)
+        it = iter_womd(p) if fmt == "womd" else iter_scenarionet(p)
+        for index, item in it:
+            if isinstance(item, SceneFormatError):
+                yield SceneRecord(p, index, error=item)
+            else:
+                yield SceneRecord(p, index, scene=item)
+    except SceneFormatError as exc:
+        yield SceneRecord(p, exc.record, error=exc)
+    except OSError as exc:
+        yield SceneRecord(p, None, error=SceneFormatError(p, None, f"cannot read ({exc.strerror or exc})"))
+
+
+def iter_scenes(paths: Iterable[str | PathLike] | str | PathLike) -> Iterator[Scene]:
+    """All scenes of the given files, lazily; raises the first :class:`SceneFormatError`."""
+    if isinstance(paths, (str, PathLike)):
+        paths = [paths]
+    for path in paths:
+        for rec in iter_scene_records(path):
+            if rec.error is not None:
+                raise rec.error
+            yield rec.scene  # type: ignore[misc]
+
+
+def load_scene(path: str | PathLike, index: int = 0) -> Scene:
+    """The ``index``-th scene of a file."""
+    for i, scene in enumerate(iter_scenes(path)):
+        if i == index:
+            return scene
+    raise SceneFormatError(path, index, "no such record")

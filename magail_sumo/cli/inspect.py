@@ -1,0 +1,66 @@
+"""``magail-sumo inspect``: summarise recorded scenes (WOMD TFRecords, ScenarioNet pickles)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from typing import Any
+
+from converters.scene_files import iter_scene_records
+from magail_sumo.cli.progress import progress
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("inspect", help="print what recorded scene files contain",
+                       description="Summarise every scene of WOMD TFRecord files/shards, ScenarioNet "
+                                   "pickles or ScenarioNet dataset folders.")
+    p.add_argument("files", nargs="+", metavar="FILE", help="scene files")
+    p.add_argument("--json", action="store_true", help="one JSON object per scene on stdout")
+    p.add_argument("--skip-bad", action="store_true",
+                   help="report unreadable records and go on (default: stop at the first)")
+    p.set_defaults(func=run)
+
+
+def format_text(summary: dict[str, Any], duration: float) -> str:
+    tb = summary["tracks_by_type"]
+    mf = summary["map_features"]
+    return "\n".join([
+        summary["scenario_id"],
+        f"  steps             {summary['num_steps']} ({duration:.1f} s)",
+        f"  tracks            {sum(tb.values())}: " + ", ".join(f"{v} {k}" for k, v in tb.items()),
+        f"  valid states      {summary['valid_states']}",
+        f"  map features      {sum(mf.values())}: " + ", ".join(f"{v} {k}" for k, v in mf.items()),
+        f"  signal states     {summary['signal_states']}",
+        f"  sdc track index   {summary['sdc_track_index']}",
+        f"  tracks to predict {summary['tracks_to_predict']}",
+    ])
+
+
+def run(args: argparse.Namespace) -> int:
+    read = 0
+    skipped: Counter[str] = Counter()
+    many = len(args.files) > 1
+    records = (rec for path in progress(args.files, desc="files", unit="file", enabled=many)
+               for rec in iter_scene_records(path))
+    for rec in progress(records, desc="scenes", unit="scene"):
+        if rec.error is not None:
+            print(f"error: {rec.error}", file=sys.stderr)
+            if not args.skip_bad:
+                return 1
+            skipped[rec.error.reason] += 1
+            continue
+        scene = rec.scene
+        assert scene is not None
+        summary = scene.summary()
+        if args.json:
+            print(json.dumps(summary), flush=True)
+        else:
+            print(format_text(summary, scene.duration), flush=True)
+        read += 1
+    if skipped or many:
+        why = "; ".join(f"{n} × {reason}" for reason, n in skipped.most_common())
+        print(f"read {read} scene(s) from {len(args.files)} file(s); skipped {sum(skipped.values())}"
+              + (f" ({why})" if why else ""), file=sys.stderr)
+    return 0 if read or not skipped else 1

@@ -1,0 +1,23 @@
+"""Format-independent scene model: typed, frozen dataclasses over numpy arrays.
+
+Units everywhere: metres, radians, metres/second, seconds; coordinates in the scene frame
+of the recording (WOMD's frame: x east-ish, y north-ish, z up, arbitrary origin).
+"""
+
+from .roadmap import (
+    FEATURE_KINDS, AreaFeature, BoundarySegment, Crosswalk, Driveway, Lane, LaneNeighbor,
+    RoadEdge, RoadLine, RoadMap, SpeedBump, StopSign,
+)
+from .scene import RequiredPrediction, Scene
+from .signals import SignalStates
+from .tracks import STATE_FIELDS, Tracks
+from .types import Difficulty, LaneType, ObjectType, RoadEdgeType, RoadLineType, SignalState
+from .validation import SceneValidationError, validate_scene
+
+__all__ = [
+    "FEATURE_KINDS", "STATE_FIELDS", "AreaFeature", "BoundarySegment", "Crosswalk", "Difficulty",
+    "Driveway", "Lane", "LaneNeighbor", "LaneType", "ObjectType", "RequiredPrediction",
+    "RoadEdge", "RoadEdgeType", "RoadLine", "RoadLineType", "RoadMap", "Scene",
+    "SceneValidationError", "SignalState", "SignalStates", "SpeedBump", "StopSign", "Tracks",
+    "validate_scene",
+]

@@ -1,0 +1,84 @@
+"""``magail-sumo inspect`` end to end: the installed console script on real and bad files."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from conftest import EXPECTED, WOMD_DIR
+from converters.tfrecord import encode_record, iter_records
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    exe = shutil.which("magail-sumo")
+    cmd = [exe] if exe else [sys.executable, "-m", "magail_sumo"]
+    return subprocess.run([*cmd, *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def test_json_counts_for_every_real_scene():
+    files = sorted(WOMD_DIR.glob("*.tfrecord"))
+    out = run_cli("inspect", "--json", *files)
+    assert out.returncode == 0, out.stderr
+    records = [json.loads(line) for line in out.stdout.splitlines()]
+    assert {r["scenario_id"]: r for r in records} == EXPECTED
+
+
+def test_text_output(tmp_path):
+    out = run_cli("inspect", WOMD_DIR / "637f20cafde22ff8.tfrecord")
+    assert out.returncode == 0
+    assert "637f20cafde22ff8" in out.stdout and "4596" in out.stdout
+    assert "70 vehicle, 10 pedestrian, 3 cyclist" in out.stdout
+
+
+def _bad_files(tmp_path):
+    good = next(iter(iter_records(WOMD_DIR / "850c48d8bbfa008f.tfrecord")))[1]
+    files = {}
+    rec = bytearray(encode_record(good))
+    files["truncated"] = tmp_path / "truncated.tfrecord"
+    files["truncated"].write_bytes(bytes(rec[:-100]))
+    lc = bytearray(rec)
+    lc[9] ^= 0xFF
+    files["length CRC mismatch"] = tmp_path / "lencrc.tfrecord"
+    files["length CRC mismatch"].write_bytes(bytes(lc))
+    dc = bytearray(rec)
+    dc[1000] ^= 0xFF
+    files["data CRC mismatch"] = tmp_path / "datacrc.tfrecord"
+    files["data CRC mismatch"].write_bytes(bytes(dc))
+    files["not a TFRecord file"] = tmp_path / "text.tfrecord"
+    files["not a TFRecord file"].write_text("hello world, certainly not a tfrecord")
+    files["empty file"] = tmp_path / "empty.tfrecord"
+    files["empty file"].write_bytes(b"")
+    files["is a directory"] = tmp_path / "adir"
+    files["is a directory"].mkdir()
+    files["refused to load"] = tmp_path / "evil.pkl"
+    files["refused to load"].write_bytes(
+        b"cos\nsystem\n(S'echo pwned'\ntR.")  # protocol-0 pickle calling os.system
+    return files
+
+
+def test_each_bad_input_gives_one_line_error_and_nonzero_exit(tmp_path):
+    for problem, path in _bad_files(tmp_path).items():
+        out = run_cli("inspect", path)
+        assert out.returncode != 0, problem
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1, (problem, out.stderr)
+        assert str(path) in lines[0] and problem in lines[0], (problem, lines[0])
+        assert "pwned" not in out.stdout
+
+
+def test_skip_bad_reads_the_rest_and_counts(tmp_path):
+    bad = _bad_files(tmp_path)
+    files = [WOMD_DIR / "637f20cafde22ff8.tfrecord", *bad.values(), WOMD_DIR / "850c48d8bbfa008f.tfrecord"]
+    out = run_cli("inspect", "--json", "--skip-bad", *files)
+    assert out.returncode == 0, out.stderr
+    ids = [json.loads(line)["scenario_id"] for line in out.stdout.splitlines()]
+    assert ids == ["637f20cafde22ff8", "850c48d8bbfa008f"]
+    summary = out.stderr.strip().splitlines()[-1]
+    assert f"read 2 scene(s) from {len(files)} file(s); skipped {len(bad)}" in summary
+    for problem in ("truncated record", "data CRC mismatch", "unsafe pickle", "empty file"):
+        assert problem in summary
