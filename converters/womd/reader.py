@@ -19,7 +19,7 @@ from converters.tfrecord import iter_records
 from converters.womd.protos import scenario_pb2 as pb
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.scene import (
-    BoundarySegment, Crosswalk, Driveway, Lane, LaneNeighbor, RequiredPrediction, RoadEdge,
+    STATE_FIELDS, BoundarySegment, Crosswalk, Driveway, Lane, LaneNeighbor, RequiredPrediction, RoadEdge,
     RoadLine, RoadMap, Scene, SceneValidationError, SignalStates, SpeedBump, StopSign, Tracks,
     validate_scene,
 )
@@ -117,10 +117,7 @@ def scene_from_proto(msg: pb.Scenario) -> Scene:
 
 def _tracks(msg: pb.Scenario, num_steps: int) -> Tracks:
     n = len(msg.tracks)
-    f64 = {k: np.empty((n, num_steps), np.float64) for k in ("x", "y", "z")}
-    f32 = {k: np.empty((n, num_steps), np.float32)
-           for k in ("length", "width", "height", "heading", "vx", "vy")}
-    valid = np.empty((n, num_steps), bool)
+    table = np.empty((n, num_steps, 10), np.float64)  # ObjectState fields in STATE_FIELDS order
     ids = np.empty(n, np.int64)
     types = np.empty(n, np.int8)
     for i, track in enumerate(msg.tracks):
@@ -131,21 +128,16 @@ def _tracks(msg: pb.Scenario, num_steps: int) -> Tracks:
             )
         ids[i] = track.id
         types[i] = track.object_type
-        f64["x"][i] = [s.center_x for s in states]
-        f64["y"][i] = [s.center_y for s in states]
-        f64["z"][i] = [s.center_z for s in states]
-        f32["length"][i] = [s.length for s in states]
-        f32["width"][i] = [s.width for s in states]
-        f32["height"][i] = [s.height for s in states]
-        f32["heading"][i] = [s.heading for s in states]
-        f32["vx"][i] = [s.velocity_x for s in states]
-        f32["vy"][i] = [s.velocity_y for s in states]
-        valid[i] = [s.valid for s in states]
-    return Tracks(id=ids, type=types, valid=valid, **f64, **f32)
+        if num_steps:  # one pass over the states: each access builds a wrapper object
+            table[i] = [(s.center_x, s.center_y, s.center_z, s.length, s.width, s.height, s.heading,
+                         s.velocity_x, s.velocity_y, s.valid) for s in states]
+    cols = {name: table[..., k] for k, name in enumerate(STATE_FIELDS)}
+    return Tracks(id=ids, type=types, valid=table[..., 9] != 0, **cols)
 
 
 def _points(points) -> np.ndarray:
-    return np.array([(p.x, p.y, p.z) for p in points], np.float64).reshape(-1, 3)
+    flat = [c for p in points for c in (p.x, p.y, p.z)]
+    return np.array(flat, np.float64).reshape(-1, 3)
 
 
 def _segments(segs) -> tuple[BoundarySegment, ...]:
