@@ -200,3 +200,23 @@ def test_multi_scene_shard_with_corrupt_record_continues(tmp_path):
     recs = list(iter_womd(path))
     assert [type(s).__name__ for _, s in recs] == ["Scene", "SceneFormatError", "Scene"]
     assert "record 1: data CRC mismatch" in str(recs[1][1])
+
+
+def test_fast_point_decoding_equals_per_point_decoding(real_scene_file):
+    from converters.womd.reader import _point_lists, scene_from_proto
+    [(_, data)] = list(iter_records(real_scene_file))
+    msg = pb.Scenario.FromString(data)
+    fast = _point_lists(data)
+    assert sum(p is not None for p in fast) == len(msg.map_features)  # real data: all canonical
+    assert scene_from_proto(msg, fast) == scene_from_proto(msg)
+
+
+def test_non_canonical_points_fall_back(scene_637f):
+    msg = scene_to_proto(scene_637f)
+    lane = next(f for f in msg.map_features if f.HasField("lane"))
+    lane.lane.polyline[0].ClearField("z")  # z absent: a 18-byte MapPoint
+    lane.lane.polyline[1].z = 0.0
+    scene = parse_scenario(msg.SerializeToString())
+    got = scene.roadmap.lane(lane.id).polyline
+    assert got[0, 2] == 0.0 and got[0, 0] == lane.lane.polyline[0].x
+    assert np.array_equal(got[2:], scene_637f.roadmap.lane(lane.id).polyline[2:])

@@ -37,7 +37,7 @@ def parse_scenario(data: bytes) -> Scene:
     except DecodeError as exc:
         raise SceneValidationError(f"not a Scenario protobuf ({exc})") from None
     _check_unknown_fields(msg, len(data))
-    scene = scene_from_proto(msg)
+    scene = scene_from_proto(msg, _point_lists(data))
     validate_scene(scene)
     return scene
 
@@ -96,15 +96,19 @@ def _walk_unknown(msg, path: str) -> None:
 
 # ------------------------------------------------------------------ proto -> Scene
 
-def scene_from_proto(msg: pb.Scenario) -> Scene:
-    """Convert a decoded ``Scenario`` message (no validation beyond shapes)."""
+def scene_from_proto(msg: pb.Scenario, points: list[np.ndarray | None] | None = None) -> Scene:
+    """Convert a decoded ``Scenario`` message (no validation beyond shapes).
+
+    :param points: per map feature, its decoded polyline/polygon (from :func:`_point_lists`);
+        None entries (or no list) are decoded from ``msg``.
+    """
     timestamps = np.asarray(msg.timestamps_seconds, np.float64)
     tracks = _tracks(msg, timestamps.shape[0])
     return Scene(
         scenario_id=msg.scenario_id,
         timestamps=timestamps,
         tracks=tracks,
-        roadmap=_roadmap(msg.map_features),
+        roadmap=_roadmap(msg.map_features, points),
         signals=_signals(msg.dynamic_map_states),
         sdc_track_index=msg.sdc_track_index if msg.HasField("sdc_track_index") else -1,
         current_time_index=msg.current_time_index,
@@ -135,6 +139,41 @@ def _tracks(msg: pb.Scenario, num_steps: int) -> Tracks:
     return Tracks(id=ids, type=types, valid=table[..., 9] != 0, **cols)
 
 
+_POINT_DTYPE = np.dtype([("tx", "u1"), ("x", "<f8"), ("ty", "u1"), ("y", "<f8"),
+                         ("tz", "u1"), ("z", "<f8")])
+_POINT_TAGS = (0x09, 0x11, 0x19)  # fields 1, 2, 3 as fixed64
+_VIEW_FIELD = {"lane": "field_8", "road_line": "field_2", "road_edge": "field_2",
+               "crosswalk": "field_1", "speed_bump": "field_1", "driveway": "field_1"}
+
+
+def _point_lists(data: bytes) -> list[np.ndarray | None]:
+    """Decode every map feature's points straight from the wire bytes (None: use the slow path).
+
+    Works when each MapPoint is canonically encoded with x, y and z (27 bytes); anything else
+    falls back to per-point decoding for that feature.
+    """
+    view = pb.ScenarioMapView.FromString(data)
+    out: list[np.ndarray | None] = []
+    for feat in view.map_features:
+        kind = _view_kind(feat)
+        raw = getattr(getattr(feat, kind), _VIEW_FIELD[kind]) if kind else ()
+        if kind and raw and all(len(r) == 27 for r in raw):
+            rec = np.frombuffer(b"".join(raw), _POINT_DTYPE)
+            if ((rec["tx"] == _POINT_TAGS[0]) & (rec["ty"] == _POINT_TAGS[1])
+                    & (rec["tz"] == _POINT_TAGS[2])).all():
+                out.append(np.stack([rec["x"], rec["y"], rec["z"]], axis=1))
+                continue
+        out.append(None if kind and raw else np.zeros((0, 3)))
+    return out
+
+
+def _view_kind(feat) -> str | None:
+    for kind in _VIEW_FIELD:
+        if feat.HasField(kind):
+            return kind
+    return None
+
+
 def _points(points) -> np.ndarray:
     flat = [c for p in points for c in (p.x, p.y, p.z)]
     return np.array(flat, np.float64).reshape(-1, 3)
@@ -155,18 +194,24 @@ def _neighbors(nbs) -> tuple[LaneNeighbor, ...]:
     )
 
 
-def _roadmap(features) -> RoadMap:
+def _roadmap(features, point_lists: list[np.ndarray | None] | None = None) -> RoadMap:
     kinds: dict[str, list] = {k: [] for k in
                               ("lane", "road_line", "road_edge", "stop_sign", "crosswalk",
                                "speed_bump", "driveway")}
-    for f in features:
+    decoded = point_lists if point_lists is not None else [None] * len(features)
+
+    def pts(i: int, field) -> np.ndarray:
+        fast = decoded[i]
+        return fast if fast is not None else _points(field)
+
+    for i, f in enumerate(features):
         kind = f.WhichOneof("feature_data")
         if kind is None:
             raise SceneValidationError(f"map feature {f.id} has no feature data")
         if kind == "lane":
             ln = f.lane
             kinds[kind].append(Lane(
-                id=f.id, polyline=_points(ln.polyline), type=ln.type,
+                id=f.id, polyline=pts(i, ln.polyline), type=ln.type,
                 speed_limit_mph=ln.speed_limit_mph, interpolating=ln.interpolating,
                 entry_lanes=tuple(ln.entry_lanes), exit_lanes=tuple(ln.exit_lanes),
                 left_neighbors=_neighbors(ln.left_neighbors),
@@ -175,18 +220,18 @@ def _roadmap(features) -> RoadMap:
                 right_boundaries=_segments(ln.right_boundaries),
             ))
         elif kind == "road_line":
-            kinds[kind].append(RoadLine(f.id, _points(f.road_line.polyline), f.road_line.type))
+            kinds[kind].append(RoadLine(f.id, pts(i, f.road_line.polyline), f.road_line.type))
         elif kind == "road_edge":
-            kinds[kind].append(RoadEdge(f.id, _points(f.road_edge.polyline), f.road_edge.type))
+            kinds[kind].append(RoadEdge(f.id, pts(i, f.road_edge.polyline), f.road_edge.type))
         elif kind == "stop_sign":
             p = f.stop_sign.position
             kinds[kind].append(StopSign(f.id, tuple(f.stop_sign.lane), (p.x, p.y, p.z)))
         elif kind == "crosswalk":
-            kinds[kind].append(Crosswalk(f.id, _points(f.crosswalk.polygon)))
+            kinds[kind].append(Crosswalk(f.id, pts(i, f.crosswalk.polygon)))
         elif kind == "speed_bump":
-            kinds[kind].append(SpeedBump(f.id, _points(f.speed_bump.polygon)))
+            kinds[kind].append(SpeedBump(f.id, pts(i, f.speed_bump.polygon)))
         else:
-            kinds[kind].append(Driveway(f.id, _points(f.driveway.polygon)))
+            kinds[kind].append(Driveway(f.id, pts(i, f.driveway.polygon)))
     return RoadMap(**{k + "s": tuple(v) for k, v in kinds.items()})
 
 
