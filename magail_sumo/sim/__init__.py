@@ -1,0 +1,1 @@
+"""Simulation core: vehicle dynamics and (next) the libsumo session."""

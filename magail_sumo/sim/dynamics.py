@@ -1,0 +1,132 @@
+"""Kinematic bicycle model for controlled vehicles, forward and inverse, over arrays of vehicles.
+
+State per vehicle (scene frame): box-centre position ``x, y`` (m), ``yaw`` (rad, CCW from +x),
+signed ``speed`` (m/s along the heading; negative = reversing). Action per vehicle:
+``accel`` (m/s²) and ``steer`` (front-wheel angle, rad, positive = left). With wheelbase ``L``
+the path curvature is ``k = tan(steer) / L``. One step of ``dt`` seconds first updates the speed,
+then moves the vehicle the signed distance ``s = speed'·dt`` along an arc of curvature ``k``
+(semi-implicit Euler; the chord of the arc points along the mid-step heading):
+
+    speed' = speed + accel·dt,  s = speed'·dt,
+    x' = x + s·cos(yaw + k·s/2),  y' = y + s·sin(yaw + k·s/2),  yaw' = yaw + k·s
+
+Semi-implicit integration keeps the inverse well-posed: the speed after a step is the step's
+displacement over ``dt``, so noise in recorded positions does not pile up in the speed. Limits (:class:`BicycleLimits`) clip
+every action; the normalised action in [-1, 1]² maps linearly onto them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Wheelbase as a share of the box length when none is given (a 4.8 m car: 2.9 m).
+WHEELBASE_RATIO = 0.6
+
+
+@dataclass(frozen=True)
+class BicycleLimits:
+    """Action and state limits.
+
+    :param max_accel: largest acceleration (m/s²).
+    :param max_brake: largest deceleration (m/s², positive number).
+    :param max_steer: largest front-wheel angle (rad).
+    :param max_speed: forward speed cap (m/s).
+    :param max_reverse_speed: reverse speed cap (m/s, positive number).
+    """
+
+    max_accel: float = 6.0
+    max_brake: float = 10.0
+    max_steer: float = 0.7
+    max_speed: float = 40.0
+    max_reverse_speed: float = 5.0
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Kinematic state of V vehicles as (V,) float64 arrays (see module doc for frames)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    speed: np.ndarray
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def clip_action(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clip to the limits; NaN becomes 0. Returns (accel, steer, clipped mask)."""
+    bad = ~np.isfinite(accel) | ~np.isfinite(steer)
+    a = np.nan_to_num(np.asarray(accel, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    d = np.nan_to_num(np.asarray(steer, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    a_c = np.clip(a, -limits.max_brake, limits.max_accel)
+    d_c = np.clip(d, -limits.max_steer, limits.max_steer)
+    return a_c, d_c, bad | (a_c != a) | (d_c != d)
+
+
+def denormalise(action: np.ndarray, limits: BicycleLimits) -> tuple[np.ndarray, np.ndarray]:
+    """Map a (V, 2) action in [-1, 1]² — (accel, steer) — onto physical units.
+
+    Positive accel in [0, 1] scales ``max_accel``; negative scales ``max_brake``.
+    """
+    act = np.asarray(action, np.float64)
+    u = np.clip(act[:, 0], -1.0, 1.0)
+    accel = np.where(u >= 0, u * limits.max_accel, u * limits.max_brake)
+    return accel, np.clip(act[:, 1], -1.0, 1.0) * limits.max_steer
+
+
+def normalise(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits) -> np.ndarray:
+    """Inverse of :func:`denormalise`: (V, 2) in [-1, 1]²."""
+    a = np.asarray(accel, np.float64)
+    u = np.where(a >= 0, a / limits.max_accel, a / limits.max_brake)
+    return np.clip(np.stack([u, np.asarray(steer) / limits.max_steer], axis=1), -1.0, 1.0)
+
+
+def step(state: VehicleState, accel: np.ndarray, steer: np.ndarray, wheelbase: np.ndarray,
+         dt: float, limits: BicycleLimits | None) -> VehicleState:
+    """Advance every vehicle by one step.
+
+    :param limits: actions and speed are clipped to these first; None replays the actions as
+        given (expert log replay: recorded motion includes sensor noise no real car would need).
+    """
+    if limits is None:
+        a, d = np.asarray(accel, np.float64), np.asarray(steer, np.float64)
+        speed_next = state.speed + a * dt
+    else:
+        a, d, _ = clip_action(accel, steer, limits)
+        speed_next = np.clip(state.speed + a * dt, -limits.max_reverse_speed, limits.max_speed)
+    s = speed_next * dt
+    k = np.tan(d) / wheelbase
+    mid = state.yaw + 0.5 * k * s
+    return VehicleState(state.x + s * np.cos(mid), state.y + s * np.sin(mid),
+                        wrap_angle(state.yaw + k * s), speed_next)
+
+
+def inverse(state: VehicleState, x_next: np.ndarray, y_next: np.ndarray, wheelbase: np.ndarray,
+            dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The action that moves each vehicle from ``state`` to the target centre positions.
+
+    The chord to the target fixes the signed distance ``s`` (negative when the target lies
+    behind: reversing) and the mid-step heading, hence the curvature; the acceleration follows
+    from ``s = (speed + accel·dt)·dt``. :func:`step` without limits then lands exactly on the
+    target (up to steering angles below pi/2); with limits, the clipped action gets as close as
+    the limits allow.
+
+    :returns: (accel m/s², steer rad), unclipped.
+    """
+    dx, dy = x_next - state.x, y_next - state.y
+    dist = np.hypot(dx, dy)
+    chord = np.arctan2(dy, dx)
+    behind = np.cos(chord - state.yaw) < 0
+    s = np.where(behind, -dist, dist)
+    chord = np.where(behind, chord + np.pi, chord)
+    half_turn = wrap_angle(chord - state.yaw)
+    k = np.where(dist > 1e-6, 2.0 * half_turn / np.where(dist > 1e-6, s, 1.0), 0.0)
+    steer = np.arctan(k * wheelbase)
+    accel = (s / dt - state.speed) / dt
+    return accel, steer
