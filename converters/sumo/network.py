@@ -1,0 +1,107 @@
+"""Write a :class:`NetworkPlan` as plain XML (.nod/.edg/.con) and build ``<id>.net.xml``.
+
+Log coordinates are kept (``--offset.disable-normalization``). Junction types: signalled
+lanes make ``traffic_light`` nodes, stop-sign lanes make ``allway_stop`` nodes when every
+incoming edge has a stop sign and ``priority_stop`` otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+from magail_sumo.scene import Scene
+
+from .geometry import fmt_shape
+from .tools import run_tool
+from .topology import NetworkPlan
+
+NETCONVERT_OPTIONS = [
+    "--offset.disable-normalization", "true", "--no-turnarounds", "true",
+    "--junctions.corner-detail", "5", "--junctions.limit-turn-speed", "5.5",
+    "--tls.default-type", "static", "--geometry.remove", "false",
+    "--walkingareas", "false", "--crossings.guess", "false", "--sidewalks.guess", "false",
+    "--edges.join", "false", "--junctions.join", "false", "--no-internal-links", "false",
+    "--check-lane-foes.all", "true",
+]
+
+
+@dataclass
+class BuiltNetwork:
+    """Result of :func:`build_network`: the net file, node types and netconvert warnings."""
+
+    net_file: Path
+    plain_files: list[Path]
+    node_types: dict[str, str]
+    warnings: list[str]
+
+
+def node_types(scene: Scene, plan: NetworkPlan) -> dict[str, str]:
+    """SUMO junction type per node: traffic_light / allway_stop / priority_stop / priority."""
+    types = {n: "priority" for n in plan.nodes}
+    for lane in scene.signals.lanes.tolist():
+        if lane in plan.node_of_lane:
+            types[plan.node_of_lane[lane]] = "traffic_light"
+    stop_lanes = {l for s in scene.roadmap.stop_signs for l in s.lanes}
+    stopped_edges: set[str] = set()
+    for e in plan.edges:
+        if stop_lanes & set(e.lanes):
+            stopped_edges.add(e.id)
+    for c in plan.connections:
+        if stop_lanes & set(c.via):
+            stopped_edges.add(c.from_edge)
+    incoming: dict[str, set[str]] = {}
+    for e in plan.edges:
+        incoming.setdefault(e.to_node, set()).add(e.id)
+    for n, inc in incoming.items():
+        hit = inc & stopped_edges
+        if hit and types[n] != "traffic_light":
+            types[n] = "allway_stop" if hit == inc else "priority_stop"
+    return types
+
+
+def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[Path]:
+    """Write ``prefix``.nod.xml/.edg.xml/.con.xml; returns their paths."""
+    nod, edg, con = (Path(f"{prefix}.{k}.xml") for k in ("nod", "edg", "con"))
+    with open(nod, "w") as fh:
+        fh.write('<nodes>\n')
+        for n, (x, y) in plan.nodes.items():
+            fh.write(f'  <node id="{n}" x="{x:.2f}" y="{y:.2f}" type="{types.get(n, "priority")}"/>\n')
+        fh.write('</nodes>\n')
+    with open(edg, "w") as fh:
+        fh.write('<edges>\n')
+        for e in plan.edges:
+            allow = 'allow="bicycle"' if e.bike_only else 'disallow="pedestrian"'
+            centre = e.shapes[len(e.shapes) // 2]
+            fh.write(f'  <edge id="{e.id}" from="{e.from_node}" to="{e.to_node}" '
+                     f'numLanes="{len(e.lanes)}" speed="{e.speed:.2f}" {allow} '
+                     f'spreadType="center" shape="{fmt_shape(centre)}">\n')
+            for k, (shape, w) in enumerate(zip(e.shapes, e.widths)):
+                fh.write(f'    <lane index="{k}" width="{w:.2f}" shape="{fmt_shape(shape)}">'
+                         f'<param key="womd_lane" value="{e.lanes[k]}"/></lane>\n')
+            fh.write('  </edge>\n')
+        fh.write('</edges>\n')
+    with open(con, "w") as fh:
+        fh.write('<connections>\n')
+        for c in plan.connections:
+            shape = f' shape="{fmt_shape(c.shape)}"' if c.shape is not None else ""
+            fh.write(f'  <connection from="{c.from_edge}" to="{c.to_edge}" '
+                     f'fromLane="{c.from_lane}" toLane="{c.to_lane}"{shape}/>\n')
+        fh.write('</connections>\n')
+    return [nod, edg, con]
+
+
+def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path) -> BuiltNetwork:
+    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<id>.net.xml``."""
+    prefix = out_dir / scene.scenario_id
+    types = node_types(scene, plan)
+    plain = write_plain(plan, types, prefix)
+    net = Path(f"{prefix}.net.xml")
+    warnings = run_tool("netconvert", [
+        "--node-files", str(plain[0]), "--edge-files", str(plain[1]),
+        "--connection-files", str(plain[2]), "--output-file", str(net), *NETCONVERT_OPTIONS])
+    return BuiltNetwork(net, plain, types, warnings)
+
+
+_ = quoteattr  # ids are generated (letters and digits), no escaping needed

@@ -1,0 +1,200 @@
+"""Quality figures of a converted scene (definitions in conversion.json / issue 3).
+
+* on_network_rate: share of valid states of moving vehicles lying within half the lane width
+  + 0.5 m of a lane (junction-internal lanes included) whose direction is within 45° of the
+  vehicle heading.
+* route_rate: share of moving vehicles whose route is connected and covers >= 90 % of their
+  valid states (same test, restricted to the route's lanes and the internal lanes between).
+* signal_fidelity / sumo_baseline: from one SUMO run of the scenario (see :func:`run_baseline`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from magail_sumo.scene import ObjectType, Scene
+
+from .geometry import angle_diff, point_segment
+from .routes import PARKED_MOVE, VehicleRoute, moved_distance
+from .signals import CHAR_CLASS, STATE_CLASS, SignalPrograms
+
+MARGIN = 0.5  #: m beyond half the lane width
+MAX_ANGLE = np.radians(45.0)
+COVERAGE = 0.9
+
+
+@dataclass(frozen=True)
+class LaneSegments:
+    """All lane segments of a built network: ends (S, 2), half width + margin (S,), heading, edge."""
+
+    a: np.ndarray
+    b: np.ndarray
+    tol: np.ndarray
+    heading: np.ndarray
+    edge: np.ndarray  # (S,) edge id (internal edges start with ':')
+
+
+def lane_segments(net) -> LaneSegments:
+    """Segments of every lane (internal lanes included) of a sumolib net."""
+    a, b, tol, edge = [], [], [], []
+    for e in net.getEdges(withInternal=True):
+        for lane in e.getLanes():
+            shape = np.asarray(lane.getShape(), dtype=np.float64)[:, :2]
+            if len(shape) < 2:
+                continue
+            a.append(shape[:-1])
+            b.append(shape[1:])
+            tol.append(np.full(len(shape) - 1, lane.getWidth() / 2 + MARGIN))
+            edge.append(np.full(len(shape) - 1, e.getID(), dtype=object))
+    a_, b_ = np.concatenate(a), np.concatenate(b)
+    d = b_ - a_
+    return LaneSegments(a_, b_, np.concatenate(tol), np.arctan2(d[:, 1], d[:, 0]),
+                        np.concatenate(edge))
+
+
+def on_lanes(seg: LaneSegments, xy: np.ndarray, heading: np.ndarray,
+             mask: np.ndarray | None = None) -> np.ndarray:
+    """(M,) bool: point within tolerance of a segment (of ``mask``) heading within 45°."""
+    a, b, tol, hd = seg.a, seg.b, seg.tol, seg.heading
+    if mask is not None:
+        a, b, tol, hd = a[mask], b[mask], tol[mask], hd[mask]
+    out = np.zeros(len(xy), bool)
+    if not len(a):
+        return out
+    order = np.lexsort((xy[:, 1], xy[:, 0]))  # spatially coherent chunks for the bbox filter
+    slo, shi = np.minimum(a, b) - tol[:, None], np.maximum(a, b) + tol[:, None]
+    for lo in range(0, len(xy), 128):
+        rows = order[lo:lo + 128]
+        p, h = xy[rows], heading[rows]
+        near = np.flatnonzero(np.all((slo <= p.max(axis=0)) & (shi >= p.min(axis=0)), axis=1))
+        if not len(near):
+            continue
+        d, _ = point_segment(p, a[near], b[near])
+        ok = (d <= tol[near][None]) & (angle_diff(h[:, None], hd[near][None]) <= MAX_ANGLE)
+        out[rows] = ok.any(axis=1)
+    return out
+
+
+def moving_vehicles(scene: Scene) -> np.ndarray:
+    """Indices of vehicle tracks that move more than :data:`PARKED_MOVE` m."""
+    return np.flatnonzero((scene.tracks.type == ObjectType.VEHICLE)
+                          & (moved_distance(scene) > PARKED_MOVE))
+
+
+def on_network_rate(scene: Scene, seg: LaneSegments) -> float | None:
+    """See module docstring; None when there are no moving vehicles."""
+    tr = scene.tracks
+    idx = moving_vehicles(scene)
+    v = tr.valid[idx]
+    if not v.any():
+        return None
+    xy = np.stack([tr.x[idx][v], tr.y[idx][v]], axis=1)
+    return float(on_lanes(seg, xy, tr.heading[idx][v].astype(np.float64)).mean())
+
+
+def route_covers(scene: Scene, seg: LaneSegments, route: VehicleRoute, net) -> float:
+    """Share of the track's valid states on the route's lanes or its internal lanes."""
+    tr = scene.tracks
+    n = route.track
+    steps = np.flatnonzero(tr.valid[n])
+    names = set(route.edges)
+    for a, b in zip(route.edges[:-1], route.edges[1:]):
+        for c in net.getEdge(a).getOutgoing().get(net.getEdge(b), []):
+            via = c.getViaLaneID()
+            while via:
+                names.add(via.rsplit("_", 1)[0])
+                lane = net.getLane(via)
+                nxt = lane.getOutgoing()
+                via = nxt[0].getViaLaneID() if nxt and nxt[0].getViaLaneID() else ""
+    mask = np.isin(seg.edge, list(names))
+    xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+    return float(on_lanes(seg, xy, tr.heading[n, steps].astype(np.float64), mask).mean())
+
+
+def route_rate(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net) -> float | None:
+    """See module docstring; None when there are no moving vehicles."""
+    moving = moving_vehicles(scene)
+    if not len(moving):
+        return None
+    by_track = {r.track: r for r in routes}
+    good = 0
+    for n in moving.tolist():
+        r = by_track.get(n)
+        if r is not None and r.connected and route_covers(scene, seg, r, net) >= COVERAGE:
+            good += 1
+    return good / len(moving)
+
+
+@dataclass
+class Baseline:
+    """Outcome of one SUMO run of the scenario."""
+
+    ade: float | None  # m, mean over valid states while simulated
+    fde: float | None  # m, mean over vehicles at their last valid simulated step
+    collisions: int
+    teleports: int
+    signal_fidelity: float | None
+
+
+def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
+                 programs: SignalPrograms | None) -> Baseline:
+    """Run ``sumo -c cfg`` in libsumo for the scene's duration; compare with the log.
+
+    Positions: SUMO reports the front bumper; the box centre is half a length behind it.
+    Timing: a vehicle departing at ``k * dt`` is placed during the step from ``k * dt``, so
+    after ``k + 1`` steps the simulation shows log step ``k`` (the signal programs hold their
+    first state one extra step to match).
+    """
+    import libsumo as ls
+
+    tr = scene.tracks
+    steps = scene.num_steps
+    known = {r.id: r for r in routes if not r.parked}
+    sim_xy = {vid: np.full((steps, 2), np.nan) for vid in known}
+    has_signals = bool(scene.signals.known().any())
+    hits = total = 0
+    collisions = teleports = 0
+    ls.start(["sumo", "-c", cfg, "--no-step-log", "true", "--no-warnings", "true",
+              "--collision.action", "warn"])
+    try:
+        for k in range(steps):  # after k + 1 steps SUMO shows the state of log step k
+            ls.simulationStep()
+            collisions += ls.simulation.getCollidingVehiclesNumber()
+            teleports += ls.simulation.getStartingTeleportNumber()
+            for vid in ls.vehicle.getIDList():
+                if vid in sim_xy:
+                    x, y = ls.vehicle.getPosition(vid)
+                    ang = np.radians(90.0 - ls.vehicle.getAngle(vid))
+                    half = known[vid].length / 2
+                    sim_xy[vid][k] = (x - half * np.cos(ang), y - half * np.sin(ang))
+            if has_signals:
+                tls_state = {t: ls.trafficlight.getRedYellowGreenState(t)
+                             for t in (programs.states if programs else ())}
+                rec = scene.signals.at_step(k)
+                for lane, st in zip(rec.lane.tolist(), rec.state.tolist()):
+                    if st == 0:
+                        continue
+                    total += 1
+                    links = programs.lane_links.get(lane, []) if programs else []
+                    if links and all(CHAR_CLASS.get(tls_state[t][i]) == STATE_CLASS[st]
+                                     for t, i in links):
+                        hits += 1
+    finally:
+        ls.close()
+    errs, finals = [], []
+    for vid, r in known.items():
+        n = r.track
+        sim = sim_xy[vid]
+        ok = tr.valid[n] & ~np.isnan(sim[:, 0])
+        if not ok.any():
+            continue
+        e = np.hypot(sim[ok, 0] - tr.x[n, ok], sim[ok, 1] - tr.y[n, ok])
+        errs.append(e)
+        last = np.flatnonzero(ok)[-1]  # last valid step the vehicle is still simulated
+        finals.append(float(np.hypot(sim[last, 0] - tr.x[n, last], sim[last, 1] - tr.y[n, last])))
+    ade = float(np.concatenate(errs).mean()) if errs else None
+    fde = float(np.mean(finals)) if finals else None
+    fid = hits / total if total else None
+    return Baseline(ade, fde, collisions, teleports, fid)

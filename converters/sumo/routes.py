@@ -1,0 +1,226 @@
+"""Vehicle and cyclist routes from map-matched tracks; parked vehicles; unconverted objects.
+
+A track's matched WOMD lanes become the SUMO edges that carry them; gaps between consecutive
+edges are closed with the shortest path in the built network when one exists. Departure is
+at the first matched valid step with lane, front-bumper position and speed from that state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from magail_sumo.scene import ObjectType, Scene
+
+from sumolib.geomhelper import polygonOffsetWithMinimumDistanceToPoint
+
+from .matching import LaneIndex, match_track
+from .topology import NetworkPlan
+
+PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked
+#: SUMO insertion checks kept: all but the speed limit (recorded speeds may exceed it).
+CHECKS = "collision leaderGap followerGap stop"
+MAX_DETOUR = 150.0  #: m, longest shortest-path filler between two matched edges
+
+
+@dataclass
+class VehicleRoute:
+    """One converted track: SUMO route edges and departure state."""
+
+    track: int  # index into scene.tracks
+    id: str
+    vclass: str
+    length: float
+    width: float
+    edges: list[str]
+    depart_step: int
+    depart_lane: int
+    depart_pos: float  # m, front bumper along the first edge's lane
+    depart_speed: float  # m/s
+    connected: bool
+    parked: bool
+    depart_edge: int = 0  # index into edges where the vehicle departs
+    speed_factor: float = 1.0  # desired speed / speed limit, from the recorded speeds
+    matched: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  # lane per valid step
+
+
+def moved_distance(scene: Scene) -> np.ndarray:
+    """(N,) largest distance (m) of any valid state from the track's first valid state."""
+    tr = scene.tracks
+    first = np.argmax(tr.valid, axis=1)
+    n = np.arange(tr.num_tracks)
+    dx = np.where(tr.valid, tr.x - tr.x[n, first][:, None], 0.0)
+    dy = np.where(tr.valid, tr.y - tr.y[n, first][:, None], 0.0)
+    return np.hypot(dx, dy).max(axis=1) if tr.num_steps else np.zeros(tr.num_tracks)
+
+
+def _piece(plan: NetworkPlan, lane: int, pos: float) -> tuple[str, int, float] | None:
+    """(edge, lane index, position on the piece in m) of a road lane position; None in junctions."""
+    pieces = plan.lane_edges.get(lane)
+    if not pieces:
+        return None
+    for edge, idx, s0, s1 in pieces:
+        if pos <= s1 + 1e-6:
+            return edge, idx, max(pos - s0, 0.0)
+    edge, idx, s0, s1 = pieces[-1]
+    return edge, idx, s1 - s0
+
+
+def _junction_connection(plan: NetworkPlan, lane: int, from_edge: str | None = None,
+                         to_edge: str | None = None):
+    """The connection whose junction lanes include ``lane`` (preferring the given ends)."""
+    cands = [c for c in plan.connections if lane in c.via]
+    for c in cands:
+        if (from_edge is None or c.from_edge == from_edge) and (to_edge is None or c.to_edge == to_edge):
+            return c
+    return cands[0] if cands else None
+
+
+def _connect(net, edges: list[str]) -> tuple[list[str], bool]:
+    """Close gaps between consecutive edges with shortest paths; (edges, all connected)."""
+    out = [edges[0]]
+    ok = True
+    for nxt in edges[1:]:
+        cur = net.getEdge(out[-1])
+        tgt = net.getEdge(nxt)
+        if tgt in cur.getOutgoing():
+            out.append(nxt)
+            continue
+        path, cost = net.getShortestPath(cur, tgt, maxCost=MAX_DETOUR)
+        if path:
+            out.extend(e.getID() for e in path[1:])
+        else:
+            ok = False
+            out.append(nxt)
+    return out, ok
+
+
+def _longest_connected(net, edges: list[str]) -> list[str]:
+    """The longest run of ``edges`` in which each edge leads to the next."""
+    best, run = [], [edges[0]]
+    for a, b in zip(edges[:-1], edges[1:]):
+        if net.getEdge(b) in net.getEdge(a).getOutgoing():
+            run.append(b)
+        else:
+            best, run = max(best, run, key=len), [b]
+    return max(best, run, key=len)
+
+
+def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bike: LaneIndex,
+                 net) -> tuple[list[VehicleRoute], list[dict]]:
+    """Routes for every vehicle and cyclist track; the rest listed as unconverted."""
+    tr = scene.tracks
+    moved = moved_distance(scene)
+    routes: list[VehicleRoute] = []
+    unconverted: list[dict] = []
+    for n in range(tr.num_tracks):
+        kind = ObjectType(int(tr.type[n]))
+        tid = int(tr.id[n])
+        if kind == ObjectType.PEDESTRIAN:
+            unconverted.append({"kind": "pedestrian", "id": tid,
+                                "reason": "network has no sidewalks or crossings to walk on"})
+            continue
+        if kind not in (ObjectType.VEHICLE, ObjectType.CYCLIST):
+            unconverted.append({"kind": kind.name.lower(), "id": tid,
+                                "reason": "object type is not simulated"})
+            continue
+        steps = np.flatnonzero(tr.valid[n])
+        if not len(steps):
+            unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": "no valid state"})
+            continue
+        xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+        heading = tr.heading[n, steps].astype(np.float64)
+        m = match_track(index_bike if kind == ObjectType.CYCLIST else index_car, xy, heading, steps)
+        pieces = [_piece(plan, int(lane), float(pos)) if lane >= 0 else None
+                  for lane, pos in zip(m.lane, m.pos)]
+        matched = np.flatnonzero(m.lane >= 0)
+        if not len(matched):
+            why = "parked off the lane network" if moved[n] < PARKED_MOVE else \
+                "no state matches a lane (distance and heading)"
+            unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": why})
+            continue
+        parked = moved[n] < PARKED_MOVE
+        seq: list[str] = []
+        for p in pieces:
+            if p is not None and (not seq or seq[-1] != p[0]):
+                seq.append(p[0])
+        first = int(matched[0])
+        head = tail = None
+        if int(m.lane[first]) in plan.junction_lanes:  # starts inside a junction
+            head = _junction_connection(plan, int(m.lane[first]), to_edge=seq[0] if seq else None)
+        last_lane = int(m.lane[matched[-1]])
+        if last_lane in plan.junction_lanes and not parked:
+            tail = _junction_connection(plan, last_lane, from_edge=seq[-1] if seq else None)
+        if head is not None and (not seq or seq[0] != head.from_edge):
+            seq.insert(0, head.from_edge)
+        if not seq and tail is not None:
+            seq.append(tail.from_edge)
+        if tail is not None and seq[-1] != tail.to_edge:
+            seq.append(tail.to_edge)
+        if not seq:
+            unconverted.append({"kind": kind.name.lower(), "id": tid,
+                                "reason": "matched junction lanes belong to no connection"})
+            continue
+        if parked:
+            seq = seq[:1]
+        edges, connected = _connect(net, seq)
+        if not connected:
+            edges = _longest_connected(net, edges)
+        depart_edge = 0
+        first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[0]), None)
+        if first is None and head is not None and edges[0] == head.from_edge and len(edges) > 1:
+            # starts inside a junction: keep the incoming edge in the route, depart on the next
+            # edge when the vehicle reaches it
+            depart_edge = 1
+            first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[1]),
+                         None)
+        length = float(np.median(tr.length[n, steps]))
+        width = float(np.median(tr.width[n, steps]))
+        if first is not None:
+            edge0, lane0 = pieces[first][:2]
+            st = steps[first]
+            front = xy[first] + length / 2 * np.array([np.cos(heading[first]), np.sin(heading[first])])
+            shape = net.getLane(f"{edge0}_{lane0}").getShape()
+            pos0 = polygonOffsetWithMinimumDistanceToPoint(tuple(front), shape)
+        elif head is not None and edges[0] == head.from_edge:  # whole track inside the junction
+            edge0, lane0 = head.from_edge, head.from_lane
+            st = steps[matched[0]]
+            pos0 = net.getLane(f"{edge0}_{lane0}").getLength()
+        else:
+            unconverted.append({"kind": kind.name.lower(), "id": tid,
+                                "reason": "no connected route through the matched lanes"})
+            continue
+        lane_len = net.getLane(f"{edge0}_{lane0}").getLength()
+        speed = float(np.hypot(tr.vx[n, st], tr.vy[n, st]))
+        speeds = np.hypot(tr.vx[n, steps], tr.vy[n, steps])
+        limit = net.getEdge(edge0).getSpeed()
+        factor = float(np.clip(np.quantile(speeds, 0.95) / max(limit, 0.1), 1.0, 2.0))
+        routes.append(VehicleRoute(
+            track=n, id=str(tid), vclass="bicycle" if kind == ObjectType.CYCLIST else "passenger",
+            length=max(length, 0.5), width=max(width, 0.3), edges=edges, depart_step=int(st),
+            depart_lane=lane0, depart_pos=float(np.clip(pos0, 0.1, lane_len)), depart_edge=depart_edge,
+            depart_speed=0.0 if parked else speed, connected=connected, parked=parked,
+            speed_factor=factor, matched=m.lane))
+    return routes, unconverted
+
+
+def write_routes(path: Path, routes: list[VehicleRoute], dt: float, end_time: float) -> None:
+    """Write vTypes (one per track), vehicles sorted by departure, and parking stops."""
+    routes = sorted(routes, key=lambda r: (r.depart_step, r.id))
+    with open(path, "w") as fh:
+        fh.write("<routes>\n")
+        for r in routes:
+            fh.write(f'  <vType id="t{r.id}" vClass="{r.vclass}" length="{r.length:.2f}" '
+                     f'width="{r.width:.2f}" minGap="1.0" speedFactor="{r.speed_factor:.2f}"/>\n')
+        for r in routes:
+            fh.write(f'  <vehicle id="{r.id}" type="t{r.id}" depart="{r.depart_step * dt:.1f}" '
+                     f'departEdge="{r.depart_edge}" departLane="{r.depart_lane}" departPos="{r.depart_pos:.2f}" insertionChecks="{CHECKS}" '
+                     f'departSpeed="{r.depart_speed:.2f}">\n')
+            fh.write(f'    <route edges="{" ".join(r.edges)}"/>\n')
+            if r.parked:
+                fh.write(f'    <stop lane="{r.edges[r.depart_edge]}_{r.depart_lane}" endPos="{r.depart_pos:.2f}" '
+                         f'until="{end_time + 1:.1f}" parking="true"/>\n')
+            fh.write("  </vehicle>\n")
+        fh.write("</routes>\n")

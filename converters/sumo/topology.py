@@ -1,0 +1,339 @@
+"""Plan a SUMO network from WOMD lanes: junction lanes, nodes, multi-lane edges, connections.
+
+In-junction lanes (interpolating, signalled, or crossing another lane at > 20°) that lie on a
+path between two road lanes become connections with their own shapes; every other lane is
+part of an edge. Road lanes that share start and end nodes and are neighbours form one
+multi-lane edge (lane 0 = rightmost). Coordinates stay in the scene frame (m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magail_sumo.scene import Lane, LaneType, Scene
+
+from .geometry import angle_diff, length, resample, segments, segments_cross, simplify
+
+#: Default speeds (m/s) by lane type where the log has none.
+DEFAULT_SPEED = {LaneType.UNDEFINED: 13.89, LaneType.FREEWAY: 29.06,
+                 LaneType.SURFACE_STREET: 13.89, LaneType.BIKE_LANE: 5.56}
+DEFAULT_WIDTH = 3.6  #: m, road lanes without a measurable neighbour distance
+BIKE_WIDTH = 1.8  #: m
+CROSS_ANGLE = np.radians(20.0)
+MAX_VIA = 4  #: longest chain of junction lanes folded into one connection
+MIN_PIECE = 4.0  #: m, shortest edge piece cut out of a lane at a neighbour boundary
+
+
+@dataclass
+class EdgePlan:
+    """One SUMO edge: WOMD lanes right (index 0) to left, each with its shape (P, 3)."""
+
+    id: str
+    from_node: str
+    to_node: str
+    lanes: list[int]
+    shapes: list[np.ndarray]
+    widths: list[float]
+    speed: float
+    bike_only: bool
+
+
+@dataclass
+class ConnectionPlan:
+    """A SUMO connection from (edge, lane) to (edge, lane) through WOMD junction lanes ``via``."""
+
+    from_edge: str
+    from_lane: int
+    to_edge: str
+    to_lane: int
+    via: tuple[int, ...]
+    shape: np.ndarray | None  # (P, 3) in-junction shape, None for a plain lane continuation
+
+
+@dataclass
+class NetworkPlan:
+    """All that the plain-XML writer needs, plus the WOMD lane -> SUMO element maps."""
+
+    nodes: dict[str, np.ndarray]  # node id -> (x, y)
+    edges: list[EdgePlan]
+    connections: list[ConnectionPlan]
+    lane_edges: dict[int, list[tuple[str, int, float, float]]]  # road lane -> [(edge, index, s0, s1)]
+    junction_lanes: set[int]
+    node_of_lane: dict[int, str]  # lane -> the node it ends in (road) or crosses (junction)
+    unconverted: list[dict] = field(default_factory=list)
+
+
+class _UnionFind:
+    def __init__(self) -> None:
+        self.parent: dict = {}
+
+    def find(self, k):
+        self.parent.setdefault(k, k)
+        while self.parent[k] != k:
+            self.parent[k] = self.parent[self.parent[k]]
+            k = self.parent[k]
+        return k
+
+    def union(self, a, b) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            self.parent[rb] = ra
+
+
+def _crossing_lanes(lanes: dict[int, Lane]) -> set[int]:
+    """Lanes that properly cross another lane at more than :data:`CROSS_ANGLE`."""
+    ids = list(lanes)
+    a, b, owner = segments([simplify(lanes[i].polyline, 2.0) for i in ids])
+    d = b - a
+    ang = np.arctan2(d[:, 1], d[:, 0])
+    lo = np.minimum(a, b)
+    hi = np.maximum(a, b)
+    n = len(ids)
+    blo = np.full((n, 2), np.inf)
+    bhi = np.full((n, 2), -np.inf)
+    np.minimum.at(blo, owner, lo)
+    np.maximum.at(bhi, owner, hi)
+    overlap = np.all((blo[:, None] <= bhi[None]) & (blo[None] <= bhi[:, None]), axis=2)
+    out: set[int] = set()
+    for k in range(n):
+        others = np.flatnonzero(overlap[k])
+        others = others[others > k]
+        if not len(others):
+            continue
+        mine = owner == k
+        theirs = np.isin(owner, others)
+        hit = segments_cross(a[mine], b[mine], a[theirs], b[theirs])
+        i, j = np.nonzero(hit)
+        keep = angle_diff(ang[mine][i], ang[theirs][j]) > CROSS_ANGLE
+        if keep.any():
+            out.add(ids[k])
+            out.update(ids[m] for m in np.unique(owner[theirs][j[keep]]))
+    return out
+
+
+def _lane_width(lane: Lane, lanes: dict[int, Lane]) -> float:
+    """Width (m) from the distance to a same-direction neighbour at mid-lane, else a default."""
+    if lane.type == LaneType.BIKE_LANE:
+        return BIKE_WIDTH
+    p = lane.polyline[len(lane.polyline) // 2, :2]
+    dists = []
+    for nb in lane.left_neighbors + lane.right_neighbors:
+        other = lanes.get(nb.feature_id)
+        if other is not None:
+            dists.append(np.min(np.linalg.norm(other.polyline[:, :2] - p, axis=1)))
+    return float(np.clip(min(dists), 2.8, 4.5)) if dists else DEFAULT_WIDTH
+
+
+def plan_network(scene: Scene) -> NetworkPlan:
+    """Turn the scene's lanes into nodes, edges and connections (no lane silently dropped)."""
+    unconverted: list[dict] = []
+    lanes: dict[int, Lane] = {}
+    for lane in scene.roadmap.lanes:
+        if len(lane.polyline) < 2 or length(lane.polyline) < 0.1:
+            unconverted.append({"kind": "lane", "id": int(lane.id), "reason": "degenerate polyline"})
+        else:
+            lanes[lane.id] = lane
+    exits = {i: [e for e in l.exit_lanes if e in lanes and e != i] for i, l in lanes.items()}
+    entries = {i: [e for e in l.entry_lanes if e in lanes and e != i] for i, l in lanes.items()}
+    for i in lanes:  # make the relation symmetric
+        for e in exits[i]:
+            if i not in entries[e]:
+                entries[e].append(i)
+        for e in entries[i]:
+            if i not in exits[e]:
+                exits[e].append(i)
+    signalled = set(scene.signals.lanes.tolist()) & set(lanes)
+    junction = {i for i, l in lanes.items() if l.interpolating} | signalled | _crossing_lanes(lanes)
+    junction = {i for i in junction if entries[i] and exits[i]}
+
+    def paths_from(start: int) -> list[tuple[int, tuple[int, ...]]]:
+        """(road lane reached, junction lanes passed) for every junction path leaving ``start``."""
+        out, stack = [], [(e, (e,)) for e in exits[start] if e in junction]
+        while stack:
+            lane, via = stack.pop()
+            for nxt in exits[lane]:
+                if nxt not in junction:
+                    out.append((nxt, via))
+                elif nxt not in via and len(via) < MAX_VIA:
+                    stack.append((nxt, via + (nxt,)))
+        return out
+
+    # junction lanes on no road-to-road path become road lanes, until stable
+    while True:
+        used: set[int] = set()
+        for i in lanes:
+            if i not in junction:
+                for _, via in paths_from(i):
+                    used.update(via)
+        if used == junction:
+            break
+        junction = used
+    road = [i for i in lanes if i not in junction]
+    jpaths = {i: sorted(paths_from(i), key=lambda p: len(p[1])) for i in road}
+    arc = {i: _arc(lanes[i].polyline) for i in road}
+    cuts, snap = _breakpoints(lanes, road, junction, arc)
+
+    uf = _UnionFind()
+    for i in road:
+        last = len(lanes[i].polyline) - 1
+        for c in cuts[i]:
+            uf.find((i, c))
+        for e in exits[i]:
+            if e not in junction:
+                uf.union((i, last), (e, 0))
+        for target, _ in jpaths[i]:
+            uf.union((i, last), (target, 0))
+        for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
+            j = nb.feature_id
+            if j in arc:
+                uf.union((i, snap(i, nb.self_start_index)), (j, snap(j, nb.neighbor_start_index)))
+                uf.union((i, snap(i, nb.self_end_index)), (j, snap(j, nb.neighbor_end_index)))
+    members: dict = {}
+    for i in road:
+        for c in cuts[i]:
+            members.setdefault(uf.find((i, c)), []).append(lanes[i].polyline[c, :2])
+    node_name = {root: f"n{n}" for n, root in enumerate(members)}
+    nodes = {node_name[r]: np.mean(pts, axis=0) for r, pts in members.items()}
+
+    def node(i: int, c: int) -> str:
+        return node_name[uf.find((i, c))]
+
+    # pieces between consecutive cut points; split a piece that starts and ends in one node
+    pieces: list[tuple[int, int, int, str, str]] = []  # lane, i0, i1, from, to
+    for i in road:
+        cs = cuts[i]
+        for i0, i1 in zip(cs[:-1], cs[1:]):
+            a, b = node(i, i0), node(i, i1)
+            if a != b:
+                pieces.append((i, i0, i1, a, b))
+            else:
+                h = (i0 + i1) // 2 if i1 - i0 >= 2 else i0
+                mid = f"m{i}_{i0}"
+                nodes[mid] = lanes[i].polyline[h, :2] if h != i0 else \
+                    lanes[i].polyline[i0:i1 + 1, :2].mean(axis=0)
+                pieces.append((i, i0, h, a, mid) if h != i0 else (i, i0, i1, a, mid))
+                if h != i0:
+                    pieces.append((i, h, i1, mid, b))
+    # group neighbouring pieces with equal end nodes into multi-lane edges
+    nbrs = {i: {nb.feature_id for nb in lanes[i].left_neighbors + lanes[i].right_neighbors}
+            for i in road}
+    by_nodes: dict[tuple[str, str], list[int]] = {}
+    for k, (i, _, _, a, b) in enumerate(pieces):
+        by_nodes.setdefault((a, b), []).append(k)
+    guf = _UnionFind()
+    for ks in by_nodes.values():
+        for k in ks:
+            guf.find(k)
+            for m in ks:
+                li, lm = pieces[k][0], pieces[m][0]
+                if m > k and lm in nbrs[li] and \
+                        (lanes[li].type == LaneType.BIKE_LANE) == (lanes[lm].type == LaneType.BIKE_LANE):
+                    guf.union(k, m)
+    groups: dict[int, list[int]] = {}
+    for k in range(len(pieces)):
+        groups.setdefault(guf.find(k), []).append(k)
+
+    edges: list[EdgePlan] = []
+    piece_edge: dict[int, tuple[str, int]] = {}
+    for ks in groups.values():
+        shapes_full = {k: lanes[pieces[k][0]].polyline[pieces[k][1]:pieces[k][2] + 1] for k in ks}
+        ref = shapes_full[ks[0]][:, :2]
+        r = resample(ref, 3)
+        tangent = (r[2] - r[0]) / max(float(np.linalg.norm(r[2] - r[0])), 1e-9)
+
+        def lateral(k: int) -> float:
+            p = resample(shapes_full[k][:, :2], 3)[1] - r[1]
+            return float(tangent[0] * p[1] - tangent[1] * p[0])  # left positive
+        ks.sort(key=lateral)
+        ids_ = [pieces[k][0] for k in ks]
+        speeds = [lanes[i].speed_limit for i in ids_ if lanes[i].speed_limit > 0]
+        speed = max(speeds) if speeds else DEFAULT_SPEED[LaneType(lanes[ids_[0]].type)]
+        bike = all(lanes[i].type == LaneType.BIKE_LANE for i in ids_)
+        eid = f"e{ids_[0]}" + (f"p{pieces[ks[0]][1]}" if pieces[ks[0]][1] or
+                               pieces[ks[0]][2] != len(lanes[ids_[0]].polyline) - 1 else "")
+        edges.append(EdgePlan(eid, pieces[ks[0]][3], pieces[ks[0]][4], ids_,
+                              [simplify(shapes_full[k], 2.0) for k in ks],
+                              [_lane_width(lanes[i], lanes) for i in ids_], speed, bike))
+        for idx, k in enumerate(ks):
+            piece_edge[k] = (eid, idx)
+    lane_edges: dict[int, list[tuple[str, int, float, float]]] = {}
+    for k, (i, i0, i1, _, _) in enumerate(pieces):
+        lane_edges.setdefault(i, []).append((*piece_edge[k], float(arc[i][i0]), float(arc[i][i1])))
+
+    connections: list[ConnectionPlan] = []
+    seen: set[tuple] = set()
+    represented: set[int] = set()
+
+    def connect(f: tuple, t: tuple, via: tuple[int, ...], shape) -> bool:
+        key = (f[0], f[1], t[0], t[1])
+        if key in seen:
+            return False
+        seen.add(key)
+        connections.append(ConnectionPlan(f[0], f[1], t[0], t[1], via, shape))
+        return True
+
+    for i in road:
+        chain = lane_edges[i]
+        for f, t in zip(chain[:-1], chain[1:]):
+            connect(f, t, (), None)
+        for e in exits[i]:
+            if e not in junction:
+                connect(chain[-1], lane_edges[e][0], (), None)
+        for target, via in jpaths[i]:
+            shape = simplify(np.concatenate([lanes[v].polyline for v in via]), 2.0)
+            if connect(chain[-1], lane_edges[target][0], via, shape):
+                represented.update(via)
+    edge_by_id = {e.id: e for e in edges}
+    node_of_lane: dict[int, str] = {i: edge_by_id[lane_edges[i][-1][0]].to_node for i in road}
+    for c in connections:
+        for v in c.via:
+            node_of_lane.setdefault(v, edge_by_id[c.from_edge].to_node)
+    for j in sorted(junction - represented):
+        unconverted.append({"kind": "lane", "id": int(j),
+                            "reason": "junction lane duplicates another connection between the same lanes"})
+    return NetworkPlan(nodes, edges, connections, lane_edges, junction, node_of_lane, unconverted)
+
+
+def _arc(points: np.ndarray) -> np.ndarray:
+    """Cumulative arc length (m) at each polyline point."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1))])
+
+
+def _breakpoints(lanes: dict[int, Lane], road: list[int], junction: set[int],
+                 arc: dict[int, np.ndarray]):
+    """Cut indices per road lane (ends + where neighbours start/end, >= MIN_PIECE m apart)
+    and ``snap(lane, index)`` giving the kept cut nearest to an index."""
+    cuts: dict[int, list[int]] = {}
+    for i in road:
+        last = len(lanes[i].polyline) - 1
+        cand = {0, last}
+        for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
+            if nb.feature_id in arc:
+                cand.update((nb.self_start_index, nb.self_end_index))
+        cuts[i] = sorted(c for c in cand if 0 <= c <= last)
+    for i in road:  # the neighbour's side of every relation is a cut of the neighbour too
+        for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
+            j = nb.feature_id
+            if j in arc:
+                last = len(lanes[j].polyline) - 1
+                cuts[j] = sorted(set(cuts[j]) | {min(max(nb.neighbor_start_index, 0), last),
+                                                 min(max(nb.neighbor_end_index, 0), last)})
+    kept: dict[int, np.ndarray] = {}
+    for i in road:
+        s, last = arc[i], len(lanes[i].polyline) - 1
+        keep = [0]
+        for c in cuts[i]:
+            if s[c] - s[keep[-1]] >= MIN_PIECE and s[last] - s[c] >= MIN_PIECE:
+                keep.append(c)
+        keep.append(last)
+        kept[i] = np.array(keep)
+        cuts[i] = keep
+
+    def snap(i: int, index: int) -> int:
+        s = arc[i]
+        index = min(max(index, 0), len(s) - 1)
+        k = kept[i]
+        return int(k[np.argmin(np.abs(s[k] - s[index]))])
+    return cuts, snap
