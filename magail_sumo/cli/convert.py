@@ -27,6 +27,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _fmt(value: object, spec: str = ".3f") -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def format_quality(scenario_id: str, q: dict, folder: Path) -> str:
+    """The quality report of one converted scene, as printed by the command."""
+    base = q.get("sumo_baseline") or {}
+    return "\n".join([
+        f"{scenario_id}: converted -> {folder}",
+        f"  on_network_rate     {_fmt(q.get('on_network_rate'))}   (bar >= 0.98)",
+        f"  route_rate          {_fmt(q.get('route_rate'))}   (bar >= 0.95)",
+        f"  signal_fidelity     {_fmt(q.get('signal_fidelity'))}   (bar >= 0.99; n/a without signals)",
+        f"  netconvert_warnings {q.get('netconvert_warnings')}",
+        f"  SUMO baseline       ADE {_fmt(base.get('ade'), '.2f')} m, FDE {_fmt(base.get('fde'), '.2f')} m, "
+        f"{base.get('collisions')} collisions, {base.get('teleports')} teleports",
+    ])
+
+
 def run(args: argparse.Namespace) -> int:
     from converters.sumo.batch import convert_files, write_summary
     from converters.sumo.scenario import ConvertOptions
@@ -38,9 +56,8 @@ def run(args: argparse.Namespace) -> int:
                         desc="scenes", unit="scene"):
         rows.append(row)
         if row.status == "ok":
-            q = row.quality
-            print(f"{row.scenario_id}: ok on_network={q['on_network_rate']} "
-                  f"route={q['route_rate']} signal={q['signal_fidelity']}", flush=True)
+            print(format_quality(row.scenario_id, row.quality, args.out / row.scenario_id),
+                  flush=True)
         else:
             print(f"error: {row.reason}", file=sys.stderr, flush=True)
             if not args.skip_bad:
