@@ -1,0 +1,220 @@
+"""One SUMO simulation driven in-process through libsumo.
+
+libsumo runs one simulation per process; :class:`SumoSession` enforces that and wraps every
+SUMO failure into :class:`SimulationError` (a clear one-line message, never a hang). Bulk
+vehicle state comes from libsumo subscriptions, returned as arrays in the scene frame
+(see :mod:`magail_sumo.sim.frames`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.sim.frames import centre_to_front, front_to_centre, sumo_angle_to_yaw, yaw_to_sumo_angle
+
+
+STEP_LENGTH = 0.1  #: s, the WOMD log rate
+
+
+class SimulationError(MagailSumoError):
+    """SUMO could not start or failed during a run."""
+
+
+def _libsumo():
+    import libsumo  # imported lazily: it loads the SUMO shared library
+
+    return libsumo
+
+
+@dataclass(frozen=True)
+class VehicleArrays:
+    """Vehicles present in SUMO at one step (V = number of vehicles), scene frame.
+
+    :param ids: SUMO vehicle ids.
+    :param x, y: (V,) box centre (m).
+    :param yaw: (V,) heading (rad, CCW from +x).
+    :param speed: (V,) m/s.
+    :param length, width: (V,) m.
+    :param edge: road (edge) id of each vehicle ("" when off the network).
+    """
+
+    ids: tuple[str, ...]
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    speed: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    edge: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass
+class SessionConfig:
+    """How SUMO is started.
+
+    :param step_length: seconds per step.
+    :param seed: SUMO's random seed.
+    :param time_to_teleport: -1 disables SUMO's teleporting of jammed vehicles.
+    :param collision_action: SUMO's reaction to collisions ("warn": report, keep both).
+    :param extra_args: further SUMO command-line options.
+    """
+
+    step_length: float = STEP_LENGTH
+    seed: int = 0
+    time_to_teleport: float = -1
+    collision_action: str = "warn"
+    extra_args: Sequence[str] = field(default_factory=tuple)
+
+
+_ACTIVE: list["SumoSession"] = []
+_SUBSCRIBED_VARS: tuple[int, ...] = ()
+
+
+class SumoSession:
+    """A running SUMO simulation of a ``.sumocfg`` (or a net file plus route files).
+
+    Use as a context manager, or call :meth:`start` / :meth:`close`.
+    """
+
+    def __init__(self, sumocfg: str | Path | None = None, *, net: str | Path | None = None,
+                 routes: Sequence[str | Path] = (), config: SessionConfig | None = None) -> None:
+        if sumocfg is None and net is None:
+            raise ValueError("give a .sumocfg or a net file")
+        self.sumocfg = Path(sumocfg) if sumocfg is not None else None
+        self.net = Path(net) if net is not None else None
+        self.routes = [Path(r) for r in routes]
+        self.config = config or SessionConfig()
+        self.time = 0.0
+        self._running = False
+
+    # ------------------------------------------------------------------ lifecycle
+    def command(self) -> list[str]:
+        """The SUMO command line this session starts."""
+        cfg = self.config
+        cmd = ["sumo"]
+        if self.sumocfg is not None:
+            cmd += ["-c", str(self.sumocfg)]
+        if self.net is not None:
+            cmd += ["-n", str(self.net)]
+        if self.routes:
+            cmd += ["-r", ",".join(str(r) for r in self.routes)]
+        cmd += ["--step-length", str(cfg.step_length), "--seed", str(cfg.seed),
+                "--time-to-teleport", str(cfg.time_to_teleport),
+                "--collision.action", cfg.collision_action, "--no-step-log", "true",
+                "--no-warnings", "true", *cfg.extra_args]
+        return cmd
+
+    def _check_inputs(self) -> None:
+        for label, path in (("config", self.sumocfg), ("network", self.net),
+                            *(("routes", r) for r in self.routes)):
+            if path is not None and not path.is_file():
+                raise SimulationError(f"{path}: SUMO {label} file not found")
+
+    def start(self) -> "SumoSession":
+        if self._running:
+            return self
+        if _ACTIVE:
+            raise SimulationError("a SUMO simulation is already running in this process "
+                                  "(libsumo allows one; use one worker process per simulation)")
+        self._check_inputs()
+        ls = _libsumo()
+        try:
+            ls.start(self.command())
+        except Exception as exc:  # libsumo raises its own exception types
+            target = self.sumocfg or self.net
+            raise SimulationError(f"{target}: SUMO failed to start: {_one_line(exc)}") from None
+        self._running = True
+        _ACTIVE.append(self)
+        self.time = float(ls.simulation.getTime())
+        return self
+
+    def close(self) -> None:
+        if not self._running:
+            return
+        try:
+            _libsumo().close()
+        except Exception:  # closing after a failure: nothing more to report
+            pass
+        self._running = False
+        _ACTIVE.remove(self)
+
+    def __enter__(self) -> "SumoSession":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ stepping
+    def step(self) -> tuple[list[str], list[str]]:
+        """Advance one step; returns (departed ids, arrived ids) of that step."""
+        ls = _libsumo()
+        try:
+            ls.simulationStep()
+            departed = list(ls.simulation.getDepartedIDList())
+            arrived = list(ls.simulation.getArrivedIDList())
+        except Exception as exc:
+            self.close()
+            raise SimulationError(f"SUMO failed at t={self.time:.1f} s: {_one_line(exc)}") from None
+        self.time = float(ls.simulation.getTime())
+        var = (ls.VAR_POSITION, ls.VAR_ANGLE, ls.VAR_SPEED, ls.VAR_LENGTH, ls.VAR_WIDTH,
+               ls.VAR_ROAD_ID)
+        for vid in departed:
+            ls.vehicle.subscribe(vid, var)
+        return departed, arrived
+
+    def vehicles(self) -> VehicleArrays:
+        """State of every vehicle in the simulation now, as arrays (scene frame)."""
+        ls = _libsumo()
+        res = ls.vehicle.getAllSubscriptionResults()
+        ids = tuple(res)
+        n = len(ids)
+        pos = np.empty((n, 2))
+        ang = np.empty(n)
+        speed = np.empty(n)
+        length = np.empty(n)
+        width = np.empty(n)
+        edges = []
+        P, A, S, L, W, R = (ls.VAR_POSITION, ls.VAR_ANGLE, ls.VAR_SPEED, ls.VAR_LENGTH,
+                            ls.VAR_WIDTH, ls.VAR_ROAD_ID)
+        for k, vid in enumerate(ids):
+            r = res[vid]
+            pos[k] = r[P]
+            ang[k] = r[A]
+            speed[k] = r[S]
+            length[k] = r[L]
+            width[k] = r[W]
+            edges.append(r[R])
+        yaw = sumo_angle_to_yaw(ang)
+        cx, cy = front_to_centre(pos[:, 0], pos[:, 1], yaw, length)
+        return VehicleArrays(ids, cx, cy, yaw, speed, length, width, tuple(edges))
+
+    def move(self, ids: Sequence[str], x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+             length: np.ndarray, edges: Sequence[str] | None = None,
+             lanes: Sequence[int] | None = None) -> None:
+        """Place vehicles at box-centre poses for the next step (``moveToXY``, keepRoute=2).
+
+        :param edges, lanes: optional map-matching hints (edge id, lane index) per vehicle.
+        """
+        ls = _libsumo()
+        fx, fy = centre_to_front(np.asarray(x), np.asarray(y), np.asarray(yaw), length)
+        angle = yaw_to_sumo_angle(np.asarray(yaw))
+        for k, vid in enumerate(ids):
+            edge = edges[k] if edges is not None else ""
+            lane = lanes[k] if lanes is not None else -1
+            try:
+                ls.vehicle.moveToXY(vid, edge, lane, float(fx[k]), float(fy[k]), float(angle[k]), 2)
+            except Exception as exc:
+                raise SimulationError(f"moving vehicle {vid} failed at t={self.time:.1f} s: "
+                                      f"{_one_line(exc)}") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
