@@ -8,12 +8,15 @@ import subprocess
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import struct
+
 import numpy as np
 import pytest
 
 sumolib = pytest.importorskip("sumolib")
 
 from converters import load_scene  # noqa: E402
+from converters.womd import write_womd  # noqa: E402
 from converters.sumo import ConvertOptions, convert_scene  # noqa: E402
 from converters.sumo.signals import lane_state_table  # noqa: E402
 from converters.sumo.tools import binary  # noqa: E402
@@ -23,8 +26,8 @@ from magail_sumo.scene import LaneType  # noqa: E402
 from conftest import WOMD_DIR  # noqa: E402
 
 SCENES = ["637f20cafde22ff8", "2831b6fde0420b0d", "850c48d8bbfa008f"]
-#: What the converter achieves today (issue targets: 0.98 / 0.95 / 0.99).
-MIN_ON_NETWORK = {"637f20cafde22ff8": 0.97, "2831b6fde0420b0d": 0.99, "850c48d8bbfa008f": 0.99}
+#: Issue 3 bars, met on every real scene (637f with its synthesised off-map lane).
+MIN_ON_NETWORK = {"637f20cafde22ff8": 0.98, "2831b6fde0420b0d": 0.98, "850c48d8bbfa008f": 0.98}
 MIN_ROUTE = {"637f20cafde22ff8": 0.95, "2831b6fde0420b0d": 0.95, "850c48d8bbfa008f": 0.95}
 
 
@@ -49,6 +52,8 @@ def test_conversion_json(converted, sid):
     for u in rep["unconverted"]:
         assert set(u) == {"kind", "id", "reason"} and u["reason"]
     q = rep["quality"]
+    assert q["synthesized_lanes"] == len(rep["synthesized"])
+    assert q["on_network_rate_map_only"] <= q["on_network_rate"]
     assert q["on_network_rate"] >= MIN_ON_NETWORK[sid]
     assert q["route_rate"] >= MIN_ROUTE[sid]
     assert isinstance(q["netconvert_warnings"], int)
@@ -175,3 +180,76 @@ def test_cli_stops_at_bad_input_without_skip_bad(tmp_path):
     bad = tmp_path / "broken.tfrecord"
     bad.write_bytes(b"\x00" * 40)
     assert main(["convert", str(bad), "--out", str(tmp_path / "o")]) == 1
+
+
+def test_off_map_driving_gets_a_synthesized_lane(converted):
+    """Track 1675 of 637f turns off the mapped lanes into an unmapped lot (53 of its 91 states)."""
+    sid = "637f20cafde22ff8"
+    folder, rep = converted[sid]
+    syn = {s["track_id"]: s for s in rep["synthesized"]}
+    lane = syn[1675]
+    assert lane["steps"] == [38, 90] and lane["length_m"] > 15 and lane["end"] == "dead end"
+    assert lane["start"].startswith("edge e536")  # joins the lane it leaves, not a dead end
+    q = rep["quality"]
+    assert q["on_network_rate"] >= 0.98 and q["route_rate"] >= 0.95
+    assert q["signal_fidelity"] >= 0.99
+    assert q["on_network_rate_map_only"] < 0.98  # the honest map-only figure stays below
+    # through netconvert, in log coordinates, tagged, and driven by the track's route
+    net = sumolib.net.readNet(str(folder / f"{sid}.net.xml"))
+    (edge_id,) = lane["edges"]
+    edge = net.getEdge(edge_id)
+    assert edge.getLaneNumber() == 1 and edge.allows("passenger") and not edge.allows("pedestrian")
+    scene = load_scene(WOMD_DIR / f"{sid}.tfrecord")
+    n = int(np.flatnonzero(scene.tracks.id == 1675)[0])
+    x, y = edge.getLanes()[0].getShape()[-1]
+    assert np.hypot(x - scene.tracks.x[n, 90], y - scene.tracks.y[n, 90]) < 2.0
+    edg = ET.parse(folder / f"{sid}.edg.xml").getroot()
+    tags = {e.get("id"): {p.get("key"): p.get("value") for p in e.iter("param")} for e in edg.iter("edge")}
+    assert tags[edge_id] == {"synthesized_for_track": "1675"}
+    root = ET.parse(folder / f"{sid}.rou.xml").getroot()
+    route = next(v for v in root.iter("vehicle") if v.get("id") == "1675").find("route").get("edges")
+    assert route.split()[-1] == edge_id and "e536" in route.split()
+    # scenes that stay on the map get none
+    assert converted["850c48d8bbfa008f"][1]["synthesized"] == []
+
+
+def _corrupt_record(path: Path, index: int) -> None:
+    """Flip bytes in the middle of record ``index``'s data, keeping its framing (a data-CRC error)."""
+    raw = bytearray(path.read_bytes())
+    off = 0
+    for _ in range(index):
+        (length,) = struct.unpack_from("<Q", raw, off)
+        off += 16 + length
+    (length,) = struct.unpack_from("<Q", raw, off)
+    mid = off + 12 + length // 2
+    raw[mid:mid + 8] = bytes(b ^ 0xFF for b in raw[mid:mid + 8])
+    path.write_bytes(bytes(raw))
+
+
+def test_cli_shard_with_corrupt_record(tmp_path):
+    shard = tmp_path / "three.tfrecord"
+    write_womd(shard, [load_scene(WOMD_DIR / f"{sid}.tfrecord") for sid in SCENES])
+    _corrupt_record(shard, 1)
+    out = tmp_path / "out"
+    assert main(["convert", str(shard), "--out", str(out), "--skip-bad", "--no-baseline"]) == 0
+    rows = list(csv.DictReader(open(out / "summary.csv")))
+    assert [r["record"] for r in rows] == ["0", "1", "2"]
+    assert [r["status"] for r in rows] == ["ok", "unreadable", "ok"]
+    assert [r["scenario_id"] for r in rows] == [SCENES[0], "", SCENES[2]]
+    assert "data CRC mismatch" in rows[1]["reason"] and "three.tfrecord" in rows[1]["reason"]
+    for sid in (SCENES[0], SCENES[2]):
+        assert (out / sid / f"{sid}.net.xml").exists()
+    assert not (out / SCENES[1]).exists()
+    assert main(["convert", str(shard), "--out", str(tmp_path / "o2"), "--no-baseline"]) != 0
+
+
+def test_off_map_stretch_definition():
+    from converters.sumo.synthesis import off_map_stretches
+
+    steps = np.arange(60)
+    off = np.zeros(60, bool)
+    off[2:11] = True  # 9 states = 0.9 s: too short
+    off[20:30] = True  # 10 states = 1.0 s
+    off[35:47] = True  # 1.2 s, 0.5 s after the previous one: merged
+    assert off_map_stretches(off, steps) == [(20, 46)]
+    assert off_map_stretches(np.zeros(60, bool), steps) == []

@@ -17,8 +17,8 @@ from magail_sumo.scene import Scene
 from .scenario import ConvertOptions, convert_scene
 
 SUMMARY_COLUMNS = ("file", "record", "scenario_id", "status", "reason", "on_network_rate",
-                   "route_rate", "signal_fidelity", "netconvert_warnings", "ade", "fde",
-                   "collisions", "teleports", "seconds")
+                   "route_rate", "signal_fidelity", "synthesized_lanes", "netconvert_warnings",
+                   "ade", "fde", "collisions", "teleports", "seconds")
 
 
 @dataclass
@@ -38,8 +38,8 @@ class BatchRow:
         base = q.get("sumo_baseline") or {}
         return [self.file, "" if self.record is None else self.record, self.scenario_id,
                 self.status, self.reason, q.get("on_network_rate"), q.get("route_rate"),
-                q.get("signal_fidelity"), q.get("netconvert_warnings"), base.get("ade"),
-                base.get("fde"), base.get("collisions"), base.get("teleports"),
+                q.get("signal_fidelity"), q.get("synthesized_lanes"), q.get("netconvert_warnings"),
+                base.get("ade"), base.get("fde"), base.get("collisions"), base.get("teleports"),
                 round(self.seconds, 3)]
 
 

@@ -45,8 +45,8 @@ def node_types(scene: Scene, plan: NetworkPlan) -> dict[str, str]:
             types[plan.node_of_lane[lane]] = "traffic_light"
     stop_lanes = {l for s in scene.roadmap.stop_signs for l in s.lanes}
     stopped_edges: set[str] = set()
-    for e in plan.edges:
-        if stop_lanes & set(e.lanes):
+    for e in plan.edges:  # not at a node that only splits a lane for a synthesised lane
+        if stop_lanes & set(e.lanes) and e.to_node not in plan.split_nodes:
             stopped_edges.add(e.id)
     for c in plan.connections:
         if stop_lanes & set(c.via):
@@ -78,8 +78,10 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[
                      f'numLanes="{len(e.lanes)}" speed="{e.speed:.2f}" {allow} '
                      f'spreadType="center" shape="{fmt_shape(centre)}">\n')
             for k, (shape, w) in enumerate(zip(e.shapes, e.widths)):
+                param = ("womd_lane", e.lanes[k]) if e.synthesized_for is None else \
+                    ("synthesized_for_track", e.synthesized_for)
                 fh.write(f'    <lane index="{k}" width="{w:.2f}" shape="{fmt_shape(shape)}">'
-                         f'<param key="womd_lane" value="{e.lanes[k]}"/></lane>\n')
+                         f'<param key="{param[0]}" value="{param[1]}"/></lane>\n')
             fh.write('  </edge>\n')
         fh.write('</edges>\n')
     with open(con, "w") as fh:

@@ -83,15 +83,22 @@ def moving_vehicles(scene: Scene) -> np.ndarray:
                           & (moved_distance(scene) > PARKED_MOVE))
 
 
-def on_network_rate(scene: Scene, seg: LaneSegments) -> float | None:
-    """See module docstring; None when there are no moving vehicles."""
+def on_network_rate(scene: Scene, seg: LaneSegments, off: np.ndarray | None = None) -> float | None:
+    """See module docstring; None when there are no moving vehicles.
+
+    ``off`` (N, T) bool marks states to count as off the network whatever ``seg`` says (the
+    states carried by synthesised lanes, for the map-only figure).
+    """
     tr = scene.tracks
     idx = moving_vehicles(scene)
     v = tr.valid[idx]
     if not v.any():
         return None
     xy = np.stack([tr.x[idx][v], tr.y[idx][v]], axis=1)
-    return float(on_lanes(seg, xy, tr.heading[idx][v].astype(np.float64)).mean())
+    on = on_lanes(seg, xy, tr.heading[idx][v].astype(np.float64))
+    if off is not None:
+        on &= ~off[idx][v]
+    return float(on.mean())
 
 
 def route_covers(scene: Scene, seg: LaneSegments, route: VehicleRoute, net) -> float:

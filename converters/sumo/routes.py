@@ -23,6 +23,7 @@ PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked
 #: SUMO insertion checks kept: all but the speed limit (recorded speeds may exceed it).
 CHECKS = "collision leaderGap followerGap stop"
 MAX_DETOUR = 150.0  #: m, longest shortest-path filler between two matched edges
+SYNTHESIZED = -2  #: matched-lane code of states on a synthesised lane (-1 = unmatched)
 
 
 @dataclass
@@ -43,7 +44,8 @@ class VehicleRoute:
     parked: bool
     depart_edge: int = 0  # index into edges where the vehicle departs
     speed_factor: float = 1.0  # desired speed / speed limit, from the recorded speeds
-    matched: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  # lane per valid step
+    #: WOMD lane per valid step (-1 unmatched, :data:`SYNTHESIZED` on a synthesised lane)
+    matched: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
 
 
 def moved_distance(scene: Scene) -> np.ndarray:
@@ -135,7 +137,15 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
         m = match_track(index_bike if kind == ObjectType.CYCLIST else index_car, xy, heading, steps)
         pieces = [_piece(plan, int(lane), float(pos)) if lane >= 0 else None
                   for lane, pos in zip(m.lane, m.pos)]
-        matched = np.flatnonzero(m.lane >= 0)
+        lane_of = m.lane.copy()
+        for syn in plan.synthesized:  # off-map stretches drive on their synthesised edges
+            if syn.track == n:
+                for eid, s0, s1 in syn.edges:
+                    on = np.flatnonzero((steps >= s0) & (steps <= s1))
+                    lane_of[on] = SYNTHESIZED
+                    for k in on.tolist():
+                        pieces[k] = (eid, 0, 0.0)
+        matched = np.flatnonzero(lane_of != -1)
         if not len(matched):
             why = "parked off the lane network" if moved[n] < PARKED_MOVE else \
                 "no state matches a lane (distance and heading)"
@@ -148,9 +158,9 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
                 seq.append(p[0])
         first = int(matched[0])
         head = tail = None
-        if int(m.lane[first]) in plan.junction_lanes:  # starts inside a junction
-            head = _junction_connection(plan, int(m.lane[first]), to_edge=seq[0] if seq else None)
-        last_lane = int(m.lane[matched[-1]])
+        if int(lane_of[first]) in plan.junction_lanes:  # starts inside a junction
+            head = _junction_connection(plan, int(lane_of[first]), to_edge=seq[0] if seq else None)
+        last_lane = int(lane_of[matched[-1]])
         if last_lane in plan.junction_lanes and not parked:
             tail = _junction_connection(plan, last_lane, from_edge=seq[-1] if seq else None)
         if head is not None and (not seq or seq[0] != head.from_edge):
@@ -202,7 +212,7 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
             length=max(length, 0.5), width=max(width, 0.3), edges=edges, depart_step=int(st),
             depart_lane=lane0, depart_pos=float(np.clip(pos0, 0.1, lane_len)), depart_edge=depart_edge,
             depart_speed=0.0 if parked else speed, connected=connected, parked=parked,
-            speed_factor=factor, matched=m.lane))
+            speed_factor=factor, matched=lane_of))
     return routes, unconverted
 
 

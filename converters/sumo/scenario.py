@@ -3,6 +3,8 @@
 ``DIR/<id>/`` receives ``<id>.net.xml`` (plus the plain ``.nod/.edg/.con.xml`` it is built
 from), ``<id>.rou.xml``, ``<id>.tll.xml`` (when the scene has signals), ``<id>.sumocfg`` and
 ``conversion.json``. Simulation step: 0.1 s, SUMO time 0 = the scene's first step.
+Recorded driving off the mapped lanes gets synthesised lanes (:mod:`.synthesis`), listed under
+``synthesized`` and counted in ``quality.synthesized_lanes``.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from .network import build_network
 from .quality import lane_segments, on_network_rate, route_rate, run_baseline
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
+from .synthesis import carried_states, synthesize_lanes
 from .topology import plan_network
 
 STEP_LENGTH = 0.1  #: s
@@ -44,10 +47,11 @@ class ConversionReport:
     unconverted: list[dict] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
+    synthesized: list[dict] = field(default_factory=list)  #: lanes made from off-map driving
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in
-                ("scenario_id", "status", "reason", "files", "unconverted", "timings", "quality")}
+        return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
+                                              "unconverted", "synthesized", "timings", "quality")}
 
 
 def write_sumocfg(path: Path, sid: str, additional: list[str], end: float) -> None:
@@ -89,6 +93,14 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         plan = plan_network(scene)
         rep.unconverted.extend(plan.unconverted)
         lap("plan")
+        stage = "synthesize"
+        lanes = {l.id: l for l in scene.roadmap.lanes
+                 if l.id in plan.lane_edges or l.id in plan.junction_lanes}
+        index_bike = build_index(lanes)
+        index_car = build_index({i: l for i, l in lanes.items() if l.type != LaneType.BIKE_LANE})
+        synthesized = synthesize_lanes(scene, plan, index_car, index_bike)
+        rep.synthesized = [s.to_dict() for s in synthesized]
+        lap("synthesize")
         stage = "netconvert"
         built = build_network(scene, plan, out)
         lap("netconvert")
@@ -111,10 +123,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
                                    for lane in scene.signals.lanes.tolist())
         lap("signals")
         stage = "routes"
-        lanes = {l.id: l for l in scene.roadmap.lanes
-                 if l.id in plan.lane_edges or l.id in plan.junction_lanes}
-        car_lanes = {i: l for i, l in lanes.items() if l.type != LaneType.BIKE_LANE}
-        routes, unconverted = build_routes(scene, plan, build_index(car_lanes), build_index(lanes), net)
+        routes, unconverted = build_routes(scene, plan, index_car, index_bike, net)
         rep.unconverted.extend(unconverted)
         end = scene.num_steps * STEP_LENGTH
         write_routes(out / f"{sid}.rou.xml", routes, STEP_LENGTH, end)
@@ -125,6 +134,10 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         seg = lane_segments(net)
         rep.quality = {
             "on_network_rate": on_network_rate(scene, seg),
+            # the same with the states carried by synthesised lanes counted as off the map
+            "on_network_rate_map_only": on_network_rate(scene, seg,
+                                                        carried_states(scene, synthesized)),
+            "synthesized_lanes": len(synthesized),
             "route_rate": route_rate(scene, seg, routes, net),
             "signal_fidelity": None,
             "netconvert_warnings": len(built.warnings),

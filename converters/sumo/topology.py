@@ -38,6 +38,7 @@ class EdgePlan:
     widths: list[float]
     speed: float
     bike_only: bool
+    synthesized_for: int | None = None  # track id whose off-map path this edge was made from
 
 
 @dataclass
@@ -63,6 +64,8 @@ class NetworkPlan:
     junction_lanes: set[int]
     node_of_lane: dict[int, str]  # lane -> the node it ends in (road) or crosses (junction)
     unconverted: list[dict] = field(default_factory=list)
+    synthesized: list = field(default_factory=list)  # synthesis.SynthesizedLane, added later
+    split_nodes: set[str] = field(default_factory=set)  # nodes cutting an edge for a synthesised lane
 
 
 class _UnionFind:
