@@ -36,7 +36,8 @@ def format_quality(scenario_id: str, q: dict, folder: Path) -> str:
     base = q.get("sumo_baseline") or {}
     return "\n".join([
         f"{scenario_id}: converted -> {folder}",
-        f"  on_network_rate     {_fmt(q.get('on_network_rate'))}   (bar >= 0.98)",
+        f"  on_network_rate     {_fmt(q.get('on_network_rate'))}   (bar >= 0.98; map lanes only: "
+        f"{_fmt(q.get('on_network_rate_map_only'))}, synthesised lanes: {q.get('synthesized_lanes', 0)})",
         f"  route_rate          {_fmt(q.get('route_rate'))}   (bar >= 0.95)",
         f"  signal_fidelity     {_fmt(q.get('signal_fidelity'))}   (bar >= 0.99; n/a without signals)",
         f"  netconvert_warnings {q.get('netconvert_warnings')}",
