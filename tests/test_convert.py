@@ -104,9 +104,13 @@ def test_bike_lanes_allow_bicycles_only(converted):
 def test_junction_types(converted):
     net = sumolib.net.readNet(str(converted["637f20cafde22ff8"][0] / "637f20cafde22ff8.net.xml"))
     types = {n.getType() for n in net.getNodes()}
-    assert "traffic_light" in types and "allway_stop" in types
+    assert "traffic_light" in types and {"allway_stop", "priority_stop"} & types
     net2 = sumolib.net.readNet(str(converted["850c48d8bbfa008f"][0] / "850c48d8bbfa008f.net.xml"))
     assert {"allway_stop", "priority_stop"} & {n.getType() for n in net2.getNodes()}
+    # stops sit at real junctions, never on a node that only continues one lane
+    for n in [*net.getNodes(), *net2.getNodes()]:
+        if "stop" in n.getType():
+            assert len(n.getIncoming()) + len(n.getOutgoing()) > 2, n.getID()
 
 
 @pytest.mark.parametrize("sid", SCENES)

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
+import numpy as np
+
 from magail_sumo.scene import Scene
 
 from .geometry import fmt_shape
@@ -43,14 +45,26 @@ def node_types(scene: Scene, plan: NetworkPlan) -> dict[str, str]:
     for lane in scene.signals.lanes.tolist():
         if lane in plan.node_of_lane:
             types[plan.node_of_lane[lane]] = "traffic_light"
-    stop_lanes = {l for s in scene.roadmap.stop_signs for l in s.lanes}
+    # A stop sign controls the approach to the junction at its position: of the edges that carry
+    # (or lead through connections into) its lanes, the one ending at the nearest real junction
+    # (a node joining more than one edge in or out) is stopped, not the pieces of the lane that
+    # end mid-way where a neighbour starts or ends.
+    edge_by_id = {e.id: e for e in plan.edges}
+    degree: dict[str, int] = {}
+    for e in plan.edges:
+        degree[e.from_node] = degree.get(e.from_node, 0) + 1
+        degree[e.to_node] = degree.get(e.to_node, 0) + 1
     stopped_edges: set[str] = set()
-    for e in plan.edges:  # not at a node that only splits a lane for a synthesised lane
-        if stop_lanes & set(e.lanes) and e.to_node not in plan.split_nodes:
-            stopped_edges.add(e.id)
-    for c in plan.connections:
-        if stop_lanes & set(c.via):
-            stopped_edges.add(c.from_edge)
+    for sign in scene.roadmap.stop_signs:
+        lanes = set(sign.lanes)
+        cands = {e.id for e in plan.edges if lanes & set(e.lanes)}
+        cands |= {c.from_edge for c in plan.connections if lanes & set(c.via)}
+        cands = sorted(c for c in cands if edge_by_id[c].to_node not in plan.split_nodes)
+        junctions = [c for c in cands if degree[edge_by_id[c].to_node] > 2]
+        if junctions or cands:
+            pos = np.asarray(sign.position[:2], float)
+            stopped_edges.add(min(junctions or cands, key=lambda c: float(
+                np.hypot(*(np.asarray(plan.nodes[edge_by_id[c].to_node][:2]) - pos)))))
     incoming: dict[str, set[str]] = {}
     for e in plan.edges:
         incoming.setdefault(e.to_node, set()).add(e.id)
