@@ -1,0 +1,112 @@
+"""GAIL discriminators over the set of vehicles of one scene step.
+
+Input: a batch of B scene steps, each a set of up to V vehicle tokens with F features
+(``concat(s, s')`` of one vehicle), and a (B, V) boolean mask of present tokens. Output:
+per-token logits (B, V) — each vehicle judged in the context of the others — and a pooled
+scene logit (B,). Convention: expert logits > 0, policy logits < 0.
+
+* :class:`TransformerDiscriminator` ("BERT"): linear token embedding, post-LN transformer
+  encoder with a key-padding mask, no positional embedding (vehicle order carries no meaning,
+  so the output is permutation-equivariant), a linear head per token, and mean pooling over
+  present tokens or a learned CLS token for the scene logit.
+* :class:`MLPDiscriminator`: each vehicle judged alone (plain per-vehicle GAIL), the ablation.
+
+Both normalise inputs with a :class:`RunningNormalizer` stored in their state dict.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from magail_sumo.models.normalizer import RunningNormalizer
+
+
+@dataclass(frozen=True)
+class TransformerConfig:
+    """Sizes of :class:`TransformerDiscriminator` (defaults from the seed design)."""
+
+    embed_dim: int = 128
+    num_layers: int = 4
+    num_heads: int = 4
+    ff_dim: int = 512
+    dropout: float = 0.1
+    pooling: str = "mean"  # "mean" over present tokens, or "cls"
+
+
+class TransformerDiscriminator(nn.Module):
+    """Set transformer discriminator with per-token and pooled logits (see module doc)."""
+
+    def __init__(self, feature_dim: int, config: TransformerConfig | None = None) -> None:
+        super().__init__()
+        cfg = config or TransformerConfig()
+        if cfg.pooling not in ("mean", "cls"):
+            raise ValueError(f"pooling must be 'mean' or 'cls', got {cfg.pooling!r}")
+        self.config = cfg
+        self.normalizer = RunningNormalizer(feature_dim)
+        self.embed = nn.Linear(feature_dim, cfg.embed_dim)
+        layer = nn.TransformerEncoderLayer(cfg.embed_dim, cfg.num_heads, cfg.ff_dim, cfg.dropout,
+                                           activation="gelu", batch_first=True, norm_first=False)
+        self.encoder = nn.TransformerEncoder(layer, cfg.num_layers, enable_nested_tensor=False)
+        self.cls = nn.Parameter(torch.zeros(1, 1, cfg.embed_dim)) if cfg.pooling == "cls" else None
+        self.token_head = nn.Linear(cfg.embed_dim, 1)
+        self.scene_head = nn.Linear(cfg.embed_dim, 1)
+
+    def head_weights(self) -> list[torch.Tensor]:
+        """Weights of the output heads (for the logit regulariser)."""
+        return [self.token_head.weight, self.scene_head.weight]
+
+    def forward_normalized(self, x: torch.Tensor, mask: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits of already-normalised features: ((B, V) token logits, (B,) scene logits)."""
+        h = self.embed(x)
+        pad = ~mask
+        if self.cls is not None:
+            h = torch.cat([self.cls.expand(h.shape[0], -1, -1), h], dim=1)
+            pad = torch.cat([torch.zeros_like(pad[:, :1]), pad], dim=1)
+        h = self.encoder(h, src_key_padding_mask=pad)
+        if self.cls is not None:
+            pooled, h = h[:, 0], h[:, 1:]
+        else:
+            m = mask.unsqueeze(-1).to(h.dtype)
+            pooled = (h * m).sum(1) / m.sum(1).clamp(min=1.0)
+        tokens = self.token_head(h).squeeze(-1).masked_fill(~mask, 0.0)
+        return tokens, self.scene_head(pooled).squeeze(-1)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits of raw features x (B, V, F) with mask (B, V)."""
+        return self.forward_normalized(self.normalizer(x), mask)
+
+
+class MLPDiscriminator(nn.Module):
+    """Per-vehicle MLP discriminator (no interaction between tokens); same interface."""
+
+    def __init__(self, feature_dim: int, hidden: tuple[int, ...] = (256, 256)) -> None:
+        super().__init__()
+        self.normalizer = RunningNormalizer(feature_dim)
+        layers: list[nn.Module] = []
+        d = feature_dim
+        for h in hidden:
+            layers += [nn.Linear(d, h), nn.Tanh()]
+            d = h
+        self.body = nn.Sequential(*layers)
+        self.head = nn.Linear(d, 1)
+
+    def head_weights(self) -> list[torch.Tensor]:
+        return [self.head.weight]
+
+    def forward_normalized(self, x: torch.Tensor, mask: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+        tokens = self.head(self.body(x)).squeeze(-1).masked_fill(~mask, 0.0)
+        m = mask.to(tokens.dtype)
+        return tokens, (tokens * m).sum(1) / m.sum(1).clamp(min=1.0)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.forward_normalized(self.normalizer(x), mask)
+
+
+def imitation_reward(token_logits: torch.Tensor, floor: float = 1e-4) -> torch.Tensor:
+    """GAIL reward per token: ``-log(max(1 - sigmoid(D), floor))`` (high when D says expert)."""
+    return -torch.log(torch.clamp(1.0 - torch.sigmoid(token_logits), min=floor))

@@ -1,0 +1,1 @@
+"""Training: discriminator objective (more to come: PPO with the GAIL reward, BC)."""
