@@ -1,0 +1,125 @@
+"""Env throughput on 637f20cafde22ff8 with every route vehicle controlled.
+
+Measures (one process, one core): agent-steps/s of the full env step (SUMO step + control +
+sensors + observations + events) driven by expert actions; the floor: raw libsumo stepping of the
+same scene with the same vehicles moved to their recorded poses each step; the share of env
+step time spent in sensors and observations.
+
+    python benchmarks/env_throughput.py [--json] [--episodes N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from converters import load_scene  # noqa: E402
+from converters.sumo.scenario import ConvertOptions, convert_scene  # noqa: E402
+from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions  # noqa: E402
+from magail_sumo.env.sumo_ops import remove_vehicle  # noqa: E402
+from magail_sumo.sim.session import SumoSession  # noqa: E402
+
+SCENE = "637f20cafde22ff8"
+
+
+def run_env(env: SumoDrivingEnv, episodes: int) -> tuple[float, int, float, int]:
+    """(seconds in step(), agent-steps, seconds in sensors, peak agents)."""
+    total, agent_steps, sensors, peak = 0.0, 0, 0.0, 0
+    for ep in range(episodes):
+        env.reset(seed=ep)
+        while env.agents:
+            acts = expert_actions(env)
+            peak = max(peak, len(acts))
+            s0 = env.sensor_time
+            t0 = time.perf_counter()
+            env.step(acts)
+            total += time.perf_counter() - t0
+            sensors += env.sensor_time - s0
+            agent_steps += len(acts)
+    return total, agent_steps, sensors, peak
+
+
+def run_raw(cfg: Path, scene, ids: set[str], episodes: int) -> tuple[float, int]:
+    """(seconds, steps) of SumoSession.step + move of the same vehicles to their log poses."""
+    tr = scene.tracks
+    row = {str(int(t)): k for k, t in enumerate(tr.id.tolist())}
+    last = tr.valid.shape[1] - 1 - np.argmax(tr.valid[:, ::-1], axis=1)
+    total, steps = 0.0, 0
+    for _ in range(episodes):
+        with SumoSession(cfg) as sim:
+            present: list[str] = []
+            for t in range(scene.num_steps - 1):
+                t0 = time.perf_counter()
+                dep, arr = sim.step()
+                present = [v for v in present if v not in set(arr)] + [v for v in dep if v in ids]
+                r = np.array([row[v] for v in present], np.int64)
+                ok = tr.valid[r, t + 1] if r.size else np.zeros(0, bool)
+                for i in np.flatnonzero(~ok & (last[r] <= t)):  # life over: leave, as in the env
+                    remove_vehicle(present[i])
+                present = [v for v, keep in zip(present, ok | (last[r] > t)) if keep]
+                r = np.array([row[v] for v in present], np.int64)
+                ok = tr.valid[r, t + 1] if r.size else np.zeros(0, bool)
+                if ok.any():
+                    rr = r[ok]
+                    sim.move([present[i] for i in np.flatnonzero(ok)], tr.x[rr, t + 1],
+                             tr.y[rr, t + 1], tr.heading[rr, t + 1].astype(float),
+                             tr.length[rr, t + 1].astype(float))
+                total += time.perf_counter() - t0
+                steps += 1
+    return total, steps
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--episodes", type=int, default=3)
+    args = ap.parse_args(argv)
+    scene = load_scene(ROOT / "data" / "womd" / f"{SCENE}.tfrecord")
+    with tempfile.TemporaryDirectory() as tmp:
+        rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
+        if rep.status != "ok":
+            print(f"{SCENE}: conversion failed: {rep.reason}", file=sys.stderr)
+            return 1
+        env = SumoDrivingEnv(scene, Path(tmp) / SCENE,
+                             EnvConfig(controlled="all", terminate_on=(), limits=REPLAY_LIMITS))
+        moved = set(env.possible_agents) - set(env.bundle.parked)
+        # the floor runs in its own process: libsumo 1.28 segfaulted in the step of a session
+        # started, in the same process, after a session that moved and removed vehicles
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(1, maxtasksperchild=1) as pool:  # a fresh process per episode
+            runs = [pool.apply(run_raw, (env.bundle.sumocfg, scene, moved, 1))
+                    for _ in range(args.episodes)]
+        raw_secs, raw_steps = (sum(v) for v in zip(*runs))
+        run_env(env, 1)  # warm-up: numba kernels load, SUMO files cached
+        secs, agent_steps, sensors, peak = run_env(env, args.episodes)
+        env.close()
+    out = {
+        "scene": SCENE,
+        "agents": len(env.possible_agents),
+        "agent_steps_per_s": round(agent_steps / secs, 1),
+        "raw_sumo_steps_per_s": round(raw_steps / raw_secs, 1),
+        "sensor_share": round(sensors / secs, 3),
+        "peak_live_agents": peak,
+        "mean_live_agents": round(agent_steps / (args.episodes * (scene.num_steps - 1)), 1),
+        "env_steps_per_s": round(args.episodes * (scene.num_steps - 1) / secs, 1),
+    }
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k:22s} {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,412 @@
+"""PettingZoo ``ParallelEnv`` over a converted scene: policy-driven vehicles in SUMO co-simulation.
+
+One env step = one log step (0.1 s). Controlled vehicles (agents, named by their WOMD track id)
+move by the kinematic bicycle model (:mod:`magail_sumo.sim.dynamics`) from normalised actions
+``[accel, steer]`` in [-1, 1]² and are placed in SUMO with ``moveToXY``; their bicycle state,
+not SUMO's, is their pose. Background route vehicles replay the log (placed in SUMO at their
+recorded poses) or are driven by SUMO; objects SUMO does not carry (parked off-network
+vehicles, pedestrians, ...) replay the log in the sensor and collision world only.
+
+Timeline: after ``reset`` the observation is of log step ``start_step``; SUMO time after the
+step that produced log step ``t`` is ``(t + 1)·0.1`` s (a vehicle departing at ``t·0.1`` s is
+inserted by that step). An agent joins at the first log step its track is valid (from
+``start_step`` on) and leaves on an event (see :mod:`magail_sumo.env.events`; collision =
+oriented-box overlap with any other road user) or at the last valid step of its track
+(``end_of_life``, truncation). Rewards are 0 (imitation learning supplies its own).
+``infos[agent]``: ``step``, ``events`` (name -> bool), ``reason`` (first event of
+:data:`~magail_sumo.env.config.EVENTS` that ended the agent, else None), ``collided_with``
+(track id or -1), ``nan_actions`` and ``clipped_actions`` (this agent's running counts of
+non-finite / out-of-range actions; non-finite entries become 0, out-of-range ones are clipped
+to [-1, 1], a missing action counts as non-finite).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from magail_sumo.scene import Scene
+from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
+from magail_sumo.sim import dynamics
+from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
+
+from .bundle import SceneBundle
+from .collision import first_overlap
+from .config import EVENTS, EnvConfig
+from .events import StopLines, off_road, reached
+from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
+from .sumo_ops import remove_vehicle
+
+
+@dataclass(frozen=True)
+class AgentStates:
+    """Bicycle state of the live agents, in ``env.agents`` order.
+
+    :param rows: (A,) track rows in ``scene.tracks``. :param state: their state (scene frame).
+    :param wheelbase: (A,) m.
+    """
+
+    names: list[str]
+    rows: np.ndarray
+    state: dynamics.VehicleState
+    wheelbase: np.ndarray
+
+
+def _median_valid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    v = np.where(valid, values.astype(np.float64), np.nan)
+    with np.errstate(all="ignore"):
+        out = np.nanmedian(np.where(valid.any(1)[:, None], v, 0.0), axis=1)
+    return np.nan_to_num(out)
+
+
+class SumoDrivingEnv(ParallelEnv):
+    """Multi-agent driving in a recorded scene co-simulated with SUMO (module doc).
+
+    :param scene: the recorded scene, or a scene file path (WOMD / ScenarioNet).
+    :param bundle: folder with the scene's SUMO files (``convert_scene``'s ``DIR/<id>``).
+    """
+
+    metadata = {"name": "magail_sumo_v0", "render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, scene: Scene | str | Path, bundle: str | Path,
+                 config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+        if not isinstance(scene, Scene):
+            from converters import load_scene
+
+            scene = load_scene(scene)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.scene = scene
+        self.bundle = SceneBundle.load(scene, bundle)
+        self.config = cfg = config or EnvConfig()
+        self.render_mode = render_mode
+        self.dt = STEP_LENGTH
+        tr = scene.tracks
+        n, t_steps = tr.valid.shape
+        self._T = t_steps
+        has = tr.valid.any(axis=1)
+        self._first = np.where(has, np.argmax(tr.valid, axis=1), t_steps)
+        self._last = np.where(has, t_steps - 1 - np.argmax(tr.valid[:, ::-1], axis=1), -1)
+        rows = np.arange(n)
+        last = np.maximum(self._last, 0)
+        self._dest = np.stack([tr.x[rows, last], tr.y[rows, last]], axis=1)
+        self._dest_yaw = tr.heading[rows, last].astype(np.float64)
+        self._length = _median_valid(tr.length, tr.valid)
+        self._width = _median_valid(tr.width, tr.valid)
+        self._ctrl = self._select_controlled()
+        self._ctrl_names = [str(int(tr.id[r])) for r in self._ctrl]
+        self._name_index = {a: k for k, a in enumerate(self._ctrl_names)}
+        self.possible_agents = list(self._ctrl_names)
+        is_ctrl = np.zeros(n, bool)
+        is_ctrl[self._ctrl] = True
+        self._is_ctrl = is_ctrl
+        in_routes = np.zeros(n, bool)
+        in_routes[self.bundle.sumo_rows] = True
+        self._bg_rows = self.bundle.sumo_rows[~is_ctrl[self.bundle.sumo_rows]]
+        self._bg_ids = [str(int(tr.id[r])) for r in self._bg_rows]
+        self._log_rows = np.flatnonzero(~is_ctrl & (~in_routes | (cfg.background == "log")))
+        self._row_of_sumo = dict(zip(self.bundle.sumo_ids, self.bundle.sumo_rows.tolist()))
+        self.suite = SensorSuite(scene, cfg.observation)
+        self.stop_lines = StopLines.build(scene)
+        low, high = observation_bounds(cfg.observation)
+        self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
+        self._act_spaces = {a: spaces.Box(-1.0, 1.0, (2,), np.float32) for a in self.possible_agents}
+        self._session: SumoSession | None = None
+        self._renderer: TopDownRenderer | None = None
+        self.agents: list[str] = []
+        self.t = 0
+        self.sensor_time = 0.0  #: s spent in sensors and observations since reset
+
+    # ------------------------------------------------------------------ spaces
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._obs_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Box:
+        return self._act_spaces[agent]
+
+    def _select_controlled(self) -> np.ndarray:
+        sc, cfg = self.scene, self.config
+        routes = self.bundle.sumo_rows
+        if cfg.controlled == "all":
+            return np.sort(routes)
+        if cfg.controlled == "sdc":
+            return routes[routes == sc.sdc_track_index]
+        if cfg.controlled == "tracks_to_predict":
+            want = {p.track_index for p in sc.tracks_to_predict}
+            return np.sort(routes[[r in want for r in routes.tolist()]]).astype(np.int64)
+        tr, t = sc.tracks, min(cfg.start_step, self._T - 1)
+        sdc = sc.sdc_track_index
+        d = np.hypot(tr.x[routes, t] - tr.x[sdc, t], tr.y[routes, t] - tr.y[sdc, t])
+        d = np.where(tr.valid[routes, t], d, np.inf)
+        d = np.where(routes == sdc, -1.0, d)
+        return np.sort(routes[np.argsort(d, kind="stable")[:int(cfg.controlled)]])
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self, seed: int | None = None, options: dict | None = None
+              ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        cfg = self.config
+        if seed is not None:
+            for k, a in enumerate(self.possible_agents):
+                self._act_spaces[a].seed(seed + k)
+                self._obs_spaces[a].seed(seed + k)
+        self.close()
+        self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
+            seed=cfg.sumo_seed + (seed or 0)))
+        self._session.start()
+        c = len(self._ctrl)
+        self._x, self._y, self._yaw, self._speed = (np.zeros(c) for _ in range(4))
+        self._prev_action = np.zeros((c, 2))
+        self._active = np.zeros(c, bool)
+        self._joined = np.zeros(c, bool)
+        self._nan = np.zeros(c, np.int64)
+        self._clipped = np.zeros(c, np.int64)
+        self._in_sumo: set[str] = set()
+        self._sumo_bg = None
+        self.sensor_time = 0.0
+        self.t = -1
+        self._end = self._T - 1 if cfg.max_steps is None else \
+            min(self._T - 1, cfg.start_step + cfg.max_steps)
+        self._advance()  # SUMO step producing log step 0
+        while self.t < min(cfg.start_step, self._end):
+            self._advance()
+        joiners = self._join()
+        while not joiners.size and self.t < self._end and (~self._joined).any():
+            self._advance()
+            joiners = self._join()
+        self.agents = [self._ctrl_names[k] for k in joiners]
+        obs, _ = self._observe(joiners, joiners)
+        infos = {a: self._info(k, {}, None, -1) for a, k in zip(self.agents, joiners)}
+        return obs, infos
+
+    def close(self) -> None:
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    # ------------------------------------------------------------------ internals
+    def _advance(self) -> None:
+        """Place SUMO's controlled and log-replayed vehicles at log step t + 1, step SUMO."""
+        sess = self._session
+        nxt = self.t + 1
+        ids: list[str] = []
+        parts = []
+        if self.t >= 0:
+            act = np.flatnonzero(self._active)
+            names = [self._ctrl_names[k] for k in act]
+            keep = [i for i, a in enumerate(names) if a in self._in_sumo]
+            if keep:
+                k = act[keep]
+                ids += [names[i] for i in keep]
+                parts.append((self._x[k], self._y[k], self._yaw[k], self._length[self._ctrl[k]]))
+            if self.config.background == "log" and self._bg_rows.size and nxt < self._T:
+                tr = self.scene.tracks
+                ok = [i for i, v in enumerate(self._bg_ids) if v in self._in_sumo
+                      and tr.valid[self._bg_rows[i], nxt]]
+                if ok:
+                    r = self._bg_rows[ok]
+                    ids += [self._bg_ids[i] for i in ok]
+                    parts.append((tr.x[r, nxt], tr.y[r, nxt], tr.heading[r, nxt].astype(np.float64),
+                                  self._length[r]))
+        if ids:
+            x, y, yaw, length = (np.concatenate(p) for p in zip(*parts))
+            sess.move(ids, x, y, yaw, length)
+        departed, arrived = sess.step()
+        done_names = {self._ctrl_names[k] for k in np.flatnonzero(self._joined & ~self._active)}
+        for vid in departed:
+            # parked vehicles carry a SUMO stop; SUMO refuses to step one moved off its stop
+            # (even after the stop is removed) and fails on removing it: SUMO keeps them parked
+            if vid in self.bundle.parked:
+                continue
+            if vid in done_names:
+                remove_vehicle(vid)
+                continue
+            self._in_sumo.add(vid)
+        self._in_sumo.difference_update(arrived)
+        self.t = nxt
+        self._sumo_bg = None
+
+    def _join(self) -> np.ndarray:
+        """Controlled tracks valid at step t that never joined become agents; their indices."""
+        tr, t = self.scene.tracks, self.t
+        new = np.flatnonzero(~self._joined & tr.valid[self._ctrl, t])
+        if new.size:
+            r = self._ctrl[new]
+            self._x[new], self._y[new] = tr.x[r, t], tr.y[r, t]
+            self._yaw[new] = tr.heading[r, t].astype(np.float64)
+            h = self._yaw[new]
+            self._speed[new] = tr.vx[r, t] * np.cos(h) + tr.vy[r, t] * np.sin(h)
+            self._prev_action[new] = 0.0
+            self._joined[new] = self._active[new] = True
+        return new
+
+    def _world(self, agents: np.ndarray) -> tuple[Boxes, np.ndarray]:
+        """Boxes of the agents (first rows, in order) and every other road user at step t,
+        plus (N,) track id of each box (-1 unknown)."""
+        tr, t = self.scene.tracks, self.t
+        rows = self._ctrl[agents]
+        lr = self._log_rows[tr.valid[self._log_rows, t]]
+        xs = [self._x[agents], tr.x[lr, t]]
+        ys = [self._y[agents], tr.y[lr, t]]
+        yaws = [self._yaw[agents], tr.heading[lr, t].astype(np.float64)]
+        ls = [self._length[rows], tr.length[lr, t].astype(np.float64)]
+        ws = [self._width[rows], tr.width[lr, t].astype(np.float64)]
+        ids = [tr.id[rows], tr.id[lr]]
+        if self.config.background == "sumo":
+            if self._sumo_bg is None:
+                v = self._session.vehicles()
+                sel = [i for i, vid in enumerate(v.ids) if not self._is_ctrl[self._row_of_sumo[vid]]]
+                self._sumo_bg = (v.x[sel], v.y[sel], v.yaw[sel], v.length[sel], v.width[sel],
+                                 tr.id[[self._row_of_sumo[v.ids[i]] for i in sel]])
+            for lst, arr in zip((xs, ys, yaws, ls, ws, ids), self._sumo_bg):
+                lst.append(np.asarray(arr))
+        cat = lambda p: np.concatenate(p).astype(np.float64)  # noqa: E731
+        return Boxes(cat(xs), cat(ys), cat(yaws), cat(ls), cat(ws)), np.concatenate(ids)
+
+    def _observe(self, agents: np.ndarray, observed: np.ndarray, lanes=None
+                 ) -> tuple[dict[str, np.ndarray], tuple[Boxes, np.ndarray]]:
+        """Observations of ``observed`` (a subset of ``agents``, world rows in that order)."""
+        import time
+
+        clock = time.perf_counter()
+        world = self._world(agents)
+        pos = np.searchsorted(agents, observed) if agents.size else np.zeros(0, np.int64)
+        rows = self._ctrl[observed]
+        ego = EgoState(pos, self._speed[observed], self._prev_action[observed], self._dest[rows],
+                       self._dest_yaw[rows])
+        obs = self.suite.observe(world[0], ego, self.t, lanes)
+        self.sensor_time += time.perf_counter() - clock
+        return {self._ctrl_names[k]: obs[i] for i, k in enumerate(observed)}, world
+
+    def _info(self, k: int, events: dict[str, bool], reason: str | None, other: int) -> dict:
+        return {"step": self.t, "events": events, "reason": reason, "collided_with": int(other),
+                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k])}
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions: dict[str, Any]):
+        import time
+
+        cfg = self.config
+        if self._session is None:
+            raise RuntimeError("call reset() before step()")
+        act_idx = np.flatnonzero(self._active)
+        a = act_idx.size
+        raw = np.full((a, 2), np.nan)
+        for i, k in enumerate(act_idx):  # dict → array: the PettingZoo interface is per agent
+            v = actions.get(self._ctrl_names[k])
+            if v is not None:
+                raw[i] = np.asarray(v, np.float64).reshape(2)
+        nonfinite = ~np.isfinite(raw).all(axis=1)
+        clean = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
+        outside = (np.abs(clean) > 1.0).any(axis=1)
+        clean = np.clip(clean, -1.0, 1.0)
+        self._nan[act_idx] += nonfinite
+        self._clipped[act_idx] += outside
+        accel, steer = dynamics.denormalise(clean, cfg.limits)
+        rows = self._ctrl[act_idx]
+        p0 = np.stack([self._x[act_idx], self._y[act_idx]], axis=1)
+        new = dynamics.step(dynamics.VehicleState(self._x[act_idx], self._y[act_idx],
+                                                  self._yaw[act_idx], self._speed[act_idx]),
+                            accel, steer, dynamics.WHEELBASE_RATIO * self._length[rows], self.dt,
+                            cfg.limits)
+        self._x[act_idx], self._y[act_idx] = new.x, new.y
+        self._yaw[act_idx], self._speed[act_idx] = new.yaw, new.speed
+        self._prev_action[act_idx] = clean
+        self._advance()
+        joiners = self._join()
+        agents = np.concatenate([act_idx, joiners])
+        order = np.argsort(agents, kind="stable")
+        agents = agents[order]
+        # events of the stepped agents (rows 0..a-1 of the world after sorting by index)
+        clock = time.perf_counter()
+        lanes = self.suite.lane_query(self._x[agents], self._y[agents], self._yaw[agents])
+        self.sensor_time += time.perf_counter() - clock
+        obs, (boxes, box_ids) = self._observe(agents, agents, lanes)
+        stepped = np.searchsorted(agents, act_idx)
+        other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, stepped)
+        p1 = np.stack([self._x[act_idx], self._y[act_idx]], axis=1)
+        flags = {
+            "collision": other >= 0,
+            "off_road": off_road(lanes.distance[stepped], cfg.lane_width, cfg.off_road_margin),
+            "red_light": self.stop_lines.red_crossings(self.t - 1, p0, p1, cfg.lane_width),
+            "destination": reached(p1[:, 0], p1[:, 1], self._dest[rows], cfg.destination_radius),
+            "end_of_life": self.t >= self._last[rows],
+        }
+        term = np.zeros(a, bool)
+        for name in cfg.terminate_on:
+            term |= flags[name]
+        trunc = ~term & (flags["end_of_life"] | (self.t >= self._end))
+        leaving = term | trunc
+        rewards, terms, truncs, infos = {}, {}, {}, {}
+        for i, k in enumerate(act_idx):  # per-agent dict building (PettingZoo interface)
+            name = self._ctrl_names[k]
+            ev = {e: bool(flags[e][i]) for e in EVENTS}
+            reason = next((e for e in EVENTS if ev[e] and (e in cfg.terminate_on
+                                                            or e == "end_of_life")), None)
+            if reason is None and trunc[i]:
+                reason = "end_of_scene"
+            oid = int(box_ids[other[i]]) if other[i] >= 0 else -1
+            rewards[name], terms[name], truncs[name] = 0.0, bool(term[i]), bool(trunc[i])
+            infos[name] = self._info(k, ev, reason if leaving[i] else None, oid)
+        end = self.t >= self._end
+        for k in joiners:
+            name = self._ctrl_names[k]
+            rewards[name], terms[name], truncs[name] = 0.0, False, bool(end)
+            infos[name] = self._info(k, {}, "end_of_scene" if end else None, -1)
+        gone = act_idx[leaving]
+        if end:
+            gone = np.concatenate([gone, joiners])
+        self._active[gone] = False
+        for k in gone:
+            name = self._ctrl_names[k]
+            if name in self._in_sumo:
+                remove_vehicle(name)
+                self._in_sumo.discard(name)
+        # nobody left but agents to come: run the log on until someone joins
+        while not self._active.any() and self.t < self._end and (~self._joined).any():
+            self._advance()
+            late = self._join()
+            if late.size:
+                more, _ = self._observe(late, late)
+                for k in late:
+                    name = self._ctrl_names[k]
+                    obs[name] = more[name]
+                    rewards[name], terms[name], truncs[name] = 0.0, False, False
+                    infos[name] = self._info(k, {}, None, -1)
+        self.agents = [self._ctrl_names[k] for k in np.flatnonzero(self._active)]
+        return obs, rewards, terms, truncs, infos
+
+    # ------------------------------------------------------------------ helpers
+    def agent_states(self) -> AgentStates:
+        """Bicycle state of the live agents (for :func:`~magail_sumo.env.expert.expert_actions`)."""
+        k = np.array([self._name_index[a] for a in self.agents], np.int64)
+        rows = self._ctrl[k]
+        return AgentStates(list(self.agents), rows,
+                           dynamics.VehicleState(self._x[k].copy(), self._y[k].copy(),
+                                                 self._yaw[k].copy(), self._speed[k].copy()),
+                           dynamics.WHEELBASE_RATIO * self._length[rows])
+
+    def render(self) -> np.ndarray | None:
+        """Top-down RGB frame (H, W, 3) uint8 of step t: agents green, SUMO vehicles blue,
+        log-only objects grey."""
+        if self.render_mode is None:
+            return None
+        if self._renderer is None:
+            tr = self.scene.tracks
+            xs, ys = tr.x[tr.valid], tr.y[tr.valid]
+            pad = 10.0
+            self._renderer = TopDownRenderer(self.scene, (xs.min() - pad, ys.min() - pad,
+                                                          xs.max() + pad, ys.max() + pad),
+                                             self.config.render_size)
+        agents = np.flatnonzero(self._active)
+        boxes, ids = self._world(agents)
+        col = np.empty((len(boxes), 3), np.uint8)
+        col[:] = LOG_ONLY
+        routed = np.isin(ids, [int(v) for v in self.bundle.sumo_ids])
+        col[routed] = OTHER
+        col[:agents.size] = AGENT
+        return self._renderer.frame(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, col)

@@ -1,0 +1,89 @@
+"""Per-agent episode events other than collisions: off-road, red-light violation, destination.
+
+Rules (scene frame, metres):
+
+* **off-road**: the box centre lies farther than ``lane_width / 2 + margin`` from every lane
+  centre line of the scene map (WOMD lanes carry no width, so one nominal width is used);
+* **red-light violation**: during the step the box centre crosses a signalled stop line — the
+  line through a signal record's stop point, normal to the start direction of its lane, within
+  ``lane_width / 2`` of the stop point — and every signal record at that stop line is red at the
+  step's start (a vehicle going straight on green past a red turn arrow is not flagged);
+* **destination reached**: the box centre is within ``radius`` of the last recorded position
+  of the agent's track.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from magail_sumo.scene import Scene
+from magail_sumo.sensors.traffic_lights import LIGHT_CODES, RED
+
+
+def off_road(lane_distance: np.ndarray, lane_width: float, margin: float) -> np.ndarray:
+    """(A,) bool: lane-centre distance (m) beyond half the lane width plus the margin."""
+    return np.asarray(lane_distance) > 0.5 * lane_width + margin
+
+
+def reached(x: np.ndarray, y: np.ndarray, destination: np.ndarray, radius: float) -> np.ndarray:
+    """(A,) bool: positions within ``radius`` m of (A, 2) destinations."""
+    return np.hypot(destination[:, 0] - x, destination[:, 1] - y) <= radius
+
+
+@dataclass(frozen=True)
+class StopLines:
+    """Signal records with their stop line geometry, ordered by step (built once per scene).
+
+    :param step: (K,) log step. :param point: (K, 2) stop point (m).
+    :param direction: (K, 2) unit start direction of the controlled lane.
+    :param red: (K,) the record's state is red.
+    :param line: (K,) stop-line group id (records sharing a stop point, rounded to 0.5 m).
+    """
+
+    step: np.ndarray
+    point: np.ndarray
+    direction: np.ndarray
+    red: np.ndarray
+    line: np.ndarray
+
+    @classmethod
+    def build(cls, scene: Scene) -> "StopLines":
+        sig = scene.signals
+        dirs = {}
+        for lane in scene.roadmap.lanes:
+            p = lane.polyline[:, :2]
+            d = p[1:] - p[:-1] if len(p) > 1 else np.zeros((0, 2))
+            d = d[np.hypot(d[:, 0], d[:, 1]) > 1e-6]
+            if len(d):
+                dirs[lane.id] = d[0] / np.hypot(*d[0])
+        keep = np.array([int(l) in dirs for l in sig.lane], bool) if len(sig) else np.zeros(0, bool)
+        point = sig.stop_point[keep, :2]
+        key = np.round(point / 0.5).astype(np.int64)
+        line = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1) if len(key) \
+            else np.zeros(0, np.int64)
+        return cls(sig.step[keep].astype(np.int64), point,
+                   np.array([dirs[int(l)] for l in sig.lane[keep]]).reshape(-1, 2),
+                   LIGHT_CODES[sig.state[keep].astype(np.int64)] == RED, line)
+
+    def red_crossings(self, step: int, p0: np.ndarray, p1: np.ndarray, lane_width: float
+                      ) -> np.ndarray:
+        """(A,) bool: agents moving from (A, 2) ``p0`` to ``p1`` ran a red light at ``step``."""
+        lo, hi = np.searchsorted(self.step, [step, step + 1])
+        a = p0.shape[0]
+        if hi == lo or a == 0:
+            return np.zeros(a, bool)
+        pt, d = self.point[lo:hi], self.direction[lo:hi]
+        r0 = p0[:, None, :] - pt[None]
+        r1 = p1[:, None, :] - pt[None]
+        s0 = (r0 * d[None]).sum(-1)
+        s1 = (r1 * d[None]).sum(-1)
+        lat = np.abs(r1[..., 0] * d[None, :, 1] - r1[..., 1] * d[None, :, 0])
+        crossed = (s0 < 0) & (s1 >= 0) & (lat <= 0.5 * lane_width)  # (A, K)
+        lines = self.line[lo:hi]
+        red = self.red[lo:hi]
+        # a crossed line is a violation when no record on it is non-red at this step
+        nonred_on_line = np.zeros(int(self.line.max()) + 1, bool)
+        np.logical_or.at(nonred_on_line, lines, ~red)
+        return (crossed & ~nonred_on_line[lines][None]).any(axis=1)

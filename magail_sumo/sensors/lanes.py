@@ -1,0 +1,110 @@
+"""Nearest-lane queries over all agents of a step (numba kernel over a :class:`SegmentGrid`).
+
+Frames: scene frame, metres, radians CCW from +x. Lane centre lines are split into segments
+owned by a lane index (position of the lane in ``RoadMap.lanes``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from magail_sumo.scene import Lane
+
+from .raycast import SegmentGrid
+
+
+@dataclass(frozen=True)
+class LaneQuery:
+    """Per-point result of :meth:`LaneIndex.query` (A = number of points).
+
+    :param lane: (A,) index of the nearest lane whose direction is within 90° of the query
+        heading (-1 when none lies within the grid cell).
+    :param lateral: (A,) signed distance to that lane's centre line (m, positive = the point
+        lies left of the lane direction); 0 when ``lane`` is -1.
+    :param heading_error: (A,) query heading minus lane direction, wrapped to [-pi, pi) (rad).
+    :param distance: (A,) distance to the nearest lane centre line of any direction (m),
+        capped at the grid cell size.
+    """
+
+    lane: np.ndarray
+    lateral: np.ndarray
+    heading_error: np.ndarray
+    distance: np.ndarray
+
+
+@numba.njit(cache=True)
+def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, items):
+    a = px.shape[0]
+    lane = np.full(a, -1, np.int64)
+    lateral = np.zeros(a)
+    herr = np.zeros(a)
+    dist = np.full(a, cell)
+    for i in range(a):
+        ox, oy = px[i], py[i]
+        ch, sh = np.cos(yaw[i]), np.sin(yaw[i])
+        cx = int(np.floor((ox - x0) / cell))
+        cy = int(np.floor((oy - y0) / cell))
+        best_any = cell * cell
+        best_al = np.inf
+        for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
+            for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
+                c = gx * ny + gy
+                for m in range(offsets[c], offsets[c + 1]):
+                    k = items[m]
+                    ax, ay = starts[k, 0], starts[k, 1]
+                    ex, ey = ends[k, 0] - ax, ends[k, 1] - ay
+                    wx, wy = ox - ax, oy - ay
+                    ll = ex * ex + ey * ey
+                    t = 0.0 if ll < 1e-12 else min(1.0, max(0.0, (wx * ex + wy * ey) / ll))
+                    qx, qy = wx - t * ex, wy - t * ey
+                    d2 = qx * qx + qy * qy
+                    if d2 < best_any:
+                        best_any = d2
+                    if ll < 1e-12 or d2 >= best_al:
+                        continue
+                    if ex * ch + ey * sh <= 0.0:  # lane runs against the heading
+                        continue
+                    best_al = d2
+                    n = np.sqrt(ll)
+                    lane[i] = owner[k]
+                    lateral[i] = (ex * wy - ey * wx) / n
+                    herr[i] = (yaw[i] - np.arctan2(ey, ex) + np.pi) % (2 * np.pi) - np.pi
+        dist[i] = np.sqrt(best_any)
+    return lane, lateral, herr, dist
+
+
+@dataclass(frozen=True)
+class LaneIndex:
+    """Lane centre-line segments of a scene indexed in a grid, built once per scene.
+
+    :param cell: grid cell (m); distances beyond it are reported as ``cell``.
+    """
+
+    grid: SegmentGrid
+    owner: np.ndarray  # (S,) lane index of each grid segment
+    ids: np.ndarray  # (L,) WOMD lane id of each lane index
+
+    @classmethod
+    def build(cls, lanes: tuple[Lane, ...], cell: float = 10.0) -> "LaneIndex":
+        polys = [l.polyline for l in lanes]
+        counts = np.array([max(len(p) - 1, 0) for p in polys], np.int64)
+        owner = np.repeat(np.arange(len(polys), dtype=np.int64), counts)
+        parts = [p[:, :2] for p in polys if len(p) > 1]
+        if parts:
+            starts = np.concatenate([p[:-1] for p in parts])
+            ends = np.concatenate([p[1:] for p in parts])
+        else:
+            starts = ends = np.zeros((0, 2))
+        return cls(SegmentGrid.build(starts, ends, cell), owner,
+                   np.array([l.id for l in lanes], np.int64))
+
+    def query(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> LaneQuery:
+        """Nearest lanes of A points with headings (all arrays (A,))."""
+        g = self.grid
+        f64 = lambda v: np.ascontiguousarray(v, np.float64)  # noqa: E731
+        lane, lat, herr, dist = _nearest(f64(x), f64(y), f64(yaw), g.starts, g.ends, self.owner,
+                                         g.x0, g.y0, g.cell, g.nx, g.ny, g.offsets, g.items)
+        return LaneQuery(lane, lat, herr, dist)

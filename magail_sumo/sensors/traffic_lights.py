@@ -1,0 +1,62 @@
+"""Traffic-light state of each lane at each log step, as a lookup table built once per scene.
+
+Codes: 0 none/unknown, 1 green, 2 yellow, 3 red (:data:`LIGHT_CODES` maps the WOMD
+:class:`SignalState` values). WOMD records signals on the lanes that start at a stop line
+(usually the lanes inside a junction); a lane without a record of its own takes the states of
+its signalled exit lanes, the most permissive one (green > yellow > red), so an agent on the
+approach lane sees the light ahead of it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from magail_sumo.scene import Scene, SignalState
+
+NONE, GREEN, YELLOW, RED = 0, 1, 2, 3
+#: light code of each :class:`SignalState` value
+LIGHT_CODES = np.zeros(len(SignalState), np.int8)
+LIGHT_CODES[[SignalState.ARROW_GO, SignalState.GO]] = GREEN
+LIGHT_CODES[[SignalState.ARROW_CAUTION, SignalState.CAUTION, SignalState.FLASHING_CAUTION]] = YELLOW
+LIGHT_CODES[[SignalState.ARROW_STOP, SignalState.STOP, SignalState.FLASHING_STOP]] = RED
+_RANK = np.array([0, 3, 2, 1], np.int8)  # permissiveness of codes none, green, yellow, red
+
+
+@dataclass(frozen=True)
+class LightTable:
+    """(T, L) light codes per log step and lane index (lane order of ``RoadMap.lanes``)."""
+
+    codes: np.ndarray
+
+    @classmethod
+    def build(cls, scene: Scene) -> "LightTable":
+        lanes = scene.roadmap.lanes
+        t_steps = scene.num_steps
+        index = {l.id: k for k, l in enumerate(lanes)}
+        own = np.zeros((t_steps, len(lanes)), np.int8)
+        sig = scene.signals
+        known = np.array([int(l) in index for l in sig.lane], bool) if len(sig) else np.zeros(0, bool)
+        if known.any():
+            cols = np.array([index[int(l)] for l in sig.lane[known]], np.int64)
+            rows = np.clip(sig.step[known].astype(np.int64), 0, t_steps - 1)
+            own[rows, cols] = LIGHT_CODES[sig.state[known].astype(np.int64)]
+        codes = own.copy()
+        signalled = set(np.unique(cols).tolist()) if known.any() else set()
+        for k, lane in enumerate(lanes):  # once per scene: approach lanes take their exits' lights
+            if k in signalled:
+                continue
+            exits = [index[e] for e in lane.exit_lanes if e in index and index[e] in signalled]
+            if exits:
+                sub = own[:, exits]
+                best = np.argmax(_RANK[sub], axis=1)
+                codes[:, k] = sub[np.arange(t_steps), best]
+        return cls(codes)
+
+    def lookup(self, step: int, lane: np.ndarray) -> np.ndarray:
+        """(A,) light codes of lane indices at a log step (0 for lane -1 or steps past the log)."""
+        lane = np.asarray(lane, np.int64)
+        if not 0 <= step < self.codes.shape[0] or self.codes.shape[1] == 0:
+            return np.zeros(lane.shape, np.int8)
+        return np.where(lane >= 0, self.codes[step, np.maximum(lane, 0)], 0).astype(np.int8)
