@@ -83,7 +83,7 @@ def test_expert_actions_follow_the_log(bundles, sid):
     tr = scene.tracks
     env = SumoDrivingEnv(scene, folder, EnvConfig(terminate_on=(), limits=REPLAY_LIMITS))
     env.reset(seed=0)
-    worst, checked, ended = 0.0, 0, {}
+    worst, checked, ended, yaw_err = 0.0, 0, {}, []
     while env.agents:
         _, _, _, trunc, info = env.step(expert_actions(env))
         st = env.agent_states()
@@ -92,9 +92,12 @@ def test_expert_actions_follow_the_log(bundles, sid):
         v = tr.valid[st.rows, env.t]
         err = np.hypot(st.state.x - tr.x[st.rows, env.t], st.state.y - tr.y[st.rows, env.t])[v]
         worst = max(worst, float(err.max(initial=0.0)))
+        dyaw = np.angle(np.exp(1j * (st.state.yaw - tr.heading[st.rows, env.t])))[v]
+        yaw_err.extend(np.abs(dyaw).tolist())
         checked += int(v.sum())
     env.close()
     assert worst < 0.2, worst
+    assert np.percentile(yaw_err, 95) < np.radians(5), np.degrees(np.percentile(yaw_err, 95))
     assert checked > 100
     last = {str(int(tr.id[r])): int(np.flatnonzero(tr.valid[r])[-1]) for r in env._ctrl}
     assert {a: t for a, (t, _) in ended.items()} == {a: t for a, t in last.items() if t > 0}

@@ -15,9 +15,11 @@ REPLAY_LIMITS = dynamics.BicycleLimits(max_accel=1e3, max_brake=1e3, max_steer=1
                                        max_speed=100.0, max_reverse_speed=100.0)
 
 
-def log_targets(env: SumoDrivingEnv, rows: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """Recorded centre positions of track ``rows`` at ``step`` (m, scene frame); at invalid
-    steps, linear interpolation between the neighbouring valid steps (held at the ends)."""
+def log_targets(env: SumoDrivingEnv, rows: np.ndarray, step: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Recorded centre positions (m, scene frame) and headings (rad) of track ``rows`` at
+    ``step``; at invalid steps, positions interpolate linearly between the neighbouring valid
+    steps (held at the ends) and the heading is the nearer valid step's."""
     tr = env.scene.tracks
     valid = tr.valid[rows]
     t_steps = valid.shape[1]
@@ -30,7 +32,8 @@ def log_targets(env: SumoDrivingEnv, rows: np.ndarray, step: int) -> tuple[np.nd
     w = np.where(nxt_c > prev_c, (step - prev_c) / span, 0.0)
     x = tr.x[rows, prev_c] * (1 - w) + tr.x[rows, nxt_c] * w
     y = tr.y[rows, prev_c] * (1 - w) + tr.y[rows, nxt_c] * w
-    return x, y
+    yaw = np.where(w < 0.5, tr.heading[rows, prev_c], tr.heading[rows, nxt_c]).astype(np.float64)
+    return x, y, yaw
 
 
 def expert_actions(env: SumoDrivingEnv) -> dict[str, np.ndarray]:
@@ -40,7 +43,7 @@ def expert_actions(env: SumoDrivingEnv) -> dict[str, np.ndarray]:
     st = env.agent_states()
     if not st.names:
         return {}
-    x, y = log_targets(env, st.rows, min(env.t + 1, env.scene.num_steps - 1))
-    accel, steer = dynamics.inverse(st.state, x, y, st.wheelbase, env.dt)
+    x, y, yaw = log_targets(env, st.rows, min(env.t + 1, env.scene.num_steps - 1))
+    accel, steer = dynamics.inverse(st.state, x, y, st.wheelbase, env.dt, yaw_next=yaw)
     act = dynamics.normalise(accel, steer, env.config.limits).astype(np.float32)
     return dict(zip(st.names, act))
