@@ -100,3 +100,25 @@ def test_real_scene_lidar_and_road_edges_against_reference():
         ref = [reference_distance(centers[k], a, 8.0, rs, re_) for a in side[k]]
         np.testing.assert_allclose(got[k], ref, atol=1e-4)
     assert (got < 8.0).any()
+
+
+@pytest.mark.parametrize("seed, fov", [(0, 2 * np.pi), (1, 2 * np.pi), (2, np.pi / 2), (3, 3.0)])
+def test_evenly_spaced_beams_use_the_angular_window_and_agree(seed, fov):
+    """Evenly spaced beams take the windowed kernel; results equal the per-ray reference."""
+    from magail_sumo.sensors.raycast import _uniform
+
+    rng = np.random.default_rng(seed)
+    origins = rng.uniform(-10, 10, (5, 2))
+    starts = rng.uniform(-20, 20, (60, 2))
+    ends = starts + rng.normal(0, 5, (60, 2))
+    starts[0], ends[0] = origins[0] - (1.0, 0.0), origins[0] + (1.0, 0.0)  # origin on a segment
+    b = 36
+    step = fov / b if fov >= 2 * np.pi else fov / (b - 1)
+    angles = rng.uniform(-np.pi, np.pi, (5, 1)) + np.arange(b)[None] * step
+    assert _uniform(angles) is not None
+    got = cast(origins, angles, 12.0, starts, ends)
+    grid = SegmentGrid.build(starts, ends, cell=12.0).cast(origins, angles, 12.0)
+    ref = np.array([[reference_distance(origins[i], angles[i, j], 12.0, starts, ends)
+                     for j in range(b)] for i in range(5)])
+    np.testing.assert_allclose(got, ref, atol=1e-4)
+    np.testing.assert_allclose(grid, ref, atol=1e-4)
