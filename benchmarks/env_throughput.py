@@ -26,7 +26,6 @@ sys.path.insert(0, str(ROOT))
 from converters import load_scene  # noqa: E402
 from converters.sumo.scenario import ConvertOptions, convert_scene  # noqa: E402
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions  # noqa: E402
-from magail_sumo.env.sumo_ops import remove_vehicle  # noqa: E402
 from magail_sumo.sim.session import SumoSession  # noqa: E402
 
 SCENE = "637f20cafde22ff8"
@@ -65,7 +64,7 @@ def run_raw(cfg: Path, scene, ids: set[str], episodes: int) -> tuple[float, int]
                 r = np.array([row[v] for v in present], np.int64)
                 ok = tr.valid[r, t + 1] if r.size else np.zeros(0, bool)
                 for i in np.flatnonzero(~ok & (last[r] <= t)):  # life over: leave, as in the env
-                    remove_vehicle(present[i])
+                    sim.remove(present[i])
                 present = [v for v, keep in zip(present, ok | (last[r] > t)) if keep]
                 r = np.array([row[v] for v in present], np.int64)
                 ok = tr.valid[r, t + 1] if r.size else np.zeros(0, bool)

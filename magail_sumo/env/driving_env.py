@@ -40,7 +40,6 @@ from .collision import first_overlap
 from .config import EVENTS, EnvConfig
 from .events import StopLines, off_road, reached
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
-from .sumo_ops import remove_vehicle
 
 
 @dataclass(frozen=True)
@@ -223,7 +222,7 @@ class SumoDrivingEnv(ParallelEnv):
             if vid in self.bundle.parked:
                 continue
             if vid in done_names:
-                remove_vehicle(vid)
+                sess.remove(vid)
                 continue
             self._in_sumo.add(vid)
         self._in_sumo.difference_update(arrived)
@@ -364,7 +363,7 @@ class SumoDrivingEnv(ParallelEnv):
         for k in gone:
             name = self._ctrl_names[k]
             if name in self._in_sumo:
-                remove_vehicle(name)
+                self._session.remove(name)
                 self._in_sumo.discard(name)
         # nobody left but agents to come: run the log on until someone joins
         while not self._active.any() and self.t < self._end and (~self._joined).any():

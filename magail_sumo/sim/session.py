@@ -196,6 +196,19 @@ class SumoSession:
         cx, cy = front_to_centre(pos[:, 0], pos[:, 1], yaw, length)
         return VehicleArrays(ids, cx, cy, yaw, speed, length, width, tuple(edges))
 
+    def remove(self, vid: str) -> None:
+        """Take a vehicle out of the simulation (no-op when it already left or never entered).
+
+        Its subscription goes first: libsumo fails the next step ("Vehicle ... is not known")
+        when a subscribed vehicle is removed.
+        """
+        ls = _libsumo()
+        try:
+            ls.vehicle.unsubscribe(vid)
+            ls.vehicle.remove(vid)
+        except Exception:  # libsumo raises its own types; already gone is fine
+            pass
+
     def move(self, ids: Sequence[str], x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
              length: np.ndarray, edges: Sequence[str] | None = None,
              lanes: Sequence[int] | None = None, match_threshold: float = 5.0) -> None:
