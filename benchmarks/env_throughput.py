@@ -1,11 +1,17 @@
-"""Env throughput on 637f20cafde22ff8 with every route vehicle controlled.
+"""Env throughput: a recorded scene and a city, every vehicle controlled.
 
 Measures (one process, one core): agent-steps/s of the full env step (SUMO step + control +
-sensors + observations + events) driven by expert actions; the floor: raw libsumo stepping of the
-same scene with the same vehicles moved to their recorded poses each step; the share of env
-step time spent in sensors and observations.
+sensors + observations + events); the floor: raw libsumo stepping of the same scenario with the
+same vehicles moved each step; the share of env step time spent in sensors and observations.
 
-    python benchmarks/env_throughput.py [--json] [--episodes N]
+* ``637f20cafde22ff8``: the bundled WOMD scene converted, every route vehicle controlled,
+  driven by expert (inverse-dynamics) actions; floor: the vehicles moved to their recorded poses.
+* ``ingolstadt21``: the InTAS Ingolstadt cut-out (data/sumo/ingolstadt21) warmed up by SUMO for
+  ``--warmup`` s, then every vehicle present or departing controlled (several hundred), driven
+  with zero actions (events reported, nobody terminated); floor: every vehicle moved to its own
+  SUMO pose each step.
+
+    python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
 """
 
 from __future__ import annotations
@@ -26,9 +32,10 @@ sys.path.insert(0, str(ROOT))
 from converters import load_scene  # noqa: E402
 from converters.sumo.scenario import ConvertOptions, convert_scene  # noqa: E402
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions  # noqa: E402
-from magail_sumo.sim.session import SumoSession  # noqa: E402
+from magail_sumo.sim.session import SessionConfig, SumoSession  # noqa: E402
 
 SCENE = "637f20cafde22ff8"
+CITY = "ingolstadt21"
 
 
 def run_env(env: SumoDrivingEnv, episodes: int) -> tuple[float, int, float, int]:
@@ -78,17 +85,84 @@ def run_raw(cfg: Path, scene, ids: set[str], episodes: int) -> tuple[float, int]
     return total, steps
 
 
+def run_city_raw(cfg: Path, state: str, steps: int) -> tuple[float, int, int]:
+    """(seconds, steps, peak vehicles) of raw stepping with every vehicle moved to its own pose."""
+    with SumoSession(cfg, config=SessionConfig(extra_args=("--load-state", state))) as sim:
+        total, peak = 0.0, 0
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            v = sim.vehicles()
+            sim.move(list(v.ids), v.x, v.y, v.yaw, v.length)
+            sim.step()
+            total += time.perf_counter() - t0
+            peak = max(peak, len(v))
+    return total, steps, peak
+
+
+def run_city(args) -> dict:
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+
+    cfg = ROOT / "data" / "sumo" / CITY / f"{CITY}.sumocfg"
+    env = SumoCityEnv(cfg, CityEnvConfig(warmup_s=args.warmup, max_steps=args.city_steps,
+                                         terminate_on=()))
+    secs = sensors = 0.0
+    agent_steps, peak, steps = 0, 0, 0
+    for ep in range(args.episodes + 1):  # the first episode warms numba and SUMO up
+        env.reset(seed=ep)
+        while env.agents:
+            acts = {a: np.zeros(2, np.float32) for a in env.agents}
+            s0, t0 = env.sensor_time, time.perf_counter()
+            env.step(acts)
+            if ep:
+                secs += time.perf_counter() - t0
+                sensors += env.sensor_time - s0
+                agent_steps += len(acts)
+                peak = max(peak, len(acts))
+                steps += 1
+    state = str(env._warm_state())
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(1, maxtasksperchild=1) as pool:
+        raw_secs, raw_steps, raw_peak = pool.apply(run_city_raw, (cfg, state, args.city_steps))
+    env.close()
+    return {
+        "scene": CITY,
+        "agents": peak,
+        "agent_steps_per_s": round(agent_steps / secs, 1),
+        "raw_sumo_steps_per_s": round(raw_steps / raw_secs, 1),
+        "sensor_share": round(sensors / secs, 3),
+        "mean_live_agents": round(agent_steps / steps, 1),
+        "env_steps_per_s": round(steps / secs, 1),
+        "raw_vehicles_moved_peak": raw_peak,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--json", action="store_true", help="print one JSON object per scenario")
     ap.add_argument("--episodes", type=int, default=3)
+    ap.add_argument("--scenario", default="all", choices=[SCENE, CITY, "all"])
+    ap.add_argument("--warmup", type=float, default=1200.0, help="city warm-up (s of SUMO time)")
+    ap.add_argument("--city-steps", type=int, default=100, help="0.1-s steps per city episode")
     args = ap.parse_args(argv)
+    results = []
+    if args.scenario in (SCENE, "all"):
+        results.append(run_scene(args))
+    if args.scenario in (CITY, "all"):
+        results.append(run_city(args))
+    for out in results:
+        if args.json:
+            print(json.dumps(out))
+        else:
+            print("\n".join(f"{k:24s} {v}" for k, v in out.items()) + "\n")
+    return 0
+
+
+def run_scene(args) -> dict:
     scene = load_scene(ROOT / "data" / "womd" / f"{SCENE}.tfrecord")
     with tempfile.TemporaryDirectory() as tmp:
         rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
         if rep.status != "ok":
-            print(f"{SCENE}: conversion failed: {rep.reason}", file=sys.stderr)
-            return 1
+            raise SystemExit(f"{SCENE}: conversion failed: {rep.reason}")
         env = SumoDrivingEnv(scene, Path(tmp) / SCENE,
                              EnvConfig(controlled="all", terminate_on=(), limits=REPLAY_LIMITS))
         moved = set(env.possible_agents) - set(env.bundle.parked)
@@ -112,12 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         "mean_live_agents": round(agent_steps / (args.episodes * (scene.num_steps - 1)), 1),
         "env_steps_per_s": round(args.episodes * (scene.num_steps - 1) / secs, 1),
     }
-    if args.json:
-        print(json.dumps(out))
-    else:
-        for k, v in out.items():
-            print(f"{k:22s} {v}")
-    return 0
+    return out
 
 
 if __name__ == "__main__":

@@ -193,10 +193,12 @@ class SensorSuite:
         return cast(origins, angles, spec.range, starts, ends, owner, np.asarray(index, np.int64))
 
     def observe(self, boxes: Boxes, ego: EgoState, step: int,
-                lanes: LaneQuery | None = None) -> np.ndarray:
+                lanes: LaneQuery | None = None, light: np.ndarray | None = None) -> np.ndarray:
         """(A, D) float32 observations of the agents at log step ``step`` (layout: module doc).
 
         :param lanes: the agents' :meth:`lane_query` when already computed this step.
+        :param light: (A,) current-lane light codes (0 none, 1 green, 2 yellow, 3 red) from a
+            live source (a SUMO run without a recording); default: the recorded signal table.
         """
         cfg = self.config
         idx = np.asarray(ego.index, np.int64)
@@ -211,7 +213,8 @@ class SensorSuite:
         line = self.lines.cast(origins, yaw[:, None] + self._offsets[2][None, :],
                                cfg.lane_line.range)
         lq = lanes if lanes is not None else self.lane_query(x, y, yaw)
-        light = self.lights.lookup(step, lq.lane).astype(np.float64)
+        light = (self.lights.lookup(step, lq.lane) if light is None else
+                 np.asarray(light)).astype(np.float64)
         dx, dy = ego.destination[:, 0] - x, ego.destination[:, 1] - y
         if cfg.layout == "seed":
             cols = [x, y, ego.speed * np.cos(yaw), ego.speed * np.sin(yaw), yaw, lidar, side, line,

@@ -134,7 +134,15 @@ class SumoSession:
         self._running = True
         _ACTIVE.append(self)
         self.time = float(ls.simulation.getTime())
+        for vid in ls.vehicle.getIDList():  # vehicles of a loaded state are there from the start
+            ls.vehicle.subscribe(vid, self._variables())
         return self
+
+    @staticmethod
+    def _variables() -> tuple[int, ...]:
+        ls = _libsumo()
+        return (ls.VAR_POSITION, ls.VAR_ANGLE, ls.VAR_SPEED, ls.VAR_LENGTH, ls.VAR_WIDTH,
+                ls.VAR_ROAD_ID)
 
     def close(self) -> None:
         if not self._running:
@@ -164,8 +172,7 @@ class SumoSession:
             self.close()
             raise SimulationError(f"SUMO failed at t={self.time:.1f} s: {_one_line(exc)}") from None
         self.time = float(ls.simulation.getTime())
-        var = (ls.VAR_POSITION, ls.VAR_ANGLE, ls.VAR_SPEED, ls.VAR_LENGTH, ls.VAR_WIDTH,
-               ls.VAR_ROAD_ID)
+        var = self._variables()
         for vid in departed:
             ls.vehicle.subscribe(vid, var)
         return departed, arrived
