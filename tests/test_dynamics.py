@@ -77,3 +77,12 @@ def test_log_replay_fidelity_on_real_scenes(real_scene):
     assert worst < 0.1, worst
     # headings follow the log too (waiting vehicles do not spin on position noise)
     assert np.percentile(yaw_err, 95) < np.radians(5), np.degrees(np.percentile(yaw_err, 95))
+
+
+def test_seed_action_layout_swaps_entries():
+    act = np.array([[0.3, -0.5]])  # seed layout: steer 0.3, brake 0.5
+    a, d = denormalise(act, LIM, "steer_throttle")
+    assert a[0] == pytest.approx(-0.5 * LIM.max_brake) and d[0] == pytest.approx(0.3 * LIM.max_steer)
+    np.testing.assert_allclose(normalise(a, d, LIM, "steer_throttle"), act)
+    with pytest.raises(ValueError, match="action layout"):
+        denormalise(act, LIM, "throttle_only")

@@ -172,3 +172,21 @@ def test_missing_bundle_file(bundles, tmp_path):
     scene, folder = bundles["850c48d8bbfa008f"]
     with pytest.raises(BundleError, match=r"850c48d8bbfa008f\.sumocfg: bundle file not found"):
         SumoDrivingEnv(scene, tmp_path)
+
+
+def test_seed_action_layout_expert_replay(bundles):
+    """With the seed's (steer, throttle) layout the expert actions still follow the log."""
+    scene, folder = bundles["850c48d8bbfa008f"]
+    tr = scene.tracks
+    env = SumoDrivingEnv(scene, folder, EnvConfig(terminate_on=(), limits=REPLAY_LIMITS,
+                                                  action_layout="steer_throttle"))
+    env.reset(seed=0)
+    worst = 0.0
+    while env.agents:
+        env.step(expert_actions(env))
+        st = env.agent_states()
+        v = tr.valid[st.rows, env.t]
+        err = np.hypot(st.state.x - tr.x[st.rows, env.t], st.state.y - tr.y[st.rows, env.t])[v]
+        worst = max(worst, float(err.max(initial=0.0)))
+    env.close()
+    assert worst < 0.2

@@ -62,6 +62,7 @@ class CityEnvConfig:
     :param terminate_on: events that end an agent (others are only reported in infos).
     :param lane_width, off_road_margin, destination_radius: event rules (m).
     :param sumo_seed: added to the reset seed to seed SUMO.
+    :param action_layout: ``"accel_steer"`` or the seed's ``"steer_throttle"``.
     """
 
     control_fraction: float = 1.0
@@ -74,8 +75,12 @@ class CityEnvConfig:
     off_road_margin: float = 1.0
     destination_radius: float = 5.0
     sumo_seed: int = 0
+    action_layout: str = "accel_steer"
 
     def __post_init__(self) -> None:
+        if self.action_layout not in dynamics.ACTION_LAYOUTS:
+            raise ValueError(f"action_layout must be one of {dynamics.ACTION_LAYOUTS}, "
+                             f"got {self.action_layout!r}")
         if not 0.0 < self.control_fraction <= 1.0:
             raise ValueError(f"control_fraction must be in (0, 1], got {self.control_fraction}")
         bad = set(self.terminate_on) - set(CITY_EVENTS)
@@ -315,7 +320,7 @@ class SumoCityEnv(ParallelEnv):
         clean = np.clip(np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
         self._nan[act] += nonfinite
         self._clipped[act] += (np.abs(np.nan_to_num(raw)) > 1.0).any(axis=1)
-        accel, steer = dynamics.denormalise(clean, cfg.limits)
+        accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
         red_before = self._lc[act] == 3
         dist_before = self._ld[act].copy()
         new = dynamics.step(dynamics.VehicleState(self._x[act], self._y[act], self._yaw[act],

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from magail_sumo.sensors.observation import ObservationConfig
-from magail_sumo.sim.dynamics import BicycleLimits
+from magail_sumo.sim.dynamics import ACTION_LAYOUTS, BicycleLimits
 
 #: Event names, in the order the first one found becomes ``infos[agent]["reason"]``.
 EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination", "end_of_life")
@@ -30,6 +30,8 @@ class EnvConfig:
     :param max_steps: steps per episode (None: until the end of the scene log).
     :param render_size: (height, width) of :meth:`render` frames in pixels.
     :param sumo_seed: added to the reset seed to seed SUMO.
+    :param action_layout: order of the normalised action: ``"accel_steer"`` or the seed's
+        ``"steer_throttle"``.
     """
 
     controlled: str | int = "all"
@@ -44,8 +46,12 @@ class EnvConfig:
     max_steps: int | None = None
     render_size: tuple[int, int] = (512, 512)
     sumo_seed: int = 0
+    action_layout: str = "accel_steer"
 
     def __post_init__(self) -> None:
+        if self.action_layout not in ACTION_LAYOUTS:
+            raise ValueError(f"action_layout must be one of {ACTION_LAYOUTS}, "
+                             f"got {self.action_layout!r}")
         if not (self.controlled in ("all", "sdc", "tracks_to_predict")
                 or (isinstance(self.controlled, int) and self.controlled > 0)):
             raise ValueError("controlled must be 'all', 'sdc', 'tracks_to_predict' or a positive "

@@ -305,7 +305,7 @@ class SumoDrivingEnv(ParallelEnv):
         clean = np.clip(clean, -1.0, 1.0)
         self._nan[act_idx] += nonfinite
         self._clipped[act_idx] += outside
-        accel, steer = dynamics.denormalise(clean, cfg.limits)
+        accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
         rows = self._ctrl[act_idx]
         p0 = np.stack([self._x[act_idx], self._y[act_idx]], axis=1)
         new = dynamics.step(dynamics.VehicleState(self._x[act_idx], self._y[act_idx],

@@ -45,5 +45,6 @@ def expert_actions(env: SumoDrivingEnv) -> dict[str, np.ndarray]:
         return {}
     x, y, yaw = log_targets(env, st.rows, min(env.t + 1, env.scene.num_steps - 1))
     accel, steer = dynamics.inverse(st.state, x, y, st.wheelbase, env.dt, yaw_next=yaw)
-    act = dynamics.normalise(accel, steer, env.config.limits).astype(np.float32)
+    act = dynamics.normalise(accel, steer, env.config.limits,
+                             env.config.action_layout).astype(np.float32)
     return dict(zip(st.names, act))

@@ -69,22 +69,34 @@ def clip_action(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits
     return a_c, d_c, bad | (a_c != a) | (d_c != d)
 
 
-def denormalise(action: np.ndarray, limits: BicycleLimits) -> tuple[np.ndarray, np.ndarray]:
-    """Map a (V, 2) action in [-1, 1]² — (accel, steer) — onto physical units.
+#: Orders of the two entries of a normalised action: ours, and the seed's (steering first).
+ACTION_LAYOUTS: tuple[str, ...] = ("accel_steer", "steer_throttle")
 
-    Positive accel in [0, 1] scales ``max_accel``; negative scales ``max_brake``.
+
+def denormalise(action: np.ndarray, limits: BicycleLimits, layout: str = "accel_steer"
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Map a (V, 2) action in [-1, 1]² onto physical units (accel m/s², steer rad).
+
+    ``layout="accel_steer"``: (accel, steer); ``"steer_throttle"`` (the seed's): (steer,
+    throttle/brake). Positive accel in [0, 1] scales ``max_accel``; negative scales ``max_brake``.
     """
     act = np.asarray(action, np.float64)
+    if layout == "steer_throttle":
+        act = act[:, ::-1]
+    elif layout != "accel_steer":
+        raise ValueError(f"action layout must be one of {ACTION_LAYOUTS}, got {layout!r}")
     u = np.clip(act[:, 0], -1.0, 1.0)
     accel = np.where(u >= 0, u * limits.max_accel, u * limits.max_brake)
     return accel, np.clip(act[:, 1], -1.0, 1.0) * limits.max_steer
 
 
-def normalise(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits) -> np.ndarray:
-    """Inverse of :func:`denormalise`: (V, 2) in [-1, 1]²."""
+def normalise(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits,
+              layout: str = "accel_steer") -> np.ndarray:
+    """Inverse of :func:`denormalise`: (V, 2) in [-1, 1]² in the given layout."""
     a = np.asarray(accel, np.float64)
     u = np.where(a >= 0, a / limits.max_accel, a / limits.max_brake)
-    return np.clip(np.stack([u, np.asarray(steer) / limits.max_steer], axis=1), -1.0, 1.0)
+    out = np.clip(np.stack([u, np.asarray(steer) / limits.max_steer], axis=1), -1.0, 1.0)
+    return out[:, ::-1].copy() if layout == "steer_throttle" else out
 
 
 def step(state: VehicleState, accel: np.ndarray, steer: np.ndarray, wheelbase: np.ndarray,
