@@ -7,10 +7,10 @@ import sys
 from typing import Sequence
 
 from magail_sumo import __version__
-from magail_sumo.cli import convert, inspect, realism, replay
+from magail_sumo.cli import convert, evaluate, inspect, realism, replay, report
 from magail_sumo.errors import MagailSumoError
 
-SUBCOMMANDS = (inspect, convert, replay, realism)
+SUBCOMMANDS = (inspect, convert, replay, realism, evaluate, report)
 
 
 def build_parser() -> argparse.ArgumentParser:

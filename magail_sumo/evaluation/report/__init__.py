@@ -1,0 +1,107 @@
+"""Evaluation report of a ``magail-sumo evaluate`` folder: metric table against the baselines,
+bar charts, sim-vs-log distributions, top-down trajectory overlays and the realism breakdown.
+
+``build_report(DIR)`` writes ``DIR/report/report.html`` (self-contained), ``report.md`` (with
+``img/*.png``), ``metrics.csv`` (one row per scene and method, every field) and
+``summary.csv`` (mean over scenes per method).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+from magail_sumo.evaluation.traffic import METRICS
+
+from . import figures
+from .render import REALISM_FIELDS, Document
+from .scoring import Scores, collect, method_means
+
+#: Traffic metrics in the main table, in order.
+MAIN = ["ade", "min_ade", "fde", "collision_rate", "offroad_rate", "red_light_rate",
+        "hard_braking_rate", "lane_changes", "route_completion", "mean_speed",
+        "nearest_object_distance", "ttc_below_1s", "speed_js", "acceleration_js", "jerk_js",
+        "yaw_rate_js", "nearest_object_distance_js", "ttc_js"]
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    html: Path
+    markdown: Path
+    metrics_csv: Path
+    summary_csv: Path
+    errors: tuple[str, ...]
+    scores: Scores
+
+
+def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+def build_report(folder: str | Path, out: str | Path | None = None,
+                 submissions: dict[str, list[str]] | None = None) -> ReportFiles:
+    """Score ``folder`` (see :func:`~magail_sumo.evaluation.report.scoring.collect`) and write
+    the report into ``out`` (default ``folder/report``)."""
+    folder = Path(folder)
+    out = Path(out) if out else folder / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    sc = collect(folder, submissions)
+    units = {n: METRICS[n].unit for n in METRICS}
+    means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
+    man = sc.manifest
+    doc = Document("magail_sumo evaluation report", out / "img")
+    doc.para(f"Scenes: {len(sc.scenes)} · methods: {', '.join(sc.methods) or 'none'} · "
+             f"rollouts: {man.get('rollouts')} (WOSAC: 32) × {man.get('steps', 80)} steps "
+             f"(8 s) after the current step · seed {man.get('seed')} · policy under test: "
+             f"{man.get('policy')}")
+    doc.heading("Metrics against the baselines (mean over scenes)")
+    header = ["method", "metametric"] + MAIN
+    doc.table(header, [[m, means[m]["metametric"], *(means[m][f] for f in MAIN)]
+                       for m in sc.methods], "metrics")
+    doc.table(["metric", "unit", "definition"],
+              [[n, units[n], METRICS[n].description] for n in MAIN], "units")
+    if sc.methods:
+        doc.image(figures.bar_chart(means, ["metametric", "ade", "collision_rate",
+                                            "offroad_rate", "hard_braking_rate",
+                                            "route_completion", "speed_js", "ttc_js"],
+                                    {**units, "metametric": "WOSAC"}, "Methods compared"),
+                  "bars", "bar charts of the main metrics per method")
+    doc.heading("Realism (WOSAC 2025) breakdown")
+    doc.table(["method", "metametric"] + REALISM_FIELDS,
+              [[m, means[m]["metametric"], *(means[m][f] for f in REALISM_FIELDS)]
+               for m in sc.methods], "realism")
+    sids = sorted(sc.scenes)
+    per = {(r["scenario_id"], r["method"]): r for r in sc.rows}
+    doc.para("Meta-metric per scene:")
+    doc.table(["method"] + sids, [[m, *(per[(s, m)]["metametric"] if (s, m) in per
+                                         else float("nan") for s in sids)]
+                                  for m in sc.methods], "per-scene")
+    if sc.inputs:
+        doc.heading("Simulated vs logged distributions")
+        doc.image(figures.distributions(sc, [("linear_speed", "speed (m/s)"),
+                                             ("linear_acceleration", "acceleration (m/s²)"),
+                                             ("time_to_collision", "time to collision (s)")]),
+                  "distributions", "speed, acceleration and TTC distributions, log vs methods")
+        doc.heading("Trajectories")
+        for sid in sids:
+            if any((sid, m) in sc.rollouts for m in sc.methods):
+                doc.image(figures.trajectories(sc, sid), f"traj_{sid}",
+                          f"top-down trajectories of scene {sid}")
+    if sc.errors:
+        doc.heading("Problems")
+        doc.errors(sc.errors)
+    html_path, md_path = out / "report.html", out / "report.md"
+    doc.write(html_path, md_path)
+    all_fields = ["scenario_id", "method", "rollouts"] + list(METRICS) + \
+        [f for f in sc.rows[0] if f not in METRICS and f not in ("scenario_id", "method",
+                                                                  "rollouts")] if sc.rows else []
+    metrics_csv, summary_csv = out / "metrics.csv", out / "summary.csv"
+    _write_csv(metrics_csv, all_fields, [[r.get(f) for f in all_fields] for r in sc.rows])
+    sfields = ["metametric", *MAIN, *REALISM_FIELDS]
+    _write_csv(summary_csv, ["method", *sfields],
+               [[m, *(means[m][f] for f in sfields)] for m in sc.methods])
+    return ReportFiles(html_path, md_path, metrics_csv, summary_csv, tuple(sc.errors), sc)

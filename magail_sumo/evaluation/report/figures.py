@@ -1,0 +1,111 @@
+"""Report figures (matplotlib, Agg backend) returned as PNG bytes."""
+
+from __future__ import annotations
+
+import io
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from magail_sumo.evaluation.traffic.distributions import BINS, histogram  # noqa: E402
+
+from .scoring import Scores  # noqa: E402
+
+COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def bar_chart(means: dict[str, dict[str, float]], fields: list[str], units: dict[str, str],
+              title: str) -> bytes:
+    """One small bar panel per field, one bar per method."""
+    methods = list(means)
+    n = len(fields)
+    cols = min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), squeeze=False)
+    for ax, f in zip(axes.ravel(), fields):
+        vals = [means[m][f] for m in methods]
+        ax.bar(range(len(methods)), np.nan_to_num(vals), color=COLORS[:len(methods)])
+        ax.set_xticks(range(len(methods)), methods, rotation=30, fontsize=7)
+        ax.set_title(f"{f} ({units.get(f, '')})", fontsize=8)
+        ax.tick_params(axis="y", labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def distributions(scores: Scores, features: list[tuple[str, str]]) -> bytes:
+    """Log vs each method's histograms (pooled over scenes) of the given (feature, label)."""
+    fig, axes = plt.subplots(1, len(features), figsize=(4.2 * len(features), 3.0),
+                             squeeze=False)
+    for ax, (feat, label) in zip(axes[0], features):
+        lo, hi, n = BINS[feat]
+        centres = lo + (np.arange(n) + 0.5) * (hi - lo) / n
+        log_by_scene: dict[str, np.ndarray] = {}
+        for k, m in enumerate(scores.methods):
+            sims = []
+            for (sid, mm), inp in scores.inputs.items():
+                if mm == m:
+                    lv, sv = inp.log_and_sim(feat)
+                    sims.append(sv)
+                    log_by_scene.setdefault(sid, lv)
+            if sims:
+                ax.plot(centres, histogram(np.concatenate(sims), feat), color=COLORS[k % 7],
+                        label=m, lw=1.3)
+        if log_by_scene:
+            ax.plot(centres, histogram(np.concatenate(list(log_by_scene.values())), feat),
+                    "k--", label="log", lw=1.6)
+        ax.set_title(label, fontsize=9)
+        ax.set_ylabel("share", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def trajectories(scores: Scores, sid: str, max_rollouts: int = 8) -> bytes:
+    """Top-down view of one scene: lanes (grey), road edges (black), recorded futures (black
+    dashed) and the rollouts (colour) of every method, one panel per method."""
+    scene = scores.scenes[sid]
+    methods = [m for m in scores.methods if (sid, m) in scores.rollouts]
+    fig, axes = plt.subplots(1, max(1, len(methods)), figsize=(4.2 * max(1, len(methods)), 4.2),
+                             squeeze=False)
+    tr = scene.tracks
+    cur = scene.current_time_index
+    for k, (ax, m) in enumerate(zip(axes[0], methods)):
+        ro = scores.rollouts[(sid, m)]
+        for ln in scene.roadmap.lanes:
+            ax.plot(ln.polyline[:, 0], ln.polyline[:, 1], color="#cccccc", lw=0.5)
+        for e in scene.roadmap.road_edges:
+            ax.plot(e.polyline[:, 0], e.polyline[:, 1], color="#333333", lw=0.8)
+        rows = [int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id]
+        fut = slice(cur, cur + 1 + ro.shape[2])
+        for r in rows:
+            v = tr.valid[r, fut]
+            ax.plot(tr.x[r, fut][v], tr.y[r, fut][v], "k--", lw=0.8)
+        for r in range(min(max_rollouts, ro.shape[0])):
+            ax.plot(ro.x[r].T, ro.y[r].T, color=COLORS[k % 7], lw=0.6, alpha=0.5)
+        v = tr.valid[rows, cur]
+        ax.scatter(tr.x[rows, cur][v], tr.y[rows, cur][v], s=6, color="k", zorder=3)
+        xs, ys = tr.x[rows, cur][v], tr.y[rows, cur][v]
+        if xs.size:
+            pad = 25.0
+            ax.set_xlim(xs.min() - pad, xs.max() + pad)
+            ax.set_ylim(ys.min() - pad, ys.max() + pad)
+        ax.set_aspect("equal")
+        ax.set_title(f"{m}", fontsize=9)
+        ax.tick_params(labelsize=6)
+    fig.suptitle(f"{sid}: log (dashed) vs rollouts", fontsize=10)
+    fig.tight_layout()
+    return _png(fig)

@@ -1,0 +1,88 @@
+"""Report documents: self-contained HTML (PNG figures inlined as base64 data URIs), Markdown
+(figures as files next to it) and CSV tables."""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+from pathlib import Path
+
+from magail_sumo.evaluation.realism import METRIC_FIELDS
+
+
+def fmt(v: object) -> str:
+    if isinstance(v, float):
+        return "n/a" if math.isnan(v) else f"{v:.4g}"
+    return str(v)
+
+
+def html_table(header: list[str], rows: list[list[object]], cls: str) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(fmt(c))}</td>" for c in r) + "</tr>"
+                   for r in rows)
+    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def md_table(header: list[str], rows: list[list[object]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def img_tag(png: bytes, alt: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px}
+table{border-collapse:collapse;margin:1em 0;font-size:13px}
+th,td{border:1px solid #bbb;padding:3px 8px;text-align:right}
+th{background:#eee}td:first-child,th:first-child{text-align:left}
+img{max-width:100%;display:block;margin:0.5em 0}.errors li{color:#a00}"""
+
+
+class Document:
+    """Sections accumulated into HTML and Markdown at once."""
+
+    def __init__(self, title: str, img_dir: Path) -> None:
+        self.title = title
+        self.html: list[str] = [f"<h1>{html.escape(title)}</h1>"]
+        self.md: list[str] = [f"# {title}"]
+        self.img_dir = img_dir
+        self._n = 0
+
+    def heading(self, text: str, level: int = 2) -> None:
+        self.html.append(f"<h{level}>{html.escape(text)}</h{level}>")
+        self.md.append("#" * level + " " + text)
+
+    def para(self, text: str) -> None:
+        self.html.append(f"<p>{html.escape(text)}</p>")
+        self.md.append(text)
+
+    def table(self, header: list[str], rows: list[list[object]], cls: str) -> None:
+        self.html.append(html_table(header, rows, cls))
+        self.md.append(md_table(header, rows))
+
+    def image(self, png: bytes, name: str, alt: str) -> None:
+        self.img_dir.mkdir(parents=True, exist_ok=True)
+        self._n += 1
+        fname = f"{self._n:02d}_{name}.png"
+        (self.img_dir / fname).write_bytes(png)
+        self.html.append(img_tag(png, alt))
+        self.md.append(f"![{alt}]({self.img_dir.name}/{fname})")
+
+    def errors(self, lines: list[str]) -> None:
+        items = "".join(f"<li>{html.escape(e)}</li>" for e in lines)
+        self.html.append(f'<ul class="errors">{items}</ul>')
+        self.md.append("\n".join(f"- {e}" for e in lines))
+
+    def write(self, html_path: Path, md_path: Path) -> None:
+        page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>"
+                f"{html.escape(self.title)}</title><style>{CSS}</style></head><body>"
+                + "\n".join(self.html) + "</body></html>\n")
+        html_path.write_text(page, encoding="utf-8")
+        md_path.write_text("\n\n".join(self.md) + "\n", encoding="utf-8")
+
+
+REALISM_FIELDS = [f for f in METRIC_FIELDS if f.endswith("_likelihood")]

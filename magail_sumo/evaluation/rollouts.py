@@ -1,0 +1,650 @@
+"""Closed-loop rollouts of recorded scenes under the WOSAC protocol, stored as Parquet.
+
+Protocol: log steps ``0..current_time_index`` are the recorded history; the next 80 steps
+(8 s at 0.1 s) are simulated for every object valid at ``current_time_index`` (the official
+sim-agent set). Methods:
+
+* ``logreplay``: the recorded future (stored states, invalid ones included).
+* ``constvel``: constant velocity from the recorded state at the current step (heading held).
+* ``sumo``: SUMO's default car-following (Krauss) drives the converted routes. Route vehicles
+  are placed at their recorded pose and speed at the current step, then released (parked
+  vehicles, which SUMO holds on its own parking position, keep their recorded pose); each vehicle
+  gets a speed factor ~ N(1, 0.1) (clipped to [0.8, 1.2]) drawn from the rollout seed, which
+  also seeds SUMO (driver imperfection ``sigma``), so rollouts differ.
+* a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
+  drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
+  (bicycle model, SUMO co-simulation, no event terminates an agent).
+
+Objects a method does not move (pedestrians, objects SUMO does not carry, vehicles not yet
+inserted) and objects that leave the simulation early (arrived at their route end, end of
+their recorded track in the env) follow the constant-velocity model from their last simulated
+(else recorded) state. Positions are box centres in the scene frame (m), headings rad CCW
+from +x; z is the recorded z at the current step (SUMO is 2-D).
+
+Every SUMO rollout batch runs in a fresh ``spawn`` worker process (libsumo allows one
+simulation per process and has crashed when a second one starts after vehicle removals).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, Protocol
+
+import numpy as np
+
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
+from magail_sumo.scene import Scene
+
+N_STEPS = 80  #: simulated steps per rollout (8 s)
+DT = 0.1  #: s per step
+BASELINES = ("logreplay", "constvel", "sumo")
+BUILTIN_POLICIES = ("random",)
+SUMO_METHODS = ("sumo",)  #: baselines that need SUMO (worker processes)
+COLUMNS = ("scenario_id", "method", "rollout", "object_id", "step", "x", "y", "z", "heading",
+           "valid")
+SPEED_FACTOR_SD = 0.1
+
+
+class EvaluationError(MagailSumoError):
+    """A rollout or evaluation input cannot be used (one line naming the scene / agent)."""
+
+
+# ---------------------------------------------------------------------------------- policies
+class Policy(Protocol):
+    """What a policy under test provides: normalised ``[accel, steer]`` actions in [-1, 1]² per
+    agent from the env's observations (agents named by their WOMD track id)."""
+
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+
+class RandomPolicy:
+    """Uniform random actions in [-1, 1]², seeded (agents served in sorted-name order)."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        names = sorted(observations)
+        a = self.rng.uniform(-1.0, 1.0, (len(names), 2)).astype(np.float32)
+        return dict(zip(names, a))
+
+
+#: Checkpoint loaders by file suffix (e.g. ``".pt"``): ``loader(path, seed) -> Policy``. The
+#: training package registers its own; ``module:factory`` specs work without registering.
+POLICY_LOADERS: dict[str, Callable[[Path, int], Policy]] = {}
+
+
+def make_policy(spec: str, seed: int) -> Policy:
+    """The policy named by ``spec``: ``random``, a checkpoint file with a registered loader,
+    or ``package.module:factory`` (``factory(seed) -> Policy``)."""
+    if spec == "random":
+        return RandomPolicy(seed)
+    path = Path(spec)
+    if path.is_file():
+        loader = POLICY_LOADERS.get(path.suffix)
+        if loader is None:
+            raise EvaluationError(f"{spec}: no policy loader for '{path.suffix}' checkpoints "
+                                  "(register one in magail_sumo.evaluation.rollouts.POLICY_LOADERS)")
+        return loader(path, seed)
+    if ":" in spec:
+        mod, _, attr = spec.partition(":")
+        try:
+            factory = getattr(importlib.import_module(mod), attr)
+        except (ImportError, AttributeError) as exc:
+            raise EvaluationError(f"{spec}: cannot import policy factory ({exc})") from None
+        return factory(seed)
+    raise EvaluationError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
+                          "a checkpoint file or a module:factory spec")
+
+
+def method_name(spec: str) -> str:
+    """Name a method is stored under: the spec itself for built-ins, else the file stem /
+    factory name."""
+    if spec in BASELINES + BUILTIN_POLICIES:
+        return spec
+    if Path(spec).is_file():
+        return Path(spec).stem
+    return spec.rpartition(":")[2] or spec
+
+
+def rollout_seed(seed: int, rollout: int) -> int:
+    """Seed of one rollout (SUMO and numpy), from the run seed; < 2**31."""
+    return int(np.random.SeedSequence([seed, rollout]).generate_state(1)[0] % (2 ** 31 - 1))
+
+
+# ------------------------------------------------------------------------- trajectory models
+@dataclass
+class _Track:
+    """Simulated states of the A sim agents over the T simulated steps, NaN where unknown."""
+
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    speed: np.ndarray
+
+    @classmethod
+    def empty(cls, a: int, t: int = N_STEPS) -> "_Track":
+        return cls(*(np.full((a, t), np.nan) for _ in range(4)))
+
+
+def _current_state(scene: Scene, ids: np.ndarray) -> tuple[np.ndarray, ...]:
+    tr = scene.tracks
+    row_of = {int(i): k for k, i in enumerate(tr.id.tolist())}
+    rows = np.array([row_of[int(i)] for i in ids], np.int64)
+    c = scene.current_time_index
+    return (rows, tr.x[rows, c], tr.y[rows, c], tr.z[rows, c],
+            tr.heading[rows, c].astype(np.float64), tr.vx[rows, c].astype(np.float64),
+            tr.vy[rows, c].astype(np.float64))
+
+
+def fill_constant_velocity(scene: Scene, ids: np.ndarray, track: _Track
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Complete ``track``: unknown steps continue the last known state at constant velocity
+    (speed along the heading); before any known state, the recorded state at the current
+    step (its velocity vector) is extrapolated. Returns (x, y, yaw), each (A, T)."""
+    _, x0, y0, _, h0, vx0, vy0 = _current_state(scene, ids)
+    a, t = track.x.shape
+    have = np.isfinite(track.x) & np.isfinite(track.y)
+    steps = np.arange(t)
+    last = np.maximum.accumulate(np.where(have, steps, -1), axis=1)  # (A, T)
+    seen = last >= 0
+    li = np.maximum(last, 0)
+    take = lambda arr: np.take_along_axis(arr, li, 1)  # noqa: E731
+    bx = np.where(seen, take(track.x), x0[:, None])
+    by = np.where(seen, take(track.y), y0[:, None])
+    byaw = np.where(seen, take(track.yaw), h0[:, None])
+    sp = np.nan_to_num(take(track.speed))
+    vx = np.where(seen, sp * np.cos(byaw), vx0[:, None])
+    vy = np.where(seen, sp * np.sin(byaw), vy0[:, None])
+    gap = (steps[None] - np.where(seen, last, -1)) * DT  # s since the base state
+    return bx + vx * gap, by + vy * gap, byaw
+
+
+def constant_velocity(scene: Scene, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, y, yaw) (A, T): recorded state at the current step moved at its velocity."""
+    return fill_constant_velocity(scene, ids, _Track.empty(len(ids)))
+
+
+def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
+                 ) -> ScenarioRollouts:
+    _, _, _, z0, _, _, _ = _current_state(scene, ids)
+    x, y, yaw = (np.stack(v).astype(np.float32) for v in (xs, ys, yaws))
+    yaw = ((yaw + np.pi) % (2 * np.pi) - np.pi).astype(np.float32)
+    z = np.broadcast_to(z0.astype(np.float32)[None, :, None], x.shape).copy()
+    return ScenarioRollouts(scene.scenario_id, ids.astype(np.int64), x, y, z, yaw)
+
+
+# ------------------------------------------------------------------------------ SUMO rollouts
+def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray, ...]:
+    """One rollout of SUMO's own car-following (see module doc); (x, y, yaw) (A, T)."""
+    import libsumo as ls
+
+    from magail_sumo.env.bundle import SceneBundle
+    from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
+    from magail_sumo.sim.session import SessionConfig, SumoSession
+
+    bundle = SceneBundle.load(scene, bundle_dir)
+    ids = sim_agent_ids(scene)
+    col = {str(int(i)): k for k, i in enumerate(ids)}
+    rows, x0, y0, _, h0, vx0, vy0 = _current_state(scene, ids)
+    length = scene.tracks.length[rows, scene.current_time_index].astype(np.float64)
+    cur = scene.current_time_index
+    rng = np.random.default_rng(seed)
+    track = _Track.empty(len(ids))
+    held: list[str] = []
+    with SumoSession(bundle.sumocfg, config=SessionConfig(seed=seed)) as sess:
+        for k in range(cur + 1 + N_STEPS):  # after k + 1 steps SUMO shows log step k
+            if k == cur:  # start the future from the recorded state: pose and speed
+                for vid in ls.vehicle.getIDList():
+                    a = col.get(vid)
+                    if a is None or vid in bundle.parked:
+                        continue
+                    fx, fy = centre_to_front(x0[a:a + 1], y0[a:a + 1], h0[a:a + 1],
+                                             length[a:a + 1])
+                    try:
+                        ls.vehicle.moveToXY(vid, "", -1, float(fx[0]), float(fy[0]),
+                                            float(yaw_to_sumo_angle(h0[a:a + 1])[0]), 1)
+                        ls.vehicle.setSpeed(vid, float(np.hypot(vx0[a], vy0[a])))
+                        held.append(vid)
+                    except Exception:  # off its route: SUMO keeps its own state
+                        pass
+            elif k == cur + 1:
+                for vid in held:
+                    try:
+                        ls.vehicle.setSpeed(vid, -1.0)
+                    except Exception:
+                        pass
+            departed, _ = sess.step()
+            for vid in departed:
+                f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))
+                ls.vehicle.setSpeedFactor(vid, f)
+            if k > cur:
+                v = sess.vehicles()
+                t = k - cur - 1
+                sel = [(i, col[vid]) for i, vid in enumerate(v.ids)
+                       if vid in col and vid not in bundle.parked]
+                if sel:
+                    i, a = (np.array(s) for s in zip(*sel))
+                    track.x[a, t], track.y[a, t] = v.x[i], v.y[i]
+                    track.yaw[a, t], track.speed[a, t] = v.yaw[i], v.speed[i]
+    return fill_constant_velocity(scene, ids, track)
+
+
+def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int
+                    ) -> tuple[np.ndarray, ...]:
+    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv."""
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv
+    from magail_sumo.sim import dynamics
+
+    ids = sim_agent_ids(scene)
+    col = {str(int(i)): k for k, i in enumerate(ids)}
+    cur = scene.current_time_index
+    env = SumoDrivingEnv(scene, bundle_dir, EnvConfig(
+        controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=()))
+    track = _Track.empty(len(ids))
+    try:
+        obs, _ = env.reset(seed=seed)
+        while env.agents and env.t < cur + N_STEPS:
+            st = env.agent_states()
+            actions = policy.act(obs)
+            raw = np.stack([np.asarray(actions.get(n, (np.nan, np.nan)), np.float64).reshape(2)
+                            for n in st.names])
+            clean = np.clip(np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
+            accel, steer = dynamics.denormalise(clean, env.config.limits)
+            nxt = dynamics.step(st.state, accel, steer, st.wheelbase, env.dt, env.config.limits)
+            t = env.t - cur  # column of log step env.t + 1
+            obs, *_ = env.step(actions)
+            if 0 <= t < N_STEPS:
+                sel = [(i, col[n]) for i, n in enumerate(st.names) if n in col]
+                if sel:
+                    i, a = (np.array(s) for s in zip(*sel))
+                    track.x[a, t], track.y[a, t] = nxt.x[i], nxt.y[i]
+                    track.yaw[a, t], track.speed[a, t] = nxt.yaw[i], nxt.speed[i]
+    finally:
+        env.close()
+    return fill_constant_velocity(scene, ids, track)
+
+
+# ------------------------------------------------------------------------------- one method
+def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
+             bundle_dir: str | Path | None = None) -> ScenarioRollouts:
+    """Rollouts ``rollouts`` (indices) of one method on one scene, in this process.
+
+    SUMO methods run one simulation after another here; callers batch them in fresh worker
+    processes (:func:`run_batches`).
+    """
+    ids = sim_agent_ids(scene)
+    idx = list(rollouts)
+    if method == "logreplay":
+        from magail_sumo.evaluation.realism import log_replay
+
+        ro = log_replay(scene, len(idx), N_STEPS)
+        return ro
+    xs, ys, yaws = [], [], []
+    for r in idx:
+        s = rollout_seed(seed, r)
+        if method == "constvel":
+            x, y, yaw = constant_velocity(scene, ids)
+        elif bundle_dir is None:
+            raise EvaluationError(f"scenario {scene.scenario_id}: method {method} needs a "
+                                  "converted SUMO bundle")
+        elif method == "sumo":
+            x, y, yaw = _sumo_rollout(scene, Path(bundle_dir), s)
+        else:
+            x, y, yaw = _policy_rollout(scene, Path(bundle_dir), make_policy(method, s), s)
+        xs.append(x)
+        ys.append(y)
+        yaws.append(yaw)
+    return _as_rollouts(scene, ids, xs, ys, yaws)
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Work for one worker process: some rollouts of one method on one scene.
+
+    :param spec: method name or policy spec (see :func:`make_policy`).
+    """
+
+    scene_file: str
+    scenario_id: str
+    bundle_dir: str
+    spec: str
+    rollouts: tuple[int, ...]
+    seed: int
+
+
+def _load(scene_file: str, scenario_id: str) -> Scene:
+    from converters import iter_scenes
+
+    for scene in iter_scenes(scene_file):
+        if scene.scenario_id == scenario_id:
+            return scene
+    raise EvaluationError(f"{scene_file}: scenario {scenario_id} not found")
+
+
+def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts]:
+    """Worker entry point (module level, picklable)."""
+    scene = _load(batch.scene_file, batch.scenario_id)
+    return batch, simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir)
+
+
+def needs_worker(spec: str) -> bool:
+    return spec not in ("logreplay", "constvel")
+
+
+def run_batches(batches: list[Batch], workers: int
+                ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None]]:
+    """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line).
+
+    A batch whose worker fails is retried once rollout by rollout (each in its own process).
+    """
+    if not batches:
+        return
+    ctx = get_context("spawn")
+    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx,
+                             max_tasks_per_child=1) as pool:
+        futs = {pool.submit(run_batch, b): b for b in batches}
+        retry: list[Batch] = []
+        for fut in as_completed(futs):
+            b = futs[fut]
+            try:
+                yield (*fut.result(), None)
+            except MagailSumoError as exc:
+                yield b, None, " ".join(str(exc).split())
+            except Exception as exc:  # worker crash (libsumo) or bug: retry singly
+                if len(b.rollouts) > 1:
+                    retry += [Batch(b.scene_file, b.scenario_id, b.bundle_dir, b.spec, (r,),
+                                    b.seed) for r in b.rollouts]
+                else:
+                    yield b, None, (f"scenario {b.scenario_id}: method {b.spec} rollout "
+                                    f"{b.rollouts[0]} failed: {type(exc).__name__}: "
+                                    + " ".join(str(exc).split()))
+    if retry:
+        yield from run_batches(retry, workers)
+
+
+def merge(parts: list[ScenarioRollouts]) -> ScenarioRollouts:
+    """Concatenate rollout batches of one scene (same agents) along the rollout axis."""
+    first = parts[0]
+    cat = lambda n: np.concatenate([getattr(p, n) for p in parts])  # noqa: E731
+    return ScenarioRollouts(first.scenario_id, first.object_id, cat("x"), cat("y"), cat("z"),
+                            cat("heading"))
+
+
+# ---------------------------------------------------------------------------------- Parquet
+def to_frame(scene: Scene, ro: ScenarioRollouts, method: str):
+    """Long table (pandas) of the rollouts with the recorded history: one row per rollout,
+    object and log step ``0..current + T``; ``valid`` is the log's validity for history steps
+    (and for ``logreplay``), else True."""
+    import pandas as pd
+
+    tr = scene.tracks
+    cur = scene.current_time_index
+    R, A, T = ro.shape
+    rows = np.array([int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id])
+    hist = slice(0, cur + 1)
+
+    def full(log: np.ndarray, sim: np.ndarray) -> np.ndarray:
+        h = np.broadcast_to(log[rows, hist].astype(np.float32)[None], (R, A, cur + 1))
+        return np.concatenate([h, sim.astype(np.float32)], axis=2)
+
+    x, y, z, hd = (full(getattr(tr, n), getattr(ro, m)) for n, m in
+                   (("x", "x"), ("y", "y"), ("z", "z"), ("heading", "heading")))
+    fut_valid = (tr.valid[rows, cur + 1:cur + 1 + T] if method == "logreplay"
+                 else np.ones((A, T), bool))
+    valid = np.broadcast_to(np.concatenate([tr.valid[rows, hist], fut_valid], 1)[None],
+                            x.shape)
+    r_i, a_i, t_i = np.meshgrid(np.arange(R), np.arange(A), np.arange(cur + 1 + T),
+                                indexing="ij")
+    return pd.DataFrame({
+        "scenario_id": pd.Categorical([ro.scenario_id] * x.size),
+        "method": pd.Categorical([method] * x.size),
+        "rollout": r_i.ravel().astype(np.int32),
+        "object_id": ro.object_id[a_i.ravel()].astype(np.int64),
+        "step": t_i.ravel().astype(np.int32),
+        "x": x.ravel(), "y": y.ravel(), "z": z.ravel(), "heading": hd.ravel(),
+        "valid": valid.ravel(),
+    })
+
+
+def write_parquet(path: str | Path, frame) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_parquet(path, index=False)
+
+
+def read_rollouts(path: str | Path, scene: Scene) -> ScenarioRollouts:
+    """Simulated steps (after the scene's current step) of a rollouts Parquet file.
+
+    :raises EvaluationError: unreadable file, missing columns, another scene, or a ragged
+        table (agents without every rollout and step), naming the file / scene / agent.
+    """
+    import pandas as pd
+
+    path = Path(path)
+    try:
+        df = pd.read_parquet(path)
+    except Exception as exc:
+        raise EvaluationError(f"{path}: unreadable Parquet ({type(exc).__name__})") from None
+    missing = [c for c in COLUMNS if c not in df.columns]
+    if missing:
+        raise EvaluationError(f"{path}: missing column(s) {', '.join(missing)}")
+    sids = df["scenario_id"].astype(str).unique()
+    sid = scene.scenario_id
+    if len(sids) != 1 or sids[0] != sid:
+        raise EvaluationError(f"{path}: holds scenario(s) {', '.join(map(str, sids[:3]))}, "
+                              f"expected {sid}")
+    fut = df[df["step"] > scene.current_time_index].sort_values(["rollout", "object_id", "step"])
+    ids = np.sort(fut["object_id"].unique())
+    R, A = fut["rollout"].nunique(), len(ids)
+    if A == 0:
+        raise EvaluationError(f"scenario {sid}: {path.name} has no simulated steps")
+    counts = fut.groupby("object_id").size()
+    T, rem = divmod(len(fut), R * A)
+    bad = counts[counts != counts.max()]
+    if rem or len(bad):
+        oid = int(bad.index[0]) if len(bad) else int(ids[0])
+        raise EvaluationError(f"scenario {sid}: agent {oid} has {int(counts.get(oid, 0))} "
+                              f"rows in {path.name}, others {int(counts.max())} "
+                              "(every agent needs every rollout and step)")
+    arr = {c: fut[c].to_numpy(np.float32).reshape(R, A, T) for c in ("x", "y", "z", "heading")}
+    return ScenarioRollouts(sid, ids.astype(np.int64), arr["x"], arr["y"], arr["z"],
+                            arr["heading"])
+
+
+# --------------------------------------------------------------------------------- manifest
+def versions() -> dict[str, str]:
+    from magail_sumo.config import environment_versions
+
+    out = dict(environment_versions())
+    for pkg in ("pandas", "pyarrow", "libsumo", "sumolib"):
+        try:
+            from importlib import metadata
+
+            out[pkg] = metadata.version(pkg)
+        except Exception:
+            pass
+    return out
+
+
+def write_manifest(out: Path, manifest: dict) -> None:
+    """Merge ``manifest`` into ``out/manifest.json`` (methods and scenes accumulate)."""
+    path = out / "manifest.json"
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    if old and (old.get("rollouts"), old.get("seed")) != (manifest["rollouts"], manifest["seed"]):
+        old = {}  # another run setting: start afresh
+    scenes = {s["scenario_id"]: s for s in old.get("scenes", [])}
+    scenes.update({s["scenario_id"]: s for s in manifest["scenes"]})
+    methods = list(dict.fromkeys(list(old.get("methods", [])) + list(manifest["methods"])))
+    merged = {**old, **manifest, "scenes": list(scenes.values()), "methods": methods}
+    path.write_text(json.dumps(merged, indent=2) + "\n")
+
+
+def read_manifest(out: str | Path) -> dict:
+    path = Path(out) / "manifest.json"
+    if not path.is_file():
+        raise EvaluationError(f"{path}: no manifest (run magail-sumo evaluate --out {out})")
+    try:
+        return json.loads(path.read_text())
+    except ValueError as exc:
+        raise EvaluationError(f"{path}: unreadable manifest ({exc})") from None
+
+
+def chunks(n: int, size: int) -> list[tuple[int, ...]]:
+    return [tuple(range(i, min(i + size, n))) for i in range(0, n, size)]
+
+
+def batch_size(n_rollouts: int, workers: int) -> int:
+    return max(1, min(8, math.ceil(n_rollouts / max(1, workers))))
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+__all__ = ["BASELINES", "Batch", "EvaluationError", "POLICY_LOADERS", "Policy",
+           "RandomPolicy", "constant_velocity", "make_policy", "method_name", "read_rollouts",
+           "rollout_seed", "run_batches", "simulate", "to_frame"]
+
+
+# ------------------------------------------------------------------------------- evaluation
+@dataclass
+class EvaluationResult:
+    """What :func:`evaluate` wrote: (scenario, method) pairs done, and one-line errors."""
+
+    done: list[tuple[str, str]]
+    errors: list[str]
+
+
+def _bundle(scene: Scene, networks: Path | None, out: Path) -> Path:
+    """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
+    into ``out/networks``."""
+    from converters.sumo.scenario import ConvertOptions, convert_scene
+    from magail_sumo.env.bundle import BundleError, SceneBundle
+
+    sid = scene.scenario_id
+    for root in ([networks] if networks else []) + [out / "networks"]:
+        try:
+            SceneBundle.load(scene, root / sid)
+            return root / sid
+        except BundleError:
+            continue
+    rep = convert_scene(scene, out / "networks", ConvertOptions(baseline=False))
+    if rep.status != "ok":
+        raise EvaluationError(f"scenario {sid}: conversion failed: {rep.reason}")
+    return out / "networks" / sid
+
+
+def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
+             baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
+             networks: str | Path | None = None, submission: str | Path | None = None
+             ) -> EvaluationResult:
+    """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
+    ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``.
+
+    Bad scenes, failed conversions and failed rollouts are reported (stderr, one line each)
+    and the rest goes on.
+
+    :raises EvaluationError: an unknown baseline, an unusable policy spec or bad counts.
+    """
+    from converters.scene_files import iter_scene_records
+    from magail_sumo.evaluation.submission import validate_rollouts, write_submission
+
+    out = Path(out)
+    if n_rollouts < 1:
+        raise EvaluationError(f"--rollouts must be >= 1, got {n_rollouts}")
+    bad = [b for b in baselines if b not in BASELINES]
+    if bad:
+        raise EvaluationError(f"unknown baseline {bad[0]} (known: {', '.join(BASELINES)})")
+    if policy not in BASELINES:
+        make_policy(policy, seed)  # fail early on an unusable spec
+    specs = list(dict.fromkeys([policy, *baselines]))
+    names = {s: method_name(s) for s in specs}
+    errors: list[str] = []
+
+    def error(msg: str) -> None:
+        errors.append(msg)
+        log(f"error: {msg}")
+
+    scenes: dict[str, tuple[str, Scene, Path | None]] = {}
+    for f in scene_files:
+        try:
+            for rec in iter_scene_records(f):
+                if rec.error is not None:
+                    error(" ".join(str(rec.error).split()))
+                    continue
+                sc = rec.scene
+                if sc.scenario_id in scenes:
+                    error(f"scenario {sc.scenario_id}: given twice ({f}); first kept")
+                    continue
+                if sc.num_steps < sc.current_time_index + 1 + N_STEPS:
+                    error(f"scenario {sc.scenario_id}: {sc.num_steps} steps, needs "
+                          f"{sc.current_time_index + 1 + N_STEPS} (current step + 80)")
+                    continue
+                scenes[sc.scenario_id] = (str(Path(f).resolve()), sc, None)
+        except MagailSumoError as exc:
+            error(" ".join(str(exc).split()))
+    need_sumo = any(needs_worker(s) for s in specs)
+    for sid, (f, sc, _) in list(scenes.items()):
+        if need_sumo:
+            try:
+                scenes[sid] = (f, sc, _bundle(sc, Path(networks) if networks else None, out))
+            except MagailSumoError as exc:
+                error(" ".join(str(exc).split()))
+                del scenes[sid]
+    results: dict[tuple[str, str], list[tuple[int, ScenarioRollouts]]] = {}
+    batches = []
+    size = batch_size(n_rollouts, workers)
+    for sid, (f, sc, bdir) in scenes.items():
+        for s in specs:
+            if needs_worker(s):
+                batches += [Batch(f, sid, str(bdir), s, c, seed) for c in chunks(n_rollouts, size)]
+            else:
+                results[(sid, s)] = [(0, simulate(sc, s, range(n_rollouts), seed))]
+    failed: set[tuple[str, str]] = set()
+    for b, ro, err in run_batches(batches, workers):
+        if err is not None:
+            error(err)
+            failed.add((b.scenario_id, b.spec))
+        else:
+            results.setdefault((b.scenario_id, b.spec), []).append((b.rollouts[0], ro))
+    done: list[tuple[str, str]] = []
+    policy_ros: list[ScenarioRollouts] = []
+    for sid, (f, sc, bdir) in scenes.items():
+        for s in specs:
+            if (sid, s) in failed or (sid, s) not in results:
+                continue
+            ro = merge([r for _, r in sorted(results[(sid, s)], key=lambda p: p[0])])
+            try:
+                validate_rollouts(ro, sc, n_rollouts, N_STEPS)
+            except MagailSumoError as exc:
+                error(f"method {names[s]}: {' '.join(str(exc).split())}")
+                continue
+            write_parquet(out / "rollouts" / names[s] / f"{sid}.parquet",
+                          to_frame(sc, ro, names[s]))
+            done.append((sid, names[s]))
+            if s == policy:
+                policy_ros.append(ro)
+    manifest = {
+        "scenes": [{"scenario_id": sid, "file": f, "bundle": str(b) if b else None,
+                    "num_steps": sc.num_steps, "current_time_index": sc.current_time_index,
+                    "agents": int(len(sim_agent_ids(sc)))}
+                   for sid, (f, sc, b) in scenes.items()],
+        "methods": [names[s] for s in specs], "policy": names[policy], "policy_spec": policy,
+        "baselines": [names[b] for b in baselines], "rollouts": n_rollouts, "steps": N_STEPS,
+        "seed": seed, "versions": versions(),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    write_manifest(out, manifest)
+    if submission is not None and policy_ros:
+        write_submission(submission, policy_ros, method_name=names[policy],
+                         description=f"magail_sumo evaluate --policy {policy}")
+    return EvaluationResult(done, errors)

@@ -1,0 +1,59 @@
+"""Event rates: share of (rollout, object) pairs with at least one event step on the log-valid
+steps (collision: box overlap, off-road: a box corner beyond the road edge, both from the
+realism features; red-light violation; hard braking: acceleration < -3 m/s²)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import MetricInput, TrafficMetric, register
+
+HARD_BRAKE = -3.0  #: m/s²
+
+
+def _rate(flags: np.ndarray, mask: np.ndarray) -> float:
+    """flags (B, A, T) on mask (A, T): share of the rollouts' objects with any event."""
+    rows = mask.any(1)
+    if not rows.any():
+        return float("nan")
+    return float((flags[1:] & mask[None]).any(2)[:, rows].mean())
+
+
+@register
+class CollisionRate(TrafficMetric):
+    name, unit = "collision_rate", "share of objects"
+    description = "objects colliding with another object at least once"
+
+    def compute(self, inp: MetricInput) -> float:
+        return _rate(inp.feature("collision_per_step"), inp.valid)
+
+
+@register
+class OffroadRate(TrafficMetric):
+    name, unit = "offroad_rate", "share of vehicles"
+    description = "vehicles with a box corner beyond the road edge at least once"
+
+    def compute(self, inp: MetricInput) -> float:
+        return _rate(inp.feature("offroad_per_step"), inp.valid & inp.is_vehicle[:, None])
+
+
+@register
+class RedLightRate(TrafficMetric):
+    name, unit = "red_light_rate", "share of vehicles"
+    description = "vehicles crossing a stop line on red at least once"
+
+    def compute(self, inp: MetricInput) -> float:
+        return _rate(inp.feature("traffic_light_violation_per_step"),
+                     inp.valid & inp.is_vehicle[:, None])
+
+
+@register
+class HardBrakingRate(TrafficMetric):
+    name, unit = "hard_braking_rate", "share of vehicles"
+    description = "vehicles braking harder than 3 m/s² at least once"
+
+    def compute(self, inp: MetricInput) -> float:
+        acc = inp.feature("linear_acceleration")
+        with np.errstate(invalid="ignore"):
+            flags = np.nan_to_num(acc, nan=0.0) < HARD_BRAKE
+        return _rate(flags, inp.mask("linear_acceleration") & inp.is_vehicle[:, None])

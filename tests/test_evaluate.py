@@ -1,0 +1,156 @@
+"""magail-sumo evaluate: WOSAC-protocol rollouts of the baselines and a policy on real scenes."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import WOMD_DIR
+from converters import load_scene
+from magail_sumo.cli.main import main
+from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation.submission import iter_submission, sim_agent_ids, validate_rollouts
+
+SID = "850c48d8bbfa008f"
+R = 2
+
+
+class _StopPolicy:
+    """A pluggable policy: brake, no steering."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+
+    def act(self, observations):
+        return {a: np.array([-1.0, 0.0], np.float32) for a in observations}
+
+
+def stop_policy(seed: int) -> _StopPolicy:
+    return _StopPolicy(seed)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    sub = out / "random.binproto"
+    rc = main(["evaluate", "--policy", "random", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"),
+               "--rollouts", str(R), "--out", str(out), "--seed", "7", "--workers", "2",
+               "--export-submission", str(sub)])
+    assert rc == 0
+    return out, load_scene(WOMD_DIR / f"{SID}.tfrecord")
+
+
+def test_parquet_layout_and_manifest(run):
+    out, scene = run
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["methods"] == ["random", "logreplay", "constvel", "sumo"]
+    assert man["rollouts"] == R and man["seed"] == 7 and man["steps"] == 80
+    assert man["scenes"][0]["scenario_id"] == SID and "pyarrow" in man["versions"]
+    ids = sim_agent_ids(scene)
+    cur = scene.current_time_index
+    for m in man["methods"]:
+        df = pd.read_parquet(out / "rollouts" / m / f"{SID}.parquet")
+        assert tuple(df.columns) == rl.COLUMNS
+        assert len(df) == R * len(ids) * (cur + 1 + 80)
+        assert set(df["method"].astype(str)) == {m}
+        ro = rl.read_rollouts(out / "rollouts" / m / f"{SID}.parquet", scene)
+        validate_rollouts(ro, scene, R, 80)
+        # the history is the log
+        h = df[(df.step == cur) & (df.rollout == 1)].sort_values("object_id")
+        rows = [int(np.flatnonzero(scene.tracks.id == i)[0]) for i in h.object_id]
+        assert np.allclose(h.x, scene.tracks.x[rows, cur], atol=1e-3)
+        if m in ("random", "sumo"):
+            assert not np.allclose(ro.x[0], ro.x[1]), f"{m}: rollouts do not differ"
+
+
+def test_sumo_starts_from_the_log(run):
+    out, scene = run
+    ro = rl.read_rollouts(out / "rollouts" / "sumo" / f"{SID}.parquet", scene)
+    tr, cur = scene.tracks, scene.current_time_index
+    rows = [int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id]
+    err = np.hypot(ro.x[:, :, 0] - tr.x[rows, cur + 1], ro.y[:, :, 0] - tr.y[rows, cur + 1])
+    assert np.median(err) < 1.0
+
+
+def test_exported_submission(run):
+    out, scene = run
+    (rec,) = list(iter_submission(out / "random.binproto"))
+    assert rec.error is None and rec.scenario_id == SID
+    validate_rollouts(rec.rollouts, scene, R, 80)
+    ro = rl.read_rollouts(out / "rollouts" / "random" / f"{SID}.parquet", scene)
+    assert np.allclose(rec.rollouts.x, ro.x)
+
+
+def test_seeded_and_pluggable_policy():
+    scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+    f = str(WOMD_DIR / f"{SID}.tfrecord")
+    from converters.sumo.scenario import ConvertOptions, convert_scene
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        convert_scene(scene, tmp, ConvertOptions(baseline=False))
+        bundle = f"{tmp}/{SID}"
+        spec = f"{__name__}:stop_policy"
+        batches = [rl.Batch(f, SID, bundle, "random", (0,), 3),
+                   rl.Batch(f, SID, bundle, "random", (0,), 3),
+                   rl.Batch(f, SID, bundle, spec, (0,), 3)]
+        sys.path.insert(0, str(WOMD_DIR.parents[1] / "tests"))
+        got = [(b.spec, ro) for b, ro, err in rl.run_batches(batches, 2) if err is None]
+    assert len(got) == 3
+    rand = [ro for s, ro in got if s == "random"]
+    assert np.array_equal(rand[0].x, rand[1].x)  # same seed, same rollout
+    stop = next(ro for s, ro in got if s == spec)
+    step = np.hypot(np.diff(stop.x[0], axis=1), np.diff(stop.y[0], axis=1))
+    assert step[:, -10:].max() < step[:, :3].max() + 1e-6 or step.max() < 0.05
+
+
+def test_policy_specs(tmp_path):
+    assert isinstance(rl.make_policy("random", 0), rl.RandomPolicy)
+    assert isinstance(rl.make_policy(f"{__name__}:stop_policy", 0), _StopPolicy)
+    ckpt = tmp_path / "agent.pt"
+    ckpt.write_bytes(b"x")
+    with pytest.raises(rl.EvaluationError, match="no policy loader"):
+        rl.make_policy(str(ckpt), 0)
+    rl.POLICY_LOADERS[".pt"] = lambda path, seed: _StopPolicy(seed)
+    try:
+        assert isinstance(rl.make_policy(str(ckpt), 5), _StopPolicy)
+        assert rl.method_name(str(ckpt)) == "agent"
+    finally:
+        del rl.POLICY_LOADERS[".pt"]
+    with pytest.raises(rl.EvaluationError, match="not a method"):
+        rl.make_policy("nonsense", 0)
+    a = rl.RandomPolicy(1).act({"2": np.zeros(3), "1": np.zeros(3)})
+    assert set(a) == {"1", "2"} and all(np.all(np.abs(v) <= 1) for v in a.values())
+
+
+def test_constant_velocity_fill():
+    scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+    ids = sim_agent_ids(scene)
+    tr, cur = scene.tracks, scene.current_time_index
+    x, y, yaw = rl.constant_velocity(scene, ids)
+    r = int(np.flatnonzero(tr.id == ids[0])[0])
+    assert np.isclose(x[0, 9], tr.x[r, cur] + 10 * 0.1 * tr.vx[r, cur], atol=1e-4)
+    track = rl._Track.empty(len(ids), 80)
+    track.x[0, :5], track.y[0, :5], track.yaw[0, :5], track.speed[0, :5] = 1.0, 2.0, 0.0, 10.0
+    x, y, _ = rl.fill_constant_velocity(scene, ids, track)
+    assert np.isclose(x[0, 5], 2.0) and np.isclose(x[0, 14], 11.0) and np.allclose(y[0], 2.0)
+
+
+def test_bad_scene_is_reported_and_others_continue(tmp_path, capsys):
+    bad = tmp_path / "bad.tfrecord"
+    bad.write_bytes(b"\x00" * 40)
+    rc = main(["evaluate", "--policy", "constvel", "--baselines", "logreplay", "--scenes",
+               str(bad), str(WOMD_DIR / f"{SID}.tfrecord"), "--rollouts", "2",
+               "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 1
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "bad.tfrecord" in lines[0]
+    assert (tmp_path / "o" / "rollouts" / "constvel" / f"{SID}.parquet").is_file()
+    rc = main(["evaluate", "--policy", "nonsense", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"),
+               "--out", str(tmp_path / "p")])
+    assert rc == 1 and "nonsense: not a method" in capsys.readouterr().err
