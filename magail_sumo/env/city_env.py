@@ -43,6 +43,7 @@ from magail_sumo.sim import dynamics
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession, VehicleArrays
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
+from .actions import action_array
 from .collision import first_overlap
 from .events import off_road, reached
 
@@ -311,15 +312,9 @@ class SumoCityEnv(ParallelEnv):
         if self._session is None:
             raise RuntimeError("call reset() before step()")
         act = np.flatnonzero(self._active)
-        raw = np.full((act.size, 2), np.nan)
-        for i, k in enumerate(act):  # dict → array: the PettingZoo interface is per agent
-            v = actions.get(self._names[k])
-            if v is not None:
-                raw[i] = np.asarray(v, np.float64).reshape(2)
-        nonfinite = ~np.isfinite(raw).all(axis=1)
-        clean = np.clip(np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
+        clean, nonfinite, outside = action_array(actions, [self._names[k] for k in act])
         self._nan[act] += nonfinite
-        self._clipped[act] += (np.abs(np.nan_to_num(raw)) > 1.0).any(axis=1)
+        self._clipped[act] += outside
         accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
         red_before = self._lc[act] == 3
         dist_before = self._ld[act].copy()

@@ -35,6 +35,7 @@ from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observ
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 
+from .actions import action_array
 from .bundle import SceneBundle
 from .collision import first_overlap
 from .config import EVENTS, EnvConfig
@@ -294,15 +295,7 @@ class SumoDrivingEnv(ParallelEnv):
             raise RuntimeError("call reset() before step()")
         act_idx = np.flatnonzero(self._active)
         a = act_idx.size
-        raw = np.full((a, 2), np.nan)
-        for i, k in enumerate(act_idx):  # dict → array: the PettingZoo interface is per agent
-            v = actions.get(self._ctrl_names[k])
-            if v is not None:
-                raw[i] = np.asarray(v, np.float64).reshape(2)
-        nonfinite = ~np.isfinite(raw).all(axis=1)
-        clean = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
-        outside = (np.abs(clean) > 1.0).any(axis=1)
-        clean = np.clip(clean, -1.0, 1.0)
+        clean, nonfinite, outside = action_array(actions, [self._ctrl_names[k] for k in act_idx])
         self._nan[act_idx] += nonfinite
         self._clipped[act_idx] += outside
         accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)

@@ -84,52 +84,17 @@ def _seg_dist2(x, y, ax, ay, bx, by):
     return qx * qx + qy * qy
 
 
-@numba.njit(cache=True)
-def _cast_one(out, i, ox, oy, cosb, sinb, max_range, starts, ends, k):
-    ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
-    for j in range(cosb.shape[1]):
+@numba.njit(cache=True, inline="always")
+def _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax, ay, bx, by):
+    """Fold segment a-b into agent i's readings: every beam, or with evenly spaced beams
+    (``uniform``; beam j along angles[i, 0] + j·step) only those inside the segment's span."""
+    if uniform:
+        _cast_window(out, i, ox, oy, angles[i, 0], step, full, ax, ay, bx, by)
+        return
+    for j in range(out.shape[1]):
         t = _hit(ox, oy, cosb[i, j], sinb[i, j], ax, ay, bx, by)
         if t < out[i, j]:
             out[i, j] = t
-
-
-@numba.njit(cache=True)
-def _cast_all(origins, angles, max_range, starts, ends, seg_owner, agent_owner):
-    a, b = angles.shape
-    out = np.full((a, b), max_range)
-    cosb, sinb = np.cos(angles), np.sin(angles)
-    r2 = max_range * max_range
-    for i in range(a):
-        ox, oy = origins[i, 0], origins[i, 1]
-        for k in range(starts.shape[0]):
-            if seg_owner[k] == agent_owner[i]:
-                continue
-            ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
-            if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
-                continue
-            _cast_one(out, i, ox, oy, cosb, sinb, max_range, starts, ends, k)
-    return out
-
-
-@numba.njit(cache=True)
-def _cast_grid(origins, angles, max_range, starts, ends, x0, y0, cell, nx, ny, offsets, items):
-    a, b = angles.shape
-    out = np.full((a, b), max_range)
-    cosb, sinb = np.cos(angles), np.sin(angles)
-    r2 = max_range * max_range
-    for i in range(a):
-        ox, oy = origins[i, 0], origins[i, 1]
-        cx = int(np.floor((ox - x0) / cell))
-        cy = int(np.floor((oy - y0) / cell))
-        for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
-            for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
-                c = gx * ny + gy
-                for m in range(offsets[c], offsets[c + 1]):
-                    k = items[m]
-                    if _seg_dist2(ox, oy, starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]) > r2:
-                        continue
-                    _cast_one(out, i, ox, oy, cosb, sinb, max_range, starts, ends, k)
-    return np.minimum(out, max_range)
 
 
 @numba.njit(cache=True, inline="always")
@@ -170,10 +135,11 @@ def _cast_window(out, i, ox, oy, theta0, step, full, ax, ay, bx, by):
 
 
 @numba.njit(cache=True)
-def _cast_all_uniform(origins, theta0, step, b, full, max_range, starts, ends, seg_owner,
-                      agent_owner):
-    a = origins.shape[0]
+def _cast_all(origins, angles, uniform, step, full, max_range, starts, ends, seg_owner,
+              agent_owner):
+    a, b = angles.shape
     out = np.full((a, b), max_range)
+    cosb, sinb = np.cos(angles), np.sin(angles)
     r2 = max_range * max_range
     for i in range(a):
         ox, oy = origins[i, 0], origins[i, 1]
@@ -183,15 +149,16 @@ def _cast_all_uniform(origins, theta0, step, b, full, max_range, starts, ends, s
             ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
             if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
                 continue
-            _cast_window(out, i, ox, oy, theta0[i], step, full, ax, ay, bx, by)
+            _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax, ay, bx, by)
     return out
 
 
 @numba.njit(cache=True)
-def _cast_grid_uniform(origins, theta0, step, b, full, max_range, starts, ends, x0, y0, cell,
-                       nx, ny, offsets, items):
-    a = origins.shape[0]
+def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, x0, y0, cell, nx,
+               ny, offsets, items):
+    a, b = angles.shape
     out = np.full((a, b), max_range)
+    cosb, sinb = np.cos(angles), np.sin(angles)
     r2 = max_range * max_range
     for i in range(a):
         ox, oy = origins[i, 0], origins[i, 1]
@@ -205,24 +172,25 @@ def _cast_grid_uniform(origins, theta0, step, b, full, max_range, starts, ends, 
                     ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
                     if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
                         continue
-                    _cast_window(out, i, ox, oy, theta0[i], step, full, ax, ay, bx, by)
+                    _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax, ay,
+                                  bx, by)
     return out
 
 
-def _uniform(angles: np.ndarray) -> tuple[np.ndarray, float, bool] | None:
-    """(first angle per row, spacing, full circle) when every row's beams are evenly spaced by
-    the same step; None otherwise."""
+def _uniform(angles: np.ndarray) -> tuple[float, bool]:
+    """(spacing, full circle) when every row's beams are evenly spaced by the same step;
+    (0.0, False) otherwise."""
     b = angles.shape[1]
     if b < 2 or angles.shape[0] == 0:
-        return None
+        return 0.0, False
     d = angles[:, 1:] - angles[:, :-1]
     step = float(d[0, 0])
     if step <= 0 or float(np.abs(d - step).max()) > 1e-9:  # (np.allclose costs ~50 µs here)
-        return None
+        return 0.0, False
     full = abs(step * b - 2.0 * np.pi) < 1e-9
     if not full and step * (b - 1) >= 2.0 * np.pi:
-        return None
-    return np.ascontiguousarray(angles[:, 0], np.float64), step, full
+        return 0.0, False
+    return step, full
 
 
 def cast(origins: np.ndarray, angles: np.ndarray, max_range: float, starts: np.ndarray,
@@ -242,17 +210,11 @@ def cast(origins: np.ndarray, angles: np.ndarray, max_range: float, starts: np.n
     a = origins.shape[0]
     so = np.full(s, -1, np.int64) if seg_owner is None else np.asarray(seg_owner, np.int64)
     ao = np.full(a, -2, np.int64) if agent_owner is None else np.asarray(agent_owner, np.int64)
-    o = np.ascontiguousarray(origins, np.float64)
-    st = np.ascontiguousarray(starts, np.float64)
-    en = np.ascontiguousarray(ends, np.float64)
-    uni = _uniform(np.asarray(angles, np.float64))
-    if uni is not None:  # evenly spaced beams: each segment only visits the beams it spans
-        theta0, step, full = uni
-        out = _cast_all_uniform(o, theta0, step, angles.shape[1], full, float(max_range), st, en,
-                                so, ao)
-    else:
-        out = _cast_all(o, np.ascontiguousarray(angles, np.float64), float(max_range), st, en,
-                        so, ao)
+    ang = np.ascontiguousarray(angles, np.float64)
+    step, full = _uniform(ang)  # evenly spaced beams: each segment only visits the beams it spans
+    out = _cast_all(np.ascontiguousarray(origins, np.float64), ang, step > 0.0, step, full,
+                    float(max_range), np.ascontiguousarray(starts, np.float64),
+                    np.ascontiguousarray(ends, np.float64), so, ao)
     return np.minimum(out, max_range)
 
 
@@ -305,14 +267,9 @@ class SegmentGrid:
         """(A, B) ray readings against the static segments; ``max_range`` <= ``cell``."""
         if max_range > self.cell:
             raise ValueError(f"sensor range {max_range} m exceeds the grid cell {self.cell} m")
-        o = np.ascontiguousarray(origins, np.float64)
-        uni = _uniform(np.asarray(angles, np.float64))
-        if uni is not None:
-            theta0, step, full = uni
-            out = _cast_grid_uniform(o, theta0, step, angles.shape[1], full, float(max_range),
-                                     self.starts, self.ends, self.x0, self.y0, self.cell, self.nx,
-                                     self.ny, self.offsets, self.items)
-            return np.minimum(out, max_range)
-        return _cast_grid(o, np.ascontiguousarray(angles, np.float64), float(max_range),
-                          self.starts, self.ends, self.x0, self.y0, self.cell, self.nx, self.ny,
-                          self.offsets, self.items)
+        ang = np.ascontiguousarray(angles, np.float64)
+        step, full = _uniform(ang)
+        out = _cast_grid(np.ascontiguousarray(origins, np.float64), ang, step > 0.0, step, full,
+                         float(max_range), self.starts, self.ends, self.x0, self.y0, self.cell,
+                         self.nx, self.ny, self.offsets, self.items)
+        return np.minimum(out, max_range)
