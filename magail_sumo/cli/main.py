@@ -7,10 +7,10 @@ import sys
 from typing import Sequence
 
 from magail_sumo import __version__
-from magail_sumo.cli import convert, evaluate, inspect, realism, replay, report
+from magail_sumo.cli import convert, evaluate, inspect, realism, replay, report, expert, train
 from magail_sumo.errors import MagailSumoError
 
-SUBCOMMANDS = (inspect, convert, replay, realism, evaluate, report)
+SUBCOMMANDS = (inspect, convert, replay, realism, evaluate, report, expert, train)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,140 @@
+"""Expert demonstrations on disk (see :mod:`magail_sumo.expert.record`) and their sampling."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from magail_sumo.errors import MagailSumoError
+
+
+class ExpertDataError(MagailSumoError):
+    """An expert directory is missing, empty, or does not match the training config."""
+
+
+@dataclass(frozen=True)
+class SceneSteps:
+    """A batch of scene steps for the discriminator.
+
+    :param x: (B, V, 2F) float32 tokens ``concat(s, s')`` (zeros where padded).
+    :param mask: (B, V) bool, present tokens.
+    """
+
+    x: np.ndarray
+    mask: np.ndarray
+
+
+def pad_groups(features: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> SceneSteps:
+    """Padded (B, V, F) batch of the row groups ``[starts[b], starts[b] + sizes[b])``."""
+    b = len(starts)
+    v = int(sizes.max()) if b else 0
+    x = np.zeros((b, max(v, 1), features.shape[1]), np.float32)
+    mask = np.zeros((b, max(v, 1)), bool)
+    for i, (s, n) in enumerate(zip(starts, sizes)):
+        x[i, :n] = features[s:s + n]
+        mask[i, :n] = True
+    return SceneSteps(x, mask)
+
+
+class ExpertDataset:
+    """All expert transitions of a directory, grouped by scene step.
+
+    :param directory: what ``magail-sumo expert`` wrote.
+    :param observation_names: the training observation layout; a different stored layout is
+        refused with :class:`ExpertDataError` naming the first mismatch.
+    """
+
+    def __init__(self, directory: str | Path, observation_names: Sequence[str] | None = None
+                 ) -> None:
+        import pyarrow.parquet as pq
+
+        from .record import EXPERT_FORMAT
+
+        d = Path(directory)
+        meta_path = d / "metadata.json"
+        if not d.is_dir():
+            raise ExpertDataError(f"{d}: expert directory not found")
+        if not meta_path.is_file():
+            raise ExpertDataError(f"{d}: not an expert directory (no metadata.json; record one "
+                                  "with `magail-sumo expert SCENES... --out DIR`)")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except ValueError as exc:
+            raise ExpertDataError(f"{meta_path}: unreadable ({exc})") from None
+        if meta.get("format") != EXPERT_FORMAT:
+            raise ExpertDataError(f"{meta_path}: format {meta.get('format')!r}, expected "
+                                  f"{EXPERT_FORMAT!r}")
+        names = list(meta.get("observation_names", []))
+        if observation_names is not None:
+            want = list(observation_names)
+            if names != want:
+                i = next((k for k, (a, b) in enumerate(zip(names, want)) if a != b),
+                         min(len(names), len(want)))
+                got_i = names[i] if i < len(names) else "<end>"
+                want_i = want[i] if i < len(want) else "<end>"
+                raise ExpertDataError(
+                    f"{d}: observation layout mismatch: expert data has {len(names)} values, the "
+                    f"training config {len(want)}; first difference at index {i}: expert "
+                    f"{got_i!r} vs config {want_i!r}")
+        self.directory = d
+        self.metadata = meta
+        self.observation_names = names
+        self.obs_dim = len(names)
+        parts = []
+        for sc in meta.get("scenes", []):
+            path = d / sc["parquet"]
+            try:
+                parts.append(pq.read_table(path))
+            except (OSError, ValueError) as exc:
+                raise ExpertDataError(f"{path}: unreadable expert file ({exc})") from None
+        rows = sum(p.num_rows for p in parts)
+        if rows == 0:
+            raise ExpertDataError(f"{d}: expert directory holds no transitions")
+        import pyarrow as pa
+
+        table = pa.concat_tables(parts)
+
+        def fixed(col: str, width: int) -> np.ndarray:
+            arr = table.column(col).combine_chunks()
+            return arr.values.to_numpy(zero_copy_only=False).reshape(-1, width).astype(np.float32)
+
+        scene = table.column("scene_id").to_numpy(zero_copy_only=False)
+        self.scene_names, scene_code = np.unique(scene, return_inverse=True)
+        step = table.column("step").to_numpy().astype(np.int64)
+        order = np.lexsort((table.column("track_id").to_numpy(), step, scene_code))
+        self.s = fixed("s", self.obs_dim)[order]
+        if self.s.shape[1] != self.obs_dim:
+            raise ExpertDataError(f"{d}: stored observations have {self.s.shape[1]} values, "
+                                  f"metadata names {self.obs_dim}")
+        self.s_next = fixed("s_next", self.obs_dim)[order]
+        self.action = fixed("action", 2)[order]
+        self.done = table.column("done").to_numpy(zero_copy_only=False)[order]
+        self.scene = scene_code[order]
+        self.step = step[order]
+        self.track = table.column("track_id").to_numpy()[order]
+        self.tokens = np.concatenate([self.s, self.s_next], axis=1)
+        key = self.scene * (self.step.max() + 1) + self.step
+        self.group_start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        self.group_size = np.diff(np.r_[self.group_start, len(key)])
+
+    def __len__(self) -> int:
+        return len(self.s)
+
+    @property
+    def num_scene_steps(self) -> int:
+        return len(self.group_start)
+
+    def sample_scene_steps(self, batch_size: int, rng: np.random.Generator) -> SceneSteps:
+        """``batch_size`` scene steps drawn uniformly (with replacement), padded + mask."""
+        g = rng.integers(0, self.num_scene_steps, batch_size)
+        return pad_groups(self.tokens, self.group_start[g], self.group_size[g])
+
+    def sample_pairs(self, batch_size: int, rng: np.random.Generator
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """``batch_size`` (s, a) pairs for behavioural cloning: (B, F), (B, 2)."""
+        i = rng.integers(0, len(self), batch_size)
+        return self.s[i], self.action[i]

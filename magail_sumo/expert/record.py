@@ -1,0 +1,132 @@
+"""Record expert demonstrations: replay the log through the same sensors as training.
+
+Each scene runs in :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` with every route vehicle
+controlled, driven by :func:`~magail_sumo.env.expert.expert_actions` under
+:data:`~magail_sumo.env.expert.REPLAY_LIMITS` (wide enough to follow the recorded tracks), no
+terminating events, log background. Per vehicle and step the Parquet file stores ``s``,
+``s_next`` (the observation before and after the step), ``action`` — the inverse-dynamics
+acceleration and steering normalised with the *training* limits and clipped to [-1, 1], i.e.
+the action a policy would have to output — the physical ``accel`` (m/s²) and ``steer`` (rad),
+``done`` (the vehicle left after this step), and ``scene_id`` / ``track_id`` / ``step``. The
+previous-action entries of the observation (``prev_accel``, ``prev_steer``) are rewritten to
+those training-normalised actions, so expert and policy observations share one scale.
+
+``DIR/<scenario_id>.parquet`` per scene plus ``DIR/metadata.json``: the format, the observation
+layout (``observation_names``), the observation config and the training limits.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from magail_sumo.config import to_dict
+from magail_sumo.env.config import EnvConfig
+from magail_sumo.env.vec_env import SceneSpec, load_spec_scene
+from magail_sumo.sensors.observation import ObservationConfig, observation_names
+from magail_sumo.sim.dynamics import BicycleLimits
+
+EXPERT_FORMAT = "magail_sumo.expert/1"
+
+
+def _fixed_list(values: np.ndarray):
+    import pyarrow as pa
+
+    values = np.ascontiguousarray(values, np.float32)
+    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
+
+
+def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: BicycleLimits,
+                 out_dir: str | Path, seed: int = 0) -> dict:
+    """Replay one scene and write ``out_dir/<id>.parquet``; a summary dict of the scene.
+
+    Call in a process of its own (libsumo: one simulation per process)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv, expert_actions
+    from magail_sumo.sim import dynamics
+
+    scene = load_spec_scene(spec)
+    cfg = EnvConfig(controlled="all", background="log", terminate_on=(), observation=observation,
+                    limits=REPLAY_LIMITS)
+    env = SumoDrivingEnv(scene, spec.bundle, cfg)
+    names = observation_names(observation)
+    prev = [names.index(n) for n in ("prev_accel", "prev_steer") if n in names]
+    cols: dict[str, list] = {k: [] for k in ("track", "step", "done", "s", "s_next", "action",
+                                             "accel", "steer")}
+    obs, _ = env.reset(seed=seed)
+    while env.agents:
+        acts = expert_actions(env)
+        t = env.t
+        nobs, _, terms, truncs, _ = env.step(acts)
+        names_now = list(acts)
+        raw = np.stack([acts[a] for a in names_now]).astype(np.float64)
+        accel, steer = dynamics.denormalise(raw, REPLAY_LIMITS)
+        a_train = np.clip(dynamics.normalise(accel, steer, limits), -1.0, 1.0).astype(np.float32)
+        s = np.stack([obs[a] for a in names_now]).astype(np.float32)
+        s_next = np.stack([nobs[a] for a in names_now]).astype(np.float32)
+        if len(prev) == 2:
+            s_next[:, prev] = a_train
+            for i, a in enumerate(names_now):
+                nobs[a] = s_next[i]
+        cols["track"].append(np.array([int(a) for a in names_now], np.int64))
+        cols["step"].append(np.full(len(names_now), t, np.int32))
+        cols["done"].append(np.array([bool(terms[a] or truncs[a]) for a in names_now]))
+        cols["s"].append(s)
+        cols["s_next"].append(s_next)
+        cols["action"].append(a_train)
+        cols["accel"].append(np.asarray(accel, np.float32))
+        cols["steer"].append(np.asarray(steer, np.float32))
+        obs = nobs
+    env.close()
+    cat = {k: (np.concatenate(v) if v else np.zeros((0,) if k in ("track", "step", "done",
+                                                                  "accel", "steer")
+                                                     else (0, len(names) if k != "action" else 2),
+                                                     np.float32))
+           for k, v in cols.items()}
+    n = len(cat["track"])
+    table = pa.table({
+        "scene_id": pa.array([scene.scenario_id] * n, pa.string()),
+        "track_id": pa.array(cat["track"].astype(np.int64)),
+        "step": pa.array(cat["step"].astype(np.int32)),
+        "done": pa.array(cat["done"].astype(bool)),
+        "s": _fixed_list(cat["s"].reshape(n, len(names))),
+        "s_next": _fixed_list(cat["s_next"].reshape(n, len(names))),
+        "action": _fixed_list(cat["action"].reshape(n, 2)),
+        "accel": pa.array(cat["accel"].astype(np.float32)),
+        "steer": pa.array(cat["steer"].astype(np.float32)),
+    })
+    out = Path(out_dir) / f"{scene.scenario_id}.parquet"
+    pq.write_table(table, out)
+    return {"scenario_id": scene.scenario_id, "file": str(spec.scene_file), "rows": n,
+            "steps": int(len(np.unique(cat["step"]))), "vehicles": int(len(np.unique(cat["track"]))),
+            "parquet": out.name}
+
+
+def _record_job(args: tuple) -> dict:
+    return record_scene(*args)
+
+
+def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
+                  observation: ObservationConfig | None = None,
+                  limits: BicycleLimits | None = None, workers: int = 1, seed: int = 0) -> dict:
+    """Record every scene (each in a fresh process) into ``out_dir``; the metadata written."""
+    observation = observation or ObservationConfig()
+    limits = limits or BicycleLimits()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(spec, observation, limits, out, seed) for spec in specs]
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(max(1, min(workers, len(jobs))), maxtasksperchild=1) as pool:
+        scenes = pool.map(_record_job, jobs, chunksize=1)
+    meta = {"format": EXPERT_FORMAT, "observation_names": observation_names(observation),
+            "observation": to_dict(observation), "limits": to_dict(limits),
+            "action": ["accel", "steer"], "scenes": scenes}
+    (out / "metadata.json").write_text(json.dumps(meta, indent=2))
+    return meta
+

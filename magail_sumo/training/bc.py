@@ -1,0 +1,49 @@
+"""Behavioural cloning of the expert (s, a) pairs into a :class:`TanhGaussianPolicy`.
+
+Maximises ``log pi(a_expert | s)`` of the actor (MLP + state-independent log-std; the critic is
+untouched), so the result is also a PPO initialisation. Expert actions are clipped to
+``±(1 − 1e-3)`` (tanh cannot reach ±1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from magail_sumo.expert import ExpertDataset
+from magail_sumo.models.policies import TanhGaussianPolicy
+
+
+def behavioural_cloning(policy: TanhGaussianPolicy, expert: ExpertDataset, epochs: int,
+                        batch_size: int = 256, learning_rate: float = 1e-3, seed: int = 0,
+                        log=None) -> list[float]:
+    """Fit the actor of ``policy``; the mean negative log-likelihood of each epoch.
+
+    :param epochs: passes over all expert pairs (shuffled with ``seed``).
+    :param log: optional callable receiving (epoch, nll).
+    """
+    params = list(policy.mlp_extractor.policy_net.parameters()) + \
+        list(policy.action_net.parameters()) + [policy.log_std]
+    opt = torch.optim.Adam(params, lr=learning_rate)
+    rng = np.random.default_rng(seed)
+    s_all = torch.as_tensor(expert.s, device=policy.device)
+    a_all = torch.as_tensor(np.clip(expert.action, -0.999, 0.999), device=policy.device)
+    policy.set_training_mode(True)
+    history = []
+    for epoch in range(epochs):
+        order = torch.as_tensor(rng.permutation(len(expert)), device=policy.device)
+        total, n = 0.0, 0
+        for start in range(0, len(order), batch_size):
+            idx = order[start:start + batch_size]
+            nll = -policy.action_log_prob(s_all[idx], a_all[idx]).mean()
+            opt.zero_grad(set_to_none=True)
+            nll.backward()
+            torch.nn.utils.clip_grad_norm_(params, 1.0)
+            opt.step()
+            total += float(nll.detach()) * len(idx)
+            n += len(idx)
+        history.append(total / max(n, 1))
+        if log is not None:
+            log(epoch, history[-1])
+    policy.set_training_mode(False)
+    return history

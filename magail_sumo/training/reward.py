@@ -1,0 +1,229 @@
+"""GAIL reward over vehicle sets: an SB3 ``VecEnvWrapper`` and the discriminator's training.
+
+Reward nets and the RL algorithm are kept apart (as in ``imitation``):
+:class:`DiscriminatorRewardWrapper` turns env steps into rewards with a frozen discriminator and
+records the policy's scene steps; :class:`DiscriminatorTrainer` fits the discriminator on expert
+vs policy scene steps; :class:`DiscriminatorCallback` runs the trainer between PPO rollouts and
+logs to SB3's logger (TensorBoard).
+
+Token of a vehicle = ``concat(s, s')`` of one env step (``s'`` = the terminal observation when
+the vehicle left). All vehicles of a scene step go through the discriminator together (the
+transformer judges each in the context of the others; the MLP judges each alone), and the
+reward of slot ``i`` is ``c_t·r_task + c_i·(−log(max(1 − sigmoid(D_i), floor)))``; free slots
+get 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
+
+from magail_sumo.expert import ExpertDataset, SceneSteps
+from magail_sumo.models.discriminator import imitation_reward
+
+from .discriminator_loss import DiscriminatorLossConfig, discriminator_loss
+
+
+class DiscriminatorRewardWrapper(VecEnvWrapper):
+    """Replace the env reward by the GAIL reward of all vehicles of each scene (module doc).
+
+    :param venv: a :class:`~magail_sumo.env.vec_env.MultiSceneVecEnv` (or a wrapper of one).
+    :param discriminator: module mapping ((B, V, 2F), (B, V) mask) to ((B, V), (B,)) logits.
+    :param reward_t_coef, reward_i_coef: weights of the env (task) and imitation rewards.
+    :param floor: floor of ``1 − sigmoid(D)`` in the log.
+    :param device: torch device of the discriminator.
+    """
+
+    def __init__(self, venv, discriminator: torch.nn.Module, reward_t_coef: float = 0.0,
+                 reward_i_coef: float = 1.0, floor: float = 1e-4, device: str = "cpu") -> None:
+        super().__init__(venv)
+        base = venv.unwrapped
+        self.base = base
+        self.discriminator = discriminator
+        self.reward_t_coef, self.reward_i_coef, self.floor = reward_t_coef, reward_i_coef, floor
+        self.device = torch.device(device)
+        self.num_scenes = len(base.scene_slices)
+        self.max_slots = max(base.slots)
+        self.pos_in_scene = np.concatenate([np.arange(n) for n in base.slots])
+        self._last_obs: np.ndarray | None = None
+        self.rollout_x: list[np.ndarray] = []
+        self.rollout_mask: list[np.ndarray] = []
+        self.reward_sum = self.reward_sq = 0.0
+        self.reward_n = 0
+
+    def reset(self) -> np.ndarray:
+        obs = self.venv.reset()
+        self._last_obs = obs
+        return obs
+
+    def set_state(self, state) -> np.ndarray:
+        """Restore the env (``MultiSceneVecEnv.set_state``); the observation."""
+        obs = self.base.set_state(state)
+        self._last_obs = obs
+        return obs
+
+    def scene_tokens(self, s: np.ndarray, s_next: np.ndarray, acted: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Slot tokens arranged per scene: ((K, S, 2F) float32, (K, S) bool)."""
+        x = np.zeros((self.num_scenes, self.max_slots, 2 * s.shape[1]), np.float32)
+        mask = np.zeros((self.num_scenes, self.max_slots), bool)
+        sc, pos = self.base.slot_scene, self.pos_in_scene
+        x[sc, pos] = np.concatenate([s, s_next], axis=1)
+        mask[sc, pos] = acted
+        return x, mask
+
+    @torch.no_grad()
+    def rewards(self, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(K, S) imitation rewards of scene tokens (0 where masked)."""
+        self.discriminator.eval()
+        xt = torch.as_tensor(x, device=self.device)
+        mt = torch.as_tensor(mask, device=self.device)
+        logits, _ = self.discriminator(xt, mt)
+        r = imitation_reward(logits, self.floor).masked_fill(~mt, 0.0)
+        return r.cpu().numpy()
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, task, dones, infos = self.venv.step_wait()
+        acted = self.base.prev_slot_active
+        s_next = obs.copy()
+        for i in np.flatnonzero(dones):
+            term = infos[i].get("terminal_observation")
+            if term is not None:
+                s_next[i] = term
+        x, mask = self.scene_tokens(self._last_obs, s_next, acted)
+        r_i = self.rewards(x, mask)[self.base.slot_scene, self.pos_in_scene]
+        rew = (self.reward_t_coef * task + self.reward_i_coef * r_i).astype(np.float32)
+        rew[~acted] = 0.0
+        keep = mask.any(axis=1)
+        if keep.any():
+            self.rollout_x.append(x[keep])
+            self.rollout_mask.append(mask[keep])
+        ra = r_i[acted]
+        self.reward_sum += float(ra.sum())
+        self.reward_sq += float((ra ** 2).sum())
+        self.reward_n += int(ra.size)
+        self._last_obs = obs
+        return obs, rew, dones, infos
+
+    def pop_rollout(self) -> SceneSteps | None:
+        """The policy scene steps recorded since the last call (padded), cleared."""
+        if not self.rollout_x:
+            return None
+        x, m = np.concatenate(self.rollout_x), np.concatenate(self.rollout_mask)
+        self.rollout_x, self.rollout_mask = [], []
+        return SceneSteps(x, m)
+
+    def pop_reward_stats(self) -> dict[str, float]:
+        """Mean and std of the imitation reward per agent-step since the last call, cleared."""
+        n = max(self.reward_n, 1)
+        mean = self.reward_sum / n
+        std = float(np.sqrt(max(self.reward_sq / n - mean ** 2, 0.0)))
+        out = {"imitation_mean": mean, "imitation_std": std, "agent_steps": float(self.reward_n)}
+        self.reward_sum = self.reward_sq = 0.0
+        self.reward_n = 0
+        return out
+
+
+@dataclass
+class DiscriminatorStats:
+    loss: float
+    bce: float
+    gradient_penalty: float
+    logit_penalty: float
+    expert_accuracy: float
+    policy_accuracy: float
+
+
+class DiscriminatorTrainer:
+    """Fits the discriminator on expert vs policy scene steps (AdamW, GAIL loss with GP).
+
+    :param discriminator: the reward net (its :class:`RunningNormalizer` is updated with the
+        policy and expert tokens of each call before the gradient steps).
+    :param expert: expert demonstrations.
+    :param steps: gradient steps per call. :param batch_size: scene steps per side and step.
+    :param seed: seed of the batch sampling (its state is part of :meth:`state_dict`).
+    """
+
+    def __init__(self, discriminator: torch.nn.Module, expert: ExpertDataset, steps: int = 50,
+                 batch_size: int = 32, learning_rate: float = 1e-3, weight_decay: float = 1e-4,
+                 loss: DiscriminatorLossConfig | None = None, seed: int = 0,
+                 device: str = "cpu") -> None:
+        self.discriminator = discriminator
+        self.expert = expert
+        self.steps, self.batch_size = steps, batch_size
+        self.loss_config = loss or DiscriminatorLossConfig()
+        self.optimizer = torch.optim.AdamW(discriminator.parameters(), lr=learning_rate,
+                                           weight_decay=weight_decay)
+        self.rng = np.random.default_rng(seed)
+        self.device = torch.device(device)
+
+    def state_dict(self) -> dict:
+        return {"optimizer": self.optimizer.state_dict(), "rng": self.rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.rng.bit_generator.state = state["rng"]
+
+    def _t(self, a: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(a, device=self.device)
+
+    def train(self, policy: SceneSteps) -> DiscriminatorStats:
+        """``steps`` gradient steps on expert batches vs batches of ``policy`` scene steps."""
+        disc = self.discriminator
+        present = policy.x[policy.mask]
+        exp = self.expert.sample_scene_steps(max(1, len(policy.x)), self.rng)
+        disc.normalizer.update(self._t(present))
+        disc.normalizer.update(self._t(exp.x[exp.mask]))
+        disc.train()
+        acc = np.zeros(6)
+        for _ in range(self.steps):
+            e = self.expert.sample_scene_steps(self.batch_size, self.rng)
+            idx = self.rng.integers(0, len(policy.x), self.batch_size)
+            px, pm = policy.x[idx], policy.mask[idx]
+            v = int(pm.any(axis=0).nonzero()[0].max()) + 1
+            out = discriminator_loss(disc, self._t(e.x), self._t(e.mask), self._t(px[:, :v]),
+                                     self._t(pm[:, :v]), self.loss_config)
+            self.optimizer.zero_grad(set_to_none=True)
+            out.total.backward()
+            self.optimizer.step()
+            acc += [float(out.total.detach()), out.bce, out.gradient_penalty, out.logit_penalty,
+                    out.expert_accuracy, out.policy_accuracy]
+        disc.eval()
+        return DiscriminatorStats(*(acc / max(self.steps, 1)).tolist())
+
+
+class DiscriminatorCallback(BaseCallback):
+    """Between PPO rollouts: train the discriminator on the rollout's scene steps and log
+    ``discriminator/*`` (loss, BCE, gradient penalty, expert/policy accuracy), ``reward/*``
+    (imitation reward mean/std per agent-step) and ``env/*`` (agent-steps, scene episodes).
+
+    :param wrapper: the reward wrapper of the model's env. :param trainer: the fitter.
+    """
+
+    def __init__(self, wrapper: DiscriminatorRewardWrapper, trainer: DiscriminatorTrainer,
+                 verbose: int = 0) -> None:
+        super().__init__(verbose)
+        self.wrapper, self.trainer = wrapper, trainer
+        self.last_stats: DiscriminatorStats | None = None
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        for k, v in self.wrapper.pop_reward_stats().items():
+            self.logger.record(f"reward/{k}", v)
+        base = self.wrapper.base
+        self.logger.record("env/agent_steps_total", base.agent_steps)
+        self.logger.record("env/scene_episodes_total", base.episodes)
+        data = self.wrapper.pop_rollout()
+        if data is None or self.trainer.steps == 0:
+            return
+        stats = self.trainer.train(data)
+        self.last_stats = stats
+        for k, v in vars(stats).items():
+            self.logger.record(f"discriminator/{k}", v)

@@ -1,0 +1,326 @@
+"""Training runs: build env, expert data, discriminator, PPO from a :class:`TrainConfig`; run
+updates with checkpoints; resume exactly.
+
+A checkpoint (``RUN/checkpoints/update_NNNNNN.pt`` and ``latest.pt``, written atomically) holds
+the policy (with its observation normaliser), the PPO optimiser and current learning rate, the
+discriminator (with its normaliser) and its optimiser, the discriminator sampler's RNG, the
+torch / numpy / python RNG states, SB3's counters and last observation, and the env state as
+per-scene (episode, actions since reset) — replayed in fresh workers on resume, so a resumed run
+continues exactly as if uninterrupted.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from magail_sumo.config import ConfigError, from_dict, record_run, to_dict
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.expert import ExpertDataset
+from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscriminator
+from magail_sumo.models.policies import TanhGaussianPolicy
+from magail_sumo.sensors.observation import observation_bounds, observation_names
+
+from .config import TrainConfig
+
+CHECKPOINT_FORMAT = "magail_sumo.checkpoint/1"
+#: config keys that may differ between a run and its resumption
+RESUMABLE_CHANGES = ("updates", "checkpoint_every")
+
+
+class CheckpointError(MagailSumoError):
+    """A checkpoint is missing, corrupt, or does not belong to the configured run."""
+
+
+def spaces_of(cfg: TrainConfig) -> tuple[spaces.Box, spaces.Box]:
+    low, high = observation_bounds(cfg.env.observation)
+    return spaces.Box(low, high, dtype=np.float32), spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+
+def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:
+    return {"net_arch": {"pi": list(cfg.policy.actor_hidden), "vf": list(cfg.policy.critic_hidden)},
+            "log_std_init": cfg.policy.log_std_init}
+
+
+def make_policy(cfg: TrainConfig) -> TanhGaussianPolicy:
+    """A fresh policy for the config's spaces (no env needed)."""
+    obs, act = spaces_of(cfg)
+    return TanhGaussianPolicy(obs, act, lambda _: cfg.ppo.learning_rate,
+                              **policy_kwargs(cfg)).to(cfg.device)
+
+
+def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:
+    d = cfg.discriminator
+    if d.kind == "transformer":
+        return TransformerDiscriminator(feature_dim, d.transformer).to(cfg.device)
+    return MLPDiscriminator(feature_dim, d.mlp_hidden).to(cfg.device)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint; :class:`CheckpointError` when missing, corrupt or not one."""
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(f"{p}: checkpoint not found")
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt
+        raise CheckpointError(f"{p}: corrupt or unreadable checkpoint "
+                              f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{p}: not a magail_sumo checkpoint")
+    missing = [k for k in ("config", "policy", "update") if k not in state]
+    if missing:
+        raise CheckpointError(f"{p}: checkpoint lacks {', '.join(missing)}")
+    return state
+
+
+def _save(state: dict, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPolicy, TrainConfig]:
+    """The policy of a checkpoint (and the run's config)."""
+    state = load_checkpoint(path)
+    cfg = replace(from_dict(TrainConfig, state["config"]), device=device)
+    policy = make_policy(cfg)
+    try:
+        policy.load_state_dict(state["policy"])
+    except (RuntimeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: policy does not fit the config ({exc})") from None
+    policy.set_training_mode(False)
+    return policy, cfg
+
+
+def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
+    now = to_dict(cfg)
+    diff = sorted(k for k in set(now) | set(saved)
+                  if k not in RESUMABLE_CHANGES and now.get(k) != saved.get(k))
+    if diff:
+        raise ConfigError(f"{where}: the config differs from the run's in {', '.join(diff)} "
+                          f"(only {', '.join(RESUMABLE_CHANGES)} may change on resume)")
+
+
+def _run_dir(cfg: TrainConfig, name: str | None) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    kind = "bc" if cfg.algorithm == "bc" else f"gail-{cfg.discriminator.kind}"
+    d = Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
+    if d.exists() and any(d.iterdir()):
+        raise MagailSumoError(f"{d}: run directory exists and is not empty (use --resume)")
+    return d
+
+
+def _rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+            "python": random.getstate()}
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
+          log: Callable[[str], None] = print) -> Path:
+    """Run (or resume) training; the run directory.
+
+    :param run_dir: where to write (default ``out_dir/<algorithm>-seed<seed>-<time>``).
+    :param resume: a run directory to continue from its ``checkpoints/latest.pt``.
+    """
+    ckpt = None
+    if resume is not None:
+        rd = Path(resume)
+        ckpt = load_checkpoint(rd / "checkpoints" / "latest.pt")
+        _check_resume_config(cfg, ckpt["config"], rd / "checkpoints" / "latest.pt")
+        run_dir = rd
+    else:
+        run_dir = Path(run_dir) if run_dir is not None else _run_dir(cfg, None)
+        if run_dir.exists() and any(run_dir.iterdir()):
+            raise MagailSumoError(f"{run_dir}: run directory exists and is not empty "
+                                  "(use --resume)")
+    torch.set_num_threads(max(1, cfg.torch_threads))
+    _seed_everything(cfg.seed)
+    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
+    if cfg.algorithm == "bc":
+        return _train_bc(cfg, Path(run_dir), expert, ckpt, log)
+    return _train_gail(cfg, Path(run_dir), expert, ckpt, log)
+
+
+def _train_bc(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict | None,
+              log: Callable[[str], None]) -> Path:
+    from .bc import behavioural_cloning
+
+    if ckpt is not None:
+        log(f"{run_dir}: behavioural cloning run already complete")
+        return run_dir
+    record_run(run_dir, cfg)
+    policy = make_policy(cfg)
+    policy.obs_normalizer.update(torch.as_tensor(expert.s))
+    behavioural_cloning(policy, expert, cfg.bc.epochs, cfg.bc.batch_size, cfg.bc.learning_rate,
+                        cfg.seed, log=lambda e, v: log(f"bc epoch {e + 1}: nll {v:.4f}"))
+    (run_dir / "checkpoints").mkdir(exist_ok=True)
+    state = {"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+             "policy": policy.state_dict(), "rng": _rng_state()}
+    _save(state, run_dir / "checkpoints" / "latest.pt")
+    log(f"{run_dir}: policy saved")
+    return run_dir
+
+
+class GailRun:
+    """The objects of a GAIL / MAGAIL run (env, reward wrapper, discriminator, PPO, callbacks).
+
+    :param cfg: the run config. :param expert: expert demonstrations.
+    """
+
+    def __init__(self, cfg: TrainConfig, expert: ExpertDataset) -> None:
+        from stable_baselines3.common.callbacks import CallbackList
+
+        from magail_sumo.env.vec_env import MultiSceneVecEnv, scene_specs
+
+        from .discriminator_loss import DiscriminatorLossConfig
+        from .ppo import KLAdaptiveLR, MaskedPPO
+        from .reward import DiscriminatorCallback, DiscriminatorRewardWrapper, DiscriminatorTrainer
+
+        self.cfg = cfg
+        specs = scene_specs(cfg.scenes.files, cfg.scenes.networks)
+        self.venv = MultiSceneVecEnv(specs, cfg.env, seed=cfg.seed,
+                                     timeout_s=cfg.scenes.worker_timeout_s)
+        try:
+            d = cfg.discriminator
+            self.discriminator = make_discriminator(cfg, 2 * self.venv.obs_dim)
+            self.wrapper = DiscriminatorRewardWrapper(self.venv, self.discriminator,
+                                                      d.reward_t_coef, d.reward_i_coef,
+                                                      d.reward_floor, cfg.device)
+            self.disc_trainer = DiscriminatorTrainer(
+                self.discriminator, expert, d.epochs, d.batch_size, d.learning_rate,
+                d.weight_decay, DiscriminatorLossConfig(d.gp_coef, d.logit_reg), cfg.seed,
+                cfg.device)
+            p = cfg.ppo
+            self.model = MaskedPPO(
+                TanhGaussianPolicy, self.wrapper, learning_rate=p.learning_rate,
+                n_steps=p.n_steps, batch_size=p.batch_size, n_epochs=p.n_epochs, gamma=p.gamma,
+                gae_lambda=p.gae_lambda, clip_range=p.clip_range,
+                normalize_advantage=p.normalize_advantage, ent_coef=p.ent_coef,
+                vf_coef=p.vf_coef, max_grad_norm=p.max_grad_norm,
+                policy_kwargs=policy_kwargs(cfg), seed=cfg.seed, device=cfg.device, verbose=0)
+            self.disc_callback = DiscriminatorCallback(self.wrapper, self.disc_trainer)
+            cbs = [self.disc_callback]
+            if p.desired_kl is not None:
+                cbs.append(KLAdaptiveLR(p.desired_kl, p.lr_min, p.lr_max))
+            self.callbacks = CallbackList(cbs)
+        except BaseException:
+            self.venv.close()
+            raise
+        self.update = 0
+
+    @property
+    def policy(self) -> TanhGaussianPolicy:
+        return self.model.policy
+
+    def state_dict(self) -> dict:
+        m = self.model
+        return {"format": CHECKPOINT_FORMAT, "update": self.update, "config": to_dict(self.cfg),
+                "policy": m.policy.state_dict(), "policy_optimizer": m.policy.optimizer.state_dict(),
+                "learning_rate": float(m.learning_rate), "num_timesteps": m.num_timesteps,
+                "n_updates": m._n_updates, "last_obs": m._last_obs,
+                "last_episode_starts": m._last_episode_starts,
+                "discriminator": self.discriminator.state_dict(),
+                "disc_trainer": self.disc_trainer.state_dict(),
+                "env_state": self.venv.get_state(),
+                "env_counters": (self.venv.agent_steps, self.venv.episodes),
+                "rng": _rng_state()}
+
+    def load_state_dict(self, state: dict, where: Path) -> None:
+        m = self.model
+        try:
+            m.policy.load_state_dict(state["policy"])
+            m.policy.optimizer.load_state_dict(state["policy_optimizer"])
+            self.discriminator.load_state_dict(state["discriminator"])
+            self.disc_trainer.load_state_dict(state["disc_trainer"])
+            m.set_learning_rate(state["learning_rate"])
+            m.num_timesteps, m._n_updates = state["num_timesteps"], state["n_updates"]
+            obs = self.wrapper.set_state(state["env_state"])
+            self.venv.agent_steps, self.venv.episodes = state["env_counters"]
+            m._last_episode_starts = state["last_episode_starts"]
+            self.update = state["update"]
+            rng = state["rng"]
+        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+            raise CheckpointError(f"{where}: checkpoint does not fit this run "
+                                  f"({type(exc).__name__}: {exc})") from None
+        if not np.array_equal(obs, state["last_obs"]):
+            raise CheckpointError(f"{where}: replaying the env state did not reproduce the saved "
+                                  "observation (scene files or SUMO changed?)")
+        m._last_obs = obs
+        _set_rng_state(rng)
+
+    def save(self, run_dir: Path) -> Path:
+        d = run_dir / "checkpoints"
+        d.mkdir(parents=True, exist_ok=True)
+        state = self.state_dict()
+        path = d / f"update_{self.update:06d}.pt"
+        _save(state, path)
+        _save(state, d / "latest.pt")
+        return path
+
+    def run_update(self) -> None:
+        """One PPO update: rollout (with imitation rewards), discriminator fit, PPO epochs."""
+        m = self.model
+        m.learn(total_timesteps=m.n_steps * m.n_envs, callback=self.callbacks,
+                reset_num_timesteps=False, progress_bar=False)
+        self.update += 1
+
+    def close(self) -> None:
+        self.venv.close()
+
+
+def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict | None,
+                log: Callable[[str], None]) -> Path:
+    from stable_baselines3.common.logger import configure
+
+    run = GailRun(cfg, expert)
+    try:
+        if ckpt is not None:
+            run.load_state_dict(ckpt, run_dir / "checkpoints" / "latest.pt")
+            log(f"resumed {run_dir} at update {run.update}")
+        else:
+            run.policy.obs_normalizer.update(torch.as_tensor(expert.s))
+            if cfg.bc.epochs > 0:
+                from .bc import behavioural_cloning
+
+                behavioural_cloning(run.policy, expert, cfg.bc.epochs, cfg.bc.batch_size,
+                                    cfg.bc.learning_rate, cfg.seed)
+        record_run(run_dir, cfg)
+        run.model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
+        while run.update < cfg.updates:
+            t0 = time.perf_counter()
+            steps0 = run.venv.agent_steps
+            run.run_update()
+            dt = time.perf_counter() - t0
+            st = run.disc_callback.last_stats
+            kl = run.model.logger.name_to_value.get("train/approx_kl", float("nan"))
+            log(f"update {run.update}/{cfg.updates}: {run.venv.agent_steps - steps0} agent-steps "
+                f"in {dt:.1f} s, lr {run.model.learning_rate:.2e}, kl {kl:.4f}"
+                + (f", D loss {st.loss:.3f} acc expert {st.expert_accuracy:.2f} policy "
+                   f"{st.policy_accuracy:.2f}" if st else ""))
+            run.model.logger.dump(run.model.num_timesteps)
+            if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
+                run.save(run_dir)
+    finally:
+        run.close()
+    return run_dir

@@ -1,0 +1,124 @@
+"""Training: masked rollout buffer, KL-adaptive lr, (MA)GAIL / BC runs, exact resume, bad input."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+
+from conftest import WOMD_DIR
+from magail_sumo.cli.main import main
+from magail_sumo.config import ConfigError, from_dict, load_config
+from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.expert import record_expert
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.ppo import MaskedRolloutBuffer, adapt_learning_rate
+from magail_sumo.training.trainer import CheckpointError, load_checkpoint, load_policy, train
+
+SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("training")
+    nets = root / "nets"
+    record_expert(scene_specs([SCENE], nets), root / "expert")
+    cfg = from_dict(TrainConfig, {
+        "seed": 3, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),
+        "updates": 4, "checkpoint_every": 2,
+        "env": {"max_steps": 30},
+        "scenes": {"files": [SCENE], "networks": str(nets)},
+        "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},
+        "ppo": {"n_steps": 16, "batch_size": 16, "n_epochs": 2},
+        "discriminator": {"epochs": 3, "batch_size": 8, "transformer": {
+            "embed_dim": 16, "num_layers": 1, "num_heads": 2, "ff_dim": 32}},
+        "bc": {"epochs": 2, "batch_size": 64}})
+    return root, cfg
+
+
+def test_masked_buffer_drops_free_slots():
+    obs_space = spaces.Box(-1, 1, (3,), np.float32)
+    buf = MaskedRolloutBuffer(4, obs_space, spaces.Box(-1, 1, (2,), np.float32), n_envs=3)
+    masks = iter(np.array([[1, 0, 1], [1, 0, 0], [0, 1, 0], [1, 1, 1]], bool))
+    buf.mask_source = lambda: next(masks)
+    for t in range(4):
+        obs = np.full((3, 3), t, np.float32) + np.arange(3)[:, None] * 10
+        buf.add(obs, np.zeros((3, 2)), np.zeros(3), np.zeros(3), torch.zeros(3), torch.zeros(3))
+    buf.compute_returns_and_advantage(torch.zeros(3), np.zeros(3))
+    got = np.concatenate([b.observations[:, 0].numpy() for b in buf.get(2)])
+    assert sorted(got.tolist()) == [0, 1, 3, 12, 13, 20, 23]
+
+
+def test_kl_rule():
+    assert adapt_learning_rate(1e-3, 0.05, 0.01, 1e-5, 1e-2) == 5e-4
+    assert adapt_learning_rate(1e-3, 0.001, 0.01, 1e-5, 1e-2) == pytest.approx(1.5e-3)
+    assert adapt_learning_rate(1e-3, 0.01, 0.01, 1e-5, 1e-2) == 1e-3
+    assert adapt_learning_rate(1e-2, 0.0001, 0.01, 1e-5, 1e-2) == 1e-2
+
+
+def test_resume_continues_exactly(setup):
+    root, cfg = setup
+    straight = train(cfg, run_dir=root / "straight", log=lambda s: None)
+    half = train(replace(cfg, updates=2), run_dir=root / "split", log=lambda s: None)
+    resumed = train(cfg, resume=half, log=lambda s: None)
+    a = load_checkpoint(straight / "checkpoints" / "latest.pt")
+    b = load_checkpoint(resumed / "checkpoints" / "latest.pt")
+    assert a["update"] == b["update"] == 4
+    for key in ("policy", "discriminator", "policy_optimizer"):
+        sa, sb = a[key], b[key]
+        if key == "policy_optimizer":
+            sa, sb = sa["state"], sb["state"]
+            sa = {f"{k}.{n}": v for k, d in sa.items() for n, v in d.items()}
+            sb = {f"{k}.{n}": v for k, d in sb.items() for n, v in d.items()}
+        assert sa.keys() == sb.keys()
+        for k in sa:
+            assert torch.equal(torch.as_tensor(sa[k]), torch.as_tensor(sb[k])), (key, k)
+    assert a["learning_rate"] == b["learning_rate"] and a["num_timesteps"] == b["num_timesteps"]
+    rec = (straight / "environment.json").read_text()
+    assert "git_commit" in rec and "stable-baselines3" in rec
+    assert (straight / "config.yaml").is_file() and any((straight / "tb").iterdir())
+
+
+def test_mlp_gail_and_bc(setup, tmp_path):
+    root, cfg = setup
+    mlp = replace(cfg, updates=1, discriminator=replace(cfg.discriminator, kind="mlp",
+                                                        mlp_hidden=(16,)))
+    run = train(mlp, run_dir=tmp_path / "mlp", log=lambda s: None)
+    assert load_checkpoint(run / "checkpoints" / "latest.pt")["update"] == 1
+    lines = []
+    bc = train(replace(cfg, algorithm="bc"), run_dir=tmp_path / "bc", log=lines.append)
+    assert any("bc epoch 2" in s for s in lines)
+    policy, got = load_policy(bc / "checkpoints" / "latest.pt")
+    assert got.algorithm == "bc"
+    act, _ = policy.predict(np.zeros((4, 113), np.float32), deterministic=True)
+    assert act.shape == (4, 2) and np.all(np.abs(act) <= 1)
+
+
+def test_bad_config_and_checkpoint(setup, tmp_path, capsys):
+    root, cfg = setup
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("ppo:\n  n_stepz: 3\n")
+    with pytest.raises(ConfigError, match=r"ppo\.n_stepz: unknown key"):
+        load_config(bad, TrainConfig)
+    bad.write_text("discriminator:\n  epochs: many\n")
+    with pytest.raises(ConfigError, match=r"discriminator\.epochs: expected an integer"):
+        load_config(bad, TrainConfig)
+    assert main(["train", "--config", str(bad)]) == 1
+    assert "discriminator.epochs" in capsys.readouterr().err
+    # corrupt checkpoint: clear error, nothing overwritten
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "latest.pt").write_bytes(b"not a checkpoint")
+    (run / "config.yaml").write_text("keep")
+    with pytest.raises(CheckpointError, match="corrupt or unreadable"):
+        train(cfg, resume=run)
+    assert (run / "config.yaml").read_text() == "keep"
+    assert sorted(p.name for p in run.rglob("*")) == ["checkpoints", "config.yaml", "latest.pt"]
+    # incompatible expert dir named
+    seed_layout = replace(cfg, env=replace(cfg.env, observation=replace(
+        cfg.env.observation, layout="seed")))
+    with pytest.raises(Exception, match="layout mismatch"):
+        train(seed_layout, run_dir=tmp_path / "x")
