@@ -111,16 +111,16 @@ def test_seeded_and_pluggable_policy():
 def test_policy_specs(tmp_path):
     assert isinstance(rl.make_policy("random", 0), rl.RandomPolicy)
     assert isinstance(rl.make_policy(f"{__name__}:stop_policy", 0), _StopPolicy)
-    ckpt = tmp_path / "agent.pt"
+    ckpt = tmp_path / "agent.ckpt"
     ckpt.write_bytes(b"x")
     with pytest.raises(rl.EvaluationError, match="no policy loader"):
         rl.make_policy(str(ckpt), 0)
-    rl.POLICY_LOADERS[".pt"] = lambda path, seed: _StopPolicy(seed)
+    rl.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
     try:
         assert isinstance(rl.make_policy(str(ckpt), 5), _StopPolicy)
         assert rl.method_name(str(ckpt)) == "agent"
     finally:
-        del rl.POLICY_LOADERS[".pt"]
+        del rl.POLICY_LOADERS[".ckpt"]
     with pytest.raises(rl.EvaluationError, match="not a method"):
         rl.make_policy("nonsense", 0)
     a = rl.RandomPolicy(1).act({"2": np.zeros(3), "1": np.zeros(3)})

@@ -122,3 +122,36 @@ def test_bad_config_and_checkpoint(setup, tmp_path, capsys):
         cfg.env.observation, layout="seed")))
     with pytest.raises(Exception, match="layout mismatch"):
         train(seed_layout, run_dir=tmp_path / "x")
+
+
+def test_deferred_rewards_equal_per_step_rewards(setup):
+    """Training computes the imitation rewards once per rollout in batched forwards; they are
+    the per-step rewards (frozen discriminator) up to float rounding."""
+    from magail_sumo.expert import ExpertDataset
+    from magail_sumo.sensors.observation import observation_names
+    from magail_sumo.training.trainer import GailRun
+
+    root, cfg = setup
+    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
+    got = []
+    for deferred in (True, False):
+        torch.manual_seed(0)
+        np.random.seed(0)
+        run = GailRun(cfg, expert)
+        try:
+            run.policy.obs_normalizer.update(torch.as_tensor(expert.s))
+            if not deferred:
+                run.wrapper.deferred = False
+                run.model.rollout_buffer.reward_source = None
+            run.run_update()
+            buf = run.model.rollout_buffer
+            got.append((buf.rewards.copy(), buf.active.copy(),
+                        run.wrapper.pop_reward_stats()))
+        finally:
+            run.close()
+    (r_def, a_def, s_def), (r_step, a_step, s_step) = got
+    assert np.array_equal(a_def, a_step) and a_def.any()
+    assert np.allclose(r_def, r_step, atol=1e-5) and np.all(r_def[~a_def] == 0)
+    assert np.abs(r_def[a_def]).max() > 0
+    assert s_def["agent_steps"] == s_step["agent_steps"]
+    assert s_def["imitation_mean"] == pytest.approx(s_step["imitation_mean"], abs=1e-5)

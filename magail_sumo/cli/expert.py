@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 
@@ -22,6 +23,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
     from magail_sumo.env.vec_env import scene_specs
     from magail_sumo.expert import record_expert
 
@@ -31,11 +34,18 @@ def run(args: argparse.Namespace) -> int:
         from magail_sumo.training.config import TrainConfig
 
         cfg = load_config(args.config, TrainConfig)
-        env_cfg = cfg.env.to_env_config()
-        observation, limits = env_cfg.observation, env_cfg.limits
+        observation, limits = cfg.env.observation, cfg.env.limits
     specs = scene_specs(args.scenes, args.networks)
-    meta = record_expert(specs, args.out, observation, limits, workers=args.workers)
-    for sc in meta["scenes"]:
-        print(f"{sc['scenario_id']}: {sc['rows']} transitions, {sc['vehicles']} vehicles, "
-              f"{sc['steps']} steps -> {args.out / sc['parquet']}")
+    bar = tqdm(total=len(specs), desc="scenes", unit="scene", file=sys.stderr, leave=False,
+               disable=not sys.stderr.isatty())
+
+    def done(sc: dict) -> None:
+        bar.write(f"{sc['scenario_id']}: {sc['rows']} transitions, {sc['vehicles']} vehicles, "
+                  f"{sc['steps']} steps -> {args.out / sc['parquet']}", file=sys.stdout)
+        bar.update(1)
+
+    try:
+        record_expert(specs, args.out, observation, limits, workers=args.workers, on_scene=done)
+    finally:
+        bar.close()
     return 0

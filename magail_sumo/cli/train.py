@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import shutil
+import sys
 from pathlib import Path
 
 
@@ -16,7 +18,53 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="continue a run from RUN_DIR/checkpoints/latest.pt")
     p.add_argument("--run-dir", type=Path, default=None, metavar="DIR",
                    help="run directory (default: OUT_DIR/<algorithm>-seed<seed>-<time>)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier run in --run-dir (only a folder that holds a run: "
+                        "config.yaml or checkpoints/)")
     p.set_defaults(func=run)
+
+
+def _clear_run_dir(d: Path) -> None:
+    from magail_sumo.errors import MagailSumoError
+
+    if not d.exists() or not any(d.iterdir()):
+        return
+    if not ((d / "config.yaml").is_file() or (d / "checkpoints").is_dir()):
+        raise MagailSumoError(f"{d}: not a run directory; --overwrite only replaces runs")
+    shutil.rmtree(d)
+
+
+class _Bars:
+    """One tqdm bar per training phase (behavioural cloning epochs, PPO updates) on stderr,
+    shown only when stderr is a terminal; log lines are printed above the bars."""
+
+    def __init__(self) -> None:
+        self.bars: dict = {}
+        self.enabled = sys.stderr.isatty()
+
+    def log(self, line: str) -> None:
+        from tqdm import tqdm
+
+        tqdm.write(line, file=sys.stdout)
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        from tqdm import tqdm
+
+        bar = self.bars.get(phase)
+        if bar is None:
+            desc = {"bc": "behavioural cloning", "updates": "PPO updates"}.get(phase, phase)
+            unit = "epoch" if phase == "bc" else "update"
+            bar = self.bars[phase] = tqdm(total=total, initial=done - 1, desc=desc, unit=unit,
+                                          file=sys.stderr, leave=False)
+        bar.update(done - bar.n)
+        if done >= total:
+            bar.close()
+
+    def close(self) -> None:
+        for bar in self.bars.values():
+            bar.close()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,6 +76,13 @@ def run(args: argparse.Namespace) -> int:
 
     warnings.filterwarnings("ignore", message=".*mini-batch size.*")
     cfg = load_config(args.config, TrainConfig)
-    run_dir = train(cfg, run_dir=args.run_dir, resume=args.resume)
+    if args.overwrite and args.run_dir is not None and args.resume is None:
+        _clear_run_dir(args.run_dir)
+    bars = _Bars()
+    try:
+        run_dir = train(cfg, run_dir=args.run_dir, resume=args.resume, log=bars.log,
+                        progress=bars)
+    finally:
+        bars.close()
     print(f"run: {run_dir}")
     return 0

@@ -107,31 +107,40 @@ class _SlotEnv:
         self.episode = -1
         self.actions: list[np.ndarray] = []
         self.names: list[str | None] = [None] * self.slots
+        self.slot_of: dict[str, int] = {}  #: agent name -> its slot (the agents in slots)
 
     def _assign(self, obs: dict[str, np.ndarray], packet: dict) -> None:
+        slot_of, names = self.slot_of, self.names
         for name in self.env.agents:
-            if name in self.names:
+            if name in slot_of:
                 continue
             try:
-                k = self.names.index(None)
+                k = names.index(None)
             except ValueError:
                 raise VecEnvWorkerError(f"{self.env.scene.scenario_id}: more than {self.slots} "
                                         "agents alive at once") from None
-            self.names[k] = name
+            names[k] = name
+            slot_of[name] = k
             packet["dones"][k] = True  # slot re-assignment = episode start of the slot
-        for k, name in enumerate(self.names):
-            if name is not None:
-                packet["obs"][k] = obs[name]
+        if slot_of:
+            ks = np.fromiter(slot_of.values(), np.int64, len(slot_of))
+            packet["obs"][ks] = np.stack([obs[n] for n in slot_of])
 
     def _packet(self) -> dict:
         return {"obs": np.zeros((self.slots, self.dim), np.float32),
                 "dones": np.zeros(self.slots, bool), "infos": {}, "episodes": 0,
                 "agent_steps": 0}
 
+    def _active(self) -> np.ndarray:
+        active = np.zeros(self.slots, bool)
+        active[list(self.slot_of.values())] = True
+        return active
+
     def _reset(self, packet: dict) -> None:
         self.episode += 1
         self.actions = []
         self.names = [None] * self.slots
+        self.slot_of = {}
         obs, _ = self.env.reset(seed=self.base_seed + self.episode)
         self._assign(obs, packet)
 
@@ -140,18 +149,18 @@ class _SlotEnv:
         packet = self._packet()
         self._reset(packet)
         packet["dones"][:] = False
-        packet["active"] = np.array([n is not None for n in self.names])
+        packet["active"] = self._active()
         return packet
 
     def step(self, actions: np.ndarray) -> dict:
         actions = np.asarray(actions, np.float32).reshape(self.slots, 2)
         self.actions.append(actions.copy())
         packet = self._packet()
-        acts = {n: actions[k] for k, n in enumerate(self.names) if n is not None}
+        acts = {n: actions[k] for n, k in self.slot_of.items()}
         packet["agent_steps"] = len(acts)
         obs, _, terms, truncs, infos = self.env.step(acts)
-        for k, name in enumerate(self.names):
-            if name is None or not (terms.get(name) or truncs.get(name)):
+        for name, k in list(self.slot_of.items()):
+            if not (terms.get(name) or truncs.get(name)):
                 continue
             info = infos[name]
             packet["dones"][k] = True
@@ -160,12 +169,13 @@ class _SlotEnv:
                                   "reason": info.get("reason"), "agent": name,
                                   "events": info.get("events", {})}
             self.names[k] = None
+            del self.slot_of[name]
         if not self.env.agents:
             self._reset(packet)
             packet["episodes"] = 1
         else:
             self._assign(obs, packet)
-        packet["active"] = np.array([n is not None for n in self.names])
+        packet["active"] = self._active()
         return packet
 
     def restore(self, episode: int, actions: Sequence[np.ndarray]) -> dict:
@@ -175,7 +185,7 @@ class _SlotEnv:
         self._reset(packet)
         for a in actions:
             packet = self.step(a)
-        packet["active"] = np.array([n is not None for n in self.names])
+        packet["active"] = self._active()
         return packet
 
     def state(self) -> tuple[int, list[np.ndarray]]:

@@ -82,6 +82,16 @@ class RandomPolicy:
 POLICY_LOADERS: dict[str, Callable[[Path, int], Policy]] = {}
 
 
+def _training_checkpoint(path: Path, seed: int) -> Policy:
+    """``magail-sumo train`` checkpoints (imported lazily: torch / SB3 only when used)."""
+    from magail_sumo.training.policy_loader import load_checkpoint_policy
+
+    return load_checkpoint_policy(path, seed)
+
+
+POLICY_LOADERS[".pt"] = _training_checkpoint
+
+
 def make_policy(spec: str, seed: int) -> Policy:
     """The policy named by ``spec``: ``random``, a checkpoint file with a registered loader,
     or ``package.module:factory`` (``factory(seed) -> Policy``)."""

@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -114,8 +114,12 @@ def _record_job(args: tuple) -> dict:
 
 def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
                   observation: ObservationConfig | None = None,
-                  limits: BicycleLimits | None = None, workers: int = 1, seed: int = 0) -> dict:
-    """Record every scene (each in a fresh process) into ``out_dir``; the metadata written."""
+                  limits: BicycleLimits | None = None, workers: int = 1, seed: int = 0,
+                  on_scene: Callable[[dict], None] | None = None) -> dict:
+    """Record every scene (each in a fresh process) into ``out_dir``; the metadata written.
+
+    :param on_scene: called with each scene's summary as soon as it is written (in order).
+    """
     observation = observation or ObservationConfig()
     limits = limits or BicycleLimits()
     out = Path(out_dir)
@@ -123,7 +127,11 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     jobs = [(spec, observation, limits, out, seed) for spec in specs]
     ctx = mp.get_context("spawn")
     with ctx.Pool(max(1, min(workers, len(jobs))), maxtasksperchild=1) as pool:
-        scenes = pool.map(_record_job, jobs, chunksize=1)
+        scenes = []
+        for sc in pool.imap(_record_job, jobs, chunksize=1):
+            scenes.append(sc)
+            if on_scene is not None:
+                on_scene(sc)
     meta = {"format": EXPERT_FORMAT, "observation_names": observation_names(observation),
             "observation": to_dict(observation), "limits": to_dict(limits),
             "action": ["accel", "steer"], "scenes": scenes}

@@ -34,7 +34,17 @@ class NormalizedObservation(BaseFeaturesExtractor):
         self.normalizer = RunningNormalizer(dim, clip=clip)
 
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.normalizer(observations.float())
+        x = observations.float()
+        n = self.normalizer
+        # the normaliser's float32 mean / std, cached until its statistics change (update and
+        # load_state_dict write the buffers in place, bumping their versions)
+        key = (n.mean._version, n.m2._version, n.count._version, n.mean.data_ptr(),
+               n.mean.device)
+        cache = self.__dict__.get("_stats")
+        if cache is None or cache[0] != key:
+            cache = (key, n.mean.to(x.dtype), n.std.to(x.dtype))
+            self.__dict__["_stats"] = cache
+        return torch.clamp((x - cache[1]) / cache[2], -n.clip, n.clip)
 
 
 class TanhGaussianPolicy(ActorCriticPolicy):

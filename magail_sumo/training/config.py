@@ -75,6 +75,9 @@ class DiscriminatorConfig:
     :param epochs: gradient steps per PPO update, each on ``batch_size`` expert and
         ``batch_size`` policy scene steps.
     :param reward_t_coef, reward_i_coef: r = c_t·r_task + c_i·(−log(max(1 − sigmoid(D), floor))).
+    :param collision_penalty, off_road_penalty: the task reward r_task of the step at which an
+        agent leaves by a collision / by going off-road is minus this (events in
+        ``env.terminate_on`` end the agent; 0 otherwise).
     """
 
     kind: str = "transformer"
@@ -89,6 +92,8 @@ class DiscriminatorConfig:
     reward_t_coef: float = 0.0
     reward_i_coef: float = 1.0
     reward_floor: float = 1e-4
+    collision_penalty: float = 0.0
+    off_road_penalty: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in ("transformer", "mlp"):
@@ -116,7 +121,10 @@ class TrainConfig:
     :param expert_dir: what ``magail-sumo expert`` wrote for the same observation layout.
     :param updates: PPO updates (rollout + discriminator + PPO epochs) in the run.
     :param checkpoint_every: updates between checkpoints (the last update always saves).
-    :param torch_threads: torch CPU threads of the trainer process.
+    :param torch_threads: torch CPU threads of the trainer process (during rollouts, when the
+        scene workers need the cores).
+    :param torch_threads_update: torch CPU threads for the discriminator fit and the PPO epochs,
+        while the scene workers are idle (None: ``torch_threads``).
     """
 
     algorithm: str = "gail"
@@ -127,6 +135,7 @@ class TrainConfig:
     checkpoint_every: int = 10
     device: str = "cpu"
     torch_threads: int = 1
+    torch_threads_update: int | None = None
     env: EnvConfig = field(default_factory=EnvConfig)
     scenes: ScenesConfig = field(default_factory=ScenesConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)

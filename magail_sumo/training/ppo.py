@@ -27,6 +27,9 @@ class MaskedRolloutBuffer(RolloutBuffer):
     """
 
     mask_source: Callable[[], np.ndarray] | None = None
+    #: called once per rollout before the returns are computed; gives (buffer_size, n_envs)
+    #: rewards added to those recorded step by step (the deferred imitation rewards)
+    reward_source: Callable[[], np.ndarray] | None = None
 
     def reset(self) -> None:
         super().reset()
@@ -35,6 +38,15 @@ class MaskedRolloutBuffer(RolloutBuffer):
     def add(self, *args: Any, **kwargs: Any) -> None:
         self.active[self.pos] = True if self.mask_source is None else self.mask_source()
         super().add(*args, **kwargs)
+
+    def compute_returns_and_advantage(self, last_values, dones) -> None:
+        if self.reward_source is not None:
+            extra = np.asarray(self.reward_source(), np.float32)
+            if extra.shape != self.rewards.shape:
+                raise ValueError(f"deferred rewards have shape {extra.shape}, the buffer "
+                                 f"{self.rewards.shape}")
+            self.rewards += extra
+        super().compute_returns_and_advantage(last_values, dones)
 
     @property
     def num_active(self) -> int:
@@ -72,6 +84,8 @@ class MaskedPPO(PPO):
         base = self.env.unwrapped if self.env is not None else None
         if base is not None and hasattr(base, "prev_slot_active"):
             self.rollout_buffer.mask_source = lambda: base.prev_slot_active
+        if getattr(self.env, "deferred", False):
+            self.rollout_buffer.reward_source = self.env.flush_rewards
 
     def set_learning_rate(self, lr: float) -> None:
         """Constant learning rate ``lr`` from the next update on."""

@@ -10,7 +10,16 @@ Token of a vehicle = ``concat(s, s')`` of one env step (``s'`` = the terminal ob
 the vehicle left). All vehicles of a scene step go through the discriminator together (the
 transformer judges each in the context of the others; the MLP judges each alone), and the
 reward of slot ``i`` is ``c_t·r_task + c_i·(−log(max(1 − sigmoid(D_i), floor)))``; free slots
-get 0.
+get 0. ``r_task`` is the env reward minus the configured penalty of the reason an agent left
+(collision, off-road) at that step.
+
+The discriminator is frozen during a rollout, so with ``deferred=True`` (what training uses) the
+imitation part is not computed step by step: the wrapper returns ``c_t·r_task`` and keeps the
+scene tokens, and :meth:`DiscriminatorRewardWrapper.flush_rewards` computes the imitation reward
+of every step of the rollout in a few large batched forwards (per scene, trimmed to the slots
+that were ever occupied), added to the rollout buffer's rewards before the returns are computed
+(:class:`~magail_sumo.training.ppo.MaskedRolloutBuffer` ``reward_source``). Same rewards as the
+per-step computation, up to float rounding.
 """
 
 from __future__ import annotations
@@ -40,7 +49,9 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
     """
 
     def __init__(self, venv, discriminator: torch.nn.Module, reward_t_coef: float = 0.0,
-                 reward_i_coef: float = 1.0, floor: float = 1e-4, device: str = "cpu") -> None:
+                 reward_i_coef: float = 1.0, floor: float = 1e-4, device: str = "cpu",
+                 deferred: bool = False, chunk_tokens: int = 65536,
+                 penalties: dict[str, float] | None = None) -> None:
         super().__init__(venv)
         base = venv.unwrapped
         self.base = base
@@ -53,18 +64,29 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         self._last_obs: np.ndarray | None = None
         self.rollout_x: list[np.ndarray] = []
         self.rollout_mask: list[np.ndarray] = []
+        self.deferred = deferred
+        #: task reward −penalty at the step an agent leaves for that reason (e.g. "collision")
+        self.penalties = {k: float(v) for k, v in (penalties or {}).items() if v}
+        self.chunk_tokens = chunk_tokens
+        #: deferred mode: per step since the last flush, the scenes kept in rollout_x (indices)
+        self._pending: list[np.ndarray] = []
+        self._pending_first = 0  # index into rollout_x of the first pending step
         self.reward_sum = self.reward_sq = 0.0
         self.reward_n = 0
 
     def reset(self) -> np.ndarray:
         obs = self.venv.reset()
         self._last_obs = obs
+        self._pending = []
+        self._pending_first = len(self.rollout_x)
         return obs
 
     def set_state(self, state) -> np.ndarray:
         """Restore the env (``MultiSceneVecEnv.set_state``); the observation."""
         obs = self.base.set_state(state)
         self._last_obs = obs
+        self._pending = []
+        self._pending_first = len(self.rollout_x)
         return obs
 
     def scene_tokens(self, s: np.ndarray, s_next: np.ndarray, acted: np.ndarray
@@ -95,20 +117,59 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
             term = infos[i].get("terminal_observation")
             if term is not None:
                 s_next[i] = term
+        if self.penalties:
+            task = np.array(task, np.float32)
+            for i in np.flatnonzero(dones):
+                task[i] -= self.penalties.get(infos[i].get("reason"), 0.0)
         x, mask = self.scene_tokens(self._last_obs, s_next, acted)
-        r_i = self.rewards(x, mask)[self.base.slot_scene, self.pos_in_scene]
-        rew = (self.reward_t_coef * task + self.reward_i_coef * r_i).astype(np.float32)
-        rew[~acted] = 0.0
         keep = mask.any(axis=1)
+        if self.deferred:
+            rew = (self.reward_t_coef * task).astype(np.float32)
+            self._pending.append(np.flatnonzero(keep))
+        else:
+            r_i = self.rewards(x, mask)[self.base.slot_scene, self.pos_in_scene]
+            rew = (self.reward_t_coef * task + self.reward_i_coef * r_i).astype(np.float32)
+            self._add_stats(r_i[acted])
+        rew[~acted] = 0.0
         if keep.any():
             self.rollout_x.append(x[keep])
             self.rollout_mask.append(mask[keep])
-        ra = r_i[acted]
-        self.reward_sum += float(ra.sum())
-        self.reward_sq += float((ra ** 2).sum())
-        self.reward_n += int(ra.size)
         self._last_obs = obs
         return obs, rew, dones, infos
+
+    def _add_stats(self, ra: np.ndarray) -> None:
+        self.reward_sum += float(ra.sum())
+        self.reward_sq += float((ra ** 2).sum(dtype=np.float64))
+        self.reward_n += int(ra.size)
+
+    def flush_rewards(self) -> np.ndarray:
+        """Deferred mode: ``c_i`` × the imitation rewards of the steps since the last flush,
+        (steps, num_envs) float32 (0 for free slots), in batched forwards; cleared."""
+        steps, first = self._pending, self._pending_first
+        self._pending = []
+        self._pending_first = len(self.rollout_x)
+        out = np.zeros((len(steps), self.num_envs), np.float32)
+        scenes = np.concatenate(steps) if steps else np.zeros(0, np.int64)
+        if scenes.size == 0:
+            return out
+        step_of = np.repeat(np.arange(len(steps)), [len(k) for k in steps])
+        used = sum(1 for k in steps if len(k))  # steps that appended to rollout_x
+        x = np.concatenate(self.rollout_x[first:first + used])
+        m = np.concatenate(self.rollout_mask[first:first + used])
+        present = np.zeros(out.shape, bool)
+        for k in range(self.num_scenes):
+            rows = np.flatnonzero(scenes == k)
+            if rows.size == 0:
+                continue
+            v = int(m[rows].any(axis=0).nonzero()[0].max()) + 1
+            per = max(1, self.chunk_tokens // v)
+            r = np.concatenate([self.rewards(x[rows[i:i + per], :v], m[rows[i:i + per], :v])
+                                for i in range(0, rows.size, per)])
+            start = self.base.scene_slices[k].start
+            out[step_of[rows], start:start + v] = r
+            present[step_of[rows], start:start + v] = m[rows, :v]
+        self._add_stats(out[present])
+        return self.reward_i_coef * out
 
     def pop_rollout(self) -> SceneSteps | None:
         """The policy scene steps recorded since the last call (padded), cleared."""
@@ -116,6 +177,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
             return None
         x, m = np.concatenate(self.rollout_x), np.concatenate(self.rollout_mask)
         self.rollout_x, self.rollout_mask = [], []
+        self._pending_first = 0
         return SceneSteps(x, m)
 
     def pop_reward_stats(self) -> dict[str, float]:

@@ -137,11 +137,14 @@ def _seed_everything(seed: int) -> None:
 
 
 def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
-          log: Callable[[str], None] = print) -> Path:
+          log: Callable[[str], None] = print,
+          progress: Callable[[str, int, int], None] | None = None) -> Path:
     """Run (or resume) training; the run directory.
 
     :param run_dir: where to write (default ``out_dir/<algorithm>-seed<seed>-<time>``).
     :param resume: a run directory to continue from its ``checkpoints/latest.pt``.
+    :param progress: called as ``progress(phase, done, total)`` after every behavioural-cloning
+        epoch (phase ``"bc"``) and PPO update (phase ``"updates"``), e.g. for a progress bar.
     """
     ckpt = None
     if resume is not None:
@@ -157,13 +160,14 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
     torch.set_num_threads(max(1, cfg.torch_threads))
     _seed_everything(cfg.seed)
     expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
+    progress = progress or (lambda phase, done, total: None)
     if cfg.algorithm == "bc":
-        return _train_bc(cfg, Path(run_dir), expert, ckpt, log)
-    return _train_gail(cfg, Path(run_dir), expert, ckpt, log)
+        return _train_bc(cfg, Path(run_dir), expert, ckpt, log, progress)
+    return _train_gail(cfg, Path(run_dir), expert, ckpt, log, progress)
 
 
 def _train_bc(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict | None,
-              log: Callable[[str], None]) -> Path:
+              log: Callable[[str], None], progress: Callable[[str, int, int], None]) -> Path:
     from .bc import behavioural_cloning
 
     if ckpt is not None:
@@ -172,14 +176,44 @@ def _train_bc(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict
     record_run(run_dir, cfg)
     policy = make_policy(cfg)
     policy.obs_normalizer.update(torch.as_tensor(expert.s))
+    def bc_log(e: int, v: float) -> None:
+        log(f"bc epoch {e + 1}: nll {v:.4f}")
+        progress("bc", e + 1, cfg.bc.epochs)
+
     behavioural_cloning(policy, expert, cfg.bc.epochs, cfg.bc.batch_size, cfg.bc.learning_rate,
-                        cfg.seed, log=lambda e, v: log(f"bc epoch {e + 1}: nll {v:.4f}"))
+                        cfg.seed, log=bc_log)
     (run_dir / "checkpoints").mkdir(exist_ok=True)
     state = {"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
              "policy": policy.state_dict(), "rng": _rng_state()}
     _save(state, run_dir / "checkpoints" / "latest.pt")
     log(f"{run_dir}: policy saved")
     return run_dir
+
+
+def _torch_threads_callback():
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class TorchThreads(BaseCallback):
+        """Torch CPU threads: ``rollout`` while the scene workers step, ``update`` for the
+        discriminator fit and PPO epochs (the workers are idle then)."""
+
+        def __init__(self, rollout: int, update: int) -> None:
+            super().__init__(0)
+            self.rollout, self.update = max(1, rollout), max(1, update)
+
+        def _on_rollout_start(self) -> None:
+            torch.set_num_threads(self.rollout)
+
+        def _on_rollout_end(self) -> None:
+            torch.set_num_threads(self.update)
+
+        def _on_training_end(self) -> None:
+            torch.set_num_threads(self.rollout)
+
+        def _on_step(self) -> bool:
+            return True
+
+    return TorchThreads
 
 
 class GailRun:
@@ -197,6 +231,8 @@ class GailRun:
         from .ppo import KLAdaptiveLR, MaskedPPO
         from .reward import DiscriminatorCallback, DiscriminatorRewardWrapper, DiscriminatorTrainer
 
+        TorchThreads = _torch_threads_callback()
+
         self.cfg = cfg
         specs = scene_specs(cfg.scenes.files, cfg.scenes.networks)
         self.venv = MultiSceneVecEnv(specs, cfg.env, seed=cfg.seed,
@@ -206,7 +242,9 @@ class GailRun:
             self.discriminator = make_discriminator(cfg, 2 * self.venv.obs_dim)
             self.wrapper = DiscriminatorRewardWrapper(self.venv, self.discriminator,
                                                       d.reward_t_coef, d.reward_i_coef,
-                                                      d.reward_floor, cfg.device)
+                                                      d.reward_floor, cfg.device, deferred=True,
+                                                      penalties={"collision": d.collision_penalty,
+                                                                 "off_road": d.off_road_penalty})
             self.disc_trainer = DiscriminatorTrainer(
                 self.discriminator, expert, d.epochs, d.batch_size, d.learning_rate,
                 d.weight_decay, DiscriminatorLossConfig(d.gp_coef, d.logit_reg), cfg.seed,
@@ -220,7 +258,8 @@ class GailRun:
                 vf_coef=p.vf_coef, max_grad_norm=p.max_grad_norm,
                 policy_kwargs=policy_kwargs(cfg), seed=cfg.seed, device=cfg.device, verbose=0)
             self.disc_callback = DiscriminatorCallback(self.wrapper, self.disc_trainer)
-            cbs = [self.disc_callback]
+            cbs = [TorchThreads(cfg.torch_threads, cfg.torch_threads_update or cfg.torch_threads),
+                   self.disc_callback]
             if p.desired_kl is not None:
                 cbs.append(KLAdaptiveLR(p.desired_kl, p.lr_min, p.lr_max))
             self.callbacks = CallbackList(cbs)
@@ -290,7 +329,7 @@ class GailRun:
 
 
 def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict | None,
-                log: Callable[[str], None]) -> Path:
+                log: Callable[[str], None], progress: Callable[[str, int, int], None]) -> Path:
     from stable_baselines3.common.logger import configure
 
     run = GailRun(cfg, expert)
@@ -304,7 +343,8 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                 from .bc import behavioural_cloning
 
                 behavioural_cloning(run.policy, expert, cfg.bc.epochs, cfg.bc.batch_size,
-                                    cfg.bc.learning_rate, cfg.seed)
+                                    cfg.bc.learning_rate, cfg.seed,
+                                    log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))
         record_run(run_dir, cfg)
         run.model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
         while run.update < cfg.updates:
@@ -319,6 +359,7 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                 + (f", D loss {st.loss:.3f} acc expert {st.expert_accuracy:.2f} policy "
                    f"{st.policy_accuracy:.2f}" if st else ""))
             run.model.logger.dump(run.model.num_timesteps)
+            progress("updates", run.update, cfg.updates)
             if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
                 run.save(run_dir)
     finally:

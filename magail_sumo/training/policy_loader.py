@@ -1,0 +1,83 @@
+"""Training checkpoints as evaluation policies (``magail-sumo evaluate --policy RUN/checkpoints/latest.pt``).
+
+:func:`load_checkpoint_policy` is registered for ``.pt`` files in
+:data:`magail_sumo.evaluation.rollouts.POLICY_LOADERS`. The policy is the checkpoint's SB3 actor
+(with its observation normaliser, stored in the policy's state dict) acting deterministically:
+the tanh of the Gaussian mean, i.e. normalised ``[accel, steer]`` in [-1, 1]². Any checkpoint
+``magail-sumo train`` writes works (GAIL / MAGAIL updates and behavioural cloning).
+
+Evaluation drives the env with the default observation layout, bicycle limits and action
+layout; a checkpoint trained with other ones is refused with a one-line error naming the
+difference (its actions and observations would mean something else there).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from magail_sumo.config import to_dict
+from magail_sumo.env.config import EnvConfig
+
+from .trainer import CheckpointError, load_policy
+
+
+class CheckpointPolicy:
+    """Deterministic actions of a trained :class:`~magail_sumo.models.policies.TanhGaussianPolicy`.
+
+    :param policy: the SB3 policy (eval mode). :param obs_dim: observation size it expects.
+    """
+
+    def __init__(self, policy, obs_dim: int, name: str = "") -> None:
+        self.policy = policy
+        self.obs_dim = obs_dim
+        self.name = name
+
+    @torch.no_grad()
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        names = list(observations)
+        if not names:
+            return {}
+        x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
+        if x.shape[1] != self.obs_dim:
+            raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
+                                  f"policy expects {self.obs_dim}")
+        a = self.policy._predict(torch.as_tensor(x, device=self.policy.device),
+                                 deterministic=True)
+        a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
+        return dict(zip(names, a))
+
+
+def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig) -> None:
+    """Refuse a checkpoint whose observation layout, limits or action layout differ from the
+    env it is to drive (:class:`CheckpointError` naming the first difference)."""
+    for key in ("observation", "limits", "action_layout"):
+        a, b = getattr(trained, key), getattr(target, key)
+        da = to_dict(a) if hasattr(a, "__dataclass_fields__") else a
+        db = to_dict(b) if hasattr(b, "__dataclass_fields__") else b
+        if da != db:
+            if isinstance(da, dict):
+                k = next(k for k in sorted(set(da) | set(db)) if da.get(k) != db.get(k))
+                what = f"env.{key}.{k}: trained {da.get(k)!r}, evaluation {db.get(k)!r}"
+            else:
+                what = f"env.{key}: trained {da!r}, evaluation {db!r}"
+            raise CheckpointError(f"{path}: policy trained with another env than evaluation "
+                                  f"uses ({what})")
+
+
+def load_checkpoint_policy(path: str | Path, seed: int = 0,
+                           target: EnvConfig | None = None) -> CheckpointPolicy:
+    """The evaluation :class:`CheckpointPolicy` of a training checkpoint.
+
+    :param seed: unused (actions are deterministic); part of the loader signature.
+    :param target: the env config the policy will drive (default: evaluation's, the defaults).
+    """
+    from magail_sumo.sensors.observation import observation_bounds
+
+    torch.set_num_threads(1)  # small MLP; evaluation runs several worker processes
+    policy, cfg = load_policy(path, device="cpu")
+    check_env_compatible(path, cfg.env, target or EnvConfig())
+    low, _ = observation_bounds(cfg.env.observation)
+    return CheckpointPolicy(policy, int(low.shape[0]), str(path))
