@@ -122,3 +122,19 @@ def test_evenly_spaced_beams_use_the_angular_window_and_agree(seed, fov):
                      for j in range(b)] for i in range(5)])
     np.testing.assert_allclose(got, ref, atol=1e-4)
     np.testing.assert_allclose(grid, ref, atol=1e-4)
+
+
+def test_grid_with_owners_equals_brute_force_on_many_boxes():
+    """The lidar's grid path (many boxes) gives the brute-force readings, own box excluded."""
+    rng = np.random.default_rng(0)
+    n = 300
+    centre = rng.uniform(0, 300, (n, 2))
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    edges = box_edges(centre, np.stack([rng.uniform(1.5, 3, n), rng.uniform(0.8, 1.2, n)], 1), yaw)
+    starts, ends = edges[:, :, 0].reshape(-1, 2), edges[:, :, 1].reshape(-1, 2)
+    owner = np.repeat(np.arange(n), 4)
+    angles = yaw[:, None] + np.arange(80) * (2 * np.pi / 80)
+    brute = cast(centre, angles, 30.0, starts, ends, owner, np.arange(n))
+    grid = SegmentGrid.build(starts, ends, cell=30.0).cast(centre, angles, 30.0, owner, np.arange(n))
+    np.testing.assert_array_equal(grid, brute)
+    assert 0.1 < (brute < 30.0).mean() < 0.9

@@ -36,6 +36,7 @@ from pettingzoo import ParallelEnv
 
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.scene import Scene, Tracks
+from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
@@ -293,14 +294,17 @@ class SumoCityEnv(ParallelEnv):
                 dist[j] = d
         return code, dist
 
-    def _observe(self, agents: np.ndarray) -> tuple[dict[str, np.ndarray], tuple[Boxes, list[str]]]:
+    def _observe(self, agents: np.ndarray, lanes: LaneQuery | None = None
+                 ) -> tuple[dict[str, np.ndarray], tuple[Boxes, list[str]]]:
+        """Observations of ``agents``; ``lanes``: their lane query when already computed."""
         clock = time.perf_counter()
         world = self._world(agents)
         light, dist = self._next_lights(agents)
         self._lc[agents], self._ld[agents] = light, dist
         ego = EgoState(np.arange(agents.size), self._speed[agents], self._prev_action[agents],
                        self._dest[agents], self._dest_yaw[agents])
-        obs = self.suite.observe(world[0], ego, 0, light=np.where(dist < 50.0, light, 0))
+        obs = self.suite.observe(world[0], ego, 0, lanes,
+                                 light=np.where(dist < 50.0, light, 0))
         self.sensor_time += time.perf_counter() - clock
         return {self._names[k]: obs[i] for i, k in enumerate(agents)}, world
 
@@ -335,13 +339,16 @@ class SumoCityEnv(ParallelEnv):
         self._sumo = sess.vehicles()
         arrived_set = set(arrived)
         joiners = self._join(departed)
-        lanes = self.suite.lane_query(self._x[act], self._y[act], self._yaw[act])
-        obs, (boxes, ids) = self._observe(np.concatenate([act, joiners]))
+        observed = np.concatenate([act, joiners])
+        clock = time.perf_counter()
+        lanes = self.suite.lane_query(self._x[observed], self._y[observed], self._yaw[observed])
+        self.sensor_time += time.perf_counter() - clock
+        obs, (boxes, ids) = self._observe(observed, lanes)
         other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width,
                               np.arange(act.size))
         flags = {
             "collision": other >= 0,
-            "off_road": off_road(lanes.distance, cfg.lane_width, cfg.off_road_margin),
+            "off_road": off_road(lanes.distance[:act.size], cfg.lane_width, cfg.off_road_margin),
             "red_light": red_before & (dist_before < moved),
             "destination": reached(self._x[act], self._y[act], self._dest[act],
                                    cfg.destination_radius),

@@ -184,13 +184,22 @@ class SensorSuite:
         """Current lane (see :class:`LaneQuery`) of A poses."""
         return self.lanes.query(x, y, yaw)
 
+    #: Above this many boxes the lidar buckets box edges in a grid first (per step): brute force
+    #: tests every agent against every edge (O(A·N)); on a 380-vehicle city step the grid
+    #: halves the lidar time, on a 50-box scene brute force is as fast.
+    GRID_LIDAR_MIN_BOXES = 128
+
     def lidar(self, boxes: Boxes, index: np.ndarray) -> np.ndarray:
         """(A, B) lidar readings (m) of the boxes at rows ``index`` against all other boxes."""
         spec = self.config.lidar
         origins = np.stack([boxes.x[index], boxes.y[index]], axis=1)
         angles = np.asarray(boxes.yaw, np.float64)[index, None] + self._offsets[0][None, :]
         starts, ends, owner = boxes.edges()
-        return cast(origins, angles, spec.range, starts, ends, owner, np.asarray(index, np.int64))
+        agent = np.asarray(index, np.int64)
+        if len(boxes) >= self.GRID_LIDAR_MIN_BOXES:
+            grid = SegmentGrid.build(starts, ends, cell=max(spec.range, 1.0))
+            return grid.cast(origins, angles, spec.range, owner, agent)
+        return cast(origins, angles, spec.range, starts, ends, owner, agent)
 
     def observe(self, boxes: Boxes, ego: EgoState, step: int,
                 lanes: LaneQuery | None = None, light: np.ndarray | None = None) -> np.ndarray:

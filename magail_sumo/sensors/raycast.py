@@ -154,8 +154,8 @@ def _cast_all(origins, angles, uniform, step, full, max_range, starts, ends, seg
 
 
 @numba.njit(cache=True)
-def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, x0, y0, cell, nx,
-               ny, offsets, items):
+def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, seg_owner,
+               agent_owner, x0, y0, cell, nx, ny, offsets, items):
     a, b = angles.shape
     out = np.full((a, b), max_range)
     cosb, sinb = np.cos(angles), np.sin(angles)
@@ -169,6 +169,8 @@ def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, x0
                 c = gx * ny + gy
                 for m in range(offsets[c], offsets[c + 1]):
                     k = items[m]
+                    if seg_owner[k] == agent_owner[i]:
+                        continue
                     ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
                     if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
                         continue
@@ -263,13 +265,22 @@ class SegmentGrid:
         return cls(starts, ends, float(x0), float(y0), float(cell), nx, ny, np.cumsum(offsets),
                    seg[order].astype(np.int64))
 
-    def cast(self, origins: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
-        """(A, B) ray readings against the static segments; ``max_range`` <= ``cell``."""
+    def cast(self, origins: np.ndarray, angles: np.ndarray, max_range: float,
+             seg_owner: np.ndarray | None = None, agent_owner: np.ndarray | None = None
+             ) -> np.ndarray:
+        """(A, B) ray readings against the gridded segments; ``max_range`` <= ``cell``.
+
+        :param seg_owner, agent_owner: as in :func:`cast` (an agent skips its own segments).
+        """
         if max_range > self.cell:
             raise ValueError(f"sensor range {max_range} m exceeds the grid cell {self.cell} m")
         ang = np.ascontiguousarray(angles, np.float64)
         step, full = _uniform(ang)
+        so = np.full(self.starts.shape[0], -1, np.int64) if seg_owner is None else \
+            np.asarray(seg_owner, np.int64)
+        ao = np.full(ang.shape[0], -2, np.int64) if agent_owner is None else \
+            np.asarray(agent_owner, np.int64)
         out = _cast_grid(np.ascontiguousarray(origins, np.float64), ang, step > 0.0, step, full,
-                         float(max_range), self.starts, self.ends, self.x0, self.y0, self.cell,
-                         self.nx, self.ny, self.offsets, self.items)
+                         float(max_range), self.starts, self.ends, so, ao, self.x0, self.y0,
+                         self.cell, self.nx, self.ny, self.offsets, self.items)
         return np.minimum(out, max_range)
