@@ -82,3 +82,37 @@ def test_bad_inputs(tmp_path, bundle):
     # after failures a new session still starts
     with SumoSession(cfg) as sim:
         sim.step()
+
+
+def test_move_far_off_the_road_is_exact(bundle):
+    """No lane within the fast 5 m match threshold: the vehicle is still placed exactly."""
+    import libsumo
+
+    from magail_sumo.sensors.raycast import polyline_segments
+
+    scene, cfg = bundle
+    with SumoSession(cfg) as sim:
+        for _ in range(5):
+            sim.step()
+        veh = sim.vehicles()
+        vid = next(v for v in veh.ids if not libsumo.vehicle.getStops(v))
+        k = veh.ids.index(vid)
+        s, e = polyline_segments([np.asarray(libsumo.lane.getShape(lane))
+                                  for lane in libsumo.lane.getIDList()])
+
+        def lane_distance(p):
+            w, d = p - s, e - s
+            t = np.clip((w * d).sum(1) / np.maximum((d * d).sum(1), 1e-9), 0, 1)
+            return float(np.hypot(*(w - t[:, None] * d).T).min())
+
+        side = np.array([-np.sin(veh.yaw[k]), np.cos(veh.yaw[k])])
+        target = next(p for off in (8.0, 12.0, 20.0, 30.0, 45.0, -8.0, -12.0, -20.0, -30.0)
+                      for p in [np.array([veh.x[k], veh.y[k]]) + off * side]
+                      if 6.0 < lane_distance(p) < 90.0)
+        assert lane_distance(target) > 5.0  # out of reach of the fast match
+        sim.move([vid], target[:1], target[1:], veh.yaw[k:k + 1], veh.length[k:k + 1])
+        sim.step()
+        after = sim.vehicles()
+        j = after.ids.index(vid)
+        assert after.x[j] == pytest.approx(target[0], abs=1e-6)
+        assert after.y[j] == pytest.approx(target[1], abs=1e-6)
