@@ -40,6 +40,7 @@ from typing import Callable, Iterable, Iterator, Protocol
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.evaluation.realism.kinematic import wrap_angle
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
 from magail_sumo.scene import Scene
 
@@ -187,7 +188,7 @@ def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
                  ) -> ScenarioRollouts:
     _, _, _, z0, _, _, _ = _current_state(scene, ids)
     x, y, yaw = (np.stack(v).astype(np.float32) for v in (xs, ys, yaws))
-    yaw = ((yaw + np.pi) % (2 * np.pi) - np.pi).astype(np.float32)
+    yaw = wrap_angle(yaw).astype(np.float32)
     z = np.broadcast_to(z0.astype(np.float32)[None, :, None], x.shape).copy()
     return ScenarioRollouts(scene.scenario_id, ids.astype(np.int64), x, y, z, yaw)
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from magail_sumo.scene import Lane
 
-from .raycast import SegmentGrid
+from .raycast import SegmentGrid, indexed_polyline_segments
 
 
 @dataclass(frozen=True)
@@ -89,15 +89,7 @@ class LaneIndex:
 
     @classmethod
     def build(cls, lanes: tuple[Lane, ...], cell: float = 10.0) -> "LaneIndex":
-        polys = [l.polyline for l in lanes]
-        counts = np.array([max(len(p) - 1, 0) for p in polys], np.int64)
-        owner = np.repeat(np.arange(len(polys), dtype=np.int64), counts)
-        parts = [p[:, :2] for p in polys if len(p) > 1]
-        if parts:
-            starts = np.concatenate([p[:-1] for p in parts])
-            ends = np.concatenate([p[1:] for p in parts])
-        else:
-            starts = ends = np.zeros((0, 2))
+        starts, ends, owner = indexed_polyline_segments([l.polyline for l in lanes])
         return cls(SegmentGrid.build(starts, ends, cell), owner,
                    np.array([l.id for l in lanes], np.int64))
 

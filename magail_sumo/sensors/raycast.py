@@ -42,11 +42,21 @@ def box_edges(center: np.ndarray, half_extent: np.ndarray, heading: np.ndarray) 
 
 def polyline_segments(polylines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Consecutive-point segments of (P, >=2) polylines as (S, 2) start and end arrays."""
+    starts, ends, _ = indexed_polyline_segments(polylines)
+    return starts, ends
+
+
+def indexed_polyline_segments(polylines: list[np.ndarray]
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`polyline_segments` plus the (S,) index of the polyline each segment belongs to
+    (polylines of fewer than 2 points give no segment)."""
+    counts = np.array([max(len(p) - 1, 0) for p in polylines], np.int64)
+    owner = np.repeat(np.arange(len(polylines), dtype=np.int64), counts)
     parts = [p[:, :2] for p in polylines if len(p) > 1]
     if not parts:
-        return np.zeros((0, 2)), np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros((0, 2)), owner
     return (np.ascontiguousarray(np.concatenate([p[:-1] for p in parts]), np.float64),
-            np.ascontiguousarray(np.concatenate([p[1:] for p in parts]), np.float64))
+            np.ascontiguousarray(np.concatenate([p[1:] for p in parts]), np.float64), owner)
 
 
 @numba.njit(cache=True, inline="always")
