@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterable
 
 import numpy as np
 
@@ -36,22 +37,27 @@ class LaneSegments:
     edge: np.ndarray  # (S,) edge id (internal edges start with ':')
 
 
-def lane_segments(net) -> LaneSegments:
-    """Segments of every lane (internal lanes included) of a sumolib net."""
-    a, b, tol, edge = [], [], [], []
-    for e in net.getEdges(withInternal=True):
-        for lane in e.getLanes():
-            shape = np.asarray(lane.getShape(), dtype=np.float64)[:, :2]
+    @classmethod
+    def from_shapes(cls, lanes: Iterable[tuple[np.ndarray, float, str]]) -> "LaneSegments":
+        """Segments of lanes given as (shape (P, >=2), width m, edge id); shorter shapes skipped."""
+        a, b, tol, edge = [], [], [], []
+        for shape, width, eid in lanes:
             if len(shape) < 2:
                 continue
-            a.append(shape[:-1])
-            b.append(shape[1:])
-            tol.append(np.full(len(shape) - 1, lane.getWidth() / 2 + MARGIN))
-            edge.append(np.full(len(shape) - 1, e.getID(), dtype=object))
-    a_, b_ = np.concatenate(a), np.concatenate(b)
-    d = b_ - a_
-    return LaneSegments(a_, b_, np.concatenate(tol), np.arctan2(d[:, 1], d[:, 0]),
-                        np.concatenate(edge))
+            a.append(shape[:-1, :2])
+            b.append(shape[1:, :2])
+            tol.append(np.full(len(shape) - 1, width / 2 + MARGIN))
+            edge.append(np.full(len(shape) - 1, eid, dtype=object))
+        a_, b_ = np.concatenate(a), np.concatenate(b)
+        d = b_ - a_
+        return cls(a_, b_, np.concatenate(tol), np.arctan2(d[:, 1], d[:, 0]), np.concatenate(edge))
+
+
+def lane_segments(net) -> LaneSegments:
+    """Segments of every lane (internal lanes included) of a sumolib net."""
+    return LaneSegments.from_shapes(
+        (np.asarray(lane.getShape(), dtype=np.float64), lane.getWidth(), e.getID())
+        for e in net.getEdges(withInternal=True) for lane in e.getLanes())
 
 
 def on_lanes(seg: LaneSegments, xy: np.ndarray, heading: np.ndarray,

@@ -72,25 +72,11 @@ def carried_states(scene: Scene, lanes: list[SynthesizedLane]) -> np.ndarray:
 
 def plan_segments(plan: NetworkPlan) -> LaneSegments:
     """Segments of every planned lane shape (edges, and junction connections with a shape)."""
-    a, b, tol, edge = [], [], [], []
     widths = {e.id: e.widths for e in plan.edges}
-
-    def add(shape: np.ndarray, width: float, eid: str) -> None:
-        if len(shape) >= 2:
-            a.append(shape[:-1, :2])
-            b.append(shape[1:, :2])
-            tol.append(np.full(len(shape) - 1, width / 2 + MARGIN))
-            edge.append(np.full(len(shape) - 1, eid, dtype=object))
-    for e in plan.edges:
-        for shape, w in zip(e.shapes, e.widths):
-            add(shape, w, e.id)
-    for c in plan.connections:
-        if c.shape is not None:
-            add(c.shape, widths[c.from_edge][c.from_lane], ":" + c.from_edge)
-    a_, b_ = np.concatenate(a), np.concatenate(b)
-    d = b_ - a_
-    return LaneSegments(a_, b_, np.concatenate(tol), np.arctan2(d[:, 1], d[:, 0]),
-                        np.concatenate(edge))
+    lanes = [(shape, w, e.id) for e in plan.edges for shape, w in zip(e.shapes, e.widths)]
+    lanes += [(c.shape, widths[c.from_edge][c.from_lane], ":" + c.from_edge)
+              for c in plan.connections if c.shape is not None]
+    return LaneSegments.from_shapes(lanes)
 
 
 def off_map_stretches(off: np.ndarray, steps: np.ndarray) -> list[tuple[int, int]]:
