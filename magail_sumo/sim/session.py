@@ -191,6 +191,8 @@ class SumoSession:
         edges = []
         P, A, S, L, W, R = (ls.VAR_POSITION, ls.VAR_ANGLE, ls.VAR_SPEED, ls.VAR_LENGTH,
                             ls.VAR_WIDTH, ls.VAR_ROAD_ID)
+        # libsumo hands subscription results back as one dict per vehicle: unpacking them is the
+        # one per-vehicle loop here (~1 µs a vehicle; 0.5 ms for 400, next to ~2 ms of SUMO step)
         for k, vid in enumerate(ids):
             r = res[vid]
             pos[k] = r[P]
@@ -231,7 +233,7 @@ class SumoSession:
         ls = _libsumo()
         fx, fy = centre_to_front(np.asarray(x), np.asarray(y), np.asarray(yaw), length)
         angle = yaw_to_sumo_angle(np.asarray(yaw))
-        for k, vid in enumerate(ids):
+        for k, vid in enumerate(ids):  # libsumo moves one vehicle per call (~20 µs each)
             edge = edges[k] if edges is not None else ""
             lane = lanes[k] if lanes is not None else -1
             try:
