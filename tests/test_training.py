@@ -155,3 +155,17 @@ def test_deferred_rewards_equal_per_step_rewards(setup):
     assert np.abs(r_def[a_def]).max() > 0
     assert s_def["agent_steps"] == s_step["agent_steps"]
     assert s_def["imitation_mean"] == pytest.approx(s_step["imitation_mean"], abs=1e-5)
+
+
+def test_resume_refuses_a_changed_config(setup, tmp_path):
+    from magail_sumo.config import to_dict
+    from magail_sumo.training.trainer import _check_resume_config
+
+    _, cfg = setup
+    saved = to_dict(cfg)
+    # run length, worker timeout and pinning change neither results nor state
+    _check_resume_config(replace(cfg, updates=9, scenes=replace(
+        cfg.scenes, pin_workers=True, worker_timeout_s=5.0)), saved, tmp_path)
+    changed = replace(cfg, ppo=replace(cfg.ppo, n_epochs=cfg.ppo.n_epochs + 1), seed=cfg.seed + 1)
+    with pytest.raises(ConfigError, match=r"differs from the run's in ppo\.n_epochs, seed"):
+        _check_resume_config(changed, saved, tmp_path)

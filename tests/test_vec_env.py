@@ -87,3 +87,32 @@ def test_dead_or_hung_worker_raises(specs):
         venv.step(np.zeros((venv.num_envs, 2)))
     venv.close()
     assert not venv._procs[0].is_alive()
+
+
+def test_place_workers_balances_cores():
+    from magail_sumo.env.vec_env import place_workers
+
+    # the big scene keeps a core to itself; the two small ones share the other
+    assert place_workers([50.0, 21.0, 13.0], [0, 1]) == [{0}, {1}, {1}]
+    assert place_workers([5.0, 5.0], [2, 3, 4]) == [{2}, {3}]
+    loads = [30.0, 28.0, 20.0, 12.0, 10.0]
+    cpus = place_workers(loads, [0, 1])
+    per_core = [sum(w for w, c in zip(loads, cpus) if c == {k}) for k in (0, 1)]
+    assert abs(per_core[0] - per_core[1]) <= 12.0 and all(len(c) == 1 for c in cpus)
+
+
+def test_workers_are_pinned_when_asked(specs):
+    if not hasattr(os, "sched_getaffinity"):
+        pytest.skip("no CPU affinity on this platform")
+    venv = MultiSceneVecEnv(specs, EnvConfig(controlled=3, max_steps=5), pin_workers=True)
+    try:
+        for proc, cpus in zip(venv._procs, venv.worker_cpus):
+            assert os.sched_getaffinity(proc.pid) == cpus and len(cpus) == 1
+    finally:
+        venv.close()
+    venv = MultiSceneVecEnv(specs[:1], EnvConfig(controlled=3, max_steps=5), pin_workers=False)
+    try:
+        assert venv.worker_cpus == [set()]
+        assert os.sched_getaffinity(venv._procs[0].pid) == os.sched_getaffinity(0)
+    finally:
+        venv.close()

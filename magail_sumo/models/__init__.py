@@ -1,9 +1,11 @@
-"""Neural networks: discriminators (reward networks) and their input normaliser."""
+"""Neural networks: discriminators (reward networks), the transformer critic, and their input
+normaliser."""
 
+from .critic import CriticTransformerConfig, TransformerCritic
 from .discriminator import (
     MLPDiscriminator, TransformerConfig, TransformerDiscriminator, imitation_reward,
 )
 from .normalizer import RunningNormalizer
 
-__all__ = ["MLPDiscriminator", "RunningNormalizer", "TransformerConfig",
-           "TransformerDiscriminator", "imitation_reward"]
+__all__ = ["CriticTransformerConfig", "MLPDiscriminator", "RunningNormalizer", "TransformerConfig",
+           "TransformerCritic", "TransformerDiscriminator", "imitation_reward"]

@@ -5,21 +5,57 @@ whose action distribution is SB3's :class:`SquashedDiagGaussianDistribution` (a 
 Gaussian with a state-independent log-std parameter, squashed by tanh into [-1, 1]²) and whose
 shared features extractor is :class:`NormalizedObservation` — a
 :class:`~magail_sumo.models.normalizer.RunningNormalizer` (fitted on the expert observations,
-stored in the policy's state dict). Actor and critic are separate MLPs (64-64 tanh by default).
+stored in the policy's state dict). The actor is an MLP (64-64 tanh by default) applied to each
+vehicle alone, shared by all vehicles. Two critics:
+
+* ``critic="mlp"`` (default): SB3's per-vehicle value MLP (64-64 tanh by default).
+* ``critic="transformer"``: a :class:`~magail_sumo.models.critic.TransformerCritic` — the value
+  of a vehicle is computed from the normalised observations (each in its own ego frame, as the
+  actor sees them) of *all* vehicles of the same scene at the same step. The policy must then
+  know which rows of a batch belong together (:meth:`TanhGaussianPolicy.critic_groups`):
+
+  - training minibatches carry their grouping on the observation tensor
+    (:func:`with_scene_groups`; :class:`~magail_sumo.training.ppo.MaskedRolloutBuffer` does it);
+    :meth:`~TanhGaussianPolicy.evaluate_actions` refuses a batch without one;
+  - a batch of one vector-env observation (as many rows as the env has slots, at rollout time)
+    is grouped by :meth:`~TanhGaussianPolicy.set_scene_layout`'s slot→scene layout and the
+    env's current slot mask (:class:`~magail_sumo.training.ppo.MaskedPPO` wires both from the
+    :class:`~magail_sumo.env.vec_env.MultiSceneVecEnv`): the active slots of a scene form one
+    group; a free slot is not evaluated and gets value 0 (never used: the masked buffer drops
+    free slot-steps and GAE never bootstraps across a slot re-assignment);
+  - any other batch — e.g. the single terminal observation that SB3's ``collect_rollouts``
+    bootstraps a truncated agent from — has every row evaluated as a one-vehicle scene (so does
+    every batch of an env with a single slot, where the two cases cannot be told apart).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import gymnasium as gym
+import numpy as np
 import torch
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
+from .critic import CriticTransformerConfig, TransformerCritic, scene_groups
 from .normalizer import RunningNormalizer
+
+#: attribute of an observation tensor holding its rows' (N,) int64 scene-step group ids
+SCENE_GROUPS_ATTR = "scene_groups"
+CRITICS = ("mlp", "transformer")
+
+
+def with_scene_groups(obs: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
+    """Attach (N,) int64 group ids (rows of one scene step share an id, ``0 .. G-1``; -1: not a
+    vehicle, value 0) to ``obs`` (N, obs_dim), read by the transformer critic; returns ``obs``
+    itself (the attribute lives on this tensor object only, not on tensors derived from it)."""
+    if group.shape != obs.shape[:1]:
+        raise ValueError(f"{group.shape[0]} group ids for {obs.shape[0]} observations")
+    setattr(obs, SCENE_GROUPS_ATTR, group)
+    return obs
 
 
 class NormalizedObservation(BaseFeaturesExtractor):
@@ -52,20 +88,51 @@ class TanhGaussianPolicy(ActorCriticPolicy):
 
     Takes :class:`ActorCriticPolicy`'s arguments; defaults: ``net_arch=dict(pi=[64, 64],
     vf=[64, 64])``, ``activation_fn=nn.Tanh``, :class:`NormalizedObservation` features.
+
+    :param critic: ``"mlp"`` (per-vehicle value MLP ``net_arch["vf"]``) or ``"transformer"``
+        (:class:`~magail_sumo.models.critic.TransformerCritic` over the vehicles of a scene
+        step; ``net_arch["vf"]`` is then ignored). The state dict holds the critic's weights as
+        ``value_net.*`` (MLP head) or ``critic.*`` (transformer).
+    :param critic_transformer: sizes of the transformer critic (default
+        :class:`~magail_sumo.models.critic.CriticTransformerConfig`).
     """
 
     def __init__(self, observation_space: gym.spaces.Space, action_space: gym.spaces.Box,
-                 lr_schedule: Any, **kwargs: Any) -> None:
+                 lr_schedule: Any, critic: str = "mlp",
+                 critic_transformer: CriticTransformerConfig | None = None,
+                 **kwargs: Any) -> None:
+        if critic not in CRITICS:
+            raise ValueError(f"critic must be one of {list(CRITICS)}, got {critic!r}")
         kwargs.setdefault("net_arch", {"pi": [64, 64], "vf": [64, 64]})
         kwargs.setdefault("activation_fn", torch.nn.Tanh)
         kwargs.setdefault("features_extractor_class", NormalizedObservation)
         if kwargs.get("use_sde"):
             raise ValueError("TanhGaussianPolicy does not support gSDE")
+        if critic == "transformer":
+            arch = kwargs["net_arch"]
+            pi = list(arch.get("pi", [])) if isinstance(arch, dict) else list(arch)
+            kwargs["net_arch"] = {"pi": pi, "vf": []}  # no value MLP: the critic is separate
+        # read by _build, which ActorCriticPolicy.__init__ calls
+        self.__dict__["critic_kind"] = critic
+        self.__dict__["critic_config"] = critic_transformer or CriticTransformerConfig()
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+        #: slot -> scene index of the vector env's observation, and the env's slot mask source
+        self._slot_scene: np.ndarray | None = None
+        self._mask_source: Callable[[], np.ndarray] | None = None
 
     def _build(self, lr_schedule: Any) -> None:
         self.action_dist = SquashedDiagGaussianDistribution(get_action_dim(self.action_space))
         super()._build(lr_schedule)
+        if self.critic_kind == "transformer":
+            del self.value_net
+            self.critic = TransformerCritic(self.features_dim, self.critic_config)
+            self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1),
+                                                  **self.optimizer_kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(critic=self.critic_kind, critic_transformer=self.critic_config)
+        return data
 
     @property
     def obs_normalizer(self) -> RunningNormalizer:
@@ -74,3 +141,67 @@ class TanhGaussianPolicy(ActorCriticPolicy):
     def action_log_prob(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """log pi(actions | obs) (actions in (-1, 1); for behavioural cloning)."""
         return self.get_distribution(obs).log_prob(actions)
+
+    # ------------------------------------------------------------------ transformer critic
+    def set_scene_layout(self, slot_scene: np.ndarray | None,
+                         mask_source: Callable[[], np.ndarray] | None = None) -> None:
+        """How rows of a vector-env observation group into scenes (transformer critic only).
+
+        :param slot_scene: (n_slots,) scene index of each slot (``MultiSceneVecEnv.slot_scene``);
+            None: no layout (every row is a one-vehicle scene).
+        :param mask_source: returns the (n_slots,) bool mask of the observation being evaluated
+            (``MultiSceneVecEnv.slot_active``); None: all slots active.
+        """
+        self._slot_scene = None if slot_scene is None else np.asarray(slot_scene, np.int64)
+        self._mask_source = mask_source
+
+    def critic_groups(self, obs: torch.Tensor) -> torch.Tensor:
+        """(N,) group ids of the rows of ``obs`` for the transformer critic (module doc): rows
+        with the same id are one scene step, -1 marks a free slot."""
+        group = getattr(obs, SCENE_GROUPS_ATTR, None)
+        if group is None:
+            n = obs.shape[0]
+            if self._slot_scene is not None and n == len(self._slot_scene) > 1:
+                mask = None if self._mask_source is None else self._mask_source()
+                group = torch.from_numpy(scene_groups(self._slot_scene, mask))
+            else:
+                group = torch.arange(n)
+        return group.to(obs.device)
+
+    def _features(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        features = self.extract_features(obs)
+        return (features, features) if self.share_features_extractor else features
+
+    def _values(self, vf_features: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
+        return self.critic(vf_features, group).unsqueeze(-1)
+
+    def forward(self, obs: torch.Tensor, deterministic: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        if self.critic_kind == "mlp":
+            return super().forward(obs, deterministic)
+        group = self.critic_groups(obs)
+        pi_features, vf_features = self._features(obs)
+        dist = self._get_action_dist_from_latent(self.mlp_extractor.forward_actor(pi_features))
+        actions = dist.get_actions(deterministic=deterministic)
+        log_prob = dist.log_prob(actions)
+        actions = actions.reshape((-1, *self.action_space.shape))
+        return actions, self._values(vf_features, group), log_prob
+
+    def evaluate_actions(self, obs: torch.Tensor, actions: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        if self.critic_kind == "mlp":
+            return super().evaluate_actions(obs, actions)
+        if getattr(obs, SCENE_GROUPS_ATTR, None) is None:
+            raise ValueError("the transformer critic needs minibatches of whole scene steps "
+                             "(observations tagged by with_scene_groups, as MaskedPPO's rollout "
+                             "buffer yields them)")
+        group = self.critic_groups(obs)
+        pi_features, vf_features = self._features(obs)
+        dist = self._get_action_dist_from_latent(self.mlp_extractor.forward_actor(pi_features))
+        return self._values(vf_features, group), dist.log_prob(actions), dist.entropy()
+
+    def predict_values(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.critic_kind == "mlp":
+            return super().predict_values(obs)
+        group = self.critic_groups(obs)
+        return self._values(self._features(obs)[1], group)

@@ -6,8 +6,10 @@ Every hyperparameter of a run lives here; unknown keys and wrong types are refus
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from magail_sumo.env.config import EnvConfig
+from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.discriminator import TransformerConfig
 
 
@@ -18,26 +20,42 @@ class ScenesConfig:
     :param files: scene files (WOMD / ScenarioNet); every scene of each is used.
     :param networks: converted bundles ``networks/<id>/`` (missing ones are converted there).
     :param worker_timeout_s: seconds before a silent scene worker is declared hung.
+    :param pin_workers: pin each scene worker to one core, balancing the scenes' per-step cost
+        (:func:`~magail_sumo.env.vec_env.place_workers`); for a machine dedicated to one run —
+        concurrent pinned runs would stack their workers on the same cores.
     """
 
     files: tuple[str, ...] = ("data/womd/637f20cafde22ff8.tfrecord",)
     networks: str = "networks"
     worker_timeout_s: float = 120.0
+    pin_workers: bool = False
 
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    """Actor-critic sizes. :param critic: ``"mlp"`` (the only critic implemented so far)."""
+    """Actor-critic (parameters shared by all vehicles; see
+    :class:`~magail_sumo.models.policies.TanhGaussianPolicy`).
+
+    :param actor_hidden: hidden sizes of the per-vehicle tanh-Gaussian actor MLP.
+    :param critic_hidden: hidden sizes of the MLP critic (unused by the transformer critic).
+    :param log_std_init: initial log-std of the Gaussian (before the tanh squash).
+    :param critic: ``"mlp"`` (each vehicle's value from its own observation) or
+        ``"transformer"`` (each vehicle's value from the normalised observations of all
+        vehicles of its scene at the same step;
+        :class:`~magail_sumo.models.critic.TransformerCritic`).
+    :param critic_transformer: sizes of the transformer critic (used when ``critic`` is
+        ``"transformer"``).
+    """
 
     actor_hidden: tuple[int, ...] = (64, 64)
     critic_hidden: tuple[int, ...] = (64, 64)
     log_std_init: float = 0.0
-    critic: str = "mlp"
+    critic: Literal["mlp", "transformer"] = "mlp"
+    critic_transformer: CriticTransformerConfig = field(default_factory=CriticTransformerConfig)
 
     def __post_init__(self) -> None:
-        if self.critic != "mlp":
-            raise ValueError(f"critic must be 'mlp' (transformer critic not implemented yet), "
-                             f"got {self.critic!r}")
+        if self.critic not in ("mlp", "transformer"):
+            raise ValueError(f"critic must be 'mlp' or 'transformer', got {self.critic!r}")
 
 
 @dataclass(frozen=True)

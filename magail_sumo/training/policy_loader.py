@@ -3,8 +3,10 @@
 :func:`load_checkpoint_policy` is registered for ``.pt`` files in
 :data:`magail_sumo.evaluation.rollouts.POLICY_LOADERS`. The policy is the checkpoint's SB3 actor
 (with its observation normaliser, stored in the policy's state dict) acting deterministically:
-the tanh of the Gaussian mean, i.e. normalised ``[accel, steer]`` in [-1, 1]². Any checkpoint
-``magail-sumo train`` writes works (GAIL / MAGAIL updates and behavioural cloning).
+the tanh of the Gaussian mean, i.e. normalised ``[accel, steer]`` in [-1, 1]², each vehicle from
+its own observation. Any checkpoint ``magail-sumo train`` writes works (GAIL / MAGAIL updates and
+behavioural cloning, with an MLP or a transformer critic: the critic is loaded with the policy
+but never evaluated).
 
 Evaluation drives the env with the default observation layout, bicycle limits and action
 layout; a checkpoint trained with other ones is refused with a one-line error naming the

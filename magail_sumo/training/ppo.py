@@ -6,6 +6,18 @@ like any step, but :class:`MaskedRolloutBuffer` remembers which were real and it
 only yields those, so they never reach the PPO loss nor the advantage normalisation. The env
 marks a slot re-assignment as an episode start, so GAE never bootstraps from one agent into
 another (and the free steps in between carry no weight).
+
+Transformer critic (``policy.critic: transformer``): a vehicle's value depends on all vehicles
+of its scene step, so PPO minibatches must hold whole scene steps. :class:`MaskedPPO` then gives
+the buffer the env's slot→scene layout (:attr:`MaskedRolloutBuffer.slot_scene`) and the policy
+the same layout plus the env's current slot mask (for the rollout-time forward passes, see
+:mod:`magail_sumo.models.policies`); the buffer samples random *time steps* and yields all
+active slot-steps of the chosen steps, with each row's group (= its step and its slot's scene)
+attached to the observation tensor, from which the critic rebuilds padded
+(groups, max vehicles, obs_dim) tensors with a mask. A minibatch ends at the step where the
+running count of active slot-steps passes the next multiple of ``batch_size``, so minibatches
+hold ``batch_size`` agent-steps give or take one step's agents, and there are as many as with
+independent agent-steps. Free slot-steps still never reach the losses.
 """
 
 from __future__ import annotations
@@ -13,10 +25,13 @@ from __future__ import annotations
 from typing import Any, Callable, Generator
 
 import numpy as np
+import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
+
+from magail_sumo.models.policies import with_scene_groups
 
 
 class MaskedRolloutBuffer(RolloutBuffer):
@@ -24,12 +39,16 @@ class MaskedRolloutBuffer(RolloutBuffer):
 
     :attr:`mask_source` is called at every :meth:`add` and returns the (n_envs,) bool mask of the
     observation being added (``MultiSceneVecEnv.prev_slot_active``); None: all active.
+    With :attr:`slot_scene` set, :meth:`get` yields minibatches of whole scene steps (module doc).
     """
 
     mask_source: Callable[[], np.ndarray] | None = None
     #: called once per rollout before the returns are computed; gives (buffer_size, n_envs)
     #: rewards added to those recorded step by step (the deferred imitation rewards)
     reward_source: Callable[[], np.ndarray] | None = None
+    #: (n_envs,) scene index of each slot: minibatches of whole scene steps, tagged with their
+    #: grouping (for a transformer critic); None: independent agent-steps
+    slot_scene: np.ndarray | None = None
 
     def reset(self) -> None:
         super().reset()
@@ -60,6 +79,9 @@ class MaskedRolloutBuffer(RolloutBuffer):
                 self.__dict__[name] = self.swap_and_flatten(self.__dict__[name])
             self.active_flat = self.active.swapaxes(0, 1).reshape(-1)
             self.generator_ready = True
+        if self.slot_scene is not None:
+            yield from self._scene_step_batches(batch_size)
+            return
         idx = np.flatnonzero(self.active_flat)
         indices = idx[np.random.permutation(len(idx))]
         if batch_size is None:
@@ -67,12 +89,41 @@ class MaskedRolloutBuffer(RolloutBuffer):
         for start in range(0, len(indices), batch_size):
             yield self._get_samples(indices[start:start + batch_size])
 
+    def _scene_step_batches(self, batch_size: int | None
+                            ) -> Generator[RolloutBufferSamples, None, None]:
+        """Minibatches of whole time steps in random order, about ``batch_size`` active
+        slot-steps each (module doc); rows tagged with their (step, scene) group."""
+        counts = self.active.sum(axis=1)
+        steps = np.random.permutation(self.buffer_size)
+        steps = steps[counts[steps] > 0]
+        total = int(counts.sum())
+        if total == 0:
+            return
+        batch_size = batch_size or total
+        cum = np.cumsum(counts[steps])
+        cuts = np.searchsorted(cum, np.arange(batch_size, total, batch_size), side="left") + 1
+        scene = np.asarray(self.slot_scene, np.int64)
+        n_scenes = int(scene.max()) + 1
+        for chunk in np.split(steps, cuts):
+            if chunk.size == 0:
+                continue
+            row, slot = np.nonzero(self.active[chunk])
+            step = chunk[row]
+            # flat index of (step, slot) after swap_and_flatten: slot-major
+            samples = self._get_samples(slot * self.buffer_size + step)
+            _, group = np.unique(step * n_scenes + scene[slot], return_inverse=True)
+            with_scene_groups(samples.observations,
+                              torch.as_tensor(group.reshape(-1), device=self.device))
+            yield samples
+
 
 class MaskedPPO(PPO):
     """SB3 PPO whose rollout buffer is a :class:`MaskedRolloutBuffer` reading the env's slot mask.
 
     Same arguments as :class:`~stable_baselines3.PPO`; the env (possibly wrapped) must reach a
-    :class:`~magail_sumo.env.vec_env.MultiSceneVecEnv` through ``.unwrapped``.
+    :class:`~magail_sumo.env.vec_env.MultiSceneVecEnv` through ``.unwrapped``. With a
+    transformer-critic policy it also wires the env's scene layout and slot mask into the
+    policy and the buffer (module doc).
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -84,6 +135,12 @@ class MaskedPPO(PPO):
         base = self.env.unwrapped if self.env is not None else None
         if base is not None and hasattr(base, "prev_slot_active"):
             self.rollout_buffer.mask_source = lambda: base.prev_slot_active
+        if base is not None and getattr(self.policy, "critic_kind", "mlp") == "transformer":
+            # scene layout of the slots (an env without one: every slot its own scene)
+            slot_scene = np.asarray(getattr(base, "slot_scene", np.arange(self.n_envs)), np.int64)
+            mask = (lambda: base.slot_active) if hasattr(base, "slot_active") else None
+            self.policy.set_scene_layout(slot_scene, mask)
+            self.rollout_buffer.slot_scene = slot_scene
         if getattr(self.env, "deferred", False):
             self.rollout_buffer.reward_source = self.env.flush_rewards
 

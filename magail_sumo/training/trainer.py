@@ -2,11 +2,12 @@
 updates with checkpoints; resume exactly.
 
 A checkpoint (``RUN/checkpoints/update_NNNNNN.pt`` and ``latest.pt``, written atomically) holds
-the policy (with its observation normaliser), the PPO optimiser and current learning rate, the
+the policy (with its observation normaliser and its critic, MLP or transformer), the PPO optimiser and current learning rate, the
 discriminator (with its normaliser) and its optimiser, the discriminator sampler's RNG, the
 torch / numpy / python RNG states, SB3's counters and last observation, and the env state as
 per-scene (episode, actions since reset) — replayed in fresh workers on resume, so a resumed run
-continues exactly as if uninterrupted.
+continues exactly as if uninterrupted. (A transformer critic's slot→scene layout is not state:
+:class:`~magail_sumo.training.ppo.MaskedPPO` takes it from the env it is built on.)
 """
 
 from __future__ import annotations
@@ -32,8 +33,20 @@ from magail_sumo.sensors.observation import observation_bounds, observation_name
 from .config import TrainConfig
 
 CHECKPOINT_FORMAT = "magail_sumo.checkpoint/1"
-#: config keys that may differ between a run and its resumption
-RESUMABLE_CHANGES = ("updates", "checkpoint_every")
+#: config keys (dotted for nested ones) that may differ between a run and its resumption:
+#: they change neither the results nor the state
+RESUMABLE_CHANGES = ("updates", "checkpoint_every", "scenes.worker_timeout_s",
+                     "scenes.pin_workers")
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 class CheckpointError(MagailSumoError):
@@ -46,12 +59,20 @@ def spaces_of(cfg: TrainConfig) -> tuple[spaces.Box, spaces.Box]:
 
 
 def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:
-    return {"net_arch": {"pi": list(cfg.policy.actor_hidden), "vf": list(cfg.policy.critic_hidden)},
-            "log_std_init": cfg.policy.log_std_init}
+    """:class:`TanhGaussianPolicy` arguments of the config's ``policy`` block."""
+    p = cfg.policy
+    kwargs: dict[str, Any] = {"net_arch": {"pi": list(p.actor_hidden), "vf": list(p.critic_hidden)},
+                              "log_std_init": p.log_std_init}
+    if p.critic == "transformer":
+        kwargs.update(net_arch={"pi": list(p.actor_hidden), "vf": []}, critic="transformer",
+                      critic_transformer=p.critic_transformer)
+    return kwargs
 
 
 def make_policy(cfg: TrainConfig) -> TanhGaussianPolicy:
-    """A fresh policy for the config's spaces (no env needed)."""
+    """A fresh policy for the config's spaces (no env needed; a transformer critic has no scene
+    layout then, see :meth:`TanhGaussianPolicy.set_scene_layout` — evaluation uses the actor
+    only)."""
     obs, act = spaces_of(cfg)
     return TanhGaussianPolicy(obs, act, lambda _: cfg.ppo.learning_rate,
                               **policy_kwargs(cfg)).to(cfg.device)
@@ -103,6 +124,11 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPoli
 
 def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
     now = to_dict(cfg)
+    try:  # keys added since the run was saved compare as their defaults
+        saved = to_dict(from_dict(TrainConfig, saved))
+    except ConfigError:
+        pass
+    now, saved = _flat(now), _flat(saved)
     diff = sorted(k for k in set(now) | set(saved)
                   if k not in RESUMABLE_CHANGES and now.get(k) != saved.get(k))
     if diff:
@@ -236,7 +262,8 @@ class GailRun:
         self.cfg = cfg
         specs = scene_specs(cfg.scenes.files, cfg.scenes.networks)
         self.venv = MultiSceneVecEnv(specs, cfg.env, seed=cfg.seed,
-                                     timeout_s=cfg.scenes.worker_timeout_s)
+                                     timeout_s=cfg.scenes.worker_timeout_s,
+                                     pin_workers=cfg.scenes.pin_workers)
         try:
             d = cfg.discriminator
             self.discriminator = make_discriminator(cfg, 2 * self.venv.obs_dim)
