@@ -4,7 +4,8 @@ Each policy drives all route vehicles of each scene from the first log step to t
 (``terminate_on=()``: agents keep driving after an event, so every agent is scored over its
 whole recorded life; log background for the rest). Metrics over agents and their valid log
 steps: ADE (m, mean distance to the recorded position), collision rate and off-road rate (share
-of agents with at least one such event), mean speed error (m/s, |speed − recorded speed|).
+of agents with at least one such event), mean speed error (m/s, |speed − recorded speed|) and
+speed bias (m/s, mean of speed − recorded speed: negative = slower than the humans).
 Policies: ``constant_velocity`` (zero action: speed and heading held), ``untrained`` (a fresh
 policy of the config, observation normaliser fitted on the expert data) and any
 ``NAME=CHECKPOINT`` (deterministic mean action of the tanh-Gaussian actor). Every
@@ -57,7 +58,7 @@ def rollout(job: tuple) -> dict:
         limits=cfg.env.limits))
     tr = scene.tracks
     obs, _ = env.reset(seed=seed)
-    err_sum = speed_sum = 0.0
+    err_sum = speed_sum = bias_sum = 0.0
     n = 0
     collided: set[str] = set()
     offroad: set[str] = set()
@@ -87,11 +88,13 @@ def rollout(job: tuple) -> dict:
             v_log = tr.vx[r, t] * np.cos(h) + tr.vy[r, t] * np.sin(h)
             err_sum += float(np.hypot(dx, dy).sum())
             speed_sum += float(np.abs(st.state.speed[ok] - v_log).sum())
+            bias_sum += float((st.state.speed[ok] - v_log).sum())
             n += int(ok.sum())
             agents.update(st.names)
     env.close()
     return {"policy": name, "scene": scene.scenario_id, "err": err_sum, "speed": speed_sum,
-            "n": n, "agents": len(agents), "collided": len(collided), "offroad": len(offroad)}
+            "bias": bias_sum, "n": n, "agents": len(agents), "collided": len(collided),
+            "offroad": len(offroad)}
 
 
 def main() -> int:
@@ -140,15 +143,17 @@ def main() -> int:
                       "collision_rate": sum(r["collided"] for r in rs) / max(agents, 1),
                       "off_road_rate": sum(r["offroad"] for r in rs) / max(agents, 1),
                       "speed_error_mps": sum(r["speed"] for r in rs) / max(n, 1),
+                      "speed_bias_mps": sum(r["bias"] for r in rs) / max(n, 1),
                       "agents": agents, "agent_steps": n})
     if args.json:
         print(json.dumps({"per_scene": rows, "table": table}, indent=2))
     else:
         print(f"{'policy':<20}{'ADE m':>9}{'collision':>11}{'off-road':>10}{'speed err':>11}"
-              f"{'agents':>8}")
+              f"{'bias':>7}{'agents':>8}")
         for t in table:
             print(f"{t['policy']:<20}{t['ade_m']:>9.2f}{t['collision_rate']:>11.3f}"
-                  f"{t['off_road_rate']:>10.3f}{t['speed_error_mps']:>11.2f}{t['agents']:>8}")
+                  f"{t['off_road_rate']:>10.3f}{t['speed_error_mps']:>11.2f}"
+                  f"{t['speed_bias_mps']:>7.2f}{t['agents']:>8}")
     return 0
 
 
