@@ -169,3 +169,17 @@ def test_resume_refuses_a_changed_config(setup, tmp_path):
     changed = replace(cfg, ppo=replace(cfg.ppo, n_epochs=cfg.ppo.n_epochs + 1), seed=cfg.seed + 1)
     with pytest.raises(ConfigError, match=r"differs from the run's in ppo\.n_epochs, seed"):
         _check_resume_config(changed, saved, tmp_path)
+
+
+def test_cli_seed_overrides_the_config(setup, tmp_path):
+    import yaml
+
+    from magail_sumo.config import to_dict
+
+    _, cfg = setup
+    path = tmp_path / "bc.yaml"
+    path.write_text(yaml.safe_dump(to_dict(replace(cfg, algorithm="bc"))))
+    run = tmp_path / "run"
+    assert main(["train", "--config", str(path), "--seed", "7", "--run-dir", str(run)]) == 0
+    assert yaml.safe_load((run / "config.yaml").read_text())["seed"] == 7
+    assert load_checkpoint(run / "checkpoints" / "latest.pt")["config"]["seed"] == 7

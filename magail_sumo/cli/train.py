@@ -18,6 +18,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="continue a run from RUN_DIR/checkpoints/latest.pt")
     p.add_argument("--run-dir", type=Path, default=None, metavar="DIR",
                    help="run directory (default: OUT_DIR/<algorithm>-seed<seed>-<time>)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="override the config's seed (recorded in the run's config.yaml)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run in --run-dir (only a folder that holds a run: "
                         "config.yaml or checkpoints/)")
@@ -76,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
 
     warnings.filterwarnings("ignore", message=".*mini-batch size.*")
     cfg = load_config(args.config, TrainConfig)
+    if args.seed is not None:
+        from dataclasses import replace
+
+        cfg = replace(cfg, seed=args.seed)
     if args.overwrite and args.run_dir is not None and args.resume is None:
         _clear_run_dir(args.run_dir)
     bars = _Bars()

@@ -293,6 +293,11 @@ class GailRun:
         except BaseException:
             self.venv.close()
             raise
+        # no output until a run sets its own (SB3 would otherwise make a /tmp/SB3-<time> folder
+        # for every learn() call without a logger)
+        from stable_baselines3.common.logger import Logger
+
+        self.model.set_logger(Logger(None, []))
         self.update = 0
 
     @property
