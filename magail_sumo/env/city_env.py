@@ -47,6 +47,7 @@ from magail_sumo.sim.sumo_map import NetworkMap, network_map
 from .actions import action_array
 from .collision import first_overlap
 from .events import off_road, reached
+from .outcomes import StepDicts
 
 #: Events of the city env, in the order the first one found becomes the reason.
 CITY_EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination")
@@ -353,27 +354,18 @@ class SumoCityEnv(ParallelEnv):
             "destination": reached(self._x[act], self._y[act], self._dest[act],
                                    cfg.destination_radius),
         }
-        term = np.zeros(act.size, bool)
-        for name in cfg.terminate_on:
-            term |= flags[name]
         gone_in_sumo = np.array([self._names[k] in arrived_set for k in act], bool)
         end = self.t >= cfg.max_steps
-        trunc = ~term & (gone_in_sumo | end)
-        rewards, terms, truncs, infos = {}, {}, {}, {}
-        for i, k in enumerate(act):  # per-agent dict building (PettingZoo interface)
-            name = self._names[k]
-            ev = {e: bool(flags[e][i]) for e in CITY_EVENTS}
-            reason = next((e for e in CITY_EVENTS if ev[e] and e in cfg.terminate_on), None)
-            if reason is None and trunc[i]:
-                reason = "arrived" if gone_in_sumo[i] else "end_of_episode"
-            rewards[name], terms[name], truncs[name] = 0.0, bool(term[i]), bool(trunc[i])
-            infos[name] = self._info(k, ev, reason if (term[i] or trunc[i]) else None,
-                                     ids[other[i]] if other[i] >= 0 else "")
-        for k in joiners:
-            name = self._names[k]
-            rewards[name], terms[name], truncs[name] = 0.0, False, bool(end)
-            infos[name] = self._info(k, {}, "end_of_episode" if end else None)
-        gone = act[term | trunc]
+        out = StepDicts()
+        leaving = out.stepped(
+            [self._names[k] for k in act], flags, CITY_EVENTS, cfg.terminate_on,
+            gone_in_sumo | end, np.where(gone_in_sumo, "arrived", "end_of_episode").tolist(),
+            lambda i, ev, reason: self._info(act[i], ev, reason,
+                                             ids[other[i]] if other[i] >= 0 else ""))
+        out.joined([self._names[k] for k in joiners], end, "end_of_episode",
+                   lambda j, reason: self._info(joiners[j], {}, reason))
+        rewards, terms, truncs, infos = out.astuple()
+        gone = act[leaving]
         if end:
             gone = np.concatenate([gone, joiners])
         self._active[gone] = False

@@ -40,6 +40,7 @@ from .bundle import SceneBundle
 from .collision import first_overlap
 from .config import EVENTS, EnvConfig
 from .events import StopLines, off_road, reached
+from .outcomes import StepDicts
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
 
 
@@ -328,27 +329,17 @@ class SumoDrivingEnv(ParallelEnv):
             "destination": reached(p1[:, 0], p1[:, 1], self._dest[rows], cfg.destination_radius),
             "end_of_life": self.t >= self._last[rows],
         }
-        term = np.zeros(a, bool)
-        for name in cfg.terminate_on:
-            term |= flags[name]
-        trunc = ~term & (flags["end_of_life"] | (self.t >= self._end))
-        leaving = term | trunc
-        rewards, terms, truncs, infos = {}, {}, {}, {}
-        for i, k in enumerate(act_idx):  # per-agent dict building (PettingZoo interface)
-            name = self._ctrl_names[k]
-            ev = {e: bool(flags[e][i]) for e in EVENTS}
-            reason = next((e for e in EVENTS if ev[e] and (e in cfg.terminate_on
-                                                            or e == "end_of_life")), None)
-            if reason is None and trunc[i]:
-                reason = "end_of_scene"
-            oid = int(box_ids[other[i]]) if other[i] >= 0 else -1
-            rewards[name], terms[name], truncs[name] = 0.0, bool(term[i]), bool(trunc[i])
-            infos[name] = self._info(k, ev, reason if leaving[i] else None, oid)
         end = self.t >= self._end
-        for k in joiners:
-            name = self._ctrl_names[k]
-            rewards[name], terms[name], truncs[name] = 0.0, False, bool(end)
-            infos[name] = self._info(k, {}, "end_of_scene" if end else None, -1)
+        out = StepDicts()
+        leaving = out.stepped(
+            [self._ctrl_names[k] for k in act_idx], flags, EVENTS, cfg.terminate_on,
+            flags["end_of_life"] | end, ["end_of_scene"] * a,
+            lambda i, ev, reason: self._info(
+                act_idx[i], ev, reason, int(box_ids[other[i]]) if other[i] >= 0 else -1),
+            always_reasons=("end_of_life",))
+        out.joined([self._ctrl_names[k] for k in joiners], end, "end_of_scene",
+                   lambda j, reason: self._info(joiners[j], {}, reason, -1))
+        rewards, terms, truncs, infos = out.astuple()
         gone = act_idx[leaving]
         if end:
             gone = np.concatenate([gone, joiners])

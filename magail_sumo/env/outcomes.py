@@ -1,0 +1,72 @@
+"""One step's per-agent outcome as PettingZoo dicts: who terminates, who is truncated, and why.
+
+Both envs (recorded scenes, :mod:`~magail_sumo.env.driving_env`, and cities,
+:mod:`~magail_sumo.env.city_env`) detect a step's events as (A,) bool arrays over the stepped
+agents. An agent *terminates* when an event of ``terminate_on`` occurred; otherwise it is
+*truncated* when the env says its time is up. Its ``infos[agent]["reason"]`` is, when it
+leaves, the first event in the env's event order that ended it (or that always ends an agent,
+e.g. ``end_of_life``), else the env's truncation reason. Rewards are 0 (the trainer computes
+rewards). The dict building is a loop over agents: PettingZoo's interface is per-agent dicts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+#: builds ``infos[agent]`` from (stepped-agent position, its events, its reason or None)
+InfoFn = Callable[[int, dict, "str | None"], dict]
+
+
+@dataclass
+class StepDicts:
+    """The PettingZoo per-agent dicts of one step (observations are built by the env)."""
+
+    rewards: dict[str, float] = field(default_factory=dict)
+    terms: dict[str, bool] = field(default_factory=dict)
+    truncs: dict[str, bool] = field(default_factory=dict)
+    infos: dict[str, dict] = field(default_factory=dict)
+
+    def stepped(self, names: Sequence[str], flags: dict[str, np.ndarray],
+                events: Sequence[str], terminate_on: Sequence[str], time_up: np.ndarray,
+                truncation_reason: Sequence[str], info: InfoFn,
+                always_reasons: Sequence[str] = ()) -> np.ndarray:
+        """Add the stepped agents; their (A,) bool "leaves now" mask.
+
+        :param names: (A,) agent names. :param flags: event name -> (A,) bool.
+        :param events: event order (the first one found is the reason).
+        :param terminate_on: events that terminate an agent.
+        :param time_up: (A,) the agent is truncated unless it terminated.
+        :param truncation_reason: (A,) reason of a truncation no event explains.
+        :param info: ``info(i, events_of_i, reason)`` builds the agent's infos.
+        :param always_reasons: events that are a reason even outside ``terminate_on``.
+        """
+        a = len(names)
+        term = np.zeros(a, bool)
+        for name in terminate_on:
+            term |= flags[name]
+        trunc = ~term & np.asarray(time_up, bool)
+        leaving = term | trunc
+        reasons = set(terminate_on) | set(always_reasons)
+        for i, name in enumerate(names):
+            ev = {e: bool(flags[e][i]) for e in events}
+            reason = next((e for e in events if ev[e] and e in reasons), None)
+            if reason is None and trunc[i]:
+                reason = truncation_reason[i]
+            self.rewards[name], self.terms[name], self.truncs[name] = \
+                0.0, bool(term[i]), bool(trunc[i])
+            self.infos[name] = info(i, ev, reason if leaving[i] else None)
+        return leaving
+
+    def joined(self, names: Sequence[str], end: bool, end_reason: str,
+               info: Callable[[int, "str | None"], dict]) -> None:
+        """Add agents that joined during the step (no events yet): truncated only when the
+        episode ends at this step. :param info: ``info(j, reason)`` for the j-th joiner."""
+        for j, name in enumerate(names):
+            self.rewards[name], self.terms[name], self.truncs[name] = 0.0, False, bool(end)
+            self.infos[name] = info(j, end_reason if end else None)
+
+    def astuple(self) -> tuple[dict, dict, dict, dict]:
+        return self.rewards, self.terms, self.truncs, self.infos
