@@ -77,3 +77,46 @@ def test_loss_gradient_penalty_and_learning_to_separate():
     tok, _ = model(expert, mask)
     r = imitation_reward(tok)
     assert torch.all(r >= 0) and torch.all(r <= -torch.log(torch.tensor(1e-4)) + 1e-6)
+
+
+def test_ignored_features_reach_neither_logits_nor_gradient_penalty():
+    torch.manual_seed(0)
+    for disc in (TransformerDiscriminator(6, TransformerConfig(16, 1, 2, 32, 0.0)),
+                 MLPDiscriminator(6, (16,))):
+        disc.eval()
+        disc.normalizer.update(torch.randn(200, 6) * 3.0 + 1.0)
+        disc.ignore_features([1, 4])
+        x, mask = torch.randn(2, 3, 6), torch.ones(2, 3, dtype=torch.bool)
+        y = x.clone()
+        y[..., [1, 4]] = torch.randn(2, 3, 2) * 50.0
+        assert torch.equal(disc(x, mask)[0], disc(y, mask)[0])
+        z = x.clone()
+        z[..., 0] += 1.0
+        assert not torch.allclose(disc(x, mask)[0], disc(z, mask)[0])
+        xe = disc.normalizer(x).requires_grad_(True)
+        grad, = torch.autograd.grad(disc.forward_normalized(xe, mask)[0].sum(), xe)
+        assert torch.all(grad[..., [1, 4]] == 0) and torch.any(grad[..., 0] != 0)
+        # a state dict from before the mask existed loads as "judge every feature"
+        state = {k: v for k, v in disc.state_dict().items() if k != "feature_mask"}
+        disc.load_state_dict(state)
+        assert torch.all(disc.feature_mask == 1)
+
+
+def test_make_discriminator_masks_named_features_in_s_and_s_next():
+    import pytest
+
+    from magail_sumo.config import ConfigError, from_dict
+    from magail_sumo.sensors.observation import observation_names
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import make_discriminator
+
+    names = observation_names()
+    cfg = from_dict(TrainConfig, {"discriminator": {"ignore_features": ["prev_accel",
+                                                                         "prev_steer"]}})
+    disc = make_discriminator(cfg, 2 * len(names))
+    off = torch.nonzero(disc.feature_mask == 0).flatten().tolist()
+    a, s = names.index("prev_accel"), names.index("prev_steer")
+    assert off == sorted([a, s, len(names) + a, len(names) + s])
+    bad = from_dict(TrainConfig, {"discriminator": {"ignore_features": ["prev_brake"]}})
+    with pytest.raises(ConfigError, match="ignore_features: unknown observation feature"):
+        make_discriminator(bad, 2 * len(names))

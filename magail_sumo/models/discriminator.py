@@ -36,16 +36,44 @@ class TransformerConfig:
     pooling: str = "mean"  # "mean" over present tokens, or "cls"
 
 
-class TransformerDiscriminator(nn.Module):
+class _TokenInput(nn.Module):
+    """Input stage shared by the discriminators: the running normaliser and the feature mask.
+
+    ``feature_mask`` (F,) is 1 for features the discriminator judges and 0 for ignored ones
+    (e.g. the previous action, which carries the policy's exploration noise rather than its
+    driving); ignored features are zeroed after normalisation, so they reach neither the
+    logits nor the gradient penalty. Saved in the state dict (all ones when absent, for
+    checkpoints written before it existed).
+    """
+
+    def __init__(self, feature_dim: int) -> None:
+        super().__init__()
+        self.normalizer = RunningNormalizer(feature_dim)
+        self.register_buffer("feature_mask", torch.ones(feature_dim))
+
+    def ignore_features(self, columns) -> None:
+        """Zero these token columns (indices into concat(s, s')) from now on."""
+        self.feature_mask.fill_(1.0)
+        self.feature_mask[list(columns)] = 0.0
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        state_dict.setdefault(prefix + "feature_mask", torch.ones_like(self.feature_mask))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits of raw features x (B, V, F) with mask (B, V)."""
+        return self.forward_normalized(self.normalizer(x), mask)
+
+
+class TransformerDiscriminator(_TokenInput):
     """Set transformer discriminator with per-token and pooled logits (see module doc)."""
 
     def __init__(self, feature_dim: int, config: TransformerConfig | None = None) -> None:
-        super().__init__()
+        super().__init__(feature_dim)
         cfg = config or TransformerConfig()
         if cfg.pooling not in ("mean", "cls"):
             raise ValueError(f"pooling must be 'mean' or 'cls', got {cfg.pooling!r}")
         self.config = cfg
-        self.normalizer = RunningNormalizer(feature_dim)
         self.embed = nn.Linear(feature_dim, cfg.embed_dim)
         layer = nn.TransformerEncoderLayer(cfg.embed_dim, cfg.num_heads, cfg.ff_dim, cfg.dropout,
                                            activation="gelu", batch_first=True, norm_first=False)
@@ -61,7 +89,7 @@ class TransformerDiscriminator(nn.Module):
     def forward_normalized(self, x: torch.Tensor, mask: torch.Tensor
                            ) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits of already-normalised features: ((B, V) token logits, (B,) scene logits)."""
-        h = self.embed(x)
+        h = self.embed(x * self.feature_mask)
         pad = ~mask
         if self.cls is not None:
             h = torch.cat([self.cls.expand(h.shape[0], -1, -1), h], dim=1)
@@ -75,17 +103,12 @@ class TransformerDiscriminator(nn.Module):
         tokens = self.token_head(h).squeeze(-1).masked_fill(~mask, 0.0)
         return tokens, self.scene_head(pooled).squeeze(-1)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Logits of raw features x (B, V, F) with mask (B, V)."""
-        return self.forward_normalized(self.normalizer(x), mask)
 
-
-class MLPDiscriminator(nn.Module):
+class MLPDiscriminator(_TokenInput):
     """Per-vehicle MLP discriminator (no interaction between tokens); same interface."""
 
     def __init__(self, feature_dim: int, hidden: tuple[int, ...] = (256, 256)) -> None:
-        super().__init__()
-        self.normalizer = RunningNormalizer(feature_dim)
+        super().__init__(feature_dim)
         layers: list[nn.Module] = []
         d = feature_dim
         for h in hidden:
@@ -99,12 +122,9 @@ class MLPDiscriminator(nn.Module):
 
     def forward_normalized(self, x: torch.Tensor, mask: torch.Tensor
                            ) -> tuple[torch.Tensor, torch.Tensor]:
-        tokens = self.head(self.body(x)).squeeze(-1).masked_fill(~mask, 0.0)
+        tokens = self.head(self.body(x * self.feature_mask)).squeeze(-1).masked_fill(~mask, 0.0)
         m = mask.to(tokens.dtype)
         return tokens, (tokens * m).sum(1) / m.sum(1).clamp(min=1.0)
-
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.forward_normalized(self.normalizer(x), mask)
 
 
 def imitation_reward(token_logits: torch.Tensor, floor: float = 1e-4) -> torch.Tensor:

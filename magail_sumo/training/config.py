@@ -93,6 +93,10 @@ class DiscriminatorConfig:
     :param epochs: gradient steps per PPO update, each on ``batch_size`` expert and
         ``batch_size`` policy scene steps.
     :param reward_t_coef, reward_i_coef: r = c_t·r_task + c_i·(−log(max(1 − sigmoid(D), floor))).
+    :param ignore_features: observation feature names (``observation_names``) the
+        discriminator does not see, in s nor in s' — e.g. ``[prev_accel, prev_steer]``: the
+        previous action carries the policy's exploration noise, which lets a discriminator
+        tell policy from expert without judging the driving.
     :param collision_penalty, off_road_penalty: the task reward r_task of the step at which an
         agent leaves by a collision / by going off-road is minus this (events in
         ``env.terminate_on`` end the agent; 0 otherwise).
@@ -112,6 +116,7 @@ class DiscriminatorConfig:
     reward_floor: float = 1e-4
     collision_penalty: float = 0.0
     off_road_penalty: float = 0.0
+    ignore_features: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in ("transformer", "mlp"):

@@ -79,10 +79,25 @@ def make_policy(cfg: TrainConfig) -> TanhGaussianPolicy:
 
 
 def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:
+    """The config's discriminator over tokens concat(s, s') of ``feature_dim`` columns, with
+    ``discriminator.ignore_features`` (observation feature names, in s and in s') masked."""
     d = cfg.discriminator
     if d.kind == "transformer":
-        return TransformerDiscriminator(feature_dim, d.transformer).to(cfg.device)
-    return MLPDiscriminator(feature_dim, d.mlp_hidden).to(cfg.device)
+        disc = TransformerDiscriminator(feature_dim, d.transformer)
+    else:
+        disc = MLPDiscriminator(feature_dim, d.mlp_hidden)
+    if d.ignore_features:
+        names = observation_names(cfg.env.observation)
+        unknown = [f for f in d.ignore_features if f not in names]
+        if unknown:
+            raise ConfigError(f"discriminator.ignore_features: unknown observation feature(s) "
+                              f"{', '.join(unknown)} (features are {', '.join(names[:8])}, ...)")
+        if 2 * len(names) != feature_dim:
+            raise ValueError(f"tokens have {feature_dim} columns, the observation "
+                             f"{len(names)} features (expected twice as many)")
+        cols = [names.index(f) for f in d.ignore_features]
+        disc.ignore_features(cols + [len(names) + c for c in cols])
+    return disc.to(cfg.device)
 
 
 def load_checkpoint(path: str | Path) -> dict:
