@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -61,3 +62,14 @@ def test_record_run(tmp_path):
     env = json.loads((d / "environment.json").read_text())
     assert env["versions"]["numpy"] != "not installed" and "git_commit" in env
     assert load_config(d / "config.yaml", Outer) == Outer(seed=7)
+
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in CONFIGS.glob("*.yaml")))
+def test_every_shipped_config_loads(name):
+    from magail_sumo.training.config import TrainConfig
+
+    cfg = load_config(CONFIGS / name, TrainConfig)
+    assert cfg.updates >= 1 or cfg.algorithm == "bc"
