@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .discriminator import set_encoder
+
 
 @dataclass(frozen=True)
 class CriticTransformerConfig:
@@ -116,9 +118,8 @@ class TransformerCritic(nn.Module):
         cfg = config or CriticTransformerConfig()
         self.config = cfg
         self.embed = nn.Linear(feature_dim, cfg.embed_dim)
-        layer = nn.TransformerEncoderLayer(cfg.embed_dim, cfg.num_heads, cfg.ff_dim, cfg.dropout,
-                                           activation="gelu", batch_first=True, norm_first=False)
-        self.encoder = nn.TransformerEncoder(layer, cfg.num_layers, enable_nested_tensor=False)
+        self.encoder = set_encoder(cfg.embed_dim, cfg.num_heads, cfg.ff_dim, cfg.dropout,
+                                   cfg.num_layers)
         self.value_head = nn.Linear(cfg.embed_dim, 1)
 
     def forward_padded(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -36,6 +36,15 @@ class TransformerConfig:
     pooling: str = "mean"  # "mean" over present tokens, or "cls"
 
 
+def set_encoder(embed_dim: int, num_heads: int, ff_dim: int, dropout: float, num_layers: int
+                ) -> nn.TransformerEncoder:
+    """The vehicle-set encoder of the discriminator and the critic: post-LN, GELU, batch first,
+    used with a key-padding mask and no positional embedding (vehicle order means nothing)."""
+    layer = nn.TransformerEncoderLayer(embed_dim, num_heads, ff_dim, dropout, activation="gelu",
+                                       batch_first=True, norm_first=False)
+    return nn.TransformerEncoder(layer, num_layers, enable_nested_tensor=False)
+
+
 class _TokenInput(nn.Module):
     """Input stage shared by the discriminators: the running normaliser and the feature mask.
 
@@ -75,9 +84,8 @@ class TransformerDiscriminator(_TokenInput):
             raise ValueError(f"pooling must be 'mean' or 'cls', got {cfg.pooling!r}")
         self.config = cfg
         self.embed = nn.Linear(feature_dim, cfg.embed_dim)
-        layer = nn.TransformerEncoderLayer(cfg.embed_dim, cfg.num_heads, cfg.ff_dim, cfg.dropout,
-                                           activation="gelu", batch_first=True, norm_first=False)
-        self.encoder = nn.TransformerEncoder(layer, cfg.num_layers, enable_nested_tensor=False)
+        self.encoder = set_encoder(cfg.embed_dim, cfg.num_heads, cfg.ff_dim, cfg.dropout,
+                                   cfg.num_layers)
         self.cls = nn.Parameter(torch.zeros(1, 1, cfg.embed_dim)) if cfg.pooling == "cls" else None
         self.token_head = nn.Linear(cfg.embed_dim, 1)
         self.scene_head = nn.Linear(cfg.embed_dim, 1)
