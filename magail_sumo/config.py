@@ -166,10 +166,12 @@ def git_commit(repo: str | PathLike | None = None) -> str | None:
 
 def record_run(run_dir: str | PathLike, config: Any) -> Path:
     """Write ``config.yaml`` and ``environment.json`` (versions, git commit) into ``run_dir``."""
+    from magail_sumo.outputs import write_text
+
     d = Path(run_dir)
     d.mkdir(parents=True, exist_ok=True)
-    (d / "config.yaml").write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    write_text(d / "config.yaml", yaml.safe_dump(to_dict(config), sort_keys=False))
     env = {"versions": environment_versions(), "git_commit": git_commit(),
            "command": sys.argv}
-    (d / "environment.json").write_text(json.dumps(env, indent=2))
+    write_text(d / "environment.json", json.dumps(env, indent=2))
     return d

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import shutil
+import json
 import sys
 from pathlib import Path
 
@@ -21,19 +21,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=None,
                    help="override the config's seed (recorded in the run's config.yaml)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace an earlier run in --run-dir (only a folder that holds a run: "
-                        "config.yaml or checkpoints/)")
+                   help="replace an earlier run in --run-dir: removes only what train wrote "
+                        "there (a folder train did not write is refused)")
     p.set_defaults(func=run)
 
 
 def _clear_run_dir(d: Path) -> None:
-    from magail_sumo.errors import MagailSumoError
+    """Remove the earlier run in ``d``: only what ``train`` recorded as its own in the folder's
+    marker; :class:`~magail_sumo.outputs.OutputError` (nothing removed) for a folder train did
+    not write. Other files stay, and the folder stays marked as a run directory."""
+    from magail_sumo.outputs import MARKER, read_marker, remove_owned, write_text
 
-    if not d.exists() or not any(d.iterdir()):
+    if not d.is_dir() or not any(d.iterdir()):
         return
-    if not ((d / "config.yaml").is_file() or (d / "checkpoints").is_dir()):
-        raise MagailSumoError(f"{d}: not a run directory; --overwrite only replaces runs")
-    shutil.rmtree(d)
+    remove_owned(d, "train")
+    if d.is_dir() and read_marker(d) is None:  # files of the user's left: keep it ours
+        write_text(d / MARKER, json.dumps({"tools": {"train": []}}, indent=1))
 
 
 class _Bars:

@@ -8,13 +8,21 @@ torch / numpy / python RNG states, SB3's counters and last observation, and the 
 per-scene (episode, actions since reset) — replayed in fresh workers on resume, so a resumed run
 continues exactly as if uninterrupted. (A transformer critic's slot→scene layout is not state:
 :class:`~magail_sumo.training.ppo.MaskedPPO` takes it from the env it is built on.)
+
+Checkpoints hold only tensors and plain data (dicts, lists, tuples, str, numbers, None) and are
+read with ``torch.load(weights_only=True)``: a file cannot run code when loaded. Numpy state
+(SB3's last observation and episode starts, the env's replayed actions, numpy RNG states) is
+stored as tensors / lists (format ``magail_sumo.checkpoint/2``) and converted back on load,
+bit for bit. Format-1 checkpoints (pickled numpy objects) are refused; a trusted one can be
+converted with :func:`upgrade_checkpoint`.
 """
 
 from __future__ import annotations
 
-import os
 import random
+import re
 import time
+import zipfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -25,6 +33,7 @@ from gymnasium import spaces
 
 from magail_sumo.config import ConfigError, from_dict, record_run, to_dict
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import atomic_path, claim_output_dir, printable, read_marker
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscriminator
 from magail_sumo.models.policies import TanhGaussianPolicy
@@ -32,9 +41,14 @@ from magail_sumo.sensors.observation import observation_bounds, observation_name
 
 from .config import TrainConfig
 
-CHECKPOINT_FORMAT = "magail_sumo.checkpoint/1"
+CHECKPOINT_FORMAT = "magail_sumo.checkpoint/2"
+#: formats written by earlier versions (pickled numpy objects: unsafe to load)
+OLD_CHECKPOINT_FORMATS = ("magail_sumo.checkpoint/1",)
 #: config keys (dotted for nested ones) that may differ between a run and its resumption:
 #: they change neither the results nor the state
+#: what ``train`` writes into a run directory (recorded in its marker: ``--overwrite`` removes
+#: only these)
+RUN_OUTPUTS = ("config.yaml", "environment.json", "checkpoints", "tb")
 RESUMABLE_CHANGES = ("updates", "checkpoint_every", "scenes.worker_timeout_s",
                      "scenes.pin_workers")
 
@@ -100,41 +114,144 @@ def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:
     return disc.to(cfg.device)
 
 
+def _pickle_mentions(p: Path, text: bytes) -> bool:
+    """Whether the pickle inside torch zip file ``p`` contains ``text`` (read, never run)."""
+    try:
+        with zipfile.ZipFile(p) as z:
+            name = next((n for n in z.namelist() if n.endswith("/data.pkl")), None)
+            if name is None or z.getinfo(name).file_size > 1 << 26:
+                return False
+            return text in z.read(name)
+    except (OSError, zipfile.BadZipFile, RuntimeError):
+        return False
+
+
 def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint; :class:`CheckpointError` when missing, corrupt or not one."""
+    """Read a checkpoint; :class:`CheckpointError` when missing, corrupt, unsafe or not one.
+
+    Read with ``torch.load(weights_only=True)``: anything but tensors and plain data is refused
+    before it is constructed (a crafted file cannot run code).
+    """
     p = Path(path)
     if not p.is_file():
         raise CheckpointError(f"{p}: checkpoint not found")
     try:
-        state = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt
-        raise CheckpointError(f"{p}: corrupt or unreadable checkpoint "
-                              f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") from None
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt or unsafe
+        if any(_pickle_mentions(p, f.encode()) for f in OLD_CHECKPOINT_FORMATS):
+            raise CheckpointError(
+                f"{p}: checkpoint written by an older magail_sumo version in an unsafe format "
+                "(pickled numpy objects); refused (convert a file you trust with "
+                "magail_sumo.training.trainer.upgrade_checkpoint)") from None
+        found = re.search(r"GLOBAL ([\w.]+)|global[:\s]+([\w.]+)", str(exc))
+        if found:
+            raise CheckpointError(f"{p}: refused: the file holds {printable(found[1] or found[2], 80)}"
+                                  ", not only tensors and plain data (not a magail_sumo "
+                                  "checkpoint, or a crafted one)") from None
+        raise CheckpointError(f"{p}: corrupt or unreadable checkpoint ({type(exc).__name__}: "
+                              f"{printable(' '.join(str(exc).split()), 200)})") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{p}: not a magail_sumo checkpoint")
+        raise CheckpointError(f"{p}: not a magail_sumo checkpoint"
+                              + (" (format " + printable(str(state.get("format")), 60) + ")"
+                                 if isinstance(state, dict) and "format" in state else ""))
     missing = [k for k in ("config", "policy", "update") if k not in state]
     if missing:
         raise CheckpointError(f"{p}: checkpoint lacks {', '.join(missing)}")
+    if not isinstance(state["config"], dict):
+        raise CheckpointError(f"{p}: checkpoint config is not a mapping")
+    if not isinstance(state["update"], int) or isinstance(state["update"], bool) \
+            or state["update"] < 0:
+        raise CheckpointError(f"{p}: checkpoint update is not a count "
+                              f"({printable(repr(state['update']), 60)})")
     return state
 
 
+def upgrade_checkpoint(path: str | Path, out: str | Path | None = None, *,
+                       trust: bool = False) -> Path:
+    """Convert a format-1 checkpoint to the current format (``out``, default: in place).
+
+    Loading a format-1 file unpickles arbitrary objects, i.e. can run code the file holds:
+    only for a file you trust, and only with ``trust=True``.
+    """
+    p = Path(path)
+    if not trust:
+        raise CheckpointError(f"{p}: converting a format-1 checkpoint runs the code it may "
+                              "contain; pass trust=True only for a file you trust")
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001
+        raise CheckpointError(f"{p}: corrupt or unreadable checkpoint ({type(exc).__name__}: "
+                              f"{printable(' '.join(str(exc).split()), 200)})") from None
+    if not isinstance(state, dict) or state.get("format") not in OLD_CHECKPOINT_FORMATS:
+        raise CheckpointError(f"{p}: not a format-1 magail_sumo checkpoint")
+    try:
+        state = _encode_state(dict(state, format=CHECKPOINT_FORMAT))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{p}: cannot convert ({type(exc).__name__}: "
+                              f"{printable(str(exc), 200)})") from None
+    dest = Path(out) if out is not None else p
+    _save(state, dest)
+    return dest
+
+
+def _summarise_load_error(exc: BaseException) -> str:
+    """One line for a ``load_state_dict`` error (torch's is a multi-line dump)."""
+    text = str(exc)
+
+    def keys(label: str) -> list[str]:
+        m = re.search(label + r"[^:]*: ([^\n]*)", text)
+        return re.findall(r'"([^"]*)"', m[1]) if m else []
+
+    def some(names: list[str]) -> str:
+        shown = ", ".join(printable(n, 60) for n in names[:4])
+        return shown + (f" (+{len(names) - 4} more)" if len(names) > 4 else "")
+
+    parts = []
+    for label, what in (("Missing key", "missing keys"), ("Unexpected key", "unexpected keys")):
+        found = keys(label)
+        if found:
+            parts.append(f"{what} {some(found)}")
+    sizes = re.findall(r"size mismatch for ([^:]+):", text)
+    if sizes:
+        parts.append(f"size mismatch for {some(sizes)}")
+    if parts:
+        return "; ".join(parts)
+    return f"{type(exc).__name__}: {printable(' '.join(text.split()), 200)}"
+
+
+def _load_into(obj: Any, state: Any, what: str, where: Path) -> None:
+    """``obj.load_state_dict(state)``; a one-line :class:`CheckpointError` naming ``where``."""
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{where}: checkpoint {what} is not a state dict")
+    try:
+        obj.load_state_dict(state)
+    except Exception as exc:  # noqa: BLE001 - torch raises several kinds on a mismatch
+        raise CheckpointError(f"{where}: checkpoint {what} does not fit this run "
+                              f"({_summarise_load_error(exc)})") from None
+
+
 def _save(state: dict, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    """Write a checkpoint atomically (a crash leaves the old file or none)."""
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
 
 
 def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPolicy, TrainConfig]:
     """The policy of a checkpoint (and the run's config)."""
     state = load_checkpoint(path)
-    cfg = replace(from_dict(TrainConfig, state["config"]), device=device)
+    cfg = replace(checkpoint_config(state, path), device=device)
     policy = make_policy(cfg)
-    try:
-        policy.load_state_dict(state["policy"])
-    except (RuntimeError, KeyError) as exc:
-        raise CheckpointError(f"{path}: policy does not fit the config ({exc})") from None
+    _load_into(policy, state["policy"], "policy", Path(path))
     policy.set_training_mode(False)
     return policy, cfg
+
+
+def checkpoint_config(state: dict, path: str | Path) -> TrainConfig:
+    """The run config a checkpoint holds; :class:`CheckpointError` naming ``path`` if invalid."""
+    try:
+        return from_dict(TrainConfig, state["config"])
+    except ConfigError as exc:
+        raise CheckpointError(f"{path}: the checkpoint's config is invalid ({exc})") from None
 
 
 def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
@@ -154,21 +271,104 @@ def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
 def _run_dir(cfg: TrainConfig, name: str | None) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     kind = "bc" if cfg.algorithm == "bc" else f"gail-{cfg.discriminator.kind}"
-    d = Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
-    if d.exists() and any(d.iterdir()):
-        raise MagailSumoError(f"{d}: run directory exists and is not empty (use --resume)")
-    return d
+    return Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
+
+
+def claim_run_dir(d: Path) -> Path:
+    """Make ``d`` the directory of a new run (marked as ``train``'s, see
+    :func:`~magail_sumo.outputs.claim_output_dir`).
+
+    Refused when it holds a run (use ``--resume`` or ``--overwrite``) or is a non-empty folder
+    magail_sumo did not write. A folder marked by ``train`` that holds none of
+    :data:`RUN_OUTPUTS` (an overwritten run next to files of the user's) is reused.
+    """
+    if d.is_dir() and any(d.iterdir()):
+        marker = read_marker(d)
+        if marker is not None and any((d / n).exists() for n in RUN_OUTPUTS):
+            raise MagailSumoError(f"{d}: run directory holds a run (use --resume, or "
+                                  "--overwrite to replace it)")
+        if marker is None:
+            raise MagailSumoError(f"{d}: run directory exists, is not empty and was not written "
+                                  "by magail-sumo train (choose a new or empty folder)")
+    return claim_output_dir(d, "train", RUN_OUTPUTS)
 
 
 def _rng_state() -> dict:
+    """The torch / numpy / python global RNG states (numpy's as it gives them)."""
     return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
             "python": random.getstate()}
+
+
+def _encode_rng(state: dict) -> dict:
+    """:func:`_rng_state` as tensors and plain data."""
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    version, internal, gauss = state["python"]
+    return {"torch": state["torch"],
+            "numpy": [str(name), torch.from_numpy(np.asarray(keys, np.uint32).astype(np.int64)),
+                      int(pos), int(has_gauss), float(cached)],
+            "python": [int(version), [int(v) for v in internal], gauss]}
+
+
+def _decode_rng(state: Any) -> dict:
+    """:func:`_encode_rng`'s form back to :func:`_rng_state`'s (ValueError / TypeError when
+    malformed)."""
+    if not isinstance(state, dict):
+        raise TypeError("rng is not a mapping")
+    t = state["torch"]
+    if not isinstance(t, torch.Tensor) or t.dtype != torch.uint8 or t.dim() != 1:
+        raise TypeError("rng.torch is not a byte tensor")
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    if not isinstance(keys, torch.Tensor) or keys.shape != (624,):
+        raise ValueError("rng.numpy keys are not 624 integers")
+    keys = keys.numpy()
+    if keys.min() < 0 or keys.max() >= 1 << 32:
+        raise ValueError("rng.numpy keys out of range")
+    version, internal, gauss = state["python"]
+    if not (isinstance(internal, (list, tuple)) and all(type(v) is int for v in internal)):
+        raise TypeError("rng.python state is not a list of integers")
+    if not (isinstance(pos, int) and isinstance(has_gauss, int)
+            and isinstance(cached, (int, float)) and (gauss is None or isinstance(gauss, float))):
+        raise TypeError("rng fields have wrong types")
+    return {"torch": t, "numpy": (str(name), keys.astype(np.uint32), pos, has_gauss, float(cached)),
+            "python": (version, tuple(internal), gauss)}
 
 
 def _set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
+
+
+def _encode_state(state: dict) -> dict:
+    """A run's state (numpy in places) as tensors and plain data (``torch.load``-safe)."""
+    out = dict(state)
+    out["rng"] = _encode_rng(state["rng"])
+    if "last_obs" in state:
+        out["last_obs"] = torch.from_numpy(np.array(state["last_obs"]))
+        out["last_episode_starts"] = torch.from_numpy(np.array(state["last_episode_starts"]))
+        out["env_state"] = [[int(ep), torch.from_numpy(np.stack(acts).astype(np.float32))
+                             if len(acts) else torch.zeros((0, 0), dtype=torch.float32)]
+                            for ep, acts in state["env_state"]]
+        out["env_counters"] = [int(v) for v in state["env_counters"]]
+        dt = dict(state["disc_trainer"])
+        dt["rng"] = _plain(dt["rng"])
+        out["disc_trainer"] = dt
+    return out
+
+
+def _plain(v: Any) -> Any:
+    """Numpy scalars in nested dicts / lists as python ones (a numpy bit generator's state)."""
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v.item() if isinstance(v, np.generic) else v
+
+
+def _tensor(v: Any, name: str) -> torch.Tensor:
+    if not isinstance(v, torch.Tensor):
+        raise TypeError(f"{name} is not a tensor")
+    return v
 
 
 def _seed_everything(seed: int) -> None:
@@ -194,10 +394,7 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
         _check_resume_config(cfg, ckpt["config"], rd / "checkpoints" / "latest.pt")
         run_dir = rd
     else:
-        run_dir = Path(run_dir) if run_dir is not None else _run_dir(cfg, None)
-        if run_dir.exists() and any(run_dir.iterdir()):
-            raise MagailSumoError(f"{run_dir}: run directory exists and is not empty "
-                                  "(use --resume)")
+        run_dir = claim_run_dir(Path(run_dir) if run_dir is not None else _run_dir(cfg, None))
     torch.set_num_threads(max(1, cfg.torch_threads))
     _seed_everything(cfg.seed)
     expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
@@ -224,8 +421,8 @@ def _train_bc(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict
     behavioural_cloning(policy, expert, cfg.bc.epochs, cfg.bc.batch_size, cfg.bc.learning_rate,
                         cfg.seed, log=bc_log)
     (run_dir / "checkpoints").mkdir(exist_ok=True)
-    state = {"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
-             "policy": policy.state_dict(), "rng": _rng_state()}
+    state = _encode_state({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+                           "policy": policy.state_dict(), "rng": _rng_state()})
     _save(state, run_dir / "checkpoints" / "latest.pt")
     log(f"{run_dir}: policy saved")
     return run_dir
@@ -320,40 +517,74 @@ class GailRun:
         return self.model.policy
 
     def state_dict(self) -> dict:
+        """The run's state as a checkpoint (tensors and plain data only)."""
         m = self.model
-        return {"format": CHECKPOINT_FORMAT, "update": self.update, "config": to_dict(self.cfg),
-                "policy": m.policy.state_dict(), "policy_optimizer": m.policy.optimizer.state_dict(),
-                "learning_rate": float(m.learning_rate), "num_timesteps": m.num_timesteps,
-                "n_updates": m._n_updates, "last_obs": m._last_obs,
-                "last_episode_starts": m._last_episode_starts,
-                "discriminator": self.discriminator.state_dict(),
-                "disc_trainer": self.disc_trainer.state_dict(),
-                "env_state": self.venv.get_state(),
-                "env_counters": (self.venv.agent_steps, self.venv.episodes),
-                "rng": _rng_state()}
+        return _encode_state({
+            "format": CHECKPOINT_FORMAT, "update": self.update, "config": to_dict(self.cfg),
+            "policy": m.policy.state_dict(), "policy_optimizer": m.policy.optimizer.state_dict(),
+            "learning_rate": float(m.learning_rate), "num_timesteps": m.num_timesteps,
+            "n_updates": m._n_updates, "last_obs": m._last_obs,
+            "last_episode_starts": m._last_episode_starts,
+            "discriminator": self.discriminator.state_dict(),
+            "disc_trainer": self.disc_trainer.state_dict(),
+            "env_state": self.venv.get_state(),
+            "env_counters": (self.venv.agent_steps, self.venv.episodes),
+            "rng": _rng_state()})
 
     def load_state_dict(self, state: dict, where: Path) -> None:
+        """Restore :meth:`state_dict`'s state (replaying the env); :class:`CheckpointError`
+        (one line, naming ``where``) when it does not fit this run."""
         m = self.model
-        try:
-            m.policy.load_state_dict(state["policy"])
-            m.policy.optimizer.load_state_dict(state["policy_optimizer"])
-            self.discriminator.load_state_dict(state["discriminator"])
-            self.disc_trainer.load_state_dict(state["disc_trainer"])
-            m.set_learning_rate(state["learning_rate"])
-            m.num_timesteps, m._n_updates = state["num_timesteps"], state["n_updates"]
-            obs = self.wrapper.set_state(state["env_state"])
-            self.venv.agent_steps, self.venv.episodes = state["env_counters"]
-            m._last_episode_starts = state["last_episode_starts"]
-            self.update = state["update"]
-            rng = state["rng"]
-        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+        try:  # decode and check the plain parts first: cheap, before the env replay
+            rng = _decode_rng(state["rng"])
+            last_obs = _tensor(state["last_obs"], "last_obs").numpy()
+            starts = _tensor(state["last_episode_starts"], "last_episode_starts").numpy()
+            env_state = [(int(ep), list(_tensor(acts, "env_state actions").numpy()))
+                         for ep, acts in state["env_state"]]
+            agent_steps, episodes = (int(v) for v in state["env_counters"])
+            lr, timesteps = float(state["learning_rate"]), int(state["num_timesteps"])
+            n_updates, update = int(state["n_updates"]), int(state["update"])
+            disc_state = state["disc_trainer"]
+            optim_state = state["policy_optimizer"]
+            if last_obs.shape != (self.venv.num_envs, self.venv.obs_dim):
+                raise ValueError(f"last_obs has shape {tuple(last_obs.shape)}, the env "
+                                 f"{(self.venv.num_envs, self.venv.obs_dim)}")
+            if starts.shape != (self.venv.num_envs,):
+                raise ValueError(f"last_episode_starts has shape {tuple(starts.shape)}")
+        except KeyError as exc:
+            raise CheckpointError(f"{where}: checkpoint lacks {printable(str(exc.args[0]), 60)}"
+                                  ) from None
+        except (RuntimeError, ValueError, TypeError, AttributeError) as exc:
             raise CheckpointError(f"{where}: checkpoint does not fit this run "
-                                  f"({type(exc).__name__}: {exc})") from None
-        if not np.array_equal(obs, state["last_obs"]):
+                                  f"({type(exc).__name__}: {printable(str(exc), 200)})") from None
+        _load_into(m.policy, state["policy"], "policy", where)
+        _load_into(m.policy.optimizer, optim_state, "policy_optimizer", where)
+        _load_into(self.discriminator, state["discriminator"], "discriminator", where)
+        try:
+            self.disc_trainer.load_state_dict(disc_state)
+            m.set_learning_rate(lr)
+            m.num_timesteps, m._n_updates = timesteps, n_updates
+            obs = self.wrapper.set_state(env_state)
+            self.venv.agent_steps, self.venv.episodes = agent_steps, episodes
+            m._last_episode_starts = starts
+            self.update = update
+        except KeyError as exc:
+            raise CheckpointError(f"{where}: checkpoint lacks {printable(str(exc.args[0]), 60)}"
+                                  ) from None
+        except (RuntimeError, ValueError, TypeError, AttributeError, IndexError) as exc:
+            raise CheckpointError(f"{where}: checkpoint does not fit this run "
+                                  f"({type(exc).__name__}: "
+                                  f"{printable(str(exc).splitlines()[0] if str(exc) else '', 200)})"
+                                  ) from None
+        if not np.array_equal(obs, last_obs):
             raise CheckpointError(f"{where}: replaying the env state did not reproduce the saved "
                                   "observation (scene files or SUMO changed?)")
         m._last_obs = obs
-        _set_rng_state(rng)
+        try:
+            _set_rng_state(rng)
+        except (RuntimeError, ValueError, TypeError) as exc:
+            raise CheckpointError(f"{where}: checkpoint rng does not fit ({type(exc).__name__}: "
+                                  f"{printable(str(exc), 200)})") from None
 
     def save(self, run_dir: Path) -> Path:
         d = run_dir / "checkpoints"
