@@ -3,13 +3,18 @@
 Every key of a YAML file must name a field of the target dataclass (nested dataclasses for
 nested mappings) and every value must have the field's type; anything else is refused with a
 :class:`ConfigError` naming the file, the key path and the problem. Nothing is guessed or
-silently ignored.
+silently ignored. Numbers must be finite (no ``.nan`` / ``.inf``); value ranges are checked by
+the dataclasses' ``__post_init__`` (raising :class:`FieldError`, reported with the dotted key).
+The YAML must be UTF-8 text of at most :data:`MAX_CONFIG_BYTES`, with no duplicate keys and no
+aliases (``*name``: a few hundred bytes of nested aliases expand to gigabytes). Error messages
+are one line of bounded length.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import platform
 import subprocess
 import sys
@@ -26,8 +31,93 @@ from magail_sumo.errors import MagailSumoError
 T = TypeVar("T")
 
 
+#: largest config file read (bytes)
+MAX_CONFIG_BYTES = 1 << 20
+#: longest :class:`ConfigError` message :func:`load_config` gives (characters)
+MAX_MESSAGE = 400
+
+
 class ConfigError(MagailSumoError):
     """A configuration file or value is invalid."""
+
+
+class FieldError(ValueError):
+    """A config value out of range, raised by a config dataclass's ``__post_init__``;
+    :func:`from_dict` reports it as a :class:`ConfigError` naming the dotted key.
+
+    :param key: the field (dotted for a field of a nested config, e.g. ``limits.max_accel``).
+    :param problem: what is wrong (e.g. ``must be >= 1, got 0``).
+    """
+
+    def __init__(self, key: str, problem: str) -> None:
+        self.key, self.problem = key, problem
+        super().__init__(f"{key}: {problem}")
+
+
+def show(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` for a one-line message (control characters escaped, cut to ``limit``)."""
+    from magail_sumo.outputs import printable
+
+    return printable(repr(value), limit)
+
+
+def check(ok: bool, key: str, problem: str) -> None:
+    """:class:`FieldError` ``key: problem`` unless ``ok``."""
+    if not ok:
+        raise FieldError(key, problem)
+
+
+def check_positive(obj: Any, *names: str, allow_zero: bool = False) -> None:
+    """Each named field of ``obj`` > 0 (>= 0 with ``allow_zero``); None is skipped."""
+    for name in names:
+        v = getattr(obj, name)
+        if v is None:
+            continue
+        check(v >= 0 if allow_zero else v > 0, name,
+              f"must be {'>= 0' if allow_zero else '> 0'}, got {show(v)}")
+
+
+def check_sizes(obj: Any, *names: str) -> None:
+    """Each named field of ``obj`` (a tuple of layer sizes) holds only ints >= 1."""
+    for name in names:
+        for v in getattr(obj, name):
+            check(v >= 1, name, f"layer sizes must be >= 1, got {show(v)}")
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing duplicate keys and aliases."""
+
+    def compose_node(self, parent, index):  # type: ignore[no-untyped-def]
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.constructor.ConstructorError(
+                None, None, f"aliases (*{event.anchor}) are not allowed in a config",
+                event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):  # type: ignore[no-untyped-def]
+        if isinstance(node, yaml.MappingNode):
+            seen: set = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    dup = key in seen
+                    seen.add(key)
+                except TypeError:  # unhashable key: the base class reports it
+                    continue
+                if dup:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {show(key)}", key_node.start_mark)
+        return super().construct_mapping(node, deep)
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    if isinstance(exc, yaml.MarkedYAMLError):
+        what = " ".join(str(exc.problem or exc.context or "syntax error").split())
+        mark = exc.problem_mark or exc.context_mark
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        return f"{what}{where}"
+    return " ".join(str(exc).split())
 
 
 def _type_name(tp: Any) -> str:
@@ -53,10 +143,10 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(errors[0] if len(errors) == 1 else
-                          f"{path}: {value!r} matches none of {_type_name(tp)}")
+                          f"{path}: {show(value)} matches none of {_type_name(tp)}")
     if origin is typing.Literal:
-        if value not in args:
-            raise ConfigError(f"{path}: {value!r} is not one of {list(args)}")
+        if not isinstance(value, typing.Hashable) or value not in args:
+            raise ConfigError(f"{path}: {show(value)} is not one of {list(args)}")
         return value
     if origin in (tuple, list):
         if not isinstance(value, (list, tuple)):
@@ -67,27 +157,35 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if origin is dict:
         if not isinstance(value, dict):
             raise ConfigError(f"{path}: expected a mapping, got {type(value).__name__}")
-        return {k: _coerce(v, args[1], f"{path}.{k}") for k, v in value.items()} if args else value
+        return {k: _coerce(v, args[1], f"{path}.{k if isinstance(k, str) and is_plain_key(k) else show(k)}") for k, v in value.items()} if args else value
     if tp is Any:
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path}: expected a number, got {value!r}")
-        return float(value)
+            raise ConfigError(f"{path}: expected a number, got {show(value)}")
+        try:
+            value = float(value)
+        except OverflowError:
+            value = math.inf
+        if not math.isfinite(value):
+            raise ConfigError(f"{path}: expected a finite number, got {show(value)}")
+        return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {value!r}")
+            raise ConfigError(f"{path}: expected an integer, got {show(value)}")
+        if abs(value) >= 1 << 63:
+            raise ConfigError(f"{path}: integer out of range, got {show(value)}")
         return value
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path}: expected true or false, got {value!r}")
+            raise ConfigError(f"{path}: expected true or false, got {show(value)}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path}: expected a string, got {value!r}")
+            raise ConfigError(f"{path}: expected a string, got {show(value)}")
         return value
     if isinstance(tp, type) and not isinstance(value, tp):
-        raise ConfigError(f"{path}: expected {_type_name(tp)}, got {value!r}")
+        raise ConfigError(f"{path}: expected {_type_name(tp)}, got {show(value)}")
     return value
 
 
@@ -97,31 +195,56 @@ def from_dict(cls: type[T], data: dict[str, Any], path: str = "") -> T:
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     kwargs = {}
     for key, value in data.items():
-        where = f"{path}.{key}" if path else str(key)
-        if key not in fields:
+        name = key if isinstance(key, str) and is_plain_key(key) else show(key)
+        where = f"{path}.{name}" if path else name
+        if not isinstance(key, str) or key not in fields:
             raise ConfigError(f"{where}: unknown key (known: {', '.join(sorted(fields))})")
         kwargs[key] = _coerce(value, hints[key], where)
     try:
         return cls(**kwargs)
+    except FieldError as exc:
+        raise ConfigError(f"{path + '.' if path else ''}{exc.key}: {exc.problem}") from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{path or cls.__name__}: {exc}") from None
+
+
+def is_plain_key(key: str) -> bool:
+    """A key shown as is in messages (short, printable, no spaces)."""
+    return 0 < len(key) <= 60 and key.isprintable() and " " not in key
+
+
+def _cap(message: str) -> str:
+    message = " ".join(message.split())
+    return message if len(message) <= MAX_MESSAGE else message[:MAX_MESSAGE - 3] + "..."
 
 
 def load_config(path: str | PathLike, cls: type[T]) -> T:
     """Load a YAML file into dataclass ``cls``; errors name the file and key."""
     p = Path(path)
     try:
-        data = yaml.safe_load(p.read_text()) or {}
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{p}: too large for a config (over {MAX_CONFIG_BYTES} bytes)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset "
+                          f"{exc.start}); a config is a YAML text file") from None
+    try:
+        data = yaml.load(text, Loader=_StrictLoader) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML ({' '.join(str(exc).split())})") from None
+        raise ConfigError(_cap(f"{p}: not valid YAML ({_yaml_problem(exc)})")) from None
+    except RecursionError:
+        raise ConfigError(f"{p}: not valid YAML (nested too deeply)") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping at the top level")
     try:
         return from_dict(cls, data)
     except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc}") from None
+        raise ConfigError(_cap(f"{p}: {exc}")) from None
 
 
 def to_dict(config: Any) -> dict[str, Any]:

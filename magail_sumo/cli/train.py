@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     import warnings
 
     from magail_sumo.config import load_config
-    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.config import TrainConfig, check_train_config
     from magail_sumo.training.trainer import train
 
     warnings.filterwarnings("ignore", message=".*mini-batch size.*")
@@ -85,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         from dataclasses import replace
 
         cfg = replace(cfg, seed=args.seed)
+    check_train_config(cfg, args.config)  # device, scene files, start_step: before any set-up
     if args.overwrite and args.run_dir is not None and args.resume is None:
         _clear_run_dir(args.run_dir)
     bars = _Bars()

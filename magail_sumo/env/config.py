@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+
+from magail_sumo.config import check, check_positive, show
 
 from magail_sumo.sensors.observation import ObservationConfig
 from magail_sumo.sim.dynamics import ACTION_LAYOUTS, BicycleLimits
@@ -49,15 +52,39 @@ class EnvConfig:
     action_layout: str = "accel_steer"
 
     def __post_init__(self) -> None:
-        if self.action_layout not in ACTION_LAYOUTS:
-            raise ValueError(f"action_layout must be one of {ACTION_LAYOUTS}, "
-                             f"got {self.action_layout!r}")
-        if not (self.controlled in ("all", "sdc", "tracks_to_predict")
-                or (isinstance(self.controlled, int) and self.controlled > 0)):
-            raise ValueError("controlled must be 'all', 'sdc', 'tracks_to_predict' or a positive "
-                             f"int, got {self.controlled!r}")
-        if self.background not in ("log", "sumo"):
-            raise ValueError(f"background must be 'log' or 'sumo', got {self.background!r}")
+        check(self.action_layout in ACTION_LAYOUTS, "action_layout",
+              f"must be one of {ACTION_LAYOUTS}, got {show(self.action_layout)}")
+        check(self.controlled in ("all", "sdc", "tracks_to_predict")
+              or (isinstance(self.controlled, int) and not isinstance(self.controlled, bool)
+                  and self.controlled > 0), "controlled",
+              "must be 'all', 'sdc', 'tracks_to_predict' or a positive int, got "
+              f"{show(self.controlled)}")
+        check(self.background in ("log", "sumo"), "background",
+              f"must be 'log' or 'sumo', got {show(self.background)}")
         bad = set(self.terminate_on) - set(EVENTS)
-        if bad:
-            raise ValueError(f"unknown events in terminate_on: {sorted(bad)}")
+        check(not bad, "terminate_on", f"unknown events {sorted(bad)} (events: {list(EVENTS)})")
+        check_positive(self, "lane_width")
+        check_positive(self, "off_road_margin", "destination_radius", "start_step",
+                       allow_zero=True)
+        check(self.max_steps is None or self.max_steps >= 1, "max_steps",
+              f"must be >= 1 (or null: to the end of the log), got {self.max_steps}")
+        check(len(self.render_size) == 2 and min(self.render_size) >= 1, "render_size",
+              f"must be (height, width) >= 1, got {show(self.render_size)}")
+        lim = self.limits
+        for name in ("max_accel", "max_brake", "max_steer", "max_speed", "max_reverse_speed"):
+            v = getattr(lim, name)
+            ok = math.isfinite(v) and (v >= 0 if name == "max_reverse_speed" else v > 0)
+            check(ok, f"limits.{name}", f"must be {'>= 0' if name == 'max_reverse_speed' else '> 0'}"
+                  f", got {show(v)}")
+        obs = self.observation
+        for name in ("lidar", "side", "lane_line"):
+            beam = getattr(obs, name)
+            key = f"observation.{name}"
+            check(0 <= beam.beams <= 4096, f"{key}.beams",
+                  f"must be in [0, 4096], got {show(beam.beams)}")
+            check(math.isfinite(beam.range) and beam.range > 0, f"{key}.range",
+                  f"must be > 0, got {show(beam.range)}")
+            check(0 < beam.fov <= 2 * math.pi + 1e-9, f"{key}.fov",
+                  f"must be in (0, 2 pi], got {show(beam.fov)}")
+        check(math.isfinite(obs.lane_cell) and obs.lane_cell > 0, "observation.lane_cell",
+              f"must be > 0, got {show(obs.lane_cell)}")

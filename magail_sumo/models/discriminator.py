@@ -35,6 +35,20 @@ class TransformerConfig:
     dropout: float = 0.1
     pooling: str = "mean"  # "mean" over present tokens, or "cls"
 
+    def __post_init__(self) -> None:
+        from magail_sumo.config import FieldError
+
+        for name in ("embed_dim", "num_layers", "num_heads", "ff_dim"):
+            if getattr(self, name) < 1:
+                raise FieldError(name, f"must be >= 1, got {getattr(self, name)}")
+        if self.embed_dim % self.num_heads:
+            raise FieldError("num_heads", f"must divide embed_dim ({self.embed_dim}), "
+                             f"got {self.num_heads}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise FieldError("dropout", f"must be in [0, 1), got {self.dropout}")
+        if self.pooling not in ("mean", "cls"):
+            raise FieldError("pooling", f"must be 'mean' or 'cls', got {self.pooling!r}"[:120])
+
 
 def set_encoder(embed_dim: int, num_heads: int, ff_dim: int, dropout: float, num_layers: int
                 ) -> nn.TransformerEncoder:

@@ -1,13 +1,18 @@
 """Training configuration (``configs/*.yaml``), loaded strictly by :func:`magail_sumo.config.load_config`.
 
-Every hyperparameter of a run lives here; unknown keys and wrong types are refused naming the key.
+Every hyperparameter of a run lives here; unknown keys, wrong types and values out of range
+(checked in each dataclass's ``__post_init__``) are refused naming the key.
+:func:`check_train_config` adds the checks that need the machine or the scene files (device
+available, scene files readable, ``env.start_step`` inside every scene), before any set-up.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from os import PathLike
 from typing import Literal
 
+from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.discriminator import TransformerConfig
@@ -29,6 +34,10 @@ class ScenesConfig:
     networks: str = "networks"
     worker_timeout_s: float = 120.0
     pin_workers: bool = False
+
+    def __post_init__(self) -> None:
+        check(len(self.files) > 0, "files", "needs at least one scene file")
+        check_positive(self, "worker_timeout_s")
 
 
 @dataclass(frozen=True)
@@ -54,8 +63,9 @@ class PolicyConfig:
     critic_transformer: CriticTransformerConfig = field(default_factory=CriticTransformerConfig)
 
     def __post_init__(self) -> None:
-        if self.critic not in ("mlp", "transformer"):
-            raise ValueError(f"critic must be 'mlp' or 'transformer', got {self.critic!r}")
+        check(self.critic in ("mlp", "transformer"), "critic",
+              f"must be 'mlp' or 'transformer', got {show(self.critic)}")
+        check_sizes(self, "actor_hidden", "critic_hidden")
 
 
 @dataclass(frozen=True)
@@ -82,6 +92,19 @@ class PPOConfig:
     desired_kl: float | None = 0.01
     lr_min: float = 1e-5
     lr_max: float = 1e-2
+
+    def __post_init__(self) -> None:
+        for name in ("n_steps", "batch_size", "n_epochs"):
+            check(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
+        check_positive(self, "learning_rate", "max_grad_norm", "desired_kl", "lr_min", "lr_max")
+        check_positive(self, "vf_coef", allow_zero=True)
+        for name in ("gamma", "gae_lambda"):
+            v = getattr(self, name)
+            check(0.0 <= v <= 1.0, name, f"must be in [0, 1], got {show(v)}")
+        check(0.0 < self.clip_range <= 1.0, "clip_range",
+              f"must be in (0, 1], got {show(self.clip_range)}")
+        check(self.lr_max >= self.lr_min, "lr_max",
+              f"must be >= lr_min ({self.lr_min:g}), got {self.lr_max:g}")
 
 
 @dataclass(frozen=True)
@@ -119,8 +142,14 @@ class DiscriminatorConfig:
     ignore_features: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.kind not in ("transformer", "mlp"):
-            raise ValueError(f"discriminator kind must be 'transformer' or 'mlp', got {self.kind!r}")
+        check(self.kind in ("transformer", "mlp"), "kind",
+              f"must be 'transformer' or 'mlp', got {show(self.kind)}")
+        check_sizes(self, "mlp_hidden")
+        check_positive(self, "learning_rate", "batch_size")
+        check_positive(self, "weight_decay", "epochs", "gp_coef", "logit_reg",
+                       "collision_penalty", "off_road_penalty", allow_zero=True)
+        check(0.0 < self.reward_floor < 1.0, "reward_floor",
+              f"must be in (0, 1), got {show(self.reward_floor)}")
 
 
 @dataclass(frozen=True)
@@ -133,6 +162,10 @@ class BCConfig:
     epochs: int = 0
     batch_size: int = 256
     learning_rate: float = 1e-3
+
+    def __post_init__(self) -> None:
+        check_positive(self, "epochs", allow_zero=True)
+        check_positive(self, "batch_size", "learning_rate")
 
 
 @dataclass(frozen=True)
@@ -167,7 +200,76 @@ class TrainConfig:
     bc: BCConfig = field(default_factory=BCConfig)
 
     def __post_init__(self) -> None:
-        if self.algorithm not in ("gail", "bc"):
-            raise ValueError(f"algorithm must be 'gail' or 'bc', got {self.algorithm!r}")
-        if self.updates < 0 or self.checkpoint_every < 1:
-            raise ValueError("updates must be >= 0 and checkpoint_every >= 1")
+        check(self.algorithm in ("gail", "bc"), "algorithm",
+              f"must be 'gail' or 'bc', got {show(self.algorithm)}")
+        check(self.updates >= 0, "updates", f"must be >= 0, got {self.updates}")
+        check(self.checkpoint_every >= 1, "checkpoint_every",
+              f"must be >= 1, got {self.checkpoint_every}")
+        check(0 <= self.seed < 1 << 32, "seed", f"must be in [0, 2**32), got {self.seed}")
+        check(self.torch_threads >= 1, "torch_threads", f"must be >= 1, got {self.torch_threads}")
+        check(self.torch_threads_update is None or self.torch_threads_update >= 1,
+              "torch_threads_update", f"must be >= 1, got {self.torch_threads_update}")
+        _check_device_name(self.device)
+
+
+def _check_device_name(device: str) -> None:
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError, TypeError):
+        raise FieldError("device", f"not a torch device, got {show(device)} "
+                         "(e.g. 'cpu', 'cuda', 'cuda:0')") from None
+    check(dev.type in ("cpu", "cuda", "mps"), "device",
+          f"must be a cpu, cuda or mps device, got {show(device)}")
+
+
+def check_device(device: str) -> None:
+    """:class:`FieldError` unless ``device`` exists on this machine."""
+    import torch
+
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        check(n > 0, "device", f"{show(device)}: no CUDA device available")
+        check(dev.index is None or dev.index < n, "device",
+              f"{show(device)}: not available ({n} CUDA device{'s' if n != 1 else ''}: "
+              f"cuda:0{f' .. cuda:{n - 1}' if n > 1 else ''})")
+    elif dev.type == "mps":
+        check(torch.backends.mps.is_available(), "device", f"{show(device)}: not available")
+
+
+def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -> None:
+    """Checks of ``cfg`` that need this machine and the scene files, before any set-up:
+    the device exists, every scene file is readable and ``env.start_step`` leaves at least one
+    step in each of its scenes. :class:`ConfigError` naming ``source`` (the config file) and
+    the key."""
+    from pathlib import Path
+
+    from magail_sumo.errors import MagailSumoError
+
+    where = f"{source}: " if source is not None else ""
+    try:
+        check_device(cfg.device)
+    except FieldError as exc:
+        raise ConfigError(f"{where}{exc.key}: {exc.problem}") from None
+    if cfg.algorithm == "bc":
+        return
+    from converters import iter_scenes
+
+    for i, f in enumerate(cfg.scenes.files):
+        key = f"scenes.files[{i}]"
+        if not Path(f).is_file():
+            raise ConfigError(f"{where}{key}: {show(f, 200)}: no such file")
+        try:
+            for scene in iter_scenes(f):
+                if cfg.env.start_step > scene.num_steps - 2:
+                    raise ConfigError(
+                        f"{where}env.start_step: {cfg.env.start_step} leaves no step to take in "
+                        f"scene {show(scene.scenario_id)} of {f} ({scene.num_steps} steps)")
+        except ConfigError:
+            raise
+        except (MagailSumoError, OSError, ValueError) as exc:
+            msg = " ".join(str(exc).split())
+            raise ConfigError(f"{where}{key}: cannot read the scenes ({show(msg, 200)[1:-1]})"
+                              ) from None

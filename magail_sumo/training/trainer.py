@@ -39,7 +39,7 @@ from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscri
 from magail_sumo.models.policies import TanhGaussianPolicy
 from magail_sumo.sensors.observation import observation_bounds, observation_names
 
-from .config import TrainConfig
+from .config import TrainConfig, check_train_config
 
 CHECKPOINT_FORMAT = "magail_sumo.checkpoint/2"
 #: formats written by earlier versions (pickled numpy objects: unsafe to load)
@@ -387,6 +387,7 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
     :param progress: called as ``progress(phase, done, total)`` after every behavioural-cloning
         epoch (phase ``"bc"``) and PPO update (phase ``"updates"``), e.g. for a progress bar.
     """
+    check_train_config(cfg)
     ckpt = None
     if resume is not None:
         rd = Path(resume)
@@ -477,6 +478,12 @@ class GailRun:
                                      timeout_s=cfg.scenes.worker_timeout_s,
                                      pin_workers=cfg.scenes.pin_workers)
         try:
+            p = cfg.ppo
+            rollout = p.n_steps * self.venv.num_envs
+            if p.batch_size > rollout:
+                raise ConfigError(f"ppo.batch_size: {p.batch_size} is larger than a rollout "
+                                  f"(ppo.n_steps {p.n_steps} x {self.venv.num_envs} agent slots "
+                                  f"of the scenes = {rollout} agent-steps)")
             d = cfg.discriminator
             self.discriminator = make_discriminator(cfg, 2 * self.venv.obs_dim)
             self.wrapper = DiscriminatorRewardWrapper(self.venv, self.discriminator,
@@ -488,7 +495,6 @@ class GailRun:
                 self.discriminator, expert, d.epochs, d.batch_size, d.learning_rate,
                 d.weight_decay, DiscriminatorLossConfig(d.gp_coef, d.logit_reg), cfg.seed,
                 cfg.device)
-            p = cfg.ppo
             self.model = MaskedPPO(
                 TanhGaussianPolicy, self.wrapper, learning_rate=p.learning_rate,
                 n_steps=p.n_steps, batch_size=p.batch_size, n_epochs=p.n_epochs, gamma=p.gamma,
