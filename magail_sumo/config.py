@@ -55,10 +55,10 @@ class FieldError(ValueError):
 
 
 def show(value: Any, limit: int = 60) -> str:
-    """``repr(value)`` for a one-line message (control characters escaped, cut to ``limit``)."""
-    from magail_sumo.outputs import printable
-
-    return printable(repr(value), limit)
+    """``repr(value)`` for a one-line message (repr escapes control characters), cut to
+    ``limit``."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def check(ok: bool, key: str, problem: str) -> None:

@@ -135,6 +135,11 @@ def test_format1_refused_and_trusted_upgrade(setup, tmp_path):
     assert load_checkpoint(new)["format"] == CHECKPOINT_FORMAT
     policy, cfg = load_policy(new)
     assert cfg.algorithm == "bc"
+    # the CLI: refused without --trust, in place with it
+    assert main(["train", "--upgrade-checkpoint", str(old)]) == 1
+    assert main(["train", "--upgrade-checkpoint", str(old), "--trust"]) == 0
+    assert load_checkpoint(old)["format"] == CHECKPOINT_FORMAT
+    assert main(["train"]) == 1  # --config still needed to train
 
 
 def _edited(run: Path, tmp_path: Path, edit) -> Path:

@@ -13,7 +13,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description="Train from a strict YAML config (configs/magail.yaml, "
                                    "configs/gail_mlp.yaml, configs/bc.yaml); the run directory "
                                    "gets config.yaml, environment.json, checkpoints/ and tb/.")
-    p.add_argument("--config", required=True, type=Path, metavar="YAML", help="training config")
+    p.add_argument("--config", type=Path, metavar="YAML",
+                   help="training config (required unless --upgrade-checkpoint)")
     p.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue a run from RUN_DIR/checkpoints/latest.pt")
     p.add_argument("--run-dir", type=Path, default=None, metavar="DIR",
@@ -23,6 +24,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run in --run-dir: removes only what train wrote "
                         "there (a folder train did not write is refused)")
+    p.add_argument("--upgrade-checkpoint", type=Path, default=None, metavar="FILE",
+                   help="convert a checkpoint written by magail_sumo < checkpoint format 2 "
+                        "(pickled numpy objects) in place and exit; loading it can run code "
+                        "the file holds, so it needs --trust: only for a file you trust")
+    p.add_argument("--trust", action="store_true",
+                   help="with --upgrade-checkpoint: the file is trusted")
     p.set_defaults(func=run)
 
 
@@ -79,6 +86,15 @@ def run(args: argparse.Namespace) -> int:
     from magail_sumo.training.config import TrainConfig, check_train_config
     from magail_sumo.training.trainer import train
 
+    from magail_sumo.errors import MagailSumoError
+
+    if args.upgrade_checkpoint is not None:
+        from magail_sumo.training.trainer import upgrade_checkpoint
+
+        print(f"upgraded: {upgrade_checkpoint(args.upgrade_checkpoint, trust=args.trust)}")
+        return 0
+    if args.config is None:
+        raise MagailSumoError("train: --config is required")
     warnings.filterwarnings("ignore", message=".*mini-batch size.*")
     cfg = load_config(args.config, TrainConfig)
     if args.seed is not None:

@@ -142,7 +142,7 @@ def load_checkpoint(path: str | Path) -> dict:
             raise CheckpointError(
                 f"{p}: checkpoint written by an older magail_sumo version in an unsafe format "
                 "(pickled numpy objects); refused (convert a file you trust with "
-                "magail_sumo.training.trainer.upgrade_checkpoint)") from None
+                "magail-sumo train --upgrade-checkpoint FILE --trust)") from None
         found = re.search(r"GLOBAL ([\w.]+)|global[:\s]+([\w.]+)", str(exc))
         if found:
             raise CheckpointError(f"{p}: refused: the file holds {printable(found[1] or found[2], 80)}"
@@ -176,7 +176,7 @@ def upgrade_checkpoint(path: str | Path, out: str | Path | None = None, *,
     p = Path(path)
     if not trust:
         raise CheckpointError(f"{p}: converting a format-1 checkpoint runs the code it may "
-                              "contain; pass trust=True only for a file you trust")
+                              "contain; only for a file you trust (--trust)")
     try:
         state = torch.load(p, map_location="cpu", weights_only=False)
     except Exception as exc:  # noqa: BLE001
