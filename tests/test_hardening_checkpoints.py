@@ -251,3 +251,11 @@ def test_new_run_refuses_a_foreign_folder(setup, tmp_path):
         train(replace(cfg, algorithm="bc"), run_dir=d, log=lambda s: None)
     assert sorted(p.name for p in d.iterdir()) == ["x.txt"]
     np.testing.assert_equal((d / "x.txt").read_text(), "x")
+
+
+def test_failed_set_up_leaves_no_run_dir(setup, tmp_path):
+    _, cfg, _ = setup
+    with pytest.raises(Exception):
+        train(replace(cfg, algorithm="bc", expert_dir=str(tmp_path / "no_expert")),
+              run_dir=tmp_path / "run", log=lambda s: None)
+    assert not (tmp_path / "run").exists()

@@ -274,14 +274,15 @@ def _run_dir(cfg: TrainConfig, name: str | None) -> Path:
     return Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
 
 
-def claim_run_dir(d: Path) -> Path:
-    """Make ``d`` the directory of a new run (marked as ``train``'s, see
-    :func:`~magail_sumo.outputs.claim_output_dir`).
+def check_run_dir(d: Path) -> Path:
+    """Check ``d`` can be the directory of a new run (:func:`claim_run_dir` marks it later).
 
     Refused when it holds a run (use ``--resume`` or ``--overwrite``) or is a non-empty folder
     magail_sumo did not write. A folder marked by ``train`` that holds none of
     :data:`RUN_OUTPUTS` (an overwritten run next to files of the user's) is reused.
     """
+    if d.exists() and not d.is_dir():
+        raise MagailSumoError(f"{d}: exists and is not a folder")
     if d.is_dir() and any(d.iterdir()):
         marker = read_marker(d)
         if marker is not None and any((d / n).exists() for n in RUN_OUTPUTS):
@@ -290,6 +291,14 @@ def claim_run_dir(d: Path) -> Path:
         if marker is None:
             raise MagailSumoError(f"{d}: run directory exists, is not empty and was not written "
                                   "by magail-sumo train (choose a new or empty folder)")
+    return d
+
+
+def claim_run_dir(d: Path, resumed: bool) -> Path:
+    """Mark ``d`` as ``train``'s output folder (:func:`~magail_sumo.outputs.claim_output_dir`,
+    listing :data:`RUN_OUTPUTS`); a resumed run written before markers existed stays as it is."""
+    if resumed and read_marker(d) is None:
+        return d
     return claim_output_dir(d, "train", RUN_OUTPUTS)
 
 
@@ -391,11 +400,13 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
     ckpt = None
     if resume is not None:
         rd = Path(resume)
-        ckpt = load_checkpoint(rd / "checkpoints" / "latest.pt")
-        _check_resume_config(cfg, ckpt["config"], rd / "checkpoints" / "latest.pt")
+        where = rd / "checkpoints" / "latest.pt"
+        ckpt = load_checkpoint(where)
+        checkpoint_config(ckpt, where)  # a valid config, or an error naming the file
+        _check_resume_config(cfg, ckpt["config"], where)
         run_dir = rd
     else:
-        run_dir = claim_run_dir(Path(run_dir) if run_dir is not None else _run_dir(cfg, None))
+        run_dir = check_run_dir(Path(run_dir) if run_dir is not None else _run_dir(cfg, None))
     torch.set_num_threads(max(1, cfg.torch_threads))
     _seed_everything(cfg.seed)
     expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
@@ -412,6 +423,7 @@ def _train_bc(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: dict
     if ckpt is not None:
         log(f"{run_dir}: behavioural cloning run already complete")
         return run_dir
+    claim_run_dir(run_dir, resumed=False)
     record_run(run_dir, cfg)
     policy = make_policy(cfg)
     policy.obs_normalizer.update(torch.as_tensor(expert.s))
@@ -545,8 +557,7 @@ class GailRun:
             rng = _decode_rng(state["rng"])
             last_obs = _tensor(state["last_obs"], "last_obs").numpy()
             starts = _tensor(state["last_episode_starts"], "last_episode_starts").numpy()
-            env_state = [(int(ep), list(_tensor(acts, "env_state actions").numpy()))
-                         for ep, acts in state["env_state"]]
+            env_state = self._decode_env_state(state["env_state"])
             agent_steps, episodes = (int(v) for v in state["env_counters"])
             lr, timesteps = float(state["learning_rate"]), int(state["num_timesteps"])
             n_updates, update = int(state["n_updates"]), int(state["update"])
@@ -574,6 +585,10 @@ class GailRun:
             self.venv.agent_steps, self.venv.episodes = agent_steps, episodes
             m._last_episode_starts = starts
             self.update = update
+        except MagailSumoError as exc:  # a scene worker failed replaying the actions
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise CheckpointError(f"{where}: replaying the env state failed "
+                                  f"({printable(first, 200)})") from None
         except KeyError as exc:
             raise CheckpointError(f"{where}: checkpoint lacks {printable(str(exc.args[0]), 60)}"
                                   ) from None
@@ -591,6 +606,24 @@ class GailRun:
         except (RuntimeError, ValueError, TypeError) as exc:
             raise CheckpointError(f"{where}: checkpoint rng does not fit ({type(exc).__name__}: "
                                   f"{printable(str(exc), 200)})") from None
+
+    def _decode_env_state(self, saved: Any) -> list[tuple[int, list[np.ndarray]]]:
+        """The checkpoint's env state as :meth:`MultiSceneVecEnv.set_state` takes it;
+        ValueError / TypeError when it does not fit the env's scenes."""
+        if not isinstance(saved, (list, tuple)) or len(saved) != len(self.venv.slots):
+            raise ValueError(f"env_state does not hold {len(self.venv.slots)} scenes")
+        out = []
+        for k, (ep, acts) in enumerate(saved):
+            acts = _tensor(acts, "env_state actions")
+            if not isinstance(ep, int) or not 0 <= ep < 1 << 31:
+                raise ValueError(f"env_state scene {k}: bad episode index")
+            if acts.numel() and (acts.dtype != torch.float32 or acts.dim() != 3
+                                 or tuple(acts.shape[1:]) != (self.venv.slots[k], 2)
+                                 or not bool(torch.isfinite(acts).all())):
+                raise ValueError(f"env_state scene {k}: actions are not finite float32 "
+                                 f"(steps, {self.venv.slots[k]}, 2)")
+            out.append((ep, list(acts.numpy()) if acts.numel() else []))
+        return out
 
     def save(self, run_dir: Path) -> Path:
         d = run_dir / "checkpoints"
@@ -629,6 +662,7 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                 behavioural_cloning(run.policy, expert, cfg.bc.epochs, cfg.bc.batch_size,
                                     cfg.bc.learning_rate, cfg.seed,
                                     log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))
+        claim_run_dir(run_dir, resumed=ckpt is not None)
         record_run(run_dir, cfg)
         run.model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
         while run.update < cfg.updates:
