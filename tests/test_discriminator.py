@@ -117,6 +117,5 @@ def test_make_discriminator_masks_named_features_in_s_and_s_next():
     off = torch.nonzero(disc.feature_mask == 0).flatten().tolist()
     a, s = names.index("prev_accel"), names.index("prev_steer")
     assert off == sorted([a, s, len(names) + a, len(names) + s])
-    bad = from_dict(TrainConfig, {"discriminator": {"ignore_features": ["prev_brake"]}})
     with pytest.raises(ConfigError, match="ignore_features: unknown observation feature"):
-        make_discriminator(bad, 2 * len(names))
+        from_dict(TrainConfig, {"discriminator": {"ignore_features": ["prev_brake"]}})

@@ -52,6 +52,8 @@ def _refused(tmp_path: Path, text: str, pattern: str) -> str:
     ("updates: -1\n", r"updates: must be >= 0"),
     ("seed: -5\n", r"seed: must be in"),
     ("ppo:\n  gamma: 1.5\n", r"ppo\.gamma: must be in \[0, 1\]"),
+    ("discriminator:\n  ignore_features: [prev_acel]\n",
+     r"discriminator\.ignore_features: unknown observation feature\(s\) \['prev_acel'\]"),
 ])
 def test_out_of_range_values_refused_naming_file_and_key(tmp_path, text, pattern):
     _refused(tmp_path, text, pattern)

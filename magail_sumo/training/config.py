@@ -210,6 +210,14 @@ class TrainConfig:
         check(self.torch_threads_update is None or self.torch_threads_update >= 1,
               "torch_threads_update", f"must be >= 1, got {self.torch_threads_update}")
         _check_device_name(self.device)
+        if self.discriminator.ignore_features:
+            from magail_sumo.sensors.observation import observation_names
+
+            names = observation_names(self.env.observation)
+            unknown = [f for f in self.discriminator.ignore_features if f not in names]
+            check(not unknown, "discriminator.ignore_features",
+                  f"unknown observation feature(s) {show(unknown, 120)} (features are "
+                  f"{', '.join(names[:8])}, ...)")
 
 
 def _check_device_name(device: str) -> None:
