@@ -24,6 +24,13 @@ BIKE_WIDTH = 1.8  #: m
 CROSS_ANGLE = np.radians(20.0)
 MAX_VIA = 4  #: longest chain of junction lanes folded into one connection
 MIN_PIECE = 4.0  #: m, shortest edge piece cut out of a lane at a neighbour boundary
+#: search steps (lanes looked at) of the exhaustive junction path search from one road lane
+#: before it falls back to shortest paths (the bundled recorded scenes need under 50)
+MAX_PATH_EXPANSIONS = 20_000
+
+
+class TimeBudgetExceeded(RuntimeError):
+    """A conversion ran past its time budget (see ``ConvertOptions.time_budget_s``)."""
 
 
 @dataclass
@@ -129,8 +136,52 @@ def _lane_width(lane: Lane, lanes: dict[int, Lane]) -> float:
     return float(np.clip(min(dists), 2.8, 4.5)) if dists else DEFAULT_WIDTH
 
 
-def plan_network(scene: Scene) -> NetworkPlan:
-    """Turn the scene's lanes into nodes, edges and connections (no lane silently dropped)."""
+def _shortest_paths(start: int, exits: dict[int, list[int]], junction: set[int]
+                    ) -> list[tuple[int, tuple[int, ...]]]:
+    """One shortest junction path (at most :data:`MAX_VIA` junction lanes) from road lane
+    ``start`` to every road lane it reaches: breadth first over lanes, each junction lane
+    expanded once, so the cost is linear in the junction's connections."""
+    first = [e for e in exits[start] if e in junction]
+    prev: dict[int, tuple[int, ...]] = {}
+    frontier: list[tuple[int, tuple[int, ...]]] = []
+    for e in first:
+        if e not in prev:
+            prev[e] = (e,)
+            frontier.append((e, (e,)))
+    out: list[tuple[int, tuple[int, ...]]] = []
+    reached: set[int] = set()
+    while frontier:
+        nxt_frontier = []
+        for lane, via in frontier:
+            for nxt in exits[lane]:
+                if nxt not in junction:
+                    if nxt not in reached:
+                        reached.add(nxt)
+                        out.append((nxt, via))
+                elif nxt not in prev and len(via) < MAX_VIA:
+                    prev[nxt] = via + (nxt,)
+                    nxt_frontier.append((nxt, prev[nxt]))
+        frontier = nxt_frontier
+    return out
+
+
+def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
+    """Turn the scene's lanes into nodes, edges and connections (no lane silently dropped).
+
+    Junction paths are enumerated exhaustively (depth first, :data:`MAX_VIA` junction lanes at
+    most); from a road lane whose enumeration takes more than :data:`MAX_PATH_EXPANSIONS` steps
+    (a densely interconnected junction, never met in the recorded scenes) only one shortest
+    path per reached road lane is kept, and the lane is listed in ``unconverted``.
+
+    :param deadline: ``time.monotonic()`` value after which planning stops with
+        :class:`TimeBudgetExceeded` (None: no limit).
+    """
+    import time
+
+    def check_deadline() -> None:
+        if deadline is not None and time.monotonic() > deadline:
+            raise TimeBudgetExceeded("time budget exceeded")
+
     unconverted: list[dict] = []
     lanes: dict[int, Lane] = {}
     for lane in scene.roadmap.lanes:
@@ -151,11 +202,20 @@ def plan_network(scene: Scene) -> NetworkPlan:
     junction = {i for i, l in lanes.items() if l.interpolating} | signalled | _crossing_lanes(lanes)
     junction = {i for i in junction if entries[i] and exits[i]}
 
+    dense: set[int] = set()  # road lanes whose junction paths were cut to the shortest ones
+
     def paths_from(start: int) -> list[tuple[int, tuple[int, ...]]]:
-        """(road lane reached, junction lanes passed) for every junction path leaving ``start``."""
+        """(road lane reached, junction lanes passed) for every junction path leaving ``start``
+        (depth first); beyond :data:`MAX_PATH_EXPANSIONS` steps, see :func:`_shortest_paths`."""
+        check_deadline()
         out, stack = [], [(e, (e,)) for e in exits[start] if e in junction]
+        budget = MAX_PATH_EXPANSIONS
         while stack:
             lane, via = stack.pop()
+            budget -= len(exits[lane]) + 1
+            if budget < 0:
+                dense.add(start)
+                return _shortest_paths(start, exits, junction)
             for nxt in exits[lane]:
                 if nxt not in junction:
                     out.append((nxt, via))
@@ -174,6 +234,7 @@ def plan_network(scene: Scene) -> NetworkPlan:
             break
         junction = used
     road = [i for i in lanes if i not in junction]
+    dense.clear()
     jpaths = {i: sorted(paths_from(i), key=lambda p: len(p[1])) for i in road}
     arc = {i: _arc(lanes[i].polyline) for i in road}
     cuts, snap = _breakpoints(lanes, road, junction, arc)
@@ -293,6 +354,10 @@ def plan_network(scene: Scene) -> NetworkPlan:
     for c in connections:
         for v in c.via:
             node_of_lane.setdefault(v, edge_by_id[c.from_edge].to_node)
+    for i in sorted(dense):
+        unconverted.append({"kind": "lane", "id": int(i),
+                            "reason": f"densely connected junction (over {MAX_PATH_EXPANSIONS} "
+                                      "path search steps): only shortest junction paths kept"})
     for j in sorted(junction - represented):
         unconverted.append({"kind": "lane", "id": int(j),
                             "reason": "junction lane duplicates another connection between the same lanes"})

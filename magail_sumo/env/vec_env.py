@@ -490,24 +490,47 @@ class MultiSceneVecEnv(VecEnv):
 
 
 def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
-                convert_missing: bool = True) -> list[SceneSpec]:
+                convert_missing: bool = True, errors: list[str] | None = None,
+                time_budget_s: float | None = 600.0) -> list[SceneSpec]:
     """A :class:`SceneSpec` per scene of ``scene_files`` with its bundle under ``networks``
-    (``networks/<id>/``), converting the scenes that have none yet (baseline run skipped)."""
+    (``networks/<id>/``), converting the scenes that have none yet (baseline run skipped,
+    ``time_budget_s`` seconds each at most).
+
+    :param errors: when given, a scene (or file) that cannot be used is appended here as a
+        one-line reason and left out, instead of raising :class:`MagailSumoError`.
+    """
     from converters import iter_scenes
 
     networks = Path(networks)
     out = []
-    for f in scene_files:
-        for scene in iter_scenes(f):
-            sid = scene.scenario_id
-            folder = networks / sid
-            if not (folder / f"{sid}.sumocfg").is_file():
-                if not convert_missing:
-                    raise MagailSumoError(f"{folder}: no converted bundle for scene {sid}")
-                from converters.sumo.scenario import ConvertOptions, convert_scene
 
-                rep = convert_scene(scene, networks, ConvertOptions(baseline=False))
-                if rep.status != "ok":
-                    raise MagailSumoError(f"{f}: scene {sid} could not be converted: {rep.reason}")
-            out.append(SceneSpec(str(f), str(folder), sid))
+    def fail(msg: str) -> None:
+        if errors is None:
+            raise MagailSumoError(msg)
+        errors.append(msg)
+
+    for f in scene_files:
+        try:
+            for scene in iter_scenes(f):
+                sid = scene.scenario_id
+                folder = networks / sid
+                if not (folder / f"{sid}.sumocfg").is_file():
+                    if not convert_missing:
+                        fail(f"{folder}: no converted bundle for scene {sid}")
+                        continue
+                    from converters.sumo.scenario import ConvertOptions, convert_scene
+
+                    rep = convert_scene(scene, networks, ConvertOptions(
+                        baseline=False, time_budget_s=time_budget_s))
+                    if rep.status != "ok":
+                        fail(f"{f}: scene {sid} could not be converted: {rep.reason}")
+                        continue
+                out.append(SceneSpec(str(f), str(folder), sid))
+        except Exception as exc:  # noqa: BLE001 - an unreadable file
+            if errors is None:
+                raise
+            from magail_sumo.outputs import printable
+
+            errors.append(printable(f"{f}: " + (str(exc) if isinstance(exc, MagailSumoError)
+                                                 else f"{type(exc).__name__}: {exc}"), 400))
     return out
