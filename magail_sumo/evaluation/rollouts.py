@@ -269,9 +269,12 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
     return fill_constant_velocity(scene, ids, track)
 
 
-def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int
-                    ) -> tuple[np.ndarray, ...]:
-    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv."""
+def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
+                    counts: dict[str, int] | None = None) -> tuple[np.ndarray, ...]:
+    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv.
+
+    :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
+        actions) are added to it."""
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
     from magail_sumo.sim import dynamics
 
@@ -299,6 +302,9 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int
                     i, a = (np.array(s) for s in zip(*sel))
                     track.x[a, t], track.y[a, t] = nxt.x[i], nxt.y[i]
                     track.yaw[a, t], track.speed[a, t] = nxt.yaw[i], nxt.speed[i]
+        if counts is not None:
+            for k, v in env.action_counts.items():
+                counts[k] = counts.get(k, 0) + v
     finally:
         env.close()
     return fill_constant_velocity(scene, ids, track)
@@ -320,6 +326,7 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         ro = log_replay(scene, len(idx), N_STEPS)
         return ro
     xs, ys, yaws = [], [], []
+    counts: dict[str, int] = {}
     for r in idx:
         s = rollout_seed(seed, r)
         if method == "constvel":
@@ -330,10 +337,17 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         elif method == "sumo":
             x, y, yaw = _sumo_rollout(scene, Path(bundle_dir), s)
         else:
-            x, y, yaw = _policy_rollout(scene, Path(bundle_dir), make_policy(method, s), s)
+            x, y, yaw = _policy_rollout(scene, Path(bundle_dir), make_policy(method, s), s,
+                                        counts)
         xs.append(x)
         ys.append(y)
         yaws.append(yaw)
+    from magail_sumo.env.actions import action_summary
+
+    fixed = action_summary(counts)
+    if fixed:  # once per batch, in the run log
+        log(f"warning: scenario {scene.scenario_id}: method {method} rollout(s) "
+            f"{_span(tuple(idx))}: {fixed}")
     return _as_rollouts(scene, ids, xs, ys, yaws)
 
 
