@@ -137,32 +137,51 @@ def _lane_width(lane: Lane, lanes: dict[int, Lane]) -> float:
 
 
 def _shortest_paths(start: int, exits: dict[int, list[int]], junction: set[int]
-                    ) -> list[tuple[int, tuple[int, ...]]]:
-    """One shortest junction path (at most :data:`MAX_VIA` junction lanes) from road lane
-    ``start`` to every road lane it reaches: breadth first over lanes, each junction lane
-    expanded once, so the cost is linear in the junction's connections."""
-    first = [e for e in exits[start] if e in junction]
-    prev: dict[int, tuple[int, ...]] = {}
-    frontier: list[tuple[int, tuple[int, ...]]] = []
-    for e in first:
-        if e not in prev:
-            prev[e] = (e,)
-            frontier.append((e, (e,)))
+                    ) -> tuple[list[tuple[int, tuple[int, ...]]], set[int]]:
+    """Junction paths from road lane ``start`` at bounded cost: one shortest path (at most
+    :data:`MAX_VIA` junction lanes) to every road lane reached, and the junction lanes that lie
+    on some walk of at most :data:`MAX_VIA` junction lanes from ``start`` to a road lane
+    (forward and backward breadth-first distances; each lane expanded once, so the cost is
+    linear in the junction's connections)."""
+    fwd: dict[int, tuple[int, ...]] = {}  # junction lane -> shortest via from start to it
+    frontier: list[int] = []
+    for e in exits[start]:
+        if e in junction and e not in fwd:
+            fwd[e] = (e,)
+            frontier.append(e)
     out: list[tuple[int, tuple[int, ...]]] = []
     reached: set[int] = set()
     while frontier:
         nxt_frontier = []
-        for lane, via in frontier:
+        for lane in frontier:
+            via = fwd[lane]
             for nxt in exits[lane]:
                 if nxt not in junction:
                     if nxt not in reached:
                         reached.add(nxt)
                         out.append((nxt, via))
-                elif nxt not in prev and len(via) < MAX_VIA:
-                    prev[nxt] = via + (nxt,)
-                    nxt_frontier.append((nxt, prev[nxt]))
+                elif nxt not in fwd and len(via) < MAX_VIA:
+                    fwd[nxt] = via + (nxt,)
+                    nxt_frontier.append(nxt)
         frontier = nxt_frontier
-    return out
+    # junction lanes left to a road lane within k junction lanes (itself included)
+    to_road = {j: 1 for j in fwd if any(x not in junction for x in exits[j])}
+    level = list(to_road)
+    entries: dict[int, list[int]] = {}
+    for j in fwd:
+        for x in exits[j]:
+            if x in fwd:
+                entries.setdefault(x, []).append(j)
+    while level:
+        nxt_level = []
+        for j in level:
+            for p in entries.get(j, ()):
+                if p not in to_road and to_road[j] < MAX_VIA:
+                    to_road[p] = to_road[j] + 1
+                    nxt_level.append(p)
+        level = nxt_level
+    on_path = {j for j, via in fwd.items() if j in to_road and len(via) + to_road[j] - 1 <= MAX_VIA}
+    return out, on_path
 
 
 def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
@@ -171,7 +190,8 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     Junction paths are enumerated exhaustively (depth first, :data:`MAX_VIA` junction lanes at
     most); from a road lane whose enumeration takes more than :data:`MAX_PATH_EXPANSIONS` steps
     (a densely interconnected junction, never met in the recorded scenes) only one shortest
-    path per reached road lane is kept, and the lane is listed in ``unconverted``.
+    path per reached road lane is kept (see :func:`_shortest_paths`), and the lane is listed in
+    ``unconverted``: planning costs at most that many steps per road lane and round.
 
     :param deadline: ``time.monotonic()`` value after which planning stops with
         :class:`TimeBudgetExceeded` (None: no limit).
@@ -207,6 +227,10 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     def paths_from(start: int) -> list[tuple[int, tuple[int, ...]]]:
         """(road lane reached, junction lanes passed) for every junction path leaving ``start``
         (depth first); beyond :data:`MAX_PATH_EXPANSIONS` steps, see :func:`_shortest_paths`."""
+        return search(start)[0]
+
+    def search(start: int) -> tuple[list[tuple[int, tuple[int, ...]]], set[int]]:
+        """:func:`paths_from` and the junction lanes on those paths."""
         check_deadline()
         out, stack = [], [(e, (e,)) for e in exits[start] if e in junction]
         budget = MAX_PATH_EXPANSIONS
@@ -221,15 +245,14 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
                     out.append((nxt, via))
                 elif nxt not in via and len(via) < MAX_VIA:
                     stack.append((nxt, via + (nxt,)))
-        return out
+        return out, {v for _, via in out for v in via}
 
     # junction lanes on no road-to-road path become road lanes, until stable
     while True:
         used: set[int] = set()
         for i in lanes:
             if i not in junction:
-                for _, via in paths_from(i):
-                    used.update(via)
+                used |= search(i)[1]
         if used == junction:
             break
         junction = used

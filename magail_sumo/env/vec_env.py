@@ -3,8 +3,9 @@
 Each scene's :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` lives in its own worker
 process (libsumo runs one simulation per process, and a second SUMO run in a process after one
 that removed vehicles can crash libsumo). Workers are started with the ``spawn`` method and
-talk over pipes; every answer is awaited with a timeout, so a worker that dies or hangs raises
-:class:`VecEnvWorkerError` naming the scene instead of hanging the trainer.
+talk over pipes; every answer (and the write of every large request) is awaited with a timeout,
+so a worker that dies, hangs or is stopped raises :class:`VecEnvWorkerError` naming the scene
+instead of hanging the trainer.
 
 Slots: scene ``k`` owns ``slots[k]`` consecutive slots, as many as its agents can ever be alive
 at once (from the recorded track lifetimes). An agent joining takes the lowest free slot of its
@@ -28,7 +29,9 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import threading
 import traceback
+from multiprocessing.reduction import ForkingPickler
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -47,6 +50,8 @@ SEED_STRIDE = 100_003
 #: set-up: about 1 ms of fixed work per step against about 0.1 ms per agent, measured on the
 #: bundled scenes); used to balance workers over cores
 WORKER_FIXED_COST = 10.0
+#: messages up to this size go into an empty pipe without blocking (Linux pipes hold 64 KiB)
+_PIPE_SAFE_BYTES = 16 * 1024
 
 
 def place_workers(loads: Sequence[float], cores: Sequence[int]) -> list[set[int]]:
@@ -357,8 +362,32 @@ class MultiSceneVecEnv(VecEnv):
         return payload
 
     def _send(self, k: int, msg: tuple) -> None:
+        """Send ``msg`` to worker ``k``. Requests and answers alternate, so the pipe is empty
+        here and a small message never blocks; a large one (a ``restore`` replay) is written
+        from a thread and waited for at most ``timeout_s`` (a stopped worker reads nothing)."""
+        conn = self._conns[k]
         try:
-            self._conns[k].send(msg)
+            buf = ForkingPickler.dumps(msg)
+            if len(buf) <= _PIPE_SAFE_BYTES:
+                conn.send_bytes(buf)
+            else:
+                failed: list[BaseException] = []
+
+                def write() -> None:
+                    try:
+                        conn.send_bytes(buf)
+                    except BaseException as exc:  # noqa: BLE001 - re-raised below
+                        failed.append(exc)
+
+                writer = threading.Thread(target=write, daemon=True)
+                writer.start()
+                writer.join(self.timeout_s)
+                if writer.is_alive():
+                    self._kill_all()  # closes the pipe: the writer thread ends
+                    raise VecEnvWorkerError(f"scene {self.specs[k].name}: worker did not read "
+                                            f"its request within {self.timeout_s:g} s (killed)")
+                if failed:
+                    raise failed[0]
         except (BrokenPipeError, OSError, ConnectionError):
             code = self._procs[k].exitcode
             self._kill_all()
