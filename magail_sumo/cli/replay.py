@@ -27,6 +27,9 @@ def check_writable(out: Path) -> None:
 
     if out.is_dir():
         raise MagailSumoError(f"{out}: is a folder (give a FILE.gif or FILE.mp4)")
+    blocker = next((p for p in out.absolute().parents if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise MagailSumoError(f"{out}: cannot be written ({blocker} is not a folder)")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=out.parent):
