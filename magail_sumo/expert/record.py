@@ -125,7 +125,9 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
 
     A scene that fails (raises, its worker dies, or runs longer than ``timeout_s`` seconds:
     killed) is left out, listed under ``failed`` in the metadata (only when there is one) and
-    passed to ``on_error`` with a one-line reason; the other scenes go on.
+    passed to ``on_error`` with a one-line reason; the other scenes go on. Without
+    ``on_error``, :class:`~magail_sumo.errors.MagailSumoError` is raised at the end (after the
+    metadata is written) naming the first failure.
 
     :param on_scene: called with each scene's summary as soon as it is written (in order).
     """
@@ -155,4 +157,9 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     if failed:
         meta["failed"] = failed
     (out / "metadata.json").write_text(json.dumps(meta, indent=2))
+    if failed and on_error is None:
+        from magail_sumo.errors import MagailSumoError
+
+        raise MagailSumoError(f"{len(failed)} of {len(jobs)} scene(s) not recorded; first: "
+                              f"{failed[0]['reason']}")
     return meta
