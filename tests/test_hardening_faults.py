@@ -56,6 +56,12 @@ def stopping_policy(seed: int) -> _StoppingPolicy:
     return _StoppingPolicy()
 
 
+def stopping_controller(libsumo, time_s: float) -> None:
+    """A SUMO controller whose process stops itself after the first steps."""
+    if time_s >= 0.5:
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+
 def raising_factory(seed: int):
     raise RuntimeError("no weights here")
 
@@ -193,6 +199,17 @@ def test_evaluate_reports_a_stopped_worker_and_goes_on(tmp_path, bundle_root, mo
     assert len(lines) == 1 and "timed out after 20 s (worker killed)" in lines[0], err
     assert f"scenario {SID}" in lines[0]
     assert (out / "rollouts" / "constvel" / f"{SID}.parquet").is_file()  # the rest went on
+
+
+def test_controlled_sumo_run_that_stops_times_out(tmp_path, bundle_root):
+    from magail_sumo.evaluation.traffic import sumo_outputs as so
+
+    cfg = bundle_root / SID / f"{SID}.sumocfg"
+    clock = time.monotonic()
+    with pytest.raises(so.SumoRunError, match="controlled SUMO run timed out after 8 s"):
+        so.run_sumo_outputs(cfg, tmp_path / "o", controller=f"{__name__}:stopping_controller",
+                            timeout_s=8)
+    assert time.monotonic() - clock < 60
 
 
 # ------------------------------------------------------------------ 3. dense junction, time budget
@@ -370,3 +387,25 @@ def test_evaluate_logs_a_policys_missing_actions(tmp_path, bundle_root, capfd):
     assert warn[0].startswith(f"warning: scenario {SID}: method {__name__}:partial_policy "
                               "rollout(s) 0: policy gave no action for ")
     assert "action(s) for unknown agents ignored" in warn[0]
+
+
+# ------------------------------------------------------------------ vec env: every wait bounded
+def test_vec_env_large_request_to_a_stopped_worker_times_out(bundle_root):
+    from magail_sumo.env import EnvConfig
+    from magail_sumo.env.vec_env import MultiSceneVecEnv, SceneSpec, VecEnvWorkerError
+
+    spec = SceneSpec(str(SCENE), str(bundle_root / SID), SID)
+    venv = MultiSceneVecEnv([spec], EnvConfig(controlled=3, max_steps=10), timeout_s=120.0)
+    try:
+        venv.reset()
+        venv.timeout_s = 3.0
+        os.kill(venv._procs[0].pid, signal.SIGSTOP)
+        # distinct arrays (pickle would share one): far beyond a pipe's 64 KiB
+        replay = [np.zeros((venv.num_envs, 2), np.float32) for _ in range(20_000)]
+        clock = time.monotonic()
+        with pytest.raises(VecEnvWorkerError, match="did not read its request within 3 s"):
+            venv.set_state([(0, replay)])
+        assert time.monotonic() - clock < 30
+        assert not venv._procs[0].is_alive()
+    finally:
+        venv.close()

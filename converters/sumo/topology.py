@@ -222,7 +222,7 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     junction = {i for i, l in lanes.items() if l.interpolating} | signalled | _crossing_lanes(lanes)
     junction = {i for i in junction if entries[i] and exits[i]}
 
-    dense: set[int] = set()  # road lanes whose junction paths were cut to the shortest ones
+    dense: set[int] = set()  # road lanes whose junction paths are cut to the shortest ones
 
     def paths_from(start: int) -> list[tuple[int, tuple[int, ...]]]:
         """(road lane reached, junction lanes passed) for every junction path leaving ``start``
@@ -232,6 +232,8 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     def search(start: int) -> tuple[list[tuple[int, tuple[int, ...]]], set[int]]:
         """:func:`paths_from` and the junction lanes on those paths."""
         check_deadline()
+        if start in dense:  # found dense in an earlier round: the junction only shrinks since
+            return _shortest_paths(start, exits, junction)
         out, stack = [], [(e, (e,)) for e in exits[start] if e in junction]
         budget = MAX_PATH_EXPANSIONS
         while stack:
@@ -257,7 +259,6 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
             break
         junction = used
     road = [i for i in lanes if i not in junction]
-    dense.clear()
     jpaths = {i: sorted(paths_from(i), key=lambda p: len(p[1])) for i in road}
     arc = {i: _arc(lanes[i].polyline) for i in road}
     cuts, snap = _breakpoints(lanes, road, junction, arc)
@@ -377,7 +378,7 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     for c in connections:
         for v in c.via:
             node_of_lane.setdefault(v, edge_by_id[c.from_edge].to_node)
-    for i in sorted(dense):
+    for i in sorted(dense & set(road)):
         unconverted.append({"kind": "lane", "id": int(i),
                             "reason": f"densely connected junction (over {MAX_PATH_EXPANSIONS} "
                                       "path search steps): only shortest junction paths kept"})
