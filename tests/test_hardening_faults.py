@@ -349,7 +349,18 @@ def test_raising_policy_factory_is_one_line(tmp_path, capsys, factory, problem):
                "--out", str(tmp_path / "e")])
     assert rc == 1
     err = capsys.readouterr().err.splitlines()
-    assert err == [f"error: magail-sumo evaluate: {SCENE}: policy {spec}: {problem}"]
+    assert err == [f"error: magail-sumo evaluate: policy {spec}: {problem}"]
+
+
+def test_unloadable_checkpoint_is_one_line(tmp_path, capsys):
+    ckpt = tmp_path / "broken.pt"
+    ckpt.write_bytes(b"not a checkpoint")
+    rc = main(["evaluate", "--policy", str(ckpt), "--baselines", "none", "--scenes", str(SCENE),
+               "--out", str(tmp_path / "e")])
+    assert rc == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("error: magail-sumo evaluate: ")
+    assert str(ckpt) in err[0] and "Traceback" not in err[0]
 
 
 # ------------------------------------------------------------------ 7. missing / unknown actions

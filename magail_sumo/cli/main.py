@@ -1,8 +1,9 @@
 """The ``magail-sumo`` command: a thin layer over the library, one module per subcommand.
 
 Every error ends the command with one line on stderr, ``error: magail-sumo COMMAND: problem``
-(naming the input when the command has a single one), and exit status 1; the traceback is
-printed only with ``--debug``. Ctrl-C exits with 130.
+(an unexpected exception is named by type and prefixed with the command's input when it has a
+single one), and exit status 1; the traceback is printed only with ``--debug``. Ctrl-C exits
+with 130.
 """
 
 from __future__ import annotations
@@ -50,15 +51,16 @@ def _input_of(args: argparse.Namespace) -> str | None:
 
 
 def error_line(args: argparse.Namespace, exc: BaseException) -> str:
-    """``error: magail-sumo COMMAND: [INPUT: ]problem`` on one line."""
+    """``error: magail-sumo COMMAND: [INPUT: ]problem`` on one line (INPUT for an unexpected
+    exception; a :class:`MagailSumoError` names what it is about itself)."""
     from magail_sumo.outputs import printable
 
     text = " ".join(str(exc).split()) or type(exc).__name__
-    if not isinstance(exc, MagailSumoError):
+    if not isinstance(exc, MagailSumoError):  # ours name their file / record / spec already
         text = f"{type(exc).__name__}: {text}"
-    src = _input_of(args)
-    if src is not None and src not in text:
-        text = f"{src}: {text}"
+        src = _input_of(args)
+        if src is not None and src not in text:
+            text = f"{src}: {text}"
     return f"error: magail-sumo {args.command}: {printable(text, 1000)}"
 
 
