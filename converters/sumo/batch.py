@@ -1,12 +1,12 @@
 """Convert every scene of many scene files, in parallel, with a summary CSV.
 
-Bad records and failing conversions are reported per scene; the batch goes on.
+Bad records and failing conversions (a worker that dies or hangs included) are reported per
+scene; the batch goes on.
 """
 
 from __future__ import annotations
 
 import csv
-import multiprocessing as mp
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -50,11 +50,35 @@ def _convert(job: tuple[str, int | None, Scene, str, ConvertOptions]) -> BatchRo
                     rep.timings.get("total", 0.0))
 
 
+def _failed(job: tuple, reason: str, seconds: float = 0.0) -> BatchRow:
+    path, index, scene, _, _ = job
+    return BatchRow(path, index, scene.scenario_id, "failed", f"{scene.scenario_id}: {reason}",
+                    {}, seconds)
+
+
+#: seconds a worker gets beyond the conversion's own time budget before it is killed
+KILL_GRACE_S = 60.0
+
+
 def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
-                  options: ConvertOptions | None = None) -> Iterator[BatchRow]:
-    """Rows for every record of ``inputs`` as they finish (unreadable records included)."""
+                  options: ConvertOptions | None = None,
+                  timeout_s: float | None = None) -> Iterator[BatchRow]:
+    """Rows for every record of ``inputs``: scenes in input order, an unreadable record as soon
+    as it is met.
+
+    A scene that fails in any way (its conversion fails, raises, its worker process dies or
+    hangs) is a ``failed`` row with the reason; the batch goes on.
+
+    :param workers: > 1: each scene is converted in a fresh worker process
+        (:func:`magail_sumo.workers.run_jobs`), killed after ``timeout_s`` seconds (default:
+        the options' ``time_budget_s`` plus :data:`KILL_GRACE_S`; None budget: no limit).
+    """
+    from magail_sumo.workers import run_jobs
+
     opts = options or ConvertOptions()
     records: Iterator[SceneRecord] = (r for p in inputs for r in iter_scene_records(p))
+    if timeout_s is None and opts.time_budget_s is not None:
+        timeout_s = opts.time_budget_s + KILL_GRACE_S
 
     def jobs() -> Iterator[tuple | BatchRow]:
         for rec in records:
@@ -65,19 +89,30 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
 
     if workers <= 1:
         for job in jobs():
-            yield job if isinstance(job, BatchRow) else _convert(job)
-        return
-    with mp.get_context("spawn").Pool(workers) as pool:
-        pending = []
-        for job in jobs():
             if isinstance(job, BatchRow):
                 yield job
+                continue
+            try:
+                row = _convert(job)
+            except Exception as exc:  # noqa: BLE001 - one scene's failure is its row
+                row = _failed(job, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
+            yield row
+        return
+    unreadable: list[BatchRow] = []  # reported as soon as met, like the in-process path
+
+    def scene_jobs() -> Iterator[tuple]:
+        for job in jobs():
+            if isinstance(job, BatchRow):
+                unreadable.append(job)
             else:
-                pending.append(pool.apply_async(_convert, (job,)))
-            while pending and pending[0].ready():
-                yield pending.pop(0).get()
-        for res in pending:
-            yield res.get()
+                yield job
+
+    for res in run_jobs(_convert, scene_jobs(), workers=workers, timeout_s=timeout_s,
+                        ordered=True):
+        yield from unreadable
+        unreadable.clear()
+        yield res.value if res.ok else _failed(res.job, res.reason, res.seconds)
+    yield from unreadable
 
 
 def write_summary(path: Path, rows: list[BatchRow]) -> None:

@@ -108,15 +108,18 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[
     return [nod, edg, con]
 
 
-def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path) -> BuiltNetwork:
-    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<id>.net.xml``."""
+def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path,
+                  timeout_s: float | None = None) -> BuiltNetwork:
+    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<id>.net.xml``
+    (killed after ``timeout_s`` seconds)."""
     prefix = out_dir / scene.scenario_id
     types = node_types(scene, plan)
     plain = write_plain(plan, types, prefix)
     net = Path(f"{prefix}.net.xml")
     warnings = run_tool("netconvert", [
         "--node-files", str(plain[0]), "--edge-files", str(plain[1]),
-        "--connection-files", str(plain[2]), "--output-file", str(net), *NETCONVERT_OPTIONS])
+        "--connection-files", str(plain[2]), "--output-file", str(net), *NETCONVERT_OPTIONS],
+        timeout_s=timeout_s)
     return BuiltNetwork(net, plain, types, warnings)
 
 

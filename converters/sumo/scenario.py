@@ -23,7 +23,7 @@ from .quality import lane_segments, on_network_rate, route_rate, run_baseline
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
 from .synthesis import carried_states, synthesize_lanes
-from .topology import plan_network
+from .topology import TimeBudgetExceeded, plan_network
 
 STEP_LENGTH = 0.1  #: s
 
@@ -34,6 +34,10 @@ class ConvertOptions:
 
     cycle_signals: bool = False  #: repeat the recorded signal sequence past the end of the log
     baseline: bool = True  #: run SUMO once for signal_fidelity and sumo_baseline
+    #: seconds one scene may take (the bundled scenes need about 1 s); past it the scene fails
+    #: with a "time budget ... exceeded" reason. Checked between stages and during the junction
+    #: path search; netconvert is killed at it. None: no limit.
+    time_budget_s: float | None = 600.0
 
 
 @dataclass
@@ -83,14 +87,22 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
     stage = "network plan"
     clock = time.perf_counter()
 
+    budget = opts.time_budget_s
+    deadline = None if budget is None else time.monotonic() + budget
+
     def lap(name: str) -> None:
         nonlocal clock
         now = time.perf_counter()
         rep.timings[name] = round(now - clock, 4)
         clock = now
+        if deadline is not None and time.monotonic() > deadline:
+            raise TimeBudgetExceeded("time budget exceeded")
+
+    def remaining() -> float | None:
+        return None if deadline is None else max(1.0, deadline - time.monotonic())
 
     try:
-        plan = plan_network(scene)
+        plan = plan_network(scene, deadline)
         rep.unconverted.extend(plan.unconverted)
         lap("plan")
         stage = "synthesize"
@@ -102,7 +114,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.synthesized = [s.to_dict() for s in synthesized]
         lap("synthesize")
         stage = "netconvert"
-        built = build_network(scene, plan, out)
+        built = build_network(scene, plan, out, timeout_s=remaining())
         lap("netconvert")
         stage = "load network"
         net = sumolib.net.readNet(str(built.net_file), withInternal=True)
@@ -155,6 +167,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.status = "ok"
     except Exception as exc:  # a bad scene must not stop a batch
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if isinstance(exc, TimeBudgetExceeded):
+            msg = f"time budget of {budget:g} s exceeded (ConvertOptions.time_budget_s / --timeout-s)"
         rep.reason = f"{sid}: {stage}: {msg}"
     rep.timings["total"] = round(sum(v for k, v in rep.timings.items() if k != "total"), 4)
     (out / "conversion.json").write_text(json.dumps(rep.to_dict(), indent=1))

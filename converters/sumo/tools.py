@@ -30,9 +30,15 @@ def binary(name: str) -> str:
     return found
 
 
-def run_tool(name: str, args: list[str], cwd: Path | None = None) -> list[str]:
-    """Run a SUMO binary; returns its warning lines; raises :class:`SumoToolError` on failure."""
-    proc = subprocess.run([binary(name), *args], cwd=cwd, capture_output=True, text=True)
+def run_tool(name: str, args: list[str], cwd: Path | None = None,
+             timeout_s: float | None = None) -> list[str]:
+    """Run a SUMO binary; returns its warning lines; raises :class:`SumoToolError` on failure
+    (or when it runs longer than ``timeout_s`` seconds: it is killed then)."""
+    try:
+        proc = subprocess.run([binary(name), *args], cwd=cwd, capture_output=True, text=True,
+                              timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        raise SumoToolError(f"{name} timed out after {timeout_s:.0f} s (killed)") from None
     lines = (proc.stdout + proc.stderr).splitlines()
     if proc.returncode != 0:
         errors = [ln for ln in lines if ln.startswith("Error")] or lines[-1:] or ["no output"]

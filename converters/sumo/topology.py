@@ -24,6 +24,13 @@ BIKE_WIDTH = 1.8  #: m
 CROSS_ANGLE = np.radians(20.0)
 MAX_VIA = 4  #: longest chain of junction lanes folded into one connection
 MIN_PIECE = 4.0  #: m, shortest edge piece cut out of a lane at a neighbour boundary
+#: search steps (lanes looked at) of the exhaustive junction path search from one road lane
+#: before it falls back to shortest paths (the bundled recorded scenes need under 50)
+MAX_PATH_EXPANSIONS = 20_000
+
+
+class TimeBudgetExceeded(RuntimeError):
+    """A conversion ran past its time budget (see ``ConvertOptions.time_budget_s``)."""
 
 
 @dataclass
@@ -129,8 +136,72 @@ def _lane_width(lane: Lane, lanes: dict[int, Lane]) -> float:
     return float(np.clip(min(dists), 2.8, 4.5)) if dists else DEFAULT_WIDTH
 
 
-def plan_network(scene: Scene) -> NetworkPlan:
-    """Turn the scene's lanes into nodes, edges and connections (no lane silently dropped)."""
+def _shortest_paths(start: int, exits: dict[int, list[int]], junction: set[int]
+                    ) -> tuple[list[tuple[int, tuple[int, ...]]], set[int]]:
+    """Junction paths from road lane ``start`` at bounded cost: one shortest path (at most
+    :data:`MAX_VIA` junction lanes) to every road lane reached, and the junction lanes that lie
+    on some walk of at most :data:`MAX_VIA` junction lanes from ``start`` to a road lane
+    (forward and backward breadth-first distances; each lane expanded once, so the cost is
+    linear in the junction's connections)."""
+    fwd: dict[int, tuple[int, ...]] = {}  # junction lane -> shortest via from start to it
+    frontier: list[int] = []
+    for e in exits[start]:
+        if e in junction and e not in fwd:
+            fwd[e] = (e,)
+            frontier.append(e)
+    out: list[tuple[int, tuple[int, ...]]] = []
+    reached: set[int] = set()
+    while frontier:
+        nxt_frontier = []
+        for lane in frontier:
+            via = fwd[lane]
+            for nxt in exits[lane]:
+                if nxt not in junction:
+                    if nxt not in reached:
+                        reached.add(nxt)
+                        out.append((nxt, via))
+                elif nxt not in fwd and len(via) < MAX_VIA:
+                    fwd[nxt] = via + (nxt,)
+                    nxt_frontier.append(nxt)
+        frontier = nxt_frontier
+    # junction lanes left to a road lane within k junction lanes (itself included)
+    to_road = {j: 1 for j in fwd if any(x not in junction for x in exits[j])}
+    level = list(to_road)
+    entries: dict[int, list[int]] = {}
+    for j in fwd:
+        for x in exits[j]:
+            if x in fwd:
+                entries.setdefault(x, []).append(j)
+    while level:
+        nxt_level = []
+        for j in level:
+            for p in entries.get(j, ()):
+                if p not in to_road and to_road[j] < MAX_VIA:
+                    to_road[p] = to_road[j] + 1
+                    nxt_level.append(p)
+        level = nxt_level
+    on_path = {j for j, via in fwd.items() if j in to_road and len(via) + to_road[j] - 1 <= MAX_VIA}
+    return out, on_path
+
+
+def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
+    """Turn the scene's lanes into nodes, edges and connections (no lane silently dropped).
+
+    Junction paths are enumerated exhaustively (depth first, :data:`MAX_VIA` junction lanes at
+    most); from a road lane whose enumeration takes more than :data:`MAX_PATH_EXPANSIONS` steps
+    (a densely interconnected junction, never met in the recorded scenes) only one shortest
+    path per reached road lane is kept (see :func:`_shortest_paths`), and the lane is listed in
+    ``unconverted``: planning costs at most that many steps per road lane and round.
+
+    :param deadline: ``time.monotonic()`` value after which planning stops with
+        :class:`TimeBudgetExceeded` (None: no limit).
+    """
+    import time
+
+    def check_deadline() -> None:
+        if deadline is not None and time.monotonic() > deadline:
+            raise TimeBudgetExceeded("time budget exceeded")
+
     unconverted: list[dict] = []
     lanes: dict[int, Lane] = {}
     for lane in scene.roadmap.lanes:
@@ -151,25 +222,39 @@ def plan_network(scene: Scene) -> NetworkPlan:
     junction = {i for i, l in lanes.items() if l.interpolating} | signalled | _crossing_lanes(lanes)
     junction = {i for i in junction if entries[i] and exits[i]}
 
+    dense: set[int] = set()  # road lanes whose junction paths are cut to the shortest ones
+
     def paths_from(start: int) -> list[tuple[int, tuple[int, ...]]]:
-        """(road lane reached, junction lanes passed) for every junction path leaving ``start``."""
+        """(road lane reached, junction lanes passed) for every junction path leaving ``start``
+        (depth first); beyond :data:`MAX_PATH_EXPANSIONS` steps, see :func:`_shortest_paths`."""
+        return search(start)[0]
+
+    def search(start: int) -> tuple[list[tuple[int, tuple[int, ...]]], set[int]]:
+        """:func:`paths_from` and the junction lanes on those paths."""
+        check_deadline()
+        if start in dense:  # found dense in an earlier round: the junction only shrinks since
+            return _shortest_paths(start, exits, junction)
         out, stack = [], [(e, (e,)) for e in exits[start] if e in junction]
+        budget = MAX_PATH_EXPANSIONS
         while stack:
             lane, via = stack.pop()
+            budget -= len(exits[lane]) + 1
+            if budget < 0:
+                dense.add(start)
+                return _shortest_paths(start, exits, junction)
             for nxt in exits[lane]:
                 if nxt not in junction:
                     out.append((nxt, via))
                 elif nxt not in via and len(via) < MAX_VIA:
                     stack.append((nxt, via + (nxt,)))
-        return out
+        return out, {v for _, via in out for v in via}
 
     # junction lanes on no road-to-road path become road lanes, until stable
     while True:
         used: set[int] = set()
         for i in lanes:
             if i not in junction:
-                for _, via in paths_from(i):
-                    used.update(via)
+                used |= search(i)[1]
         if used == junction:
             break
         junction = used
@@ -293,6 +378,10 @@ def plan_network(scene: Scene) -> NetworkPlan:
     for c in connections:
         for v in c.via:
             node_of_lane.setdefault(v, edge_by_id[c.from_edge].to_node)
+    for i in sorted(dense & set(road)):
+        unconverted.append({"kind": "lane", "id": int(i),
+                            "reason": f"densely connected junction (over {MAX_PATH_EXPANSIONS} "
+                                      "path search steps): only shortest junction paths kept"})
     for j in sorted(junction - represented):
         unconverted.append({"kind": "lane", "id": int(j),
                             "reason": "junction lane duplicates another connection between the same lanes"})

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from magail_sumo.cli.argtypes import timeout_s
 from magail_sumo.cli.progress import progress
 
 
@@ -24,6 +25,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="repeat the recorded signal states past the end of the log")
     p.add_argument("--no-baseline", action="store_true",
                    help="skip the SUMO run (no signal_fidelity / sumo_baseline)")
+    p.add_argument("--timeout-s", type=timeout_s, default=600.0, metavar="S",
+                   help="seconds one scene may take before it is reported failed (its worker "
+                        "is killed with --workers > 1; default 600; 'none': no limit)")
     p.set_defaults(func=run)
 
 
@@ -51,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     from converters.sumo.scenario import ConvertOptions
 
     args.out.mkdir(parents=True, exist_ok=True)
-    opts = ConvertOptions(cycle_signals=args.cycle_signals, baseline=not args.no_baseline)
+    opts = ConvertOptions(cycle_signals=args.cycle_signals, baseline=not args.no_baseline,
+                          time_budget_s=args.timeout_s)
     rows = []
     for row in progress(convert_files(args.inputs, args.out, max(args.workers, 1), opts),
                         desc="scenes", unit="scene"):

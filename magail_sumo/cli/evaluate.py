@@ -7,6 +7,8 @@ import sys
 import time
 from pathlib import Path
 
+from magail_sumo.cli.argtypes import timeout_s
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="closed-loop rollouts of a policy and the baselines",
@@ -32,6 +34,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                                        "derived from it and r)")
     p.add_argument("--workers", type=int, default=2, metavar="N",
                    help="worker processes for SUMO rollouts")
+    p.add_argument("--timeout-s", type=timeout_s, default=1800.0, metavar="S",
+                   help="seconds one worker job (a batch of up to 8 rollouts of one method on "
+                        "one scene, or a scene's conversion) may take before it is killed and "
+                        "reported failed (default 1800; 'none': no limit)")
     p.set_defaults(func=run)
 
 
@@ -43,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
     clock = time.perf_counter()
     res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
                    baselines=base, seed=args.seed, workers=args.workers,
-                   networks=args.networks, submission=args.export_submission)
+                   networks=args.networks, submission=args.export_submission,
+                   timeout_s=args.timeout_s)
     print(f"evaluated {len(res.done)} scene/method pair(s) in {time.perf_counter() - clock:.1f} s"
           f" -> {args.out}" + (f"; {len(res.errors)} problem(s) reported above"
                                if res.errors else ""), file=sys.stderr)

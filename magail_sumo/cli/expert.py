@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from magail_sumo.cli.argtypes import timeout_s
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("expert", help="record expert demonstrations as Parquet",
@@ -19,6 +21,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, default=None, metavar="YAML",
                    help="training config whose env.observation and env.limits to use")
     p.add_argument("--workers", type=int, default=1, metavar="N", help="parallel processes")
+    p.add_argument("--timeout-s", type=timeout_s, default=1800.0, metavar="S",
+                   help="seconds one scene may take (conversion, recording) before it is "
+                        "killed and reported failed (default 1800; 'none': no limit)")
     p.set_defaults(func=run)
 
 
@@ -35,7 +40,10 @@ def run(args: argparse.Namespace) -> int:
 
         cfg = load_config(args.config, TrainConfig)
         observation, limits = cfg.env.observation, cfg.env.limits
-    specs = scene_specs(args.scenes, args.networks)
+    errors: list[str] = []
+    specs = scene_specs(args.scenes, args.networks, errors=errors, time_budget_s=args.timeout_s)
+    for e in errors:
+        print(f"error: {e}", file=sys.stderr, flush=True)
     bar = tqdm(total=len(specs), desc="scenes", unit="scene", file=sys.stderr, leave=False,
                disable=not sys.stderr.isatty())
 
@@ -44,8 +52,17 @@ def run(args: argparse.Namespace) -> int:
                   f"{sc['steps']} steps -> {args.out / sc['parquet']}", file=sys.stdout)
         bar.update(1)
 
+    def failed(spec, reason: str) -> None:
+        errors.append(reason)
+        bar.write(f"error: {reason}", file=sys.stderr)
+        bar.update(1)
+
     try:
-        record_expert(specs, args.out, observation, limits, workers=args.workers, on_scene=done)
+        meta = record_expert(specs, args.out, observation, limits, workers=args.workers,
+                             on_scene=done, on_error=failed, timeout_s=args.timeout_s)
     finally:
         bar.close()
-    return 0
+    if errors:
+        print(f"recorded {len(meta['scenes'])} scene(s); {len(errors)} problem(s) reported "
+              "above", file=sys.stderr)
+    return 1 if errors else 0

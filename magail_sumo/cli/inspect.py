@@ -53,7 +53,16 @@ def run(args: argparse.Namespace) -> int:
             continue
         scene = rec.scene
         assert scene is not None
-        summary = scene.summary()
+        try:
+            summary = scene.summary()
+        except Exception as exc:  # noqa: BLE001 - one scene's failure, not the batch's
+            reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            print(f"error: {rec.path}: record {rec.index}: scene {scene.scenario_id}: {reason}",
+                  file=sys.stderr)
+            if not args.skip_bad:
+                return 1
+            skipped[reason] += 1
+            continue
         if args.json:
             print(json.dumps(summary), flush=True)
         else:

@@ -9,9 +9,34 @@ from pathlib import Path
 
 import numpy as np
 
+from magail_sumo.cli.argtypes import bounded
 from magail_sumo.cli.progress import progress
 
 POLICIES = ("log", "random")
+MAX_FPS = 100  #: GIF frame durations are whole 10 ms
+MIN_SIZE, MAX_SIZE = 64, 4096  #: frame side (px); 4096² RGB frames are 48 MiB each
+
+
+def check_writable(out: Path) -> None:
+    """Refuse ``out`` before any slow work when the video could not be written there (an
+    existing folder, a parent that cannot be made, a folder that is not writable): its folder
+    is made and a temporary file is written there and removed."""
+    import tempfile
+
+    from magail_sumo.errors import MagailSumoError
+
+    if out.is_dir():
+        raise MagailSumoError(f"{out}: is a folder (give a FILE.gif or FILE.mp4)")
+    blocker = next((p for p in out.absolute().parents if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise MagailSumoError(f"{out}: cannot be written ({blocker} is not a folder)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out.parent):
+            pass
+    except OSError as exc:
+        why = exc.strerror or type(exc).__name__
+        raise MagailSumoError(f"{out}: cannot be written ({why})") from None
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -25,8 +50,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(default: networks/<id> when present, else converted on the fly)")
     p.add_argument("--policy", choices=POLICIES, default="log")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fps", type=int, default=10)
-    p.add_argument("--size", type=int, default=512, help="frame height and width in pixels")
+    p.add_argument("--fps", type=bounded(int, 1, MAX_FPS), default=10,
+                   help=f"frames per second of the video (1..{MAX_FPS})")
+    p.add_argument("--size", type=bounded(int, MIN_SIZE, MAX_SIZE), default=512,
+                   help=f"frame height and width in pixels ({MIN_SIZE}..{MAX_SIZE})")
     p.set_defaults(func=run)
 
 
@@ -39,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() not in FORMATS:
         raise MagailSumoError(f"{args.out}: unsupported video format (use {' or '.join(FORMATS)})")
+    check_writable(args.out)
     scene = load_scene(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
         bundle = args.bundle

@@ -44,7 +44,7 @@ from magail_sumo.sim import dynamics
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession, VehicleArrays
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
-from .actions import action_array
+from .actions import ACTION_COUNTS, checked_actions, count_actions
 from .collision import first_overlap
 from .events import off_road, reached
 from .outcomes import StepDicts
@@ -127,6 +127,7 @@ class SumoCityEnv(ParallelEnv):
     def __init__(self, sumocfg: str | Path, config: CityEnvConfig | None = None) -> None:
         self.sumocfg = Path(sumocfg)
         self.config = cfg = config or CityEnvConfig()
+        self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         net_file, vehicle_ids = _scenario_files(self.sumocfg)
         self.network: NetworkMap = network_map(net_file)
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
@@ -190,6 +191,8 @@ class SumoCityEnv(ParallelEnv):
         self._active = np.zeros(n_max, bool)
         self._nan = np.zeros(n_max, np.int64)
         self._clipped = np.zeros(n_max, np.int64)
+        #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
+        self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()
@@ -319,9 +322,12 @@ class SumoCityEnv(ParallelEnv):
         if self._session is None:
             raise RuntimeError("call reset() before step()")
         act = np.flatnonzero(self._active)
-        clean, nonfinite, outside = action_array(actions, [self._names[k] for k in act])
+        clean, nonfinite, outside, missing, extra = checked_actions(
+            actions, [self._names[k] for k in act])
         self._nan[act] += nonfinite
         self._clipped[act] += outside
+        count_actions(self.action_counts, actions, self._index, nonfinite, outside, missing,
+                      extra)
         accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
         red_before = self._lc[act] == 3
         dist_before = self._ld[act].copy()

@@ -17,7 +17,11 @@ oriented-box overlap with any other road user) or at the last valid step of its 
 :data:`~magail_sumo.env.config.EVENTS` that ended the agent, else None), ``collided_with``
 (track id or -1), ``nan_actions`` and ``clipped_actions`` (this agent's running counts of
 non-finite / out-of-range actions; non-finite entries become 0, out-of-range ones are clipped
-to [-1, 1], a missing action counts as non-finite).
+to [-1, 1], a missing action counts as non-finite). ``env.action_counts`` counts, per episode,
+the agent-steps without an action (``missing``: the agent coasts with action 0), the actions
+given for names that are no agent of the scene (``unknown``) or no longer / not yet live
+(``departed``), both ignored, and the non-finite and clipped ones
+(:func:`~magail_sumo.env.actions.action_summary` words them for a log line).
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observ
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 
-from .actions import action_array
+from .actions import ACTION_COUNTS, checked_actions, count_actions
 from .bundle import SceneBundle
 from .collision import first_overlap
 from .config import EVENTS, EnvConfig
@@ -85,6 +89,7 @@ class SumoDrivingEnv(ParallelEnv):
         self.scene = scene
         self.bundle = SceneBundle.load(scene, bundle)
         self.config = cfg = config or EnvConfig()
+        self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self.render_mode = render_mode
         self.dt = STEP_LENGTH
         tr = scene.tracks
@@ -166,6 +171,8 @@ class SumoDrivingEnv(ParallelEnv):
         self._joined = np.zeros(c, bool)
         self._nan = np.zeros(c, np.int64)
         self._clipped = np.zeros(c, np.int64)
+        #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
+        self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self._in_sumo: set[str] = set()
         self._sumo_bg = None
         self.sensor_time = 0.0
@@ -296,9 +303,12 @@ class SumoDrivingEnv(ParallelEnv):
             raise RuntimeError("call reset() before step()")
         act_idx = np.flatnonzero(self._active)
         a = act_idx.size
-        clean, nonfinite, outside = action_array(actions, [self._ctrl_names[k] for k in act_idx])
+        clean, nonfinite, outside, missing, extra = checked_actions(
+            actions, [self._ctrl_names[k] for k in act_idx])
         self._nan[act_idx] += nonfinite
         self._clipped[act_idx] += outside
+        count_actions(self.action_counts, actions, self._name_index, nonfinite, outside, missing,
+                      extra)
         accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
         rows = self._ctrl[act_idx]
         p0 = np.stack([self._x[act_idx], self._y[act_idx]], axis=1)

@@ -3,8 +3,9 @@
 Each scene's :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` lives in its own worker
 process (libsumo runs one simulation per process, and a second SUMO run in a process after one
 that removed vehicles can crash libsumo). Workers are started with the ``spawn`` method and
-talk over pipes; every answer is awaited with a timeout, so a worker that dies or hangs raises
-:class:`VecEnvWorkerError` naming the scene instead of hanging the trainer.
+talk over pipes; every answer (and the write of every large request) is awaited with a timeout,
+so a worker that dies, hangs or is stopped raises :class:`VecEnvWorkerError` naming the scene
+instead of hanging the trainer.
 
 Slots: scene ``k`` owns ``slots[k]`` consecutive slots, as many as its agents can ever be alive
 at once (from the recorded track lifetimes). An agent joining takes the lowest free slot of its
@@ -28,7 +29,9 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import threading
 import traceback
+from multiprocessing.reduction import ForkingPickler
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -47,6 +50,8 @@ SEED_STRIDE = 100_003
 #: set-up: about 1 ms of fixed work per step against about 0.1 ms per agent, measured on the
 #: bundled scenes); used to balance workers over cores
 WORKER_FIXED_COST = 10.0
+#: messages up to this size go into an empty pipe without blocking (Linux pipes hold 64 KiB)
+_PIPE_SAFE_BYTES = 16 * 1024
 
 
 def place_workers(loads: Sequence[float], cores: Sequence[int]) -> list[set[int]]:
@@ -357,8 +362,32 @@ class MultiSceneVecEnv(VecEnv):
         return payload
 
     def _send(self, k: int, msg: tuple) -> None:
+        """Send ``msg`` to worker ``k``. Requests and answers alternate, so the pipe is empty
+        here and a small message never blocks; a large one (a ``restore`` replay) is written
+        from a thread and waited for at most ``timeout_s`` (a stopped worker reads nothing)."""
+        conn = self._conns[k]
         try:
-            self._conns[k].send(msg)
+            buf = ForkingPickler.dumps(msg)
+            if len(buf) <= _PIPE_SAFE_BYTES:
+                conn.send_bytes(buf)
+            else:
+                failed: list[BaseException] = []
+
+                def write() -> None:
+                    try:
+                        conn.send_bytes(buf)
+                    except BaseException as exc:  # noqa: BLE001 - re-raised below
+                        failed.append(exc)
+
+                writer = threading.Thread(target=write, daemon=True)
+                writer.start()
+                writer.join(self.timeout_s)
+                if writer.is_alive():
+                    self._kill_all()  # closes the pipe: the writer thread ends
+                    raise VecEnvWorkerError(f"scene {self.specs[k].name}: worker did not read "
+                                            f"its request within {self.timeout_s:g} s (killed)")
+                if failed:
+                    raise failed[0]
         except (BrokenPipeError, OSError, ConnectionError):
             code = self._procs[k].exitcode
             self._kill_all()
@@ -490,24 +519,47 @@ class MultiSceneVecEnv(VecEnv):
 
 
 def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
-                convert_missing: bool = True) -> list[SceneSpec]:
+                convert_missing: bool = True, errors: list[str] | None = None,
+                time_budget_s: float | None = 600.0) -> list[SceneSpec]:
     """A :class:`SceneSpec` per scene of ``scene_files`` with its bundle under ``networks``
-    (``networks/<id>/``), converting the scenes that have none yet (baseline run skipped)."""
+    (``networks/<id>/``), converting the scenes that have none yet (baseline run skipped,
+    ``time_budget_s`` seconds each at most).
+
+    :param errors: when given, a scene (or file) that cannot be used is appended here as a
+        one-line reason and left out, instead of raising :class:`MagailSumoError`.
+    """
     from converters import iter_scenes
 
     networks = Path(networks)
     out = []
-    for f in scene_files:
-        for scene in iter_scenes(f):
-            sid = scene.scenario_id
-            folder = networks / sid
-            if not (folder / f"{sid}.sumocfg").is_file():
-                if not convert_missing:
-                    raise MagailSumoError(f"{folder}: no converted bundle for scene {sid}")
-                from converters.sumo.scenario import ConvertOptions, convert_scene
 
-                rep = convert_scene(scene, networks, ConvertOptions(baseline=False))
-                if rep.status != "ok":
-                    raise MagailSumoError(f"{f}: scene {sid} could not be converted: {rep.reason}")
-            out.append(SceneSpec(str(f), str(folder), sid))
+    def fail(msg: str) -> None:
+        if errors is None:
+            raise MagailSumoError(msg)
+        errors.append(msg)
+
+    for f in scene_files:
+        try:
+            for scene in iter_scenes(f):
+                sid = scene.scenario_id
+                folder = networks / sid
+                if not (folder / f"{sid}.sumocfg").is_file():
+                    if not convert_missing:
+                        fail(f"{folder}: no converted bundle for scene {sid}")
+                        continue
+                    from converters.sumo.scenario import ConvertOptions, convert_scene
+
+                    rep = convert_scene(scene, networks, ConvertOptions(
+                        baseline=False, time_budget_s=time_budget_s))
+                    if rep.status != "ok":
+                        fail(f"{f}: scene {sid} could not be converted: {rep.reason}")
+                        continue
+                out.append(SceneSpec(str(f), str(folder), sid))
+        except Exception as exc:  # noqa: BLE001 - an unreadable file
+            if errors is None:
+                raise
+            from magail_sumo.outputs import printable
+
+            errors.append(printable(f"{f}: " + (str(exc) if isinstance(exc, MagailSumoError)
+                                                 else f"{type(exc).__name__}: {exc}"), 400))
     return out

@@ -31,9 +31,7 @@ import importlib
 import json
 import math
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Protocol
 
@@ -104,16 +102,38 @@ def make_policy(spec: str, seed: int) -> Policy:
         if loader is None:
             raise EvaluationError(f"{spec}: no policy loader for '{path.suffix}' checkpoints "
                                   "(register one in magail_sumo.evaluation.rollouts.POLICY_LOADERS)")
-        return loader(path, seed)
+        return _built(spec, loader, path, seed)
     if ":" in spec:
         mod, _, attr = spec.partition(":")
         try:
             factory = getattr(importlib.import_module(mod), attr)
-        except (ImportError, AttributeError) as exc:
-            raise EvaluationError(f"{spec}: cannot import policy factory ({exc})") from None
-        return factory(seed)
+        except Exception as exc:  # noqa: BLE001 - any import failure of a user module
+            raise EvaluationError(f"{spec}: cannot import policy factory "
+                                  f"({type(exc).__name__}: {_line(exc)})") from None
+        return _built(spec, factory, seed)
     raise EvaluationError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
                           "a checkpoint file or a module:factory spec")
+
+
+def _line(exc: BaseException) -> str:
+    from magail_sumo.outputs import printable
+
+    return printable(" ".join(str(exc).split()), 300)
+
+
+def _built(spec: str, factory: Callable, *args) -> Policy:
+    """``factory(*args)``; any exception becomes one :class:`EvaluationError` naming ``spec``."""
+    try:
+        policy = factory(*args)
+    except MagailSumoError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a user factory / loader may raise anything
+        raise EvaluationError(f"policy {spec}: could not be created: "
+                              f"{type(exc).__name__}: {_line(exc)}") from None
+    if not callable(getattr(policy, "act", None)):
+        raise EvaluationError(f"policy {spec}: the factory returned {type(policy).__name__}, "
+                              "which has no act(observations) method")
+    return policy
 
 
 def method_name(spec: str) -> str:
@@ -249,9 +269,12 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
     return fill_constant_velocity(scene, ids, track)
 
 
-def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int
-                    ) -> tuple[np.ndarray, ...]:
-    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv."""
+def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
+                    counts: dict[str, int] | None = None) -> tuple[np.ndarray, ...]:
+    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv.
+
+    :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
+        actions) are added to it."""
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
     from magail_sumo.sim import dynamics
 
@@ -279,6 +302,9 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int
                     i, a = (np.array(s) for s in zip(*sel))
                     track.x[a, t], track.y[a, t] = nxt.x[i], nxt.y[i]
                     track.yaw[a, t], track.speed[a, t] = nxt.yaw[i], nxt.speed[i]
+        if counts is not None:
+            for k, v in env.action_counts.items():
+                counts[k] = counts.get(k, 0) + v
     finally:
         env.close()
     return fill_constant_velocity(scene, ids, track)
@@ -300,6 +326,7 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         ro = log_replay(scene, len(idx), N_STEPS)
         return ro
     xs, ys, yaws = [], [], []
+    counts: dict[str, int] = {}
     for r in idx:
         s = rollout_seed(seed, r)
         if method == "constvel":
@@ -310,10 +337,17 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         elif method == "sumo":
             x, y, yaw = _sumo_rollout(scene, Path(bundle_dir), s)
         else:
-            x, y, yaw = _policy_rollout(scene, Path(bundle_dir), make_policy(method, s), s)
+            x, y, yaw = _policy_rollout(scene, Path(bundle_dir), make_policy(method, s), s,
+                                        counts)
         xs.append(x)
         ys.append(y)
         yaws.append(yaw)
+    from magail_sumo.env.actions import action_summary
+
+    fixed = action_summary(counts)
+    if fixed:  # once per batch, in the run log
+        log(f"warning: scenario {scene.scenario_id}: method {method} rollout(s) "
+            f"{_span(tuple(idx))}: {fixed}")
     return _as_rollouts(scene, ids, xs, ys, yaws)
 
 
@@ -351,35 +385,45 @@ def needs_worker(spec: str) -> bool:
     return spec not in ("logreplay", "constvel")
 
 
-def run_batches(batches: list[Batch], workers: int
+#: seconds one worker job (a batch of rollouts of one method on one scene) may run by default
+DEFAULT_TIMEOUT_S = 1800.0
+
+
+def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
                 ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None]]:
     """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line).
 
-    A batch whose worker fails is retried once rollout by rollout (each in its own process).
+    A batch whose worker fails (crashes, dies, raises anything but a
+    :class:`~magail_sumo.errors.MagailSumoError`) is retried once rollout by rollout (each in
+    its own process). A batch running longer than ``timeout_s`` seconds is killed and reported,
+    not retried. No wait is unbounded (:func:`magail_sumo.workers.run_jobs`).
     """
+    from magail_sumo.workers import run_jobs
+
     if not batches:
         return
-    ctx = get_context("spawn")
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx,
-                             max_tasks_per_child=1) as pool:
-        futs = {pool.submit(run_batch, b): b for b in batches}
-        retry: list[Batch] = []
-        for fut in as_completed(futs):
-            b = futs[fut]
-            try:
-                yield (*fut.result(), None)
-            except MagailSumoError as exc:
-                yield b, None, " ".join(str(exc).split())
-            except Exception as exc:  # worker crash (libsumo) or bug: retry singly
-                if len(b.rollouts) > 1:
-                    retry += [Batch(b.scene_file, b.scenario_id, b.bundle_dir, b.spec, (r,),
-                                    b.seed) for r in b.rollouts]
-                else:
-                    yield b, None, (f"scenario {b.scenario_id}: method {b.spec} rollout "
-                                    f"{b.rollouts[0]} failed: {type(exc).__name__}: "
-                                    + " ".join(str(exc).split()))
+    retry: list[Batch] = []
+    for res in run_jobs(run_batch, batches, workers=max(1, workers), timeout_s=timeout_s):
+        b = res.job
+        what = f"scenario {b.scenario_id}: method {b.spec}"
+        if res.ok:
+            yield (*res.value, None)
+        elif res.kind == "error" and res.expected:
+            yield b, None, res.reason
+        elif res.kind == "timeout":
+            yield b, None, (f"{what} rollout(s) {_span(b.rollouts)}: worker {res.reason} "
+                            "(--timeout-s)")
+        elif len(b.rollouts) > 1:  # worker crash (libsumo) or bug: retry singly
+            retry += [Batch(b.scene_file, b.scenario_id, b.bundle_dir, b.spec, (r,), b.seed)
+                      for r in b.rollouts]
+        else:
+            yield b, None, f"{what} rollout {b.rollouts[0]} failed: {res.reason}"
     if retry:
-        yield from run_batches(retry, workers)
+        yield from run_batches(retry, workers, timeout_s)
+
+
+def _span(rollouts: tuple[int, ...]) -> str:
+    return str(rollouts[0]) if len(rollouts) == 1 else f"{rollouts[0]}-{rollouts[-1]}"
 
 
 def merge(parts: list[ScenarioRollouts]) -> ScenarioRollouts:
@@ -535,7 +579,8 @@ class EvaluationResult:
     errors: list[str]
 
 
-def _bundle(scene: Scene, networks: Path | None, out: Path) -> Path:
+def _bundle(scene: Scene, networks: Path | None, out: Path,
+            timeout_s: float | None = DEFAULT_TIMEOUT_S) -> Path:
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
     into ``out/networks``."""
     from converters.sumo.scenario import ConvertOptions, convert_scene
@@ -548,7 +593,8 @@ def _bundle(scene: Scene, networks: Path | None, out: Path) -> Path:
             return root / sid
         except BundleError:
             continue
-    rep = convert_scene(scene, out / "networks", ConvertOptions(baseline=False))
+    rep = convert_scene(scene, out / "networks",
+                        ConvertOptions(baseline=False, time_budget_s=timeout_s))
     if rep.status != "ok":
         raise EvaluationError(f"scenario {sid}: conversion failed: {rep.reason}")
     return out / "networks" / sid
@@ -556,13 +602,14 @@ def _bundle(scene: Scene, networks: Path | None, out: Path) -> Path:
 
 def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
              baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
-             networks: str | Path | None = None, submission: str | Path | None = None
-             ) -> EvaluationResult:
+             networks: str | Path | None = None, submission: str | Path | None = None,
+             timeout_s: float | None = DEFAULT_TIMEOUT_S) -> EvaluationResult:
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
     ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``.
 
-    Bad scenes, failed conversions and failed rollouts are reported (stderr, one line each)
-    and the rest goes on.
+    Bad scenes, failed conversions and failed rollouts (any exception, a worker that dies, or
+    one running past ``timeout_s`` seconds: killed) are reported (stderr, one line each) and
+    the rest goes on.
 
     :raises EvaluationError: an unknown baseline, an unusable policy spec or bad counts.
     """
@@ -603,13 +650,19 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                 scenes[sc.scenario_id] = (str(Path(f).resolve()), sc, None)
         except MagailSumoError as exc:
             error(" ".join(str(exc).split()))
+        except Exception as exc:  # noqa: BLE001 - one file's failure, the batch goes on
+            error(f"{f}: {type(exc).__name__}: {_line(exc)}")
     need_sumo = any(needs_worker(s) for s in specs)
     for sid, (f, sc, _) in list(scenes.items()):
         if need_sumo:
             try:
-                scenes[sid] = (f, sc, _bundle(sc, Path(networks) if networks else None, out))
+                scenes[sid] = (f, sc, _bundle(sc, Path(networks) if networks else None, out,
+                                              timeout_s))
             except MagailSumoError as exc:
                 error(" ".join(str(exc).split()))
+                del scenes[sid]
+            except Exception as exc:  # noqa: BLE001 - one scene's failure, the batch goes on
+                error(f"scenario {sid}: {type(exc).__name__}: {_line(exc)}")
                 del scenes[sid]
     results: dict[tuple[str, str], list[tuple[int, ScenarioRollouts]]] = {}
     batches = []
@@ -619,9 +672,12 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
             if needs_worker(s):
                 batches += [Batch(f, sid, str(bdir), s, c, seed) for c in chunks(n_rollouts, size)]
             else:
-                results[(sid, s)] = [(0, simulate(sc, s, range(n_rollouts), seed))]
+                try:
+                    results[(sid, s)] = [(0, simulate(sc, s, range(n_rollouts), seed))]
+                except Exception as exc:  # noqa: BLE001 - one scene's failure
+                    error(f"scenario {sid}: method {s}: {type(exc).__name__}: {_line(exc)}")
     failed: set[tuple[str, str]] = set()
-    for b, ro, err in run_batches(batches, workers):
+    for b, ro, err in run_batches(batches, workers, timeout_s):
         if err is not None:
             error(err)
             failed.add((b.scenario_id, b.spec))
@@ -633,11 +689,14 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
         for s in specs:
             if (sid, s) in failed or (sid, s) not in results:
                 continue
-            ro = merge([r for _, r in sorted(results[(sid, s)], key=lambda p: p[0])])
             try:
+                ro = merge([r for _, r in sorted(results[(sid, s)], key=lambda p: p[0])])
                 validate_rollouts(ro, sc, n_rollouts, N_STEPS)
             except MagailSumoError as exc:
                 error(f"method {names[s]}: {' '.join(str(exc).split())}")
+                continue
+            except Exception as exc:  # noqa: BLE001 - one scene's failure
+                error(f"scenario {sid}: method {names[s]}: {type(exc).__name__}: {_line(exc)}")
                 continue
             write_parquet(out / "rollouts" / names[s] / f"{sid}.parquet",
                           to_frame(sc, ro, names[s]))

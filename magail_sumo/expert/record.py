@@ -18,7 +18,6 @@ layout (``observation_names``), the observation config and the training limits.
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -112,29 +111,55 @@ def _record_job(args: tuple) -> dict:
     return record_scene(*args)
 
 
+#: seconds one scene's recording may take by default before its worker is killed
+DEFAULT_TIMEOUT_S = 1800.0
+
+
 def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
                   observation: ObservationConfig | None = None,
                   limits: BicycleLimits | None = None, workers: int = 1, seed: int = 0,
-                  on_scene: Callable[[dict], None] | None = None) -> dict:
+                  on_scene: Callable[[dict], None] | None = None,
+                  on_error: Callable[[SceneSpec, str], None] | None = None,
+                  timeout_s: float | None = DEFAULT_TIMEOUT_S) -> dict:
     """Record every scene (each in a fresh process) into ``out_dir``; the metadata written.
+
+    A scene that fails (raises, its worker dies, or runs longer than ``timeout_s`` seconds:
+    killed) is left out, listed under ``failed`` in the metadata (only when there is one) and
+    passed to ``on_error`` with a one-line reason; the other scenes go on. Without
+    ``on_error``, :class:`~magail_sumo.errors.MagailSumoError` is raised at the end (after the
+    metadata is written) naming the first failure.
 
     :param on_scene: called with each scene's summary as soon as it is written (in order).
     """
+    from magail_sumo.workers import run_jobs
+
     observation = observation or ObservationConfig()
     limits = limits or BicycleLimits()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(spec, observation, limits, out, seed) for spec in specs]
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(max(1, min(workers, len(jobs))), maxtasksperchild=1) as pool:
-        scenes = []
-        for sc in pool.imap(_record_job, jobs, chunksize=1):
-            scenes.append(sc)
+    scenes, failed = [], []
+    for res in run_jobs(_record_job, jobs, workers=max(1, min(workers, len(jobs) or 1)),
+                        timeout_s=timeout_s, ordered=True):
+        if res.ok:
+            scenes.append(res.value)
             if on_scene is not None:
-                on_scene(sc)
+                on_scene(res.value)
+            continue
+        spec = res.job[0]
+        reason = f"scene {spec.name} ({spec.scene_file}): {res.reason}"
+        failed.append({"scenario_id": spec.name, "file": str(spec.scene_file), "reason": reason})
+        if on_error is not None:
+            on_error(spec, reason)
     meta = {"format": EXPERT_FORMAT, "observation_names": observation_names(observation),
             "observation": to_dict(observation), "limits": to_dict(limits),
             "action": ["accel", "steer"], "scenes": scenes}
+    if failed:
+        meta["failed"] = failed
     (out / "metadata.json").write_text(json.dumps(meta, indent=2))
-    return meta
+    if failed and on_error is None:
+        from magail_sumo.errors import MagailSumoError
 
+        raise MagailSumoError(f"{len(failed)} of {len(jobs)} scene(s) not recorded; first: "
+                              f"{failed[0]['reason']}")
+    return meta

@@ -11,7 +11,6 @@ from __future__ import annotations
 import importlib
 import subprocess
 from dataclasses import asdict, dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Sequence
 
@@ -86,6 +85,10 @@ def _controlled(cmd: list[str], controller: str) -> None:
         libsumo.close()
 
 
+def _controlled_job(job: tuple[list[str], str]) -> None:
+    _controlled(*job)
+
+
 def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float | None = None,
                      end: float | None = None, seed: int = 0, controller: str | None = None,
                      extra_args: Sequence[str] = (), timeout_s: float = 600) -> SumoRunSummary:
@@ -110,15 +113,13 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
             msg = " ".join((res.stderr or res.stdout).split())[-300:]
             raise SumoRunError(f"{cfg}: SUMO failed (exit {res.returncode}): {msg}")
     else:
-        ctx = get_context("spawn")
-        proc = ctx.Process(target=_controlled, args=(cmd, controller))
-        proc.start()
-        proc.join(timeout_s)
-        if proc.is_alive():
-            proc.kill()
+        from magail_sumo.workers import run_one
+
+        res = run_one(_controlled_job, (cmd, controller), timeout_s=timeout_s)
+        if res.kind == "timeout":
             raise SumoRunError(f"{cfg}: controlled SUMO run timed out after {timeout_s:.0f} s")
-        if proc.exitcode != 0:
-            raise SumoRunError(f"{cfg}: controlled SUMO run failed (exit {proc.exitcode})")
+        if not res.ok:
+            raise SumoRunError(f"{cfg}: controlled SUMO run failed: {res.reason}")
     return summarise(out)
 
 

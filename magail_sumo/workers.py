@@ -1,0 +1,196 @@
+"""Jobs each in a fresh worker process, with a per-job timeout: no wait on a worker is unbounded.
+
+libsumo runs one simulation per process (and has crashed when a second one starts after vehicle
+removals), so every SUMO-using job of ``convert``, ``evaluate`` and ``expert`` runs in a process
+of its own, started with the ``spawn`` method (the semantics of a pool with
+``maxtasksperchild=1``). :func:`run_jobs` runs up to ``workers`` such processes at once and
+yields one :class:`JobResult` per job:
+
+* the job returned: ``ok`` is True and ``value`` holds the return value;
+* the job raised: ``kind == "error"``, ``reason`` is the exception's one-line message (prefixed
+  with its type name unless it is a :class:`~magail_sumo.errors.MagailSumoError`) and
+  ``expected`` says whether it was one (a reported bad input rather than a crash or a bug);
+* the process died without answering (a crash, ``os._exit``, a signal): ``kind == "died"``
+  with the exit code;
+* the job ran longer than ``timeout_s`` (a hang, a stopped process, a slow input): the process
+  is killed (SIGKILL also ends a stopped process) and ``kind == "timeout"``.
+
+A failed job never stops the others; :func:`run_jobs` itself only raises for bad arguments.
+When the caller stops iterating (an exception, Ctrl-C, ``break``) every live worker is killed.
+The job function and its argument must be picklable (a module-level function).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+import traceback
+from dataclasses import dataclass
+from multiprocessing.connection import wait
+from typing import Any, Callable, Iterable, Iterator
+
+from magail_sumo.errors import MagailSumoError
+
+#: seconds a worker gets to exit after its answer before it is killed
+_EXIT_GRACE_S = 5.0
+
+
+@dataclass
+class JobResult:
+    """The outcome of one job (see the module doc).
+
+    :param index: position of the job in the input. :param job: the job's argument.
+    :param kind: ``"ok"``, ``"error"``, ``"died"`` or ``"timeout"``.
+    :param reason: one-line reason of a failure ("" when ok).
+    :param expected: the job raised a :class:`~magail_sumo.errors.MagailSumoError`.
+    :param seconds: wall time of the job's process (s).
+    """
+
+    index: int
+    job: Any
+    kind: str
+    value: Any = None
+    reason: str = ""
+    expected: bool = False
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.kind == "ok"
+
+
+def _one_line(text: str, limit: int = 400) -> str:
+    from magail_sumo.outputs import printable
+
+    return printable(" ".join(str(text).split()), limit)
+
+
+def _child(conn, fn: Callable[[Any], Any], arg: Any) -> None:
+    """Worker entry point: run ``fn(arg)`` and send ``("ok", value)`` or a failure."""
+    try:
+        value = fn(arg)
+        msg: tuple = ("ok", value)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent
+        expected = isinstance(exc, MagailSumoError)
+        text = str(exc) or type(exc).__name__
+        reason = _one_line(text) if expected else _one_line(f"{type(exc).__name__}: {text}")
+        msg = ("error", reason, expected, traceback.format_exc())
+    try:
+        conn.send(msg)
+    except Exception as exc:  # the value does not pickle
+        conn.send(("error", _one_line(f"result not transferable: {type(exc).__name__}: {exc}"),
+                   False, traceback.format_exc()))
+    conn.close()
+
+
+def _kill(proc) -> None:
+    if proc.is_alive():
+        proc.kill()
+    proc.join(_EXIT_GRACE_S)
+
+
+def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
+             timeout_s: float | None = None, ordered: bool = False,
+             start_method: str = "spawn") -> Iterator[JobResult]:
+    """Run ``fn(job)`` for every job, each in a fresh process, ``workers`` at a time.
+
+    :param timeout_s: seconds a job may run (from its process's start) before its process is
+        killed and the job reported as timed out; None: no limit.
+    :param ordered: yield in job order (else as jobs finish).
+    :param jobs: consumed lazily, at most ``workers`` ahead of the results.
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if timeout_s is not None and not timeout_s > 0:
+        raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+    ctx = mp.get_context(start_method)
+    source = enumerate(jobs)
+    running: dict[int, tuple] = {}  # index -> (proc, conn, job, start)
+    done: dict[int, JobResult] = {}
+    next_out = 0
+    exhausted = False
+    try:
+        while True:
+            while not exhausted and len(running) < workers:
+                try:
+                    k, job = next(source)
+                except StopIteration:
+                    exhausted = True
+                    break
+                parent, child = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_child, args=(child, fn, job), daemon=True,
+                                   name=f"job-{k}")
+                proc.start()
+                child.close()
+                running[k] = (proc, parent, job, time.monotonic())
+            if not running:
+                break
+            now = time.monotonic()
+            wait_s = None
+            if timeout_s is not None:
+                wait_s = max(0.0, min(s + timeout_s for *_, s in running.values()) - now)
+            waitables = [c for _, c, _, _ in running.values()] + \
+                [p.sentinel for p, _, _, _ in running.values()]
+            wait(waitables, wait_s)
+            now = time.monotonic()
+            for k in list(running):
+                proc, conn, job, start = running[k]
+                res = _collect(k, proc, conn, job, start, now, timeout_s)
+                if res is not None:
+                    del running[k]
+                    conn.close()
+                    done[k] = res
+            if ordered:
+                while next_out in done:
+                    yield done.pop(next_out)
+                    next_out += 1
+            else:
+                for k in sorted(done):
+                    yield done.pop(k)
+    finally:
+        for proc, conn, _, _ in running.values():
+            _kill(proc)
+            conn.close()
+
+
+def _collect(k: int, proc, conn, job, start: float, now: float, timeout_s: float | None
+             ) -> JobResult | None:
+    """The job's result when it has one (answered, died or timed out), else None."""
+    seconds = now - start
+    alive = proc.is_alive()  # before the poll: a worker that exited has written all it sent
+    answered = False
+    try:
+        answered = conn.poll()
+    except (OSError, EOFError):
+        answered = False
+    if answered:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError, ConnectionError):
+            msg = None
+        except Exception as exc:  # an answer that does not unpickle here
+            msg = ("error", _one_line(f"result not readable: {type(exc).__name__}: {exc}"),
+                   False, "")
+        if msg is not None:
+            proc.join(_EXIT_GRACE_S)
+            _kill(proc)
+            if msg[0] == "ok":
+                return JobResult(k, job, "ok", msg[1], seconds=seconds)
+            return JobResult(k, job, "error", reason=msg[1], expected=bool(msg[2]),
+                             seconds=seconds)
+    if not alive:
+        proc.join(_EXIT_GRACE_S)
+        code = proc.exitcode
+        return JobResult(k, job, "died", reason=f"worker process died (exit code {code})",
+                         seconds=seconds)
+    if timeout_s is not None and seconds >= timeout_s:
+        _kill(proc)
+        return JobResult(k, job, "timeout",
+                         reason=f"timed out after {timeout_s:g} s (worker killed)",
+                         seconds=seconds)
+    return None
+
+
+def run_one(fn: Callable[[Any], Any], job: Any, timeout_s: float | None = None) -> JobResult:
+    """:func:`run_jobs` for a single job."""
+    return next(run_jobs(fn, [job], workers=1, timeout_s=timeout_s))
