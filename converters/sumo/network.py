@@ -13,6 +13,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from magail_sumo.outputs import inside, safe_name
 from magail_sumo.scene import Scene
 
 from .geometry import fmt_shape
@@ -108,9 +109,14 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[
     return [nod, edg, con]
 
 
-def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path) -> BuiltNetwork:
-    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<id>.net.xml``."""
-    prefix = out_dir / scene.scenario_id
+def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | None = None
+                  ) -> BuiltNetwork:
+    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<name>.net.xml``.
+
+    :param name: file name stem; default :func:`magail_sumo.outputs.safe_name` of the scene id
+        (the id itself for every real WOMD id), so a scenario id never becomes a path.
+    """
+    prefix = inside(out_dir, name or safe_name(scene.scenario_id))
     types = node_types(scene, plan)
     plain = write_plain(plan, types, prefix)
     net = Path(f"{prefix}.net.xml")

@@ -492,22 +492,31 @@ class MultiSceneVecEnv(VecEnv):
 def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
                 convert_missing: bool = True) -> list[SceneSpec]:
     """A :class:`SceneSpec` per scene of ``scene_files`` with its bundle under ``networks``
-    (``networks/<id>/``), converting the scenes that have none yet (baseline run skipped)."""
+    (``networks/<name>/``, ``name`` = :func:`magail_sumo.outputs.safe_name` of the scenario
+    id), converting the scenes that have none yet (baseline run skipped) into ``networks``
+    once it is claimed (:func:`converters.sumo.scenario.claim_networks_dir`). Two scenes whose
+    ids map to one name are refused (:class:`~magail_sumo.outputs.OutputError`)."""
     from converters import iter_scenes
+    from magail_sumo.outputs import NameRegistry, inside, printable
 
     networks = Path(networks)
+    names = NameRegistry()
     out = []
     for f in scene_files:
         for scene in iter_scenes(f):
             sid = scene.scenario_id
-            folder = networks / sid
-            if not (folder / f"{sid}.sumocfg").is_file():
+            folder = inside(networks, names.name(sid))
+            if not (folder / f"{folder.name}.sumocfg").is_file():
                 if not convert_missing:
-                    raise MagailSumoError(f"{folder}: no converted bundle for scene {sid}")
-                from converters.sumo.scenario import ConvertOptions, convert_scene
+                    raise MagailSumoError(f"{folder}: no converted bundle for scene "
+                                          f"{printable(sid)}")
+                from converters.sumo.scenario import (ConvertOptions, claim_networks_dir,
+                                                      convert_scene)
 
+                claim_networks_dir(networks)
                 rep = convert_scene(scene, networks, ConvertOptions(baseline=False))
                 if rep.status != "ok":
-                    raise MagailSumoError(f"{f}: scene {sid} could not be converted: {rep.reason}")
+                    raise MagailSumoError(f"{f}: scene {printable(sid)} could not be converted: "
+                                          f"{rep.reason}")
             out.append(SceneSpec(str(f), str(folder), sid))
     return out

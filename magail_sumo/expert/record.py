@@ -12,7 +12,11 @@ previous-action entries of the observation (``prev_accel``, ``prev_steer``) are 
 those training-normalised actions, so expert and policy observations share one scale.
 
 ``DIR/<scenario_id>.parquet`` per scene plus ``DIR/metadata.json``: the format, the observation
-layout (``observation_names``), the observation config and the training limits.
+layout (``observation_names``), the observation config and the training limits. The file name
+is :func:`magail_sumo.outputs.safe_name` of the scenario id (the id itself for every real WOMD
+id); ``metadata.json`` (``scenes[].scenario_id`` / ``parquet``) and the ``scene_id`` column keep
+the original id. ``DIR`` must be new, empty or written by magail_sumo
+(:func:`~magail_sumo.outputs.claim_output_dir`); every file is written atomically.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ import numpy as np
 from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.vec_env import SceneSpec, load_spec_scene
+from magail_sumo.outputs import (NameRegistry, atomic_path, claim_output_dir, inside, safe_name,
+                                 write_text)
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 from magail_sumo.sim.dynamics import BicycleLimits
 
@@ -101,8 +107,9 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
         "accel": pa.array(cat["accel"].astype(np.float32)),
         "steer": pa.array(cat["steer"].astype(np.float32)),
     })
-    out = Path(out_dir) / f"{scene.scenario_id}.parquet"
-    pq.write_table(table, out)
+    out = inside(out_dir, f"{safe_name(scene.scenario_id)}.parquet")
+    with atomic_path(out) as tmp:
+        pq.write_table(table, tmp)
     return {"scenario_id": scene.scenario_id, "file": str(spec.scene_file), "rows": n,
             "steps": int(len(np.unique(cat["step"]))), "vehicles": int(len(np.unique(cat["track"]))),
             "parquet": out.name}
@@ -122,8 +129,9 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     """
     observation = observation or ObservationConfig()
     limits = limits or BicycleLimits()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_output_dir(out_dir, "expert", ["metadata.json"])
+    names = NameRegistry()  # two scenes on one file name: refused before any is recorded
+    parquets = [f"{names.name(spec.scenario_id or spec.name)}.parquet" for spec in specs]
     jobs = [(spec, observation, limits, out, seed) for spec in specs]
     ctx = mp.get_context("spawn")
     with ctx.Pool(max(1, min(workers, len(jobs))), maxtasksperchild=1) as pool:
@@ -135,6 +143,7 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     meta = {"format": EXPERT_FORMAT, "observation_names": observation_names(observation),
             "observation": to_dict(observation), "limits": to_dict(limits),
             "action": ["accel", "steer"], "scenes": scenes}
-    (out / "metadata.json").write_text(json.dumps(meta, indent=2))
+    claim_output_dir(out, "expert", ["metadata.json", *parquets])
+    write_text(out / "metadata.json", json.dumps(meta, indent=2))
     return meta
 
