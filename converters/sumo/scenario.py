@@ -17,6 +17,7 @@ Recorded driving off the mapped lanes gets synthesised lanes (:mod:`.synthesis`)
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -86,14 +87,16 @@ def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = 
     :class:`OutputError` when it is not one.
 
     It may be new, empty, marked by any magail_sumo command
-    (:func:`magail_sumo.outputs.claim_output_dir`), or an unmarked folder that holds only
-    converted bundles (folders with ``conversion.json``), ``README.md`` and ``summary.csv``, as
-    the repository ships ``networks/`` and older versions left their output: it is then marked.
+    (:func:`magail_sumo.outputs.claim_output_dir`), or an unmarked folder that holds converted
+    bundles (folders with ``conversion.json``; at least one) and nothing else but ``README.md``
+    and ``summary.csv``, as the repository ships ``networks/`` and older versions left their
+    output: it is then marked.
     """
     d = Path(folder)
     if d.is_dir() and not d.is_symlink() and read_marker(d) is None:
         entries = [p for p in d.iterdir() if p.name != MARKER]
-        if entries and all(_legacy_entry(p) for p in entries):
+        bundles = [p for p in entries if p.is_dir() and not p.is_symlink()]
+        if bundles and all(_legacy_entry(p) for p in entries):
             write_text(d / MARKER, json.dumps({"tools": {}}, indent=1))
     return claim_output_dir(d, "convert", owned)
 
@@ -129,6 +132,14 @@ def _move_into_place(tmp: Path, folder: Path, sid: str) -> None:
     os.rename(folder, trash / "bundle")
     os.rename(tmp, folder)
     shutil.rmtree(trash, ignore_errors=True)
+
+
+def _disk_full(folder: Path) -> bool:
+    """Less than 1 MiB left where ``folder`` lies (a failed stage is then a full disk's doing)."""
+    try:
+        return shutil.disk_usage(folder).free < 2 ** 20
+    except OSError:
+        return False
 
 
 def _umask() -> int:
@@ -261,6 +272,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.reason = f"{printable(sid)}: {stage}: {printable(msg, 1000)}"
         if isinstance(exc, OSError):  # writing failed (a full disk): nothing is moved into place
             io_error = exc
+        elif _disk_full(out):  # netconvert exits 0 with a truncated net on a full disk
+            io_error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            rep.reason += f" ({io_error.strerror})"
     rep.timings["total"] = round(sum(v for k, v in rep.timings.items() if k != "total"), 4)
     try:
         if io_error is not None:

@@ -131,7 +131,8 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     limits = limits or BicycleLimits()
     out = claim_output_dir(out_dir, "expert", ["metadata.json"])
     names = NameRegistry()  # two scenes on one file name: refused before any is recorded
-    parquets = [f"{names.name(spec.scenario_id or spec.name)}.parquet" for spec in specs]
+    parquets = [f"{names.name(spec.name if spec.scenario_id is None else spec.scenario_id)}"
+                ".parquet" for spec in specs]
     jobs = [(spec, observation, limits, out, seed) for spec in specs]
     ctx = mp.get_context("spawn")
     with ctx.Pool(max(1, min(workers, len(jobs))), maxtasksperchild=1) as pool:
