@@ -275,6 +275,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         elif _disk_full(out):  # netconvert exits 0 with a truncated net on a full disk
             io_error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             rep.reason += f" ({io_error.strerror})"
+    except BaseException:  # interrupted: leave no temporary folder behind
+        shutil.rmtree(out, ignore_errors=True)
+        raise
     rep.timings["total"] = round(sum(v for k, v in rep.timings.items() if k != "total"), 4)
     try:
         if io_error is not None:
