@@ -607,7 +607,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     for s in specs:
         method_files.name(names[s])
     claim_output_dir(out, "evaluate", ["manifest.json", "rollouts", "networks"])
-    scene_files_ = NameRegistry()
+    scene_names = NameRegistry()  # rollouts file names of the scenes
     errors: list[str] = []
 
     def error(msg: str) -> None:
@@ -632,7 +632,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                           f"{sc.current_time_index + 1 + N_STEPS} (current step + 80)")
                     continue
                 try:
-                    scene_files_.name(sc.scenario_id)
+                    scene_names.name(sc.scenario_id)
                 except OutputError as exc:
                     error(f"{f}: {exc}; scenario {shown} skipped")
                     continue
