@@ -219,6 +219,22 @@ def test_foreign_folder_is_refused(tmp_path, capsys, cmd, name):
     assert _tree(tmp_path) == before
 
 
+def test_reruns_into_own_folders_are_accepted(tmp_path, capsys):
+    """A folder a command marked is its own on the next run (manifest merged, report redone)."""
+    src = str(WOMD_DIR / f"{SID}.tfrecord")
+    out = tmp_path / "eval"
+    for method in ("constvel", "logreplay"):
+        assert main(["evaluate", "--policy", method, "--baselines", "none", "--rollouts", "1",
+                     "--scenes", src, "--out", str(out)]) == 0
+    assert json.loads((out / "manifest.json").read_text())["methods"] == ["constvel",
+                                                                         "logreplay"]
+    for _ in range(2):
+        assert main(["report", str(out)]) == 0
+    assert set(read_marker(out)["tools"]) == {"evaluate"}
+    assert set(read_marker(out / "report")["tools"]) == {"report"}
+    _one_line_errors(capsys.readouterr().err)
+
+
 def test_networks_folders(tmp_path):
     from converters.sumo.scenario import claim_networks_dir
 
