@@ -186,6 +186,30 @@ def test_name_collision_is_an_error_not_an_overwrite(tmp_path, capsys):
     assert not (tmp_path / "ex" / "metadata.json").exists()
 
 
+def test_error_lines_with_hostile_ids_stay_one_line(world, tmp_path, capsys):
+    """Errors naming a hostile id (newline, NUL, 5,000 characters) are one escaped line each."""
+    root, ids = world
+    src = str(root / "inputs" / "hostile.tfrecord")
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+                 "--scenes", src, src, "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    assert err.count("given twice") == len(ids)
+    assert "scenario new\\nline: given twice" in err and "nul\\x00id" in err
+    assert max(len(line) for line in err.splitlines()) < 1000
+    from converters.sumo.scenario import claim_networks_dir
+
+    conv = claim_networks_dir(tmp_path / "conv")  # ours, but a folder of someone in the way
+    (conv / safe_name("new\nline")).mkdir()
+    (conv / safe_name("new\nline") / "notes.txt").write_text("mine")
+    assert main(["convert", src, "--out", str(conv), "--no-baseline", "--skip-bad"]) == 0
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    assert "error: new\\nline: output: " in err and "not a converted bundle" in err
+    assert sorted(os.listdir(conv / safe_name("new\nline"))) == ["notes.txt"]
+
+
 def test_conversion_refuses_to_replace_a_foreign_folder(tmp_path):
     from converters.sumo import convert_scene
 
