@@ -78,7 +78,15 @@ def world(tmp_path_factory):
     (root / "inputs").mkdir()
     write_womd(root / "inputs" / "hostile.tfrecord",
                [dataclasses.replace(base, scenario_id=i) for i in ids])
+    # expert starts a process per scene (~5 s each): a subset of the ids
+    write_womd(root / "inputs" / "expert.tfrecord",
+               [dataclasses.replace(base, scenario_id=i) for i in _expert_ids(ids)])
     return root, ids
+
+
+def _expert_ids(ids: list[str]) -> list[str]:
+    """Absolute, .., empty, newline and long ids."""
+    return [ids[0], "../../esc", "", "new\nline", "L" * 5000]
 
 
 def test_safe_names_are_files_and_real_ids_unchanged(world):
@@ -114,9 +122,10 @@ def test_pipeline_with_hostile_ids_stays_inside(world, capsys, monkeypatch):
     assert [r["scenario_id"] for r in rows] == ids and {r["status"] for r in rows} == {"ok"}
     assert "convert" in read_marker(out)["tools"]
 
-    assert main(["expert", src, "--networks", str(out), "--out", str(out / "expert")]) == 0
+    assert main(["expert", str(root / "inputs" / "expert.tfrecord"), "--networks", str(out),
+                 "--out", str(out / "expert"), "--workers", "2"]) == 0
     meta = json.loads((out / "expert" / "metadata.json").read_text())
-    assert [s["scenario_id"] for s in meta["scenes"]] == ids
+    assert [s["scenario_id"] for s in meta["scenes"]] == _expert_ids(ids)
     for sc in meta["scenes"]:
         assert sc["parquet"] == f"{safe_name(sc['scenario_id'])}.parquet"
         table = pd.read_parquet(out / "expert" / sc["parquet"], columns=["scene_id"])
@@ -382,6 +391,17 @@ def test_full_disk_on_summary_and_manifest_keeps_old_files(tmp_path, capsys, mon
         write_submission(d / "sub.binproto", [])
     monkeypatch.undo()
     assert _tree(d) == old
+
+    from magail_sumo.expert import record_expert
+
+    ex = tmp_path / "expert"
+    record_expert([], ex)
+    old = _tree(ex)
+    _full_disk(monkeypatch, "metadata.json")
+    with pytest.raises(OSError):
+        record_expert([], ex)
+    monkeypatch.undo()
+    assert _tree(ex) == old
 
     class HalfFrame:  # a Parquet writer that fills the disk half-way
         def to_parquet(self, path, index=False):
