@@ -120,9 +120,11 @@ def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | No
     types = node_types(scene, plan)
     plain = write_plain(plan, types, prefix)
     net = Path(f"{prefix}.net.xml")
+    # run in out_dir with bare file names: the net's header comment names no (temporary) folder
     warnings = run_tool("netconvert", [
-        "--node-files", str(plain[0]), "--edge-files", str(plain[1]),
-        "--connection-files", str(plain[2]), "--output-file", str(net), *NETCONVERT_OPTIONS])
+        "--node-files", plain[0].name, "--edge-files", plain[1].name,
+        "--connection-files", plain[2].name, "--output-file", net.name, *NETCONVERT_OPTIONS],
+        cwd=Path(out_dir))
     return BuiltNetwork(net, plain, types, warnings)
 
 
