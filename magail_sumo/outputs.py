@@ -99,6 +99,12 @@ def inside(folder: str | PathLike, *parts: str) -> Path:
     return path
 
 
+def _file_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | PathLike, mode: str = "wb") -> Iterator:
     """Open a temporary file beside ``path`` for writing; on success it replaces ``path``.
@@ -108,6 +114,7 @@ def atomic_write(path: str | PathLike, mode: str = "wb") -> Iterator:
     """
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name[:60]}.", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, _file_mode())  # mkstemp's 0600 -> what open() would give (umask)
     try:
         with os.fdopen(fd, mode) as fh:
             yield fh
@@ -126,6 +133,7 @@ def atomic_path(path: str | PathLike) -> Iterator[Path]:
     matplotlib, an external tool); moved over ``path`` when the block succeeds."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name[:60]}.", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, _file_mode())  # mkstemp's 0600 -> what open() would give (umask)
     os.close(fd)
     try:
         yield Path(tmp)

@@ -1,7 +1,9 @@
 """Convert every scene of many scene files, in parallel, with a summary CSV.
 
 Bad records and failing conversions (a worker that dies or hangs included) are reported per
-scene; the batch goes on.
+scene; the batch goes on. Two scenes whose ids map to the same bundle name
+(:class:`magail_sumo.outputs.NameRegistry`) are not both converted: the second is a failed row.
+The summary CSV keeps the original scenario ids and is written atomically.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from converters.scene_files import SceneRecord, iter_scene_records
+from magail_sumo.outputs import NameRegistry, OutputError, atomic_write, printable
 from magail_sumo.scene import Scene
 
 from .scenario import ConvertOptions, convert_scene
@@ -52,7 +55,7 @@ def _convert(job: tuple[str, int | None, Scene, str, ConvertOptions]) -> BatchRo
 
 def _failed(job: tuple, reason: str, seconds: float = 0.0) -> BatchRow:
     path, index, scene, _, _ = job
-    return BatchRow(path, index, scene.scenario_id, "failed", f"{scene.scenario_id}: {reason}",
+    return BatchRow(path, index, scene.scenario_id, "failed", f"{printable(scene.scenario_id)}: {reason}",
                     {}, seconds)
 
 
@@ -80,12 +83,21 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
     if timeout_s is None and opts.time_budget_s is not None:
         timeout_s = opts.time_budget_s + KILL_GRACE_S
 
+    names = NameRegistry()
+
     def jobs() -> Iterator[tuple | BatchRow]:
         for rec in records:
             if rec.error is not None:
-                yield BatchRow(str(rec.path), rec.index, "", "unreadable", str(rec.error), {}, 0.0)
-            else:
-                yield (str(rec.path), rec.index, rec.scene, str(out), opts)
+                yield BatchRow(str(rec.path), rec.index, "", "unreadable",
+                               printable(str(rec.error), 1000), {}, 0.0)
+                continue
+            try:
+                names.name(rec.scene.scenario_id)
+            except OutputError as exc:
+                yield BatchRow(str(rec.path), rec.index, rec.scene.scenario_id, "failed",
+                               str(exc), {}, 0.0)
+                continue
+            yield (str(rec.path), rec.index, rec.scene, str(out), opts)
 
     if workers <= 1:
         for job in jobs():
@@ -116,8 +128,8 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
 
 
 def write_summary(path: Path, rows: list[BatchRow]) -> None:
-    """Write the summary CSV (one line per record)."""
-    with open(path, "w", newline="") as fh:
+    """Write the summary CSV (one line per record), atomically."""
+    with atomic_write(path, "w") as fh:
         w = csv.writer(fh)
         w.writerow(SUMMARY_COLUMNS)
         for row in rows:

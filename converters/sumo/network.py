@@ -13,6 +13,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from magail_sumo.outputs import inside, safe_name
 from magail_sumo.scene import Scene
 
 from .geometry import fmt_shape
@@ -108,18 +109,23 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[
     return [nod, edg, con]
 
 
-def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path,
+def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | None = None,
                   timeout_s: float | None = None) -> BuiltNetwork:
-    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<id>.net.xml``
-    (killed after ``timeout_s`` seconds)."""
-    prefix = out_dir / scene.scenario_id
+    """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<name>.net.xml``
+    (killed after ``timeout_s`` seconds).
+
+    :param name: file name stem; default :func:`magail_sumo.outputs.safe_name` of the scene id
+        (the id itself for every real WOMD id), so a scenario id never becomes a path.
+    """
+    prefix = inside(out_dir, name or safe_name(scene.scenario_id))
     types = node_types(scene, plan)
     plain = write_plain(plan, types, prefix)
     net = Path(f"{prefix}.net.xml")
+    # run in out_dir with bare file names: the net's header comment names no (temporary) folder
     warnings = run_tool("netconvert", [
-        "--node-files", str(plain[0]), "--edge-files", str(plain[1]),
-        "--connection-files", str(plain[2]), "--output-file", str(net), *NETCONVERT_OPTIONS],
-        timeout_s=timeout_s)
+        "--node-files", plain[0].name, "--edge-files", plain[1].name,
+        "--connection-files", plain[2].name, "--output-file", net.name, *NETCONVERT_OPTIONS],
+        cwd=Path(out_dir), timeout_s=timeout_s)
     return BuiltNetwork(net, plain, types, warnings)
 
 

@@ -3,18 +3,32 @@
 ``DIR/<id>/`` receives ``<id>.net.xml`` (plus the plain ``.nod/.edg/.con.xml`` it is built
 from), ``<id>.rou.xml``, ``<id>.tll.xml`` (when the scene has signals), ``<id>.sumocfg`` and
 ``conversion.json``. Simulation step: 0.1 s, SUMO time 0 = the scene's first step.
+
+``<id>`` is :func:`magail_sumo.outputs.safe_name` of the scenario id: the id itself for every
+real WOMD id; an id that is not a plain file name (``/``, ``..``, control characters, empty,
+longer than 100 characters) gets its safe characters plus a hash, so nothing is written outside
+``DIR``; ``conversion.json`` keeps the original ``scenario_id``. The bundle is built in a
+temporary folder beside it and renamed into place, so a crash or a full disk leaves the old
+bundle or none, never a half-written one; an existing ``DIR/<id>`` is only replaced when it is
+a bundle of the same scene (or empty).
 Recorded driving off the mapped lanes gets synthesised lanes (:mod:`.synthesis`), listed under
 ``synthesized`` and counted in ``quality.synthesized_lanes``.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
+                                 read_marker, safe_name, write_text)
 from magail_sumo.scene import LaneType, Scene
 
 from .matching import build_index
@@ -58,8 +72,94 @@ class ConversionReport:
                                               "unconverted", "synthesized", "timings", "quality")}
 
 
+def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
+    """``out_root/<safe name>``: the bundle folder of a scene (see the module doc)."""
+    return inside(out_root, safe_name(scenario_id))
+
+
+def _legacy_entry(path: Path) -> bool:
+    """What an unmarked networks folder may hold: converted bundles, README and summary.csv."""
+    if path.is_symlink():
+        return False
+    if path.is_dir():
+        return (path / "conversion.json").is_file()
+    return path.name in ("README.md", "summary.csv")
+
+
+def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = ()) -> Path:
+    """Make ``folder`` a networks folder of ``convert`` (bundles ``<name>/``), or
+    :class:`OutputError` when it is not one.
+
+    It may be new, empty, marked by any magail_sumo command
+    (:func:`magail_sumo.outputs.claim_output_dir`), or an unmarked folder that holds converted
+    bundles (folders with ``conversion.json``; at least one) and nothing else but ``README.md``
+    and ``summary.csv``, as the repository ships ``networks/`` and older versions left their
+    output: it is then marked.
+    """
+    d = Path(folder)
+    if d.is_dir() and not d.is_symlink() and read_marker(d) is None:
+        entries = [p for p in d.iterdir() if p.name != MARKER]
+        bundles = [p for p in entries if p.is_dir() and not p.is_symlink()]
+        if bundles and all(_legacy_entry(p) for p in entries):
+            write_text(d / MARKER, json.dumps({"tools": {}}, indent=1))
+    return claim_output_dir(d, "convert", owned)
+
+
+def _check_replaceable(folder: Path, sid: str) -> None:
+    """:class:`OutputError` unless ``folder`` is absent, empty or a bundle of scene ``sid``."""
+    if not folder.exists() and not folder.is_symlink():
+        return
+    if folder.is_symlink() or not folder.is_dir():
+        raise OutputError(f"{folder}: exists and is not a bundle folder; not replaced")
+    if not any(folder.iterdir()):
+        return
+    conv = folder / "conversion.json"
+    if not conv.is_file():
+        raise OutputError(f"{folder}: holds files that are not a converted bundle; not replaced")
+    try:
+        other = json.loads(conv.read_text()).get("scenario_id", sid)
+    except (ValueError, AttributeError, UnicodeDecodeError):
+        return  # a damaged report of ours: replace the bundle
+    if other != sid:
+        raise OutputError(f"{folder}: holds the bundle of scenario {printable(str(other))!r}, "
+                          f"not {printable(sid)!r} (file name collision); not replaced")
+
+
+def _move_into_place(tmp: Path, folder: Path, sid: str) -> None:
+    """Rename the finished bundle ``tmp`` to ``folder`` (replacing an old bundle of ``sid``)."""
+    _check_replaceable(folder, sid)
+    if not folder.exists():
+        os.rename(tmp, folder)
+        return
+    trash = Path(tempfile.mkdtemp(prefix=f".{folder.name[:60]}.", suffix=".old",
+                                  dir=folder.parent))
+    os.rename(folder, trash / "bundle")
+    os.rename(tmp, folder)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def _disk_full(folder: Path) -> bool:
+    """Less than 1 MiB left where ``folder`` lies (a failed stage is then a full disk's doing)."""
+    try:
+        return shutil.disk_usage(folder).free < 2 ** 20
+    except OSError:
+        return False
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _one_line(exc: BaseException) -> str:
+    return printable(" ".join(str(exc).split()) or type(exc).__name__, 300)
+
+
 def write_sumocfg(path: Path, sid: str, additional: list[str], end: float) -> None:
-    """A configuration that ``sumo -c`` / ``sumo-gui -c`` open as is (relative file names)."""
+    """A configuration that ``sumo -c`` / ``sumo-gui -c`` open as is (relative file names).
+
+    :param sid: the file name stem of the bundle's files (the safe name of the scenario id)."""
     add = f'    <additional-files value="{",".join(additional)}"/>\n' if additional else ""
     path.write_text(
         "<configuration>\n  <input>\n"
@@ -73,17 +173,31 @@ def write_sumocfg(path: Path, sid: str, additional: list[str], end: float) -> No
 
 
 def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None = None) -> ConversionReport:
-    """Convert ``scene`` into ``out_root/<scenario_id>/``; never raises on a bad scene.
+    """Convert ``scene`` into ``out_root/<safe name>/`` (see the module doc); never raises on
+    a bad scene.
 
-    A failing stage gives ``status="failed"`` with ``reason`` naming the stage and problem.
+    A failing stage gives ``status="failed"`` with ``reason`` naming the stage and problem (the
+    id printed through :func:`~magail_sumo.outputs.printable`). A failed write (a full disk, a
+    folder in the way that is not this scene's bundle) also gives ``status="failed"`` and leaves
+    ``out_root`` as it was.
     """
     import sumolib
 
     opts = options or ConvertOptions()
     sid = scene.scenario_id
-    out = Path(out_root) / sid
-    out.mkdir(parents=True, exist_ok=True)
+    name = safe_name(sid)  # file names; sid stays the id in conversion.json and messages
     rep = ConversionReport(sid)
+    try:
+        final = bundle_folder(out_root, sid)
+        _check_replaceable(final, sid)
+        Path(out_root).mkdir(parents=True, exist_ok=True)
+        out = Path(tempfile.mkdtemp(prefix=f".{name[:60]}.", suffix=".tmp", dir=out_root))
+        os.chmod(out, 0o777 & ~_umask())  # mkdtemp makes it private; a bundle is not
+    except (OSError, OutputError) as exc:
+        rep.reason = f"{printable(sid)}: output: {_one_line(exc)}"
+        rep.timings["total"] = 0.0
+        return rep
+    io_error: OSError | None = None
     stage = "network plan"
     clock = time.perf_counter()
 
@@ -114,7 +228,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.synthesized = [s.to_dict() for s in synthesized]
         lap("synthesize")
         stage = "netconvert"
-        built = build_network(scene, plan, out, timeout_s=remaining())
+        built = build_network(scene, plan, out, name, timeout_s=remaining())
         lap("netconvert")
         stage = "load network"
         net = sumolib.net.readNet(str(built.net_file), withInternal=True)
@@ -124,8 +238,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         additional: list[str] = []
         if len(scene.signals) and net.getTrafficLights():
             programs = build_programs(scene, plan, net)
-            write_programs(out / f"{sid}.tll.xml", programs, STEP_LENGTH, opts.cycle_signals)
-            additional.append(f"{sid}.tll.xml")
+            write_programs(out / f"{name}.tll.xml", programs, STEP_LENGTH, opts.cycle_signals)
+            additional.append(f"{name}.tll.xml")
             rep.unconverted.extend({"kind": "signal", "id": int(lane),
                                     "reason": "signalled lane is not part of a traffic-light link"}
                                    for lane in programs.unmapped_lanes)
@@ -138,8 +252,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         routes, unconverted = build_routes(scene, plan, index_car, index_bike, net)
         rep.unconverted.extend(unconverted)
         end = scene.num_steps * STEP_LENGTH
-        write_routes(out / f"{sid}.rou.xml", routes, STEP_LENGTH, end)
-        write_sumocfg(out / f"{sid}.sumocfg", sid, additional, end)
+        write_routes(out / f"{name}.rou.xml", routes, STEP_LENGTH, end)
+        write_sumocfg(out / f"{name}.sumocfg", name, additional, end)
         lap("routes")
         rep.files = sorted(p.name for p in out.iterdir() if p.name != "conversion.json")
         stage = "quality"
@@ -158,7 +272,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         lap("quality")
         if opts.baseline:
             stage = "sumo run"
-            base = run_baseline(scene, str(out / f"{sid}.sumocfg"), routes, programs)
+            base = run_baseline(scene, str(out / f"{name}.sumocfg"), routes, programs)
             rep.quality["signal_fidelity"] = base.signal_fidelity
             rep.quality["sumo_baseline"] = {"ade": base.ade, "fde": base.fde,
                                             "collisions": base.collisions,
@@ -169,7 +283,25 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if isinstance(exc, TimeBudgetExceeded):
             msg = f"time budget of {budget:g} s exceeded (ConvertOptions.time_budget_s / --timeout-s)"
-        rep.reason = f"{sid}: {stage}: {msg}"
+        rep.reason = f"{printable(sid)}: {stage}: {printable(msg, 1000)}"
+        if isinstance(exc, OSError):  # writing failed (a full disk): nothing is moved into place
+            io_error = exc
+        elif _disk_full(out):  # netconvert exits 0 with a truncated net on a full disk
+            io_error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            rep.reason += f" ({io_error.strerror})"
+    except BaseException:  # interrupted: leave no temporary folder behind
+        shutil.rmtree(out, ignore_errors=True)
+        raise
     rep.timings["total"] = round(sum(v for k, v in rep.timings.items() if k != "total"), 4)
-    (out / "conversion.json").write_text(json.dumps(rep.to_dict(), indent=1))
+    try:
+        if io_error is not None:
+            raise io_error
+        # the folder is renamed into place only when complete: a plain write is atomic enough
+        (out / "conversion.json").write_text(json.dumps(rep.to_dict(), indent=1))
+        _move_into_place(out, final, sid)
+    except (OSError, OutputError) as exc:
+        shutil.rmtree(out, ignore_errors=True)
+        if rep.status == "ok":
+            rep.status = "failed"
+            rep.reason = f"{printable(sid)}: write: {_one_line(exc)}"
     return rep

@@ -8,13 +8,16 @@ from pathlib import Path
 
 from magail_sumo.cli.argtypes import timeout_s
 from magail_sumo.cli.progress import progress
+from magail_sumo.outputs import OutputError, printable, safe_name
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("convert", help="convert recorded scenes into SUMO scenarios",
                        description="Write DIR/<scenario_id>/ (net, routes, signal programs, "
                                    ".sumocfg, conversion.json) for every scene of the inputs, "
-                                   "and DIR/summary.csv.")
+                                   "and DIR/summary.csv. DIR must be new, empty or written by "
+                                   "magail-sumo; an id that is not a plain file name is stored "
+                                   "under a safe name (its safe characters plus a hash).")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="WOMD TFRecord files/shards or ScenarioNet pickles/dataset folders")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
@@ -50,11 +53,18 @@ def format_quality(scenario_id: str, q: dict, folder: Path) -> str:
     ])
 
 
+def _line(text: str) -> str:
+    """``text`` as one line (control characters escaped only where there are any)."""
+    return text if text.isprintable() else printable(text, 2000)
+
+
 def run(args: argparse.Namespace) -> int:
     from converters.sumo.batch import convert_files, write_summary
-    from converters.sumo.scenario import ConvertOptions
+    from converters.sumo.scenario import ConvertOptions, claim_networks_dir
 
-    args.out.mkdir(parents=True, exist_ok=True)
+    # a new, empty or magail_sumo folder only (see claim_networks_dir); bundles go to
+    # OUT/<safe name of the scenario id>/, never outside OUT
+    claim_networks_dir(args.out, ["summary.csv"])
     opts = ConvertOptions(cycle_signals=args.cycle_signals, baseline=not args.no_baseline,
                           time_budget_s=args.timeout_s)
     rows = []
@@ -62,13 +72,20 @@ def run(args: argparse.Namespace) -> int:
                         desc="scenes", unit="scene"):
         rows.append(row)
         if row.status == "ok":
-            print(format_quality(row.scenario_id, row.quality, args.out / row.scenario_id),
-                  flush=True)
+            print(format_quality(printable(row.scenario_id), row.quality,
+                                 args.out / safe_name(row.scenario_id)), flush=True)
         else:
-            print(f"error: {row.reason}", file=sys.stderr, flush=True)
+            print(f"error: {_line(row.reason)}", file=sys.stderr, flush=True)
             if not args.skip_bad:
                 break
-    write_summary(args.out / "summary.csv", rows)
+    try:
+        write_summary(args.out / "summary.csv", rows)
+        claim_networks_dir(args.out, ["summary.csv", *(
+            safe_name(r.scenario_id) for r in rows
+            if r.status != "unreadable" and (args.out / safe_name(r.scenario_id)).is_dir())])
+    except OSError as exc:
+        raise OutputError(f"{args.out / 'summary.csv'}: cannot write "
+                          f"({exc.strerror or type(exc).__name__})") from None
     ok = sum(r.status == "ok" for r in rows)
     bad = len(rows) - ok
     print(f"converted {ok} scene(s), {bad} failed or unreadable; summary: "

@@ -15,7 +15,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description="Simulate every object valid at each scene's current step "
                                    "for 80 steps (WOSAC protocol) with the policy under test "
                                    "and the baselines; write DIR/rollouts/<method>/<scenario>"
-                                   ".parquet and DIR/manifest.json.")
+                                   ".parquet and DIR/manifest.json (DIR: new, empty or written "
+                                   "by magail-sumo).")
     p.add_argument("--policy", required=True, metavar="POLICY",
                    help="logreplay | constvel | sumo | random | CHECKPOINT | module:factory")
     p.add_argument("--scenes", nargs="+", required=True, metavar="FILE",
@@ -43,14 +44,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from magail_sumo.evaluation.rollouts import evaluate
+    from magail_sumo.outputs import OutputError
 
     base = [] if args.baselines.strip().lower() == "none" else \
         [b.strip() for b in args.baselines.split(",") if b.strip()]
     clock = time.perf_counter()
-    res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
-                   baselines=base, seed=args.seed, workers=args.workers,
-                   networks=args.networks, submission=args.export_submission,
-                   timeout_s=args.timeout_s)
+    try:
+        res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
+                       baselines=base, seed=args.seed, workers=args.workers,
+                       networks=args.networks, submission=args.export_submission,
+                       timeout_s=args.timeout_s)
+    except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
+        raise OutputError(f"{exc.filename or args.out}: cannot write "
+                          f"({exc.strerror or type(exc).__name__})") from None
     print(f"evaluated {len(res.done)} scene/method pair(s) in {time.perf_counter() - clock:.1f} s"
           f" -> {args.out}" + (f"; {len(res.errors)} problem(s) reported above"
                                if res.errors else ""), file=sys.stderr)

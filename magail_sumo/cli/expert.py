@@ -13,7 +13,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("expert", help="record expert demonstrations as Parquet",
                        description="Replay every scene's log through the env sensors with "
                                    "inverse-dynamics actions and write DIR/<id>.parquet "
-                                   "(s, s', action, done, ids) and DIR/metadata.json.")
+                                   "(s, s', action, done, ids) and DIR/metadata.json. DIR must be "
+                                   "new, empty or written by magail-sumo.")
     p.add_argument("scenes", nargs="+", metavar="SCENES", help="WOMD TFRecord / ScenarioNet files")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--networks", type=Path, default=Path("networks"), metavar="DIR",
@@ -40,6 +41,10 @@ def run(args: argparse.Namespace) -> int:
 
         cfg = load_config(args.config, TrainConfig)
         observation, limits = cfg.env.observation, cfg.env.limits
+    from magail_sumo.outputs import claim_output_dir, printable
+
+    # refuse a folder that is not ours before converting anything
+    claim_output_dir(args.out, "expert", ["metadata.json"])
     errors: list[str] = []
     specs = scene_specs(args.scenes, args.networks, errors=errors, time_budget_s=args.timeout_s)
     for e in errors:
@@ -48,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
                disable=not sys.stderr.isatty())
 
     def done(sc: dict) -> None:
-        bar.write(f"{sc['scenario_id']}: {sc['rows']} transitions, {sc['vehicles']} vehicles, "
+        bar.write(f"{printable(sc['scenario_id'])}: {sc['rows']} transitions, {sc['vehicles']} vehicles, "
                   f"{sc['steps']} steps -> {args.out / sc['parquet']}", file=sys.stdout)
         bar.update(1)
 
@@ -60,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         meta = record_expert(specs, args.out, observation, limits, workers=args.workers,
                              on_scene=done, on_error=failed, timeout_s=args.timeout_s)
+    except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
+        from magail_sumo.outputs import OutputError
+
+        raise OutputError(f"{exc.filename or args.out}: cannot write "
+                          f"({exc.strerror or type(exc).__name__})") from None
     finally:
         bar.close()
     if errors:

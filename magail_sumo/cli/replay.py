@@ -57,12 +57,44 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _write_video_atomic(path: Path, frames: list, fps: int) -> int:
+    """:func:`~magail_sumo.env.video.write_video` into a temporary file beside ``path`` (same
+    suffix: it picks the format), renamed over ``path`` when complete: a crash or a full disk
+    leaves the old video or none, never a half-written one."""
+    import contextlib
+    import os
+
+    from magail_sumo.env.video import write_video
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem[:60]}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        n = write_video(tmp, frames, fps)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return n
+
+
+def _umask() -> int:
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def run(args: argparse.Namespace) -> int:
     from converters import load_scene
-    from converters.sumo.scenario import ConvertOptions, convert_scene
+    from converters.sumo.scenario import ConvertOptions, bundle_folder, convert_scene
     from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
-    from magail_sumo.env.video import FORMATS, write_video
+    from magail_sumo.env.video import FORMATS
     from magail_sumo.errors import MagailSumoError
+    from magail_sumo.outputs import OutputError, printable
 
     if args.out.suffix.lower() not in FORMATS:
         raise MagailSumoError(f"{args.out}: unsupported video format (use {' or '.join(FORMATS)})")
@@ -70,13 +102,14 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
         bundle = args.bundle
-        if bundle is None and Path("networks", scene.scenario_id).is_dir():
-            bundle = Path("networks", scene.scenario_id)
+        shipped = bundle_folder("networks", scene.scenario_id)  # a safe name: never a path
+        if bundle is None and shipped.is_dir():
+            bundle = shipped
         if bundle is None:
             rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
             if rep.status != "ok":
                 raise MagailSumoError(f"{args.scene}: conversion failed: {rep.reason}")
-            bundle = Path(tmp) / scene.scenario_id
+            bundle = bundle_folder(tmp, scene.scenario_id)
         log = args.policy == "log"
         cfg = EnvConfig(terminate_on=() if log else ("collision", "off_road"),
                         limits=REPLAY_LIMITS if log else EnvConfig().limits,
@@ -93,6 +126,11 @@ def run(args: argparse.Namespace) -> int:
             env.step(acts)
             frames.append(env.render())
         env.close()
-    n = write_video(args.out, frames, args.fps)
-    print(f"{scene.scenario_id}: {n} frames ({args.policy}) -> {args.out}", file=sys.stderr)
+    try:
+        n = _write_video_atomic(args.out, frames, args.fps)
+    except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
+        raise OutputError(f"{args.out}: cannot write ({exc.strerror or type(exc).__name__})") \
+            from None
+    print(f"{printable(scene.scenario_id)}: {n} frames ({args.policy}) -> {args.out}",
+          file=sys.stderr)
     return 0

@@ -14,7 +14,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "report.md, metrics.csv and summary.csv. Bad rollouts are "
                                    "reported on stderr and the rest is still scored.")
     p.add_argument("folder", type=Path, metavar="DIR", help="folder written by evaluate")
-    p.add_argument("--out", type=Path, metavar="OUT", help="report folder (default DIR/report)")
+    p.add_argument("--out", type=Path, metavar="OUT", help="report folder (default DIR/report; "
+                   "new, empty or written by magail-sumo)")
     p.add_argument("--submission", nargs=2, action="append", default=[],
                    metavar=("NAME", "FILE.binproto"),
                    help="also score an external SimAgentsChallengeSubmission as method NAME "
@@ -24,13 +25,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from magail_sumo.evaluation.report import build_report
+    from magail_sumo.outputs import OutputError, printable
 
     subs: dict[str, list[str]] = {}
     for name, path in args.submission:
         subs.setdefault(name, []).append(path)
-    res = build_report(args.folder, args.out, subs)
+    try:
+        res = build_report(args.folder, args.out, subs)
+    except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
+        raise OutputError(f"{exc.filename or args.out or args.folder}: cannot write "
+                          f"({exc.strerror or type(exc).__name__})") from None
     for e in res.errors:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {e if e.isprintable() else printable(e, 2000)}", file=sys.stderr)
     print(f"report: {res.html} ({res.markdown.name}, {res.metrics_csv.name}, "
           f"{res.summary_csv.name})", file=sys.stderr)
     return 1 if res.errors else 0

@@ -3,7 +3,8 @@
 The folder is what :func:`converters.sumo.scenario.convert_scene` writes to ``DIR/<id>/``:
 ``<id>.sumocfg``, ``<id>.net.xml``, ``<id>.rou.xml`` (vehicle ids = WOMD track ids) and
 ``conversion.json`` (``unconverted``: objects not in SUMO, e.g. parked off-network vehicles,
-pedestrians).
+pedestrians). ``<id>`` is :func:`magail_sumo.outputs.safe_name` of the scenario id (the id
+itself for every real WOMD id); ``conversion.json`` holds the original id, checked on load.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import printable, safe_name
 from magail_sumo.scene import Scene
 
 
@@ -47,28 +49,34 @@ class SceneBundle:
         """Check and read the bundle folder of ``scene``; :class:`BundleError` when incomplete."""
         folder = Path(folder)
         sid = scene.scenario_id
-        files = {name: folder / name for name in
-                 (f"{sid}.sumocfg", f"{sid}.net.xml", f"{sid}.rou.xml", "conversion.json")}
+        name, shown = safe_name(sid), printable(sid)
+        files = {key: folder / f"{name}{key}" for key in (".sumocfg", ".net.xml", ".rou.xml")}
+        files["conversion.json"] = folder / "conversion.json"
         for path in files.values():
             if not path.is_file():
                 raise BundleError(f"{path}: bundle file not found (convert the scene with "
                                   "converters.sumo.scenario.convert_scene)")
         try:
             report = json.loads(files["conversion.json"].read_text())
-            root = ET.parse(files[f"{sid}.rou.xml"]).getroot()
+            root = ET.parse(files[".rou.xml"]).getroot()
         except (ValueError, ET.ParseError) as exc:
             raise BundleError(f"{folder}: unreadable bundle file: {' '.join(str(exc).split())}") \
                 from None
+        if not isinstance(report, dict):
+            raise BundleError(f"{files['conversion.json']}: not a conversion report")
+        if report.get("scenario_id", sid) != sid:
+            raise BundleError(f"{files['conversion.json']}: bundle of scenario "
+                              f"{printable(str(report.get('scenario_id')))}, not {shown}")
         if report.get("status") != "ok":
             raise BundleError(f"{files['conversion.json']}: conversion failed: "
-                              f"{report.get('reason', '')}")
+                              f"{printable(str(report.get('reason', '')), 1000)}")
         row_of = {int(t): k for k, t in enumerate(scene.tracks.id.tolist())}
         ids = tuple(v.get("id") for v in root.iter("vehicle"))
         bad = [i for i in ids if not i.lstrip("-").isdigit() or int(i) not in row_of]
         if bad:
-            raise BundleError(f"{files[f'{sid}.rou.xml']}: vehicle {bad[0]} is not a track of "
-                              f"scene {sid}")
+            raise BundleError(f"{files['.rou.xml']}: vehicle {printable(str(bad[0]))} is not "
+                              f"a track of scene {shown}")
         rows = np.array([row_of[int(i)] for i in ids], np.int64)
         parked = frozenset(v.get("id") for v in root.iter("vehicle") if v.find("stop") is not None)
-        return cls(scene, folder, files[f"{sid}.sumocfg"], rows, ids,
+        return cls(scene, folder, files[".sumocfg"], rows, ids,
                    tuple(report.get("unconverted", ())), parked)

@@ -522,15 +522,20 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
                 convert_missing: bool = True, errors: list[str] | None = None,
                 time_budget_s: float | None = 600.0) -> list[SceneSpec]:
     """A :class:`SceneSpec` per scene of ``scene_files`` with its bundle under ``networks``
-    (``networks/<id>/``), converting the scenes that have none yet (baseline run skipped,
-    ``time_budget_s`` seconds each at most).
+    (``networks/<name>/``, ``name`` = :func:`magail_sumo.outputs.safe_name` of the scenario
+    id), converting the scenes that have none yet (baseline run skipped, ``time_budget_s``
+    seconds each at most) into ``networks`` once it is claimed
+    (:func:`converters.sumo.scenario.claim_networks_dir`). Two scenes whose ids map to one name
+    are refused (:class:`~magail_sumo.outputs.OutputError`).
 
     :param errors: when given, a scene (or file) that cannot be used is appended here as a
         one-line reason and left out, instead of raising :class:`MagailSumoError`.
     """
     from converters import iter_scenes
+    from magail_sumo.outputs import NameRegistry, inside, printable
 
     networks = Path(networks)
+    names = NameRegistry()
     out = []
 
     def fail(msg: str) -> None:
@@ -542,24 +547,24 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
         try:
             for scene in iter_scenes(f):
                 sid = scene.scenario_id
-                folder = networks / sid
-                if not (folder / f"{sid}.sumocfg").is_file():
+                folder = inside(networks, names.name(sid))
+                if not (folder / f"{folder.name}.sumocfg").is_file():
                     if not convert_missing:
-                        fail(f"{folder}: no converted bundle for scene {sid}")
+                        fail(f"{folder}: no converted bundle for scene {printable(sid)}")
                         continue
-                    from converters.sumo.scenario import ConvertOptions, convert_scene
+                    from converters.sumo.scenario import (ConvertOptions, claim_networks_dir,
+                                                          convert_scene)
 
+                    claim_networks_dir(networks)
                     rep = convert_scene(scene, networks, ConvertOptions(
                         baseline=False, time_budget_s=time_budget_s))
                     if rep.status != "ok":
-                        fail(f"{f}: scene {sid} could not be converted: {rep.reason}")
+                        fail(f"{f}: scene {printable(sid)} could not be converted: {rep.reason}")
                         continue
                 out.append(SceneSpec(str(f), str(folder), sid))
         except Exception as exc:  # noqa: BLE001 - an unreadable file
             if errors is None:
                 raise
-            from magail_sumo.outputs import printable
-
             errors.append(printable(f"{f}: " + (str(exc) if isinstance(exc, MagailSumoError)
                                                  else f"{type(exc).__name__}: {exc}"), 400))
     return out

@@ -40,6 +40,8 @@ import numpy as np
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.realism.kinematic import wrap_angle
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
+from magail_sumo.outputs import (NameRegistry, OutputError, atomic_path, claim_output_dir, inside,
+                                 printable, safe_name, write_text)
 from magail_sumo.scene import Scene
 
 N_STEPS = 80  #: simulated steps per rollout (8 s)
@@ -332,8 +334,8 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         if method == "constvel":
             x, y, yaw = constant_velocity(scene, ids)
         elif bundle_dir is None:
-            raise EvaluationError(f"scenario {scene.scenario_id}: method {method} needs a "
-                                  "converted SUMO bundle")
+            raise EvaluationError(f"scenario {printable(scene.scenario_id)}: method {method} "
+                                  "needs a converted SUMO bundle")
         elif method == "sumo":
             x, y, yaw = _sumo_rollout(scene, Path(bundle_dir), s)
         else:
@@ -372,7 +374,7 @@ def _load(scene_file: str, scenario_id: str) -> Scene:
     for scene in iter_scenes(scene_file):
         if scene.scenario_id == scenario_id:
             return scene
-    raise EvaluationError(f"{scene_file}: scenario {scenario_id} not found")
+    raise EvaluationError(f"{scene_file}: scenario {printable(scenario_id)} not found")
 
 
 def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts]:
@@ -470,10 +472,19 @@ def to_frame(scene: Scene, ro: ScenarioRollouts, method: str):
     })
 
 
+def rollouts_path(out: str | Path, method: str, scenario_id: str) -> Path:
+    """``out/rollouts/<method>/<scenario_id>.parquet``, both names through
+    :func:`~magail_sumo.outputs.safe_name` (unchanged for the built-in methods and real WOMD
+    ids), refused (:class:`~magail_sumo.outputs.OutputError`) unless inside ``out``."""
+    return inside(out, "rollouts", safe_name(method), f"{safe_name(scenario_id)}.parquet")
+
+
 def write_parquet(path: str | Path, frame) -> None:
+    """Write ``frame`` to ``path`` atomically (a temporary file renamed into place)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    frame.to_parquet(path, index=False)
+    with atomic_path(path) as tmp:
+        frame.to_parquet(tmp, index=False)
 
 
 def read_rollouts(path: str | Path, scene: Scene) -> ScenarioRollouts:
@@ -531,16 +542,22 @@ def versions() -> dict[str, str]:
 
 
 def write_manifest(out: Path, manifest: dict) -> None:
-    """Merge ``manifest`` into ``out/manifest.json`` (methods and scenes accumulate)."""
+    """Merge ``manifest`` into ``out/manifest.json`` (methods and scenes accumulate; an
+    unreadable old manifest is replaced); written atomically."""
     path = out / "manifest.json"
-    old = json.loads(path.read_text()) if path.is_file() else {}
+    try:
+        old = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        old = {}
+    if not isinstance(old, dict):
+        old = {}
     if old and (old.get("rollouts"), old.get("seed")) != (manifest["rollouts"], manifest["seed"]):
         old = {}  # another run setting: start afresh
     scenes = {s["scenario_id"]: s for s in old.get("scenes", [])}
     scenes.update({s["scenario_id"]: s for s in manifest["scenes"]})
     methods = list(dict.fromkeys(list(old.get("methods", [])) + list(manifest["methods"])))
     merged = {**old, **manifest, "scenes": list(scenes.values()), "methods": methods}
-    path.write_text(json.dumps(merged, indent=2) + "\n")
+    write_text(path, json.dumps(merged, indent=2) + "\n")
 
 
 def read_manifest(out: str | Path) -> dict:
@@ -582,22 +599,25 @@ class EvaluationResult:
 def _bundle(scene: Scene, networks: Path | None, out: Path,
             timeout_s: float | None = DEFAULT_TIMEOUT_S) -> Path:
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
-    into ``out/networks``."""
-    from converters.sumo.scenario import ConvertOptions, convert_scene
+    into ``out/networks`` (bundle folders named by :func:`~magail_sumo.outputs.safe_name`)."""
+    from converters.sumo.scenario import (ConvertOptions, bundle_folder, claim_networks_dir,
+                                          convert_scene)
     from magail_sumo.env.bundle import BundleError, SceneBundle
 
     sid = scene.scenario_id
     for root in ([networks] if networks else []) + [out / "networks"]:
         try:
-            SceneBundle.load(scene, root / sid)
-            return root / sid
-        except BundleError:
+            folder = bundle_folder(root, sid)
+            SceneBundle.load(scene, folder)
+            return folder
+        except (BundleError, OutputError):
             continue
+    claim_networks_dir(out / "networks")
     rep = convert_scene(scene, out / "networks",
                         ConvertOptions(baseline=False, time_budget_s=timeout_s))
     if rep.status != "ok":
-        raise EvaluationError(f"scenario {sid}: conversion failed: {rep.reason}")
-    return out / "networks" / sid
+        raise EvaluationError(f"scenario {printable(sid)}: conversion failed: {rep.reason}")
+    return bundle_folder(out / "networks", sid)
 
 
 def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
@@ -607,9 +627,13 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
     ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``.
 
-    Bad scenes, failed conversions and failed rollouts (any exception, a worker that dies, or
-    one running past ``timeout_s`` seconds: killed) are reported (stderr, one line each) and
-    the rest goes on.
+    ``out`` must be new, empty or written by magail_sumo
+    (:func:`~magail_sumo.outputs.claim_output_dir`, else
+    :class:`~magail_sumo.outputs.OutputError`); file names come from :func:`rollouts_path`, the
+    manifest and the Parquet ``scenario_id`` column keep the original ids, and every file is
+    written atomically. Bad scenes, failed conversions and failed rollouts (any exception, a
+    worker that dies, or one running past ``timeout_s`` seconds: killed) are reported (stderr,
+    one line each) and the rest goes on.
 
     :raises EvaluationError: an unknown baseline, an unusable policy spec or bad counts.
     """
@@ -626,9 +650,15 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
         make_policy(policy, seed)  # fail early on an unusable spec
     specs = list(dict.fromkeys([policy, *baselines]))
     names = {s: method_name(s) for s in specs}
+    method_files = NameRegistry()
+    for s in specs:
+        method_files.name(names[s])
+    claim_output_dir(out, "evaluate", ["manifest.json", "rollouts", "networks"])
+    scene_names = NameRegistry()  # rollouts file names of the scenes
     errors: list[str] = []
 
     def error(msg: str) -> None:
+        msg = msg if msg.isprintable() else printable(msg, 2000)  # one line, whatever the ids
         errors.append(msg)
         log(f"error: {msg}")
 
@@ -640,12 +670,18 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                     error(" ".join(str(rec.error).split()))
                     continue
                 sc = rec.scene
+                shown = printable(sc.scenario_id)
                 if sc.scenario_id in scenes:
-                    error(f"scenario {sc.scenario_id}: given twice ({f}); first kept")
+                    error(f"scenario {shown}: given twice ({f}); first kept")
                     continue
                 if sc.num_steps < sc.current_time_index + 1 + N_STEPS:
-                    error(f"scenario {sc.scenario_id}: {sc.num_steps} steps, needs "
+                    error(f"scenario {shown}: {sc.num_steps} steps, needs "
                           f"{sc.current_time_index + 1 + N_STEPS} (current step + 80)")
+                    continue
+                try:
+                    scene_names.name(sc.scenario_id)
+                except OutputError as exc:
+                    error(f"{f}: {exc}; scenario {shown} skipped")
                     continue
                 scenes[sc.scenario_id] = (str(Path(f).resolve()), sc, None)
         except MagailSumoError as exc:
@@ -696,10 +732,10 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                 error(f"method {names[s]}: {' '.join(str(exc).split())}")
                 continue
             except Exception as exc:  # noqa: BLE001 - one scene's failure
-                error(f"scenario {sid}: method {names[s]}: {type(exc).__name__}: {_line(exc)}")
+                error(f"scenario {printable(sid)}: method {names[s]}: {type(exc).__name__}: "
+                      f"{_line(exc)}")
                 continue
-            write_parquet(out / "rollouts" / names[s] / f"{sid}.parquet",
-                          to_frame(sc, ro, names[s]))
+            write_parquet(rollouts_path(out, names[s], sid), to_frame(sc, ro, names[s]))
             done.append((sid, names[s]))
             if s == policy:
                 policy_ros.append(ro)

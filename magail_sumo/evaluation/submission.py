@@ -176,7 +176,9 @@ def write_submission(path: str | PathLike, rollouts: Sequence[ScenarioRollouts],
         num_model_parameters=num_model_parameters,
         acknowledge_complies_with_closed_loop_requirement=True)
     sub.scenario_rollouts.extend(rollouts_to_proto(r) for r in rollouts)
-    Path(path).write_bytes(sub.SerializeToString())
+    from magail_sumo.outputs import write_bytes
+
+    write_bytes(path, sub.SerializeToString())  # atomic: the old file or the whole new one
 
 
 def sim_agent_ids(scene: Scene) -> np.ndarray:

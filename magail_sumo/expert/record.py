@@ -12,7 +12,11 @@ previous-action entries of the observation (``prev_accel``, ``prev_steer``) are 
 those training-normalised actions, so expert and policy observations share one scale.
 
 ``DIR/<scenario_id>.parquet`` per scene plus ``DIR/metadata.json``: the format, the observation
-layout (``observation_names``), the observation config and the training limits.
+layout (``observation_names``), the observation config and the training limits. The file name
+is :func:`magail_sumo.outputs.safe_name` of the scenario id (the id itself for every real WOMD
+id); ``metadata.json`` (``scenes[].scenario_id`` / ``parquet``) and the ``scene_id`` column keep
+the original id. ``DIR`` must be new, empty or written by magail_sumo
+(:func:`~magail_sumo.outputs.claim_output_dir`); every file is written atomically.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ import numpy as np
 from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.vec_env import SceneSpec, load_spec_scene
+from magail_sumo.outputs import (NameRegistry, atomic_path, claim_output_dir, inside, printable,
+                                 safe_name, write_text)
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 from magail_sumo.sim.dynamics import BicycleLimits
 
@@ -100,8 +106,9 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
         "accel": pa.array(cat["accel"].astype(np.float32)),
         "steer": pa.array(cat["steer"].astype(np.float32)),
     })
-    out = Path(out_dir) / f"{scene.scenario_id}.parquet"
-    pq.write_table(table, out)
+    out = inside(out_dir, f"{safe_name(scene.scenario_id)}.parquet")
+    with atomic_path(out) as tmp:
+        pq.write_table(table, tmp)
     return {"scenario_id": scene.scenario_id, "file": str(spec.scene_file), "rows": n,
             "steps": int(len(np.unique(cat["step"]))), "vehicles": int(len(np.unique(cat["track"]))),
             "parquet": out.name}
@@ -135,8 +142,10 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
 
     observation = observation or ObservationConfig()
     limits = limits or BicycleLimits()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_output_dir(out_dir, "expert", ["metadata.json"])
+    names = NameRegistry()  # two scenes on one file name: refused before any is recorded
+    parquets = [f"{names.name(spec.name if spec.scenario_id is None else spec.scenario_id)}"
+                ".parquet" for spec in specs]
     jobs = [(spec, observation, limits, out, seed) for spec in specs]
     scenes, failed = [], []
     for res in run_jobs(_record_job, jobs, workers=max(1, min(workers, len(jobs) or 1)),
@@ -147,7 +156,7 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
                 on_scene(res.value)
             continue
         spec = res.job[0]
-        reason = f"scene {spec.name} ({spec.scene_file}): {res.reason}"
+        reason = f"scene {printable(spec.name)} ({spec.scene_file}): {res.reason}"
         failed.append({"scenario_id": spec.name, "file": str(spec.scene_file), "reason": reason})
         if on_error is not None:
             on_error(spec, reason)
@@ -156,7 +165,8 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
             "action": ["accel", "steer"], "scenes": scenes}
     if failed:
         meta["failed"] = failed
-    (out / "metadata.json").write_text(json.dumps(meta, indent=2))
+    claim_output_dir(out, "expert", ["metadata.json", *parquets])
+    write_text(out / "metadata.json", json.dumps(meta, indent=2))
     if failed and on_error is None:
         from magail_sumo.errors import MagailSumoError
 

@@ -3,7 +3,9 @@ bar charts, sim-vs-log distributions, top-down trajectory overlays and the reali
 
 ``build_report(DIR)`` writes ``DIR/report/report.html`` (self-contained), ``report.md`` (with
 ``img/*.png``), ``metrics.csv`` (one row per scene and method, every field) and
-``summary.csv`` (mean over scenes per method).
+``summary.csv`` (mean over scenes per method). The report folder must be new, empty or written
+by magail_sumo (:func:`~magail_sumo.outputs.claim_output_dir`); every file is written
+atomically and image names from scenario ids go through :func:`~magail_sumo.outputs.safe_name`.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from magail_sumo.evaluation.traffic import METRICS
+from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
 
 from . import figures
 from .render import REALISM_FIELDS, Document
@@ -36,7 +39,7 @@ class ReportFiles:
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
-    with path.open("w", newline="") as fh:
+    with atomic_write(path, "w") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         w.writerows(rows)
@@ -48,7 +51,8 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     the report into ``out`` (default ``folder/report``)."""
     folder = Path(folder)
     out = Path(out) if out else folder / "report"
-    out.mkdir(parents=True, exist_ok=True)
+    claim_output_dir(out, "report", ["report.html", "report.md", "metrics.csv", "summary.csv",
+                                     "img"])
     sc = collect(folder, submissions)
     units = {n: METRICS[n].unit for n in METRICS}
     means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
@@ -77,7 +81,7 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     sids = sorted(sc.scenes)
     per = {(r["scenario_id"], r["method"]): r for r in sc.rows}
     doc.para("Meta-metric per scene:")
-    doc.table(["method"] + sids, [[m, *(per[(s, m)]["metametric"] if (s, m) in per
+    doc.table(["method"] + [printable(s) for s in sids], [[m, *(per[(s, m)]["metametric"] if (s, m) in per
                                          else float("nan") for s in sids)]
                                   for m in sc.methods], "per-scene")
     if sc.inputs:
@@ -89,8 +93,8 @@ def build_report(folder: str | Path, out: str | Path | None = None,
         doc.heading("Trajectories")
         for sid in sids:
             if any((sid, m) in sc.rollouts for m in sc.methods):
-                doc.image(figures.trajectories(sc, sid), f"traj_{sid}",
-                          f"top-down trajectories of scene {sid}")
+                doc.image(figures.trajectories(sc, sid), f"traj_{safe_name(sid)}",
+                          f"top-down trajectories of scene {printable(sid)}")
     if sc.errors:
         doc.heading("Problems")
         doc.errors(sc.errors)

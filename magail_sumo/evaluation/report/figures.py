@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magail_sumo.evaluation.traffic.distributions import BINS, histogram  # noqa: E402
+from magail_sumo.outputs import printable  # noqa: E402
 
 from .scoring import Scores  # noqa: E402
 
@@ -106,6 +107,6 @@ def trajectories(scores: Scores, sid: str, max_rollouts: int = 8) -> bytes:
         ax.set_aspect("equal")
         ax.set_title(f"{m}", fontsize=9)
         ax.tick_params(labelsize=6)
-    fig.suptitle(f"{sid}: log (dashed) vs rollouts", fontsize=10)
+    fig.suptitle(f"{printable(sid, 60)}: log (dashed) vs rollouts", fontsize=10)
     fig.tight_layout()
     return _png(fig)

@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 
 from magail_sumo.evaluation.realism import METRIC_FIELDS
+from magail_sumo.outputs import write_bytes
 
 
 def fmt(v: object) -> str:
@@ -68,7 +69,7 @@ class Document:
         self.img_dir.mkdir(parents=True, exist_ok=True)
         self._n += 1
         fname = f"{self._n:02d}_{name}.png"
-        (self.img_dir / fname).write_bytes(png)
+        write_bytes(self.img_dir / fname, png)
         self.html.append(img_tag(png, alt))
         self.md.append(f"![{alt}]({self.img_dir.name}/{fname})")
 
@@ -81,8 +82,8 @@ class Document:
         page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>"
                 f"{html.escape(self.title)}</title><style>{CSS}</style></head><body>"
                 + "\n".join(self.html) + "</body></html>\n")
-        html_path.write_text(page, encoding="utf-8")
-        md_path.write_text("\n\n".join(self.md) + "\n", encoding="utf-8")
+        write_bytes(html_path, page.encode("utf-8"))  # atomic: the old file or the new one
+        write_bytes(md_path, ("\n\n".join(self.md) + "\n").encode("utf-8"))
 
 
 REALISM_FIELDS = [f for f in METRIC_FIELDS if f.endswith("_likelihood")]

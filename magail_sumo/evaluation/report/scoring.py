@@ -15,11 +15,12 @@ import numpy as np
 
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.realism import scenario_metrics
-from magail_sumo.evaluation.rollouts import N_STEPS, read_manifest, read_rollouts
+from magail_sumo.evaluation.rollouts import N_STEPS, read_manifest, read_rollouts, rollouts_path
 from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
 )
 from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
+from magail_sumo.outputs import OutputError, printable
 from magail_sumo.scene import Scene
 
 
@@ -56,7 +57,7 @@ def load_scenes(manifest: dict, errors: list[str]) -> dict[str, Scene]:
         except (MagailSumoError, OSError) as exc:
             errors.append(" ".join(str(exc).split()))
     for sid in want.keys() - got.keys():
-        errors.append(f"scenario {sid}: not found in {want[sid]}")
+        errors.append(f"scenario {printable(sid)}: not found in {want[sid]}")
     return got
 
 
@@ -93,9 +94,14 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None)
     scores = Scores(manifest, scenes, [], errors=errors)
     for method in manifest.get("methods", []):
         for sid in scenes:
-            path = folder / "rollouts" / method / f"{sid}.parquet"
+            try:
+                path = rollouts_path(folder, method, sid)
+            except OutputError as exc:
+                scores.errors.append(f"method {printable(method)}: {exc}")
+                continue
             if not path.is_file():
-                scores.errors.append(f"method {method}: scenario {sid}: no rollouts ({path})")
+                scores.errors.append(f"method {printable(method)}: scenario {printable(sid)}: "
+                                     f"no rollouts ({path})")
                 continue
             try:
                 ro = read_rollouts(path, scenes[sid])

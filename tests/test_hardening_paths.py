@@ -1,0 +1,436 @@
+"""Issue 16 (hardening): output paths derived from data, output-folder ownership, atomic writes.
+
+Scene ids are data: an absolute id, ``..``, ``/``, an empty id, ``.``, NUL, a newline or 5,000
+characters must neither write outside the output folder nor end a batch with a traceback. One
+real pipeline (convert -> expert -> evaluate -> report, laid out as the README demo) runs over a
+TFRecord holding the smallest bundled scene under every hostile id; the other tests are cheap
+(no SUMO run, or netconvert only). Full disks are simulated by making the write of the target
+file raise ``ENOSPC`` half-way (SUMO itself is never mocked).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import errno
+import hashlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from conftest import ROOT, WOMD_DIR
+from converters import load_scene
+from converters.womd import write_womd
+from magail_sumo.cli.main import main
+from magail_sumo.outputs import MARKER, OutputError, read_marker, safe_name
+
+SID = "850c48d8bbfa008f"
+
+
+def _hostile_ids(canary: Path) -> list[str]:
+    return [str(canary / "abs"),  # absolute: would land in the canary folder
+            "../../esc", "..", "a/b", "", ".", "nul\x00id", "new\nline", "L" * 5000]
+
+
+def _tree(root: Path) -> dict[str, str]:
+    """Relative path -> content digest ("dir" for folders) of everything under ``root``."""
+    out = {}
+    for dirpath, dirs, files in os.walk(root):
+        for d in dirs:
+            out[os.path.relpath(os.path.join(dirpath, d), root)] = "dir"
+        for f in files:
+            p = os.path.join(dirpath, f)
+            out[os.path.relpath(p, root)] = hashlib.sha256(Path(p).read_bytes()).hexdigest()
+    return out
+
+
+def _changed_outside(before: dict[str, str], after: dict[str, str], allowed: list[str]
+                     ) -> list[str]:
+    """Paths added or changed in ``after`` that are not under one of ``allowed``."""
+    return sorted(p for p, h in after.items() if before.get(p) != h
+                  and not any(p == a or p.startswith(a + os.sep) for a in allowed))
+
+
+def _one_line_errors(err: str) -> None:
+    """Every stderr line is an error line or a summary line: no traceback, no split line."""
+    for line in err.splitlines():
+        assert line.startswith(("error:", "converted ", "evaluated ", "report:")), line
+    assert "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """tmp/{canary/, inputs/hostile.tfrecord}: the canary holds one file that must never
+    change; the TFRecord holds scene 850c under every hostile id."""
+    root = tmp_path_factory.mktemp("hostile")
+    canary = root / "canary"
+    canary.mkdir()
+    (canary / "keep.txt").write_text("do not touch\n")
+    base = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+    ids = _hostile_ids(canary)
+    (root / "inputs").mkdir()
+    write_womd(root / "inputs" / "hostile.tfrecord",
+               [dataclasses.replace(base, scenario_id=i) for i in ids])
+    # expert starts a process per scene (~5 s each): a subset of the ids
+    write_womd(root / "inputs" / "expert.tfrecord",
+               [dataclasses.replace(base, scenario_id=i) for i in _expert_ids(ids)])
+    return root, ids
+
+
+def _expert_ids(ids: list[str]) -> list[str]:
+    """Absolute, .., empty, newline and long ids."""
+    return [ids[0], "../../esc", "", "new\nline", "L" * 5000]
+
+
+def test_safe_names_are_files_and_real_ids_unchanged(world):
+    _, ids = world
+    for f in WOMD_DIR.glob("*.tfrecord"):
+        assert safe_name(f.stem) == f.stem
+    names = [safe_name(i) for i in ids]
+    assert len(set(names)) == len(ids)
+    for n in names:
+        assert "/" not in n and "\x00" not in n and not n.startswith(".") and len(n) <= 100
+
+
+def test_pipeline_with_hostile_ids_stays_inside(world, capsys, monkeypatch):
+    """README layout (convert --out out, expert --networks out --out out/expert, evaluate
+    --networks out --out out/eval, report out/eval) over every hostile id: every file lands
+    under out/, named by safe_name, with the original ids in the metadata."""
+    root, ids = world
+    work = root / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    out = work / "out"
+    src = str(root / "inputs" / "hostile.tfrecord")
+    before = _tree(root)
+
+    assert main(["convert", src, "--out", str(out), "--no-baseline"]) == 0
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    for sid in ids:
+        folder = out / safe_name(sid)
+        assert json.loads((folder / "conversion.json").read_text())["scenario_id"] == sid
+        assert (folder / f"{safe_name(sid)}.net.xml").is_file()
+    rows = list(csv.DictReader(open(out / "summary.csv", newline="")))
+    assert [r["scenario_id"] for r in rows] == ids and {r["status"] for r in rows} == {"ok"}
+    assert "convert" in read_marker(out)["tools"]
+
+    assert main(["expert", str(root / "inputs" / "expert.tfrecord"), "--networks", str(out),
+                 "--out", str(out / "expert"), "--workers", "2"]) == 0
+    meta = json.loads((out / "expert" / "metadata.json").read_text())
+    assert [s["scenario_id"] for s in meta["scenes"]] == _expert_ids(ids)
+    for sc in meta["scenes"]:
+        assert sc["parquet"] == f"{safe_name(sc['scenario_id'])}.parquet"
+        table = pd.read_parquet(out / "expert" / sc["parquet"], columns=["scene_id"])
+        assert set(table["scene_id"]) == {sc["scenario_id"]}
+
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "sumo", "--scenes", src,
+                 "--rollouts", "1", "--networks", str(out), "--out", str(out / "eval"),
+                 "--workers", "2"]) == 0
+    _one_line_errors(capsys.readouterr().err)
+    man = json.loads((out / "eval" / "manifest.json").read_text())
+    assert [s["scenario_id"] for s in man["scenes"]] == ids
+    assert not (out / "eval" / "networks").exists()  # the bundles of out/ were found
+    for sid in ids:
+        for m in ("constvel", "sumo"):
+            df = pd.read_parquet(out / "eval" / "rollouts" / m / f"{safe_name(sid)}.parquet",
+                                 columns=["scenario_id"])
+            assert set(df["scenario_id"].astype(str)) == {sid}
+
+    assert main(["report", str(out / "eval")]) == 0
+    _one_line_errors(capsys.readouterr().err)
+    assert (out / "eval" / "report" / "report.html").is_file()
+    assert not list((out / "eval" / "report" / "img").glob("*/*"))  # image names are names
+
+    after = _tree(root)
+    assert _changed_outside(before, after, [os.path.join("work", "out")]) == []
+    assert (root / "canary" / "keep.txt").read_text() == "do not touch\n"
+    assert sorted(os.listdir(root / "canary")) == ["keep.txt"]
+    assert not [p for p in after if p.endswith((".tmp", ".old"))]  # no temporaries left
+
+
+def test_replay_with_hostile_id(tmp_path):
+    one = tmp_path / "one.tfrecord"
+    write_womd(one, [dataclasses.replace(load_scene(WOMD_DIR / f"{SID}.tfrecord"),
+                                         scenario_id="../../new\nline")])
+    before = _tree(tmp_path)
+    gif = tmp_path / "vid" / "r.gif"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    r = subprocess.run([sys.executable, "-m", "magail_sumo", "replay", str(one), "--out",
+                        str(gif), "--size", "48"], capture_output=True, text=True, timeout=300,
+                       cwd=tmp_path, env=env)  # a process of its own: libsumo runs in it
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("../../new\\nline: ")
+    assert gif.stat().st_size > 0
+    assert _changed_outside(before, _tree(tmp_path), ["vid"]) == []
+    assert sorted(os.listdir(gif.parent)) == ["r.gif"]
+
+
+def test_name_collision_is_an_error_not_an_overwrite(tmp_path, capsys):
+    base = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+    twin = safe_name("a/b")  # a plain id equal to the safe name of another id
+    src = tmp_path / "twins.tfrecord"
+    write_womd(src, [dataclasses.replace(base, scenario_id="a/b"),
+                     dataclasses.replace(base, scenario_id=twin)])
+    out = tmp_path / "out"
+    assert main(["convert", str(src), "--out", str(out), "--no-baseline", "--skip-bad"]) == 0
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    assert "map to the same file name" in err
+    assert json.loads((out / twin / "conversion.json").read_text())["scenario_id"] == "a/b"
+    rows = list(csv.DictReader(open(out / "summary.csv", newline="")))
+    assert [r["status"] for r in rows] == ["ok", "failed"]
+    # expert refuses the pair at once (one line), before recording anything
+    assert main(["expert", str(src), "--networks", str(out), "--out", str(tmp_path / "ex")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "map to the same file name" in err
+    assert not (tmp_path / "ex" / "metadata.json").exists()
+
+
+def test_error_lines_with_hostile_ids_stay_one_line(world, tmp_path, capsys):
+    """Errors naming a hostile id (newline, NUL, 5,000 characters) are one escaped line each."""
+    root, ids = world
+    src = str(root / "inputs" / "hostile.tfrecord")
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+                 "--scenes", src, src, "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    assert err.count("given twice") == len(ids)
+    assert "scenario new\\nline: given twice" in err and "nul\\x00id" in err
+    assert max(len(line) for line in err.splitlines()) < 1000
+    from converters.sumo.scenario import claim_networks_dir
+
+    conv = claim_networks_dir(tmp_path / "conv")  # ours, but a folder of someone in the way
+    (conv / safe_name("new\nline")).mkdir()
+    (conv / safe_name("new\nline") / "notes.txt").write_text("mine")
+    assert main(["convert", src, "--out", str(conv), "--no-baseline", "--skip-bad"]) == 0
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    assert "error: new\\nline: output: " in err and "not a converted bundle" in err
+    assert sorted(os.listdir(conv / safe_name("new\nline"))) == ["notes.txt"]
+
+
+def test_conversion_refuses_to_replace_a_foreign_folder(tmp_path):
+    from converters.sumo import convert_scene
+
+    scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+    (tmp_path / SID).mkdir()
+    (tmp_path / SID / "notes.txt").write_text("mine")
+    rep = convert_scene(scene, tmp_path)
+    assert rep.status == "failed" and "not a converted bundle" in rep.reason
+    assert sorted(os.listdir(tmp_path / SID)) == ["notes.txt"]
+    assert sorted(os.listdir(tmp_path)) == [SID]
+
+
+# ----------------------------------------------------------------------------------- ownership
+@pytest.mark.parametrize("cmd,name", [
+    (["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+      "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"), "--out", "{d}"], "manifest.json"),
+    (["expert", str(WOMD_DIR / f"{SID}.tfrecord"), "--networks", str(ROOT / "networks"),
+      "--out", "{d}"], "metadata.json"),
+    (["convert", str(WOMD_DIR / f"{SID}.tfrecord"), "--no-baseline", "--out", "{d}"],
+     "summary.csv"),
+    (["report", str(WOMD_DIR), "--out", "{d}"], "report.html"),
+])
+def test_foreign_folder_is_refused(tmp_path, capsys, cmd, name):
+    d = tmp_path / "theirs"
+    d.mkdir()
+    (d / name).write_text("someone else's file\n")
+    before = _tree(tmp_path)
+    assert main([a.replace("{d}", str(d)) for a in cmd]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not empty and was not written by magail_sumo" in err
+    assert _tree(tmp_path) == before
+
+
+def test_reruns_into_own_folders_are_accepted(tmp_path, capsys):
+    """A folder a command marked is its own on the next run (manifest merged, report redone)."""
+    src = str(WOMD_DIR / f"{SID}.tfrecord")
+    out = tmp_path / "eval"
+    for method in ("constvel", "logreplay"):
+        assert main(["evaluate", "--policy", method, "--baselines", "none", "--rollouts", "1",
+                     "--scenes", src, "--out", str(out)]) == 0
+    assert json.loads((out / "manifest.json").read_text())["methods"] == ["constvel",
+                                                                         "logreplay"]
+    for _ in range(2):
+        assert main(["report", str(out)]) == 0
+    assert set(read_marker(out)["tools"]) == {"evaluate"}
+    assert set(read_marker(out / "report")["tools"]) == {"report"}
+    _one_line_errors(capsys.readouterr().err)
+
+
+def test_networks_folders(tmp_path):
+    from converters.sumo.scenario import claim_networks_dir
+
+    shipped = tmp_path / "networks"  # as a fresh clone has it: README + bundles, no marker
+    shutil.copytree(ROOT / "networks", shipped, ignore=shutil.ignore_patterns(MARKER))
+    claim_networks_dir(shipped)
+    assert "convert" in read_marker(shipped)["tools"]
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "a.jpg").write_bytes(b"x")
+    with pytest.raises(OutputError, match="not written by magail_sumo"):
+        claim_networks_dir(other)
+    assert sorted(os.listdir(other)) == ["a.jpg"]
+    readme = tmp_path / "project"  # a README (or a summary.csv) alone is not a networks folder
+    readme.mkdir()
+    (readme / "README.md").write_text("x")
+    with pytest.raises(OutputError, match="not written by magail_sumo"):
+        claim_networks_dir(readme)
+
+
+# ---------------------------------------------------------------------------------- full disk
+def _full_disk(monkeypatch, needle: str) -> None:
+    """Opening a file for writing whose path contains ``needle`` gives a file whose first write
+    stores half its data and raises ENOSPC (plain ``open``, ``Path.write_text`` and the
+    ``os.fdopen`` of atomic writes)."""
+
+    class Full:
+        def __init__(self, fh):
+            self._fh = fh
+
+        def write(self, data):
+            self._fh.write(data[:max(1, len(data) // 2)])
+            self._fh.flush()
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        def __getattr__(self, name):
+            return getattr(self._fh, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._fh.close()
+
+    real_open, real_fdopen = io.open, os.fdopen
+
+    def fake_open(file, mode="r", *a, **k):
+        fh = real_open(file, mode, *a, **k)
+        return Full(fh) if any(c in mode for c in "wax") and needle in str(file) else fh
+
+    def fake_fdopen(fd, mode="r", *a, **k):
+        path = os.readlink(f"/proc/self/fd/{fd}")
+        fh = real_fdopen(fd, mode, *a, **k)
+        return Full(fh) if needle in path else fh
+
+    monkeypatch.setattr(io, "open", fake_open)
+    monkeypatch.setattr("builtins.open", fake_open)
+    monkeypatch.setattr(os, "fdopen", fake_fdopen)
+
+
+def _partial_files(folder: Path) -> list[str]:
+    return sorted(p for p in _tree(folder) if p.endswith((".tmp", ".old")) or "/." in p
+                  or p.startswith("."))
+
+
+@pytest.mark.parametrize("needle", [".rou.xml", "conversion.json"])
+def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, monkeypatch,
+                                                           needle):
+    src = str(WOMD_DIR / f"{SID}.tfrecord")
+    fresh, again = tmp_path / "fresh", tmp_path / "again"
+    assert main(["convert", src, "--out", str(again), "--no-baseline"]) == 0
+    old = _tree(again / SID)
+    capsys.readouterr()
+    _full_disk(monkeypatch, needle)
+    for out in (fresh, again):
+        assert main(["convert", src, "--out", str(out), "--no-baseline"]) == 1
+        err = capsys.readouterr().err
+        _one_line_errors(err)
+        assert "No space left on device" in err
+    monkeypatch.undo()
+    assert not (fresh / SID).exists()  # no half-written bundle
+    assert _tree(again / SID) == old  # the old bundle, untouched
+    assert _partial_files(fresh) == [MARKER] and _partial_files(again) == [MARKER]
+
+
+def test_full_disk_on_summary_and_manifest_keeps_old_files(tmp_path, capsys, monkeypatch):
+    from magail_sumo.evaluation.report import _write_csv
+    from magail_sumo.evaluation.report.render import Document
+    from magail_sumo.evaluation.rollouts import write_manifest, write_parquet
+    from magail_sumo.evaluation.submission import write_submission
+
+    src = str(WOMD_DIR / f"{SID}.tfrecord")
+    out = tmp_path / "out"
+    assert main(["convert", src, "--out", str(out), "--no-baseline"]) == 0
+    old_summary = (out / "summary.csv").read_bytes()
+    capsys.readouterr()
+    _full_disk(monkeypatch, "summary.csv")
+    assert main(["convert", src, "--out", str(out), "--no-baseline"]) == 1
+    err = capsys.readouterr().err
+    _one_line_errors(err)
+    assert "summary.csv: cannot write (No space left on device)" in err
+    assert (out / "summary.csv").read_bytes() == old_summary
+    monkeypatch.undo()
+
+    # manifest, report files, submission: old content kept, no temporary left
+    d = tmp_path / "files"
+    d.mkdir()
+    man = {"scenes": [], "methods": ["constvel"], "rollouts": 1, "seed": 0}
+    write_manifest(d, man)
+    for name in ("metrics.csv", "report.html", "sub.binproto"):
+        (d / name).write_text("old\n")
+    old = _tree(d)
+    _full_disk(monkeypatch, str(d))
+    with pytest.raises(OSError):
+        write_manifest(d, {**man, "methods": ["sumo"]})
+    with pytest.raises(OSError):
+        _write_csv(d / "metrics.csv", ["a"], [[1]])
+    with pytest.raises(OSError):
+        Document("t", d / "img").write(d / "report.html", d / "report.md")
+    with pytest.raises(OSError):
+        write_submission(d / "sub.binproto", [])
+    monkeypatch.undo()
+    assert _tree(d) == old
+
+    from magail_sumo.expert import record_expert
+
+    ex = tmp_path / "expert"
+    record_expert([], ex)
+    old = _tree(ex)
+    _full_disk(monkeypatch, "metadata.json")
+    with pytest.raises(OSError):
+        record_expert([], ex)
+    monkeypatch.undo()
+    assert _tree(ex) == old
+
+    class HalfFrame:  # a Parquet writer that fills the disk half-way
+        def to_parquet(self, path, index=False):
+            Path(path).write_bytes(b"PAR1" + b"\0" * 100)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    target = d / "rollouts" / "constvel" / f"{SID}.parquet"
+    with pytest.raises(OSError):
+        write_parquet(target, HalfFrame())
+    assert os.listdir(target.parent) == []
+
+
+def test_full_disk_on_real_tmpfs(tmp_path, capsys):
+    """Optional: a real 200 KiB tmpfs (needs root and mount); the 637f net alone is bigger."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(mnt)],
+                       capture_output=True)
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        out = mnt / "out"
+        rc = main(["convert", str(WOMD_DIR / "637f20cafde22ff8.tfrecord"), "--out", str(out),
+                   "--no-baseline"])
+        err = capsys.readouterr().err
+        assert rc == 1
+        _one_line_errors(err)
+        assert "No space left on device" in err  # netconvert itself does not notice
+        assert not (out / "637f20cafde22ff8").exists()
+        assert not [p for p in _tree(mnt) if p.endswith((".tmp", ".old"))]
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
