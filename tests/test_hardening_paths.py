@@ -61,7 +61,7 @@ def _changed_outside(before: dict[str, str], after: dict[str, str], allowed: lis
 def _one_line_errors(err: str) -> None:
     """Every stderr line is an error line or a summary line: no traceback, no split line."""
     for line in err.splitlines():
-        assert line.startswith(("error:", "converted ", "evaluated ", "report:")), line
+        assert line.startswith(("error:", "converted ", "evaluated ", "recorded ", "report:")), line
     assert "Traceback" not in err
 
 
@@ -165,7 +165,7 @@ def test_replay_with_hostile_id(tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     r = subprocess.run([sys.executable, "-m", "magail_sumo", "replay", str(one), "--out",
-                        str(gif), "--size", "48"], capture_output=True, text=True, timeout=300,
+                        str(gif), "--size", "64"], capture_output=True, text=True, timeout=300,
                        cwd=tmp_path, env=env)  # a process of its own: libsumo runs in it
     assert r.returncode == 0, r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("../../new\\nline: ")
@@ -188,11 +188,15 @@ def test_name_collision_is_an_error_not_an_overwrite(tmp_path, capsys):
     assert json.loads((out / twin / "conversion.json").read_text())["scenario_id"] == "a/b"
     rows = list(csv.DictReader(open(out / "summary.csv", newline="")))
     assert [r["status"] for r in rows] == ["ok", "failed"]
-    # expert refuses the pair at once (one line), before recording anything
+    # expert reports the second scene of the pair (one line) and records only the first
     assert main(["expert", str(src), "--networks", str(out), "--out", str(tmp_path / "ex")]) == 1
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "map to the same file name" in err
-    assert not (tmp_path / "ex" / "metadata.json").exists()
+    _one_line_errors(err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 2 and "map to the same file name" in lines[0]
+    meta = json.loads((tmp_path / "ex" / "metadata.json").read_text())
+    assert [s["scenario_id"] for s in meta["scenes"]] == ["a/b"]
+    assert sorted(p.name for p in (tmp_path / "ex").glob("*.parquet")) == [f"{twin}.parquet"]
 
 
 def test_error_lines_with_hostile_ids_stay_one_line(world, tmp_path, capsys):
