@@ -14,6 +14,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from converters.files import open_regular
 from converters.scenarionet import schema
 from converters.scenarionet.safe_pickle import LOAD_ERRORS, UnsafePickleError, safe_load
 from magail_sumo.errors import SceneFormatError
@@ -341,7 +342,7 @@ def load_scenarionet(path: str | PathLike) -> Scene:
     """
     p = Path(path)
     try:
-        with open(p, "rb") as fh:
+        with open_regular(p, 0) as fh:
             sd = safe_load(fh)
     except UnsafePickleError as exc:
         raise SceneFormatError(p, 0, f"unsafe pickle, nothing executed: "
@@ -373,11 +374,11 @@ def dataset_files(folder: str | PathLike) -> list[Path]:
     """
     root = Path(folder)
     try:
-        with open(root / SUMMARY_FILE, "rb") as fh:
+        with open_regular(root / SUMMARY_FILE) as fh:
             summary = safe_load(fh)
         mapping: dict = {}
         if (root / MAPPING_FILE).exists():
-            with open(root / MAPPING_FILE, "rb") as fh:
+            with open_regular(root / MAPPING_FILE) as fh:
                 mapping = safe_load(fh) or {}
     except LOAD_ERRORS as exc:
         raise SceneFormatError(root / SUMMARY_FILE, None,
