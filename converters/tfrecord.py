@@ -33,7 +33,7 @@ GZIP_MIN_RECORD_BUDGET = 256 << 20
 GZIP_RATIO_BUDGET = 64
 #: record bodies are read in pieces of this size, so that memory follows the bytes actually
 #: present, never a length claimed by the file
-_CHUNK = 16 << 20
+_CHUNK = 4 << 20
 
 
 def masked_crc32c(data: bytes) -> int:
@@ -118,7 +118,7 @@ def _records(p: Path, fh: BinaryIO, size: int, compressed: bool
         if not compressed and length + 4 > size - offset:
             yield index, SceneFormatError(
                 p, index, f"truncated record: length field {length} but only "
-                          f"{max(size - offset - 4, 0)} data bytes left in the file", True)
+                          f"{size - offset} bytes left in the file", True)
             return
         if compressed and length > limit:
             yield index, SceneFormatError(

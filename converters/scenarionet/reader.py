@@ -49,7 +49,8 @@ def _describe(value: Any) -> str:
             return printable(repr(value), 60)
         except ValueError:  # an int too large to print
             return f"an int of {value.bit_length()} bits"  # type: ignore[union-attr]
-    return f"a {type(value).__name__}"
+    name = type(value).__name__
+    return f"{'an' if name[:1] in 'aeiou' else 'a'} {name}"
 
 
 def _get(d: Any, key: str, path: str) -> Any:
@@ -66,7 +67,8 @@ def _array(value: Any, shape: tuple[int, ...], dtype: Any, path: str) -> np.ndar
         arr = np.asarray(value)
         if arr.dtype.kind not in "biuf":
             raise TypeError(f"dtype {arr.dtype}")
-        out = arr.astype(dtype, copy=False)
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+            out = arr.astype(dtype, copy=False)
     except (TypeError, ValueError, OverflowError, RecursionError) as exc:
         raise SceneValidationError(f"{path}: expected a numeric array "
                                    f"({printable(str(exc), 80)})") from None
@@ -140,6 +142,9 @@ def _enum(value: Any, table: dict, path: str):
     try:
         return table[value]
     except (KeyError, TypeError):
+        if not isinstance(value, (str, int, type(None))):
+            raise SceneValidationError(f"{path}: expected a type name, got {_describe(value)}") \
+                from None
         raise SceneValidationError(f"{path}: unknown type {_describe(value)}") from None
 
 

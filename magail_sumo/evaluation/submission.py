@@ -70,6 +70,7 @@ class RolloutsRecord:
 
 
 _COORDS = ("center_x", "center_y", "center_z", "heading")
+_F32_MAX = float(np.finfo(np.float32).max)
 
 
 def rollouts_from_proto(msg: pb.ScenarioRollouts) -> ScenarioRollouts:
@@ -90,7 +91,9 @@ def rollouts_from_proto(msg: pb.ScenarioRollouts) -> ScenarioRollouts:
     dup = [i for i, n in Counter(ids).items() if n > 1]
     if dup:
         raise SubmissionError(sid, f"rollout 0: agent {dup[0]} appears {ids.count(dup[0])} times")
-    steps = len(first[0].center_x)
+    # the step count is the most common length of rollout 0's coordinate fields, so that the
+    # one short field is named (not its correct siblings)
+    steps = Counter(len(getattr(t, name)) for t in first for name in _COORDS).most_common(1)[0][0]
     order = {i: k for k, i in enumerate(ids)}
     R, A = len(msg.joint_scenes), len(ids)
     out = np.empty((4, R, A, steps), np.float32)
@@ -111,7 +114,14 @@ def rollouts_from_proto(msg: pb.ScenarioRollouts) -> ScenarioRollouts:
                 if len(vals) != steps:
                     raise SubmissionError(sid, f"rollout {r} agent {t.object_id}: {len(vals)} "
                                                f"steps of {name}, expected {steps}")
-                out[c, r, a] = vals
+                row = np.asarray(vals, np.float64)
+                big = np.abs(row) > _F32_MAX  # finite in the file, beyond float32
+                if big.any() and np.isfinite(row[big]).any():
+                    t_big = int(np.flatnonzero(big & np.isfinite(row))[0])
+                    raise SubmissionError(sid, f"rollout {r} agent {t.object_id}: {name} "
+                                               f"{row[t_big]:.6g} out of range at simulated "
+                                               f"step {t_big}")
+                out[c, r, a] = row
     return ScenarioRollouts(sid, np.asarray(ids, np.int64), *out)
 
 

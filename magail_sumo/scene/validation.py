@@ -129,6 +129,11 @@ def _extent(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
 
 def _far_point(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> int | None:
     """Index of the first of ``points`` (K, >=2) outside the box ``lo..hi``, or None."""
+    if points.shape[0] == 0:
+        return None
+    x, y = points[:, 0], points[:, 1]  # column reductions: much faster than axis=0 on (K, 3)
+    if x.min() >= lo[0] and y.min() >= lo[1] and x.max() <= hi[0] and y.max() <= hi[1]:
+        return None  # fast path: every point inside
     xy = points[:, :2]
     out = ((xy < lo) | (xy > hi)).any(axis=1)
     return int(np.flatnonzero(out)[0]) if out.any() else None
@@ -158,8 +163,8 @@ def _check_map(scene: Scene) -> None:
     if blocks:  # one vectorised pass over every map point; the feature is located on failure
         sizes = np.fromiter((b.shape[0] for b in blocks), np.int64, len(blocks))
         allpts = np.concatenate(blocks)
-        finite = np.isfinite(allpts).all(axis=1)
-        if not finite.all():
+        if not np.isfinite(allpts).all():
+            finite = np.isfinite(allpts).all(axis=1)
             kind, fid = owners[_block_of(sizes, int(np.flatnonzero(~finite)[0]))]
             raise SceneValidationError(f"{kind} {fid}: coordinates contain NaN or inf")
         k = _far_point(allpts, *_extent(scene))
