@@ -137,3 +137,55 @@ def test_map_near_the_scene_is_kept(scene_637f):
     pts[0, 0] = far
     lanes = (replace(lane, polyline=pts),) + scene_637f.roadmap.lanes[1:]
     validate_scene(replace(scene_637f, roadmap=replace(scene_637f.roadmap, lanes=lanes)))
+
+
+# ------------------------------------------------------------------ shared pickle objects
+
+def _state(steps: int) -> dict:
+    ones = np.ones(steps, bool)
+    return {"position": np.zeros((steps, 2), bool), "heading": ones, "valid": ones,
+            "length": ones, "width": ones, "height": ones}
+
+
+def _load_peak(path):
+    from converters.scenarionet import load_scenarionet
+    from magail_sumo.errors import SceneFormatError
+
+    def run():
+        with pytest.raises(SceneFormatError) as err:
+            load_scenarionet(path)
+        return str(err.value)
+    return _peak(run)
+
+
+def test_tracks_sharing_one_state_cannot_blow_up(tmp_path):
+    """5000 tracks referencing one 20000-step state: a 300 kB pickle describing a 6 GB scene."""
+    import pickle
+
+    state = _state(20_000)
+    sd = {"id": "x", "length": 20_000, "map_features": {}, "dynamic_map_states": {},
+          "metadata": {"ts": np.arange(20_000, dtype=np.int32), "scenario_id": "x"},
+          "tracks": {str(i): {"type": "VEHICLE", "state": state} for i in range(5000)}}
+    path = tmp_path / "shared.pkl"
+    path.write_bytes(pickle.dumps(sd, protocol=4))
+    assert path.stat().st_size < 400_000
+    text, peak = _load_peak(path)
+    assert text.startswith(f"{path}: record 0: tracks: the scene would take more than 67108864 "
+                           "bytes of memory"), text
+    assert peak < 64 * MiB
+
+
+def test_map_features_sharing_one_polyline_cannot_blow_up(tmp_path):
+    import pickle
+
+    poly = np.zeros((100_000, 2), bool)
+    sd = {"id": "x", "length": 2, "dynamic_map_states": {},
+          "metadata": {"ts": np.arange(2.0), "scenario_id": "x"},
+          "tracks": {"1": {"type": "VEHICLE", "state": _state(2)}},
+          "map_features": {str(i): {"type": "ROAD_EDGE_BOUNDARY", "polyline": poly}
+                           for i in range(10, 20_000)}}
+    path = tmp_path / "shared_map.pkl"
+    path.write_bytes(pickle.dumps(sd, protocol=4))
+    text, peak = _load_peak(path)
+    assert "].polyline: the scene would take more than 67108864 bytes" in text, text
+    assert peak < 128 * MiB

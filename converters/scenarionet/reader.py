@@ -7,7 +7,7 @@ wrong shape or type raises an error naming the key path.
 
 from __future__ import annotations
 
-import pickle
+import contextvars
 from os import PathLike
 from pathlib import Path
 from typing import Any, Iterator
@@ -16,7 +16,9 @@ import numpy as np
 
 from converters.files import open_regular
 from converters.scenarionet import schema
-from converters.scenarionet.safe_pickle import LOAD_ERRORS, UnsafePickleError, safe_load
+from converters.scenarionet.safe_pickle import (
+    LOAD_ERRORS, UnsafePickleError, allocation_budget, safe_load, safe_loads,
+)
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.outputs import printable
 from magail_sumo.scene import (
@@ -39,6 +41,12 @@ _AREA_TYPES = {schema.CROSSWALK: ("crosswalks", Crosswalk), schema.SPEED_BUMP: (
 
 
 _INT64 = (-(1 << 63), (1 << 63) - 1)
+#: Bytes of memory the scene being converted may still take (None: unlimited). A pickle can
+#: reference one array or list from many places (its memo), so a small file can describe a
+#: huge scene; :func:`load_scenarionet` sets the same budget as the unpickler's
+#: (:func:`~converters.scenarionet.safe_pickle.allocation_budget` of the file size).
+_BUDGET: contextvars.ContextVar[list[int] | None] = contextvars.ContextVar("budget", default=None)
+_PER_ITEM = 64  # bytes charged per list item / per track state
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -51,6 +59,17 @@ def _describe(value: Any) -> str:
             return f"an int of {value.bit_length()} bits"  # type: ignore[union-attr]
     name = type(value).__name__
     return f"{'an' if name[:1] in 'aeiou' else 'a'} {name}"
+
+
+def _charge(nbytes: int, path: str) -> None:
+    budget = _BUDGET.get()
+    if budget is None:
+        return
+    budget[1] -= nbytes
+    if budget[1] < 0:
+        raise SceneValidationError(
+            f"{path}: the scene would take more than {budget[0]} bytes of memory (the limit for "
+            "this file's size; its arrays or lists are shared between many fields)")
 
 
 def _get(d: Any, key: str, path: str) -> Any:
@@ -126,9 +145,11 @@ def _seq(value: Any, path: str) -> list:
         if value.ndim != 1:
             raise SceneValidationError(f"{path}: expected a list, got an array of shape "
                                        f"{value.shape}")
+        _charge(_PER_ITEM * len(value), path)
         return value.tolist()
     if not isinstance(value, (list, tuple)):
         raise SceneValidationError(f"{path}: expected a list, got {_describe(value)}")
+    _charge(_PER_ITEM * len(value), path)
     return list(value)
 
 
@@ -148,8 +169,20 @@ def _enum(value: Any, table: dict, path: str):
         raise SceneValidationError(f"{path}: unknown type {_describe(value)}") from None
 
 
-def scene_from_scenarionet(sd: Any) -> Scene:
-    """Convert a ScenarioNet scenario dict (no validation beyond structure)."""
+def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
+    """Convert a ScenarioNet scenario dict (no validation beyond structure).
+
+    :param budget: bytes of memory the scene may take (None: unlimited); exceeding it is a
+        :class:`SceneValidationError` raised before the memory is allocated.
+    """
+    token = _BUDGET.set(None if budget is None else [budget, budget])
+    try:
+        return _scene(sd)
+    finally:
+        _BUDGET.reset(token)
+
+
+def _scene(sd: Any) -> Scene:
     if not isinstance(sd, dict):
         raise SceneValidationError(f"expected a scenario dict, got {type(sd).__name__}")
     length = _int(_get(sd, "length", ""), "length")
@@ -193,6 +226,7 @@ def scene_from_scenarionet(sd: Any) -> Scene:
 
 def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, dict[str, int]]:
     n = len(tracks_d)
+    _charge(_PER_ITEM * n * length, "tracks")
     cols: dict[str, np.ndarray] = {k: np.zeros((n, length), np.float64) for k in ("x", "y", "z")}
     cols.update({k: np.zeros((n, length), np.float32)
                  for k in ("length", "width", "height", "heading", "vx", "vy")})
@@ -225,6 +259,7 @@ def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, dict[str, int]]:
 
 def _points(value: Any, path: str) -> np.ndarray:
     arr = _array(value, (-1, -1), np.float64, path)
+    _charge(2 * 24 * arr.shape[0], path)
     if arr.shape[1] == 2:
         arr = np.concatenate([arr, np.zeros((arr.shape[0], 1))], axis=1)
     elif arr.shape[1] != 3:
@@ -310,6 +345,7 @@ def _roadmap(features: Any) -> RoadMap:
 def _signals(dyn: Any, length: int) -> SignalStates:
     if not isinstance(dyn, dict):
         raise SceneValidationError("dynamic_map_states: expected a dict")
+    _charge(_PER_ITEM * length, "dynamic_map_states")
     per_step: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in range(length)]
     for key, light in dyn.items():
         path = f"dynamic_map_states[{_describe(key)}]"
@@ -347,15 +383,17 @@ def load_scenarionet(path: str | PathLike) -> Scene:
     """
     p = Path(path)
     try:
-        with open_regular(p, 0) as fh:
-            sd = safe_load(fh)
+        with open_regular(p) as fh:
+            data = fh.read()
+        size = len(data)
+        sd = safe_loads(data)
     except UnsafePickleError as exc:
         raise SceneFormatError(p, 0, f"unsafe pickle, nothing executed: "
                                      f"{printable(str(exc), 300)}") from None
     except LOAD_ERRORS as exc:
         raise SceneFormatError(p, 0, f"unreadable pickle ({_reason(exc)})") from None
     try:
-        scene = scene_from_scenarionet(sd)
+        scene = scene_from_scenarionet(sd, allocation_budget(size))
         validate_scene(scene)
     except SceneValidationError as exc:
         raise SceneFormatError(p, 0, printable(str(exc), 300)) from None
