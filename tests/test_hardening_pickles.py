@@ -107,7 +107,7 @@ GADGETS = {
                                         "refused dtype"),
     "field outside its item": (_dump(_array_state((1,), _build(_dtype("V16"), (
         3, "|", None, ("a",), {"a": (_dtype("f8"), 100)}, 16, 1, 0)), b"A" * 16)),
-        "field 'a' lies outside its 16-byte item"),
+        "requires 108 bytes, cannot override to smaller itemsize of 16"),
     "object _frombuffer": (_dump(_call(_global("numpy._core.numeric", "_frombuffer"), b"A" * 16,
                                        _dtype("O8"), (2,), "C")), "refused dtype '|O'"),
     "object scalar": (_dump(_call(_global("numpy._core.multiarray", "scalar"), _dtype("O8"),
@@ -118,6 +118,16 @@ GADGETS = {
     "list(range(1e9))": (_dump(_call(_global("builtins", "list"),
                                      _call(_global("builtins", "range"), 10**9))),
                          "allocation budget"),
+    "dtype state numpy trusts (6-tuple)": (_dump(_array_state((1,), _build(_dtype("f8"), (
+        3, "<", None, -1, -1, 0)), b"A" * 8)), "numpy.dtype: unexpected state"),
+    "BUILD on a numpy scalar": (_dump(_build(_call(_global("numpy._core.multiarray", "scalar"),
+                                                   _dtype("f8"), b"A" * 8), (1, 2, 3))),
+                                "REFUSED"),  # a Python float now: BUILD fails cleanly
+    "memo index 2**26 (1 GB memo table)": (b"\x80\x02N" + b"r" + struct.pack("<I", 2**26) + b".",
+                                           "memo index 67108864 beyond the 9-byte pickle"),
+    "protocol-0 PUT 2**26": (b"Np67108864\n.", "memo index 67108864 beyond the 12-byte pickle"),
+    "bytearray8 claiming 2**62 bytes": (b"\x80\x05\x96" + (2**62).to_bytes(8, "little") + b"xx.",
+                                        "truncated pickle: an opcode at byte 2 claims"),
     "zlib codec": (_dump(_call(_global("_codecs", "encode"), "abc", "zlib_codec")),
                    "refused codec 'zlib_codec'"),
     "unknown codec": (_dump(_call(_global("_codecs", "encode"), "abc", "no-such-codec")),
@@ -130,9 +140,10 @@ def test_gadgets_are_refused_in_a_subprocess(tmp_path, name):
     data, message = GADGETS[name]
     path = tmp_path / "bad.pkl"
     path.write_bytes(data)
-    code = ("import sys\nfrom converters.scenarionet import safe_loads, UnsafePickleError\n"
+    code = ("import sys\nfrom converters.scenarionet.safe_pickle import safe_loads, LOAD_ERRORS\n"
             "try:\n    safe_loads(open(sys.argv[1], 'rb').read())\n"
-            "except UnsafePickleError as exc:\n    print('REFUSED', exc)\n")
+            "except LOAD_ERRORS as exc:\n    print('REFUSED', exc)\n"
+            "else:\n    print('REFUSED nothing to refuse (loaded)')\n")
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
                          timeout=60, cwd=ROOT)
     assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
@@ -160,6 +171,20 @@ def test_segfault_pickle_is_one_line_error_and_batch_goes_on(tmp_path):
     ids = [json.loads(line)["scenario_id"] for line in out.stdout.splitlines()]
     assert ids == ["850c48d8bbfa008f", "850c48d8bbfa008f"]
     assert "read 2 scene(s) from 3 file(s); skipped 1" in out.stderr
+
+
+def test_convert_skip_bad_goes_on_past_the_segfault_pickle(tmp_path):
+    scene = load_scene(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
+    a, bad = tmp_path / "a.pkl", tmp_path / "bad.pkl"
+    a.write_bytes(pickle.dumps(scene_to_scenarionet(scene), protocol=4))
+    bad.write_bytes(SEGFAULT)
+    out = subprocess.run([sys.executable, "-m", "magail_sumo.cli.main", "convert", "--out",
+                          str(tmp_path / "out"), "--skip-bad", "--no-baseline", str(bad), str(a)],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = (tmp_path / "out" / "summary.csv").read_text().splitlines()
+    assert rows[1].startswith(f"{bad},0,,unreadable,") and "unsafe pickle" in rows[1]
+    assert rows[2].startswith(f"{a},0,850c48d8bbfa008f,ok,")
 
 
 def test_claimed_length_beyond_the_file_is_truncated_not_allocated():

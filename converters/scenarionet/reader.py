@@ -371,33 +371,27 @@ def _signals(dyn: Any, length: int) -> SignalStates:
 
 # ------------------------------------------------------------------ files
 
-#: errors a wrongly structured scenario dict may still raise past the field checks
-_STRUCTURE_ERRORS = (ValueError, TypeError, KeyError, AttributeError, IndexError, OverflowError,
-                     RecursionError, MemoryError)
-
-
 def load_scenarionet(path: str | PathLike) -> Scene:
     """Load and validate one ScenarioNet pickle (restricted unpickler).
 
     :raises SceneFormatError: naming the file and the problem (one line).
     """
     p = Path(path)
+    with open_regular(p) as fh:  # SceneFormatError for a FIFO, device, loop...; OSError
+        data = fh.read()
     try:
-        with open_regular(p) as fh:
-            data = fh.read()
-        size = len(data)
         sd = safe_loads(data)
     except UnsafePickleError as exc:
         raise SceneFormatError(p, 0, f"unsafe pickle, nothing executed: "
                                      f"{printable(str(exc), 300)}") from None
-    except LOAD_ERRORS as exc:
+    except Exception as exc:  # LOAD_ERRORS, or anything else a malformed file provokes
         raise SceneFormatError(p, 0, f"unreadable pickle ({_reason(exc)})") from None
     try:
-        scene = scene_from_scenarionet(sd, allocation_budget(size))
+        scene = scene_from_scenarionet(sd, allocation_budget(len(data)))
         validate_scene(scene)
     except SceneValidationError as exc:
         raise SceneFormatError(p, 0, printable(str(exc), 300)) from None
-    except _STRUCTURE_ERRORS as exc:
+    except Exception as exc:  # a structure the field checks did not foresee
         raise SceneFormatError(p, 0, f"unexpected scenario structure ({_reason(exc)})") from None
     return scene
 

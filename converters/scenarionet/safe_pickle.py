@@ -43,6 +43,8 @@ import io
 import math
 import os
 import pickle
+import pickletools
+import re
 from typing import Any, BinaryIO, Callable
 
 import numpy as np
@@ -56,7 +58,7 @@ BUDGET_PER_BYTE = 64
 #: exceptions a malformed (not unsafe) pickle may raise while loading
 LOAD_ERRORS = (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
                IndexError, KeyError, ImportError, OverflowError, MemoryError, RecursionError,
-               UnicodeError, LookupError)
+               UnicodeError, LookupError, SyntaxError)
 #: dtype kinds an array may have (no objects ``O``, no numpy 2 variable-width strings ``T``)
 _KINDS = frozenset("biufcmMSUV")
 _CODECS = frozenset(("latin1", "latin_1", "latin-1", "iso-8859-1", "iso8859-1", "l1",
@@ -105,12 +107,111 @@ def _shape(shape: Any, what: str) -> tuple[int, ...]:
     return tuple(int(n) for n in shape)
 
 
-class _NdarrayName:
-    """Stands for ``numpy.ndarray`` in a pickle: accepted by ``_reconstruct``, not callable."""
+_BYTEORDERS = frozenset("<>|=")
+_TIME_UNITS = frozenset(("Y", "M", "W", "D", "h", "m", "s", "ms", "us", "ns", "ps", "fs", "as",
+                         "generic"))
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+
+class _DtypeSpec:
+    """What a pickle's ``numpy.dtype(code, align, copy)`` + BUILD describe, resolved later.
+
+    numpy's ``dtype.__setstate__`` trusts its argument (a 6-tuple crashes the interpreter;
+    field offsets are not checked), so it is never called with data from a file: the state is
+    kept here and :meth:`resolve` builds the dtype with numpy's checked constructors
+    (``np.dtype(dict)``, ``np.dtype((base, shape))``, ``newbyteorder``), then
+    :func:`check_dtype`.
+    """
+
+    __slots__ = ("base", "state", "_dtype")
+
+    def __init__(self, base: np.dtype) -> None:
+        self.base = base
+        self.state: Any = None
+        self._dtype: np.dtype | None = None
+
+    def __setstate__(self, state: Any) -> None:
+        self.state = state
+        self._dtype = None
+
+    def resolve(self, depth: int = 0) -> np.dtype:
+        if self._dtype is None:
+            self._dtype = check_dtype(self._build(depth), "numpy.dtype")
+        return self._dtype
+
+    def _build(self, depth: int) -> np.dtype:
+        st = self.state
+        if st is None:
+            return self.base
+        if depth > 8:
+            raise UnsafePickleError("numpy.dtype: nested too deeply")
+        if type(st) is not tuple or len(st) not in (8, 9) or st[0] not in (3, 4):
+            raise UnsafePickleError("numpy.dtype: unexpected state")
+        order, sub, names, fields, elsize = st[1:6]
+        meta = st[8] if len(st) == 9 else None
+        if order not in _BYTEORDERS or type(elsize) is not int:
+            raise UnsafePickleError("numpy.dtype: bad byte order or item size")
+        if sub is not None:
+            if type(sub) is not tuple or len(sub) != 2:
+                raise UnsafePickleError("numpy.dtype: bad subarray")
+            shape = _shape(sub[1], "numpy.dtype subarray")
+            if math.prod(shape) > 1 << 24:
+                raise UnsafePickleError("numpy.dtype: subarray too large")
+            return np.dtype((resolve_dtype(sub[0], depth + 1), shape))
+        if names is not None or fields is not None:
+            if type(names) is not tuple or type(fields) is not dict or len(names) > 4096 \
+                    or not all(type(n) is str for n in names):
+                raise UnsafePickleError("numpy.dtype: bad field names")
+            formats, offsets, titles = [], [], []
+            for name in names:
+                entry = fields.get(name)
+                if type(entry) is not tuple or len(entry) not in (2, 3) \
+                        or type(entry[1]) is not int or (len(entry) == 3 and
+                                                         type(entry[2]) not in (str, type(None))):
+                    raise UnsafePickleError(f"numpy.dtype: bad field {name[:40]!r}")
+                formats.append(resolve_dtype(entry[0], depth + 1))
+                offsets.append(entry[1])
+                titles.append(entry[2] if len(entry) == 3 else None)
+            return np.dtype({"names": list(names), "formats": formats, "offsets": offsets,
+                             "titles": titles, "itemsize": elsize})
+        d = self.base
+        if meta is not None:  # datetime64 / timedelta64 unit: (None, (unit, count, 1, 1))
+            if d.kind not in "mM" or type(meta) is not tuple or len(meta) != 2 \
+                    or type(meta[1]) is not tuple or len(meta[1]) != 4:
+                raise UnsafePickleError("numpy.dtype: unexpected metadata")
+            unit, count = meta[1][0], meta[1][1]
+            unit = unit.decode("ascii", "replace") if isinstance(unit, bytes) else unit
+            if unit not in _TIME_UNITS or type(count) is not int or not 0 < count < 1 << 31:
+                raise UnsafePickleError("numpy.dtype: bad time unit")
+            d = np.dtype(f"{d.kind}8[{count if count != 1 else ''}{unit}]")
+        elif elsize not in (-1, d.itemsize):
+            raise UnsafePickleError(f"numpy.dtype: item size {elsize} does not match {d.str!r}")
+        if order in "<>" and d.byteorder != "|":
+            d = d.newbyteorder(order)
+        return d
+
+
+def resolve_dtype(value: Any, depth: int = 0) -> np.dtype:
+    """The dtype a pickle's dtype object stands for (checked); UnsafePickleError otherwise."""
+    if isinstance(value, _DtypeSpec):
+        return value.resolve(depth)
+    raise UnsafePickleError(f"expected a numpy dtype, got {type(value).__name__}")
+
+
+class _NdarrayName:
+    """Stands for ``numpy.ndarray`` in a pickle: accepted by ``_reconstruct``, never called.
+
+    An instance without ``__dict__`` (BUILD cannot set attributes on it) and not a type
+    (NEWOBJ refuses it).
+    """
+
+    __slots__ = ()
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
         raise UnsafePickleError("refused direct numpy.ndarray(shape, dtype, buffer, ...) "
                                 "construction: arrays load only through numpy's pickle path")
+
+
+_NDARRAY = _NdarrayName()
 
 
 class _Budget:
@@ -137,9 +238,11 @@ class _CheckedArray(np.ndarray):
         if type(state) is not tuple or len(state) not in (4, 5):
             raise UnsafePickleError("array state: expected a 4- or 5-tuple")
         dtype, raw = state[-3], state[-1]
-        if not isinstance(dtype, np.dtype) or dtype.fields is not None \
-                or dtype.subdtype is not None or dtype.hasobject or dtype.kind not in _KINDS:
-            check_dtype(dtype, "array state")  # structured dtypes, or the refusal
+        if type(dtype) is not _DtypeSpec:
+            raise UnsafePickleError(f"array state: expected a numpy dtype, got "
+                                    f"{type(dtype).__name__}")
+        dtype = dtype._dtype if dtype._dtype is not None else dtype.resolve()
+        state = (*state[:-3], dtype, *state[-2:])
         if type(raw) is not bytes and type(raw) is not bytearray:
             raise UnsafePickleError(f"array state: data must be bytes, got {type(raw).__name__}")
         budget = self._budget
@@ -175,20 +278,22 @@ class _RestrictedUnpickler(pickle.Unpickler):
         array_cls = self._array_cls
 
         def reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
-            if subtype is not _NdarrayName:
+            if subtype is not _NDARRAY:
                 raise UnsafePickleError("_reconstruct: only numpy.ndarray may be rebuilt")
             # the real shape and dtype come with __setstate__ (checked there); this is the
             # empty placeholder numpy's own pickles create
             return _NUMPY_CORE.multiarray._reconstruct(array_cls, (0,), b"b")
 
         def scalar(dtype: Any, obj: Any = None) -> Any:
-            check_dtype(dtype, "numpy scalar")
+            dtype = resolve_dtype(dtype)
             if not isinstance(obj, bytes) or len(obj) != dtype.itemsize:
                 raise UnsafePickleError(f"numpy scalar: expected {dtype.itemsize} data bytes")
-            return _NUMPY_CORE.multiarray.scalar(dtype, obj)
+            # the Python value (float, int, bytes, ...): a numpy scalar's __setstate__ would be
+            # reachable by a later BUILD
+            return _NUMPY_CORE.multiarray.scalar(dtype, obj).item()
 
         def frombuffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
-            check_dtype(dtype, "array")
+            dtype = resolve_dtype(dtype)
             shape = _shape(shape, "array")
             if isinstance(buf, pickle.PickleBuffer):
                 buf = buf.raw()
@@ -201,16 +306,19 @@ class _RestrictedUnpickler(pickle.Unpickler):
             if order not in ("C", "F", "A", "K"):
                 raise UnsafePickleError("array: bad order")
             b.charge(nbytes, "array")
-            return _NUMPY_CORE.numeric._frombuffer(buf, dtype, shape, order)
+            # viewed as the checked subclass, so that a later BUILD on it is checked too
+            return _NUMPY_CORE.numeric._frombuffer(buf, dtype, shape, order).view(array_cls)
 
-        def make_dtype(obj: Any, align: Any = False, copy: Any = False) -> np.dtype:
+        def make_dtype(obj: Any, align: Any = False, copy: Any = False) -> _DtypeSpec:
             if not isinstance(obj, str) or len(obj) > 64:
                 raise UnsafePickleError("numpy.dtype: expected a short type code string")
-            return check_dtype(np.dtype(obj, bool(align), bool(copy)), "numpy.dtype")
+            return _DtypeSpec(check_dtype(np.dtype(obj, bool(align)), "numpy.dtype"))
 
-        def dtype_class(cls: type) -> Callable[..., np.dtype]:
-            def make(*args: Any, **kwargs: Any) -> np.dtype:
-                return check_dtype(cls(*args, **kwargs), cls.__name__)
+        def dtype_class(cls: type) -> Callable[..., _DtypeSpec]:
+            def make(*args: Any, **kwargs: Any) -> _DtypeSpec:
+                if args or kwargs:
+                    raise UnsafePickleError(f"{cls.__name__}: arguments refused")
+                return _DtypeSpec(check_dtype(cls(), cls.__name__))
             return make
 
         def binary(cls: type) -> Callable[..., Any]:
@@ -253,7 +361,7 @@ class _RestrictedUnpickler(pickle.Unpickler):
             allowed[(f"{mod}.multiarray", "_reconstruct")] = reconstruct
             allowed[(f"{mod}.multiarray", "scalar")] = scalar
             allowed[(f"{mod}.numeric", "_frombuffer")] = frombuffer
-        allowed[("numpy", "ndarray")] = _NdarrayName
+        allowed[("numpy", "ndarray")] = _NDARRAY
         allowed[("numpy", "dtype")] = make_dtype
         for name in dir(getattr(np, "dtypes", object())):
             if name.endswith("DType") and name not in ("ObjectDType", "StringDType"):
@@ -291,6 +399,92 @@ class _RestrictedUnpickler(pickle.Unpickler):
         raise UnsafePickleError("refused persistent id in pickle")
 
 
+def _opcode_tables() -> tuple[re.Pattern, dict[int, tuple[int, bool]], frozenset[int]]:
+    """A regex skipping runs of fixed-size opcodes (except memo puts and STOP), the counted
+    opcodes (code -> (bytes of the count, signed)) and the newline-terminated ones."""
+    fixed: dict[int, list[int]] = {}
+    counted: dict[int, tuple[int, bool]] = {}
+    line: set[int] = set()
+    for op in pickletools.opcodes:
+        code, arg = op.code.encode("latin-1")[0], op.arg
+        if arg is None or arg.n >= 0:
+            if code not in _SCANNED:
+                fixed.setdefault(0 if arg is None else arg.n, []).append(code)
+        elif arg.n == pickletools.TAKEN_FROM_ARGUMENT1:
+            counted[code] = (1, False)
+        elif arg.n == pickletools.TAKEN_FROM_ARGUMENT4:
+            counted[code] = (4, True)
+        elif arg.n in (pickletools.TAKEN_FROM_ARGUMENT4U, pickletools.TAKEN_FROM_ARGUMENT8U):
+            counted[code] = (4 if arg.n == pickletools.TAKEN_FROM_ARGUMENT4U else 8, False)
+        elif arg.n == pickletools.UP_TO_NEWLINE:
+            line.add(code)
+    branches = [b"[" + b"".join(re.escape(bytes([c])) for c in codes) + b"]"
+                + (b".{%d}" % n if n else b"") for n, codes in sorted(fixed.items())]
+    # opcodes with a 1-byte count (short strings: most of a real file's opcodes after the
+    # fixed-size ones), one branch per count; the loop still checks them where this fails
+    short = [c for c, (k, _) in counted.items() if k == 1]
+    branches.append(b"[" + b"".join(re.escape(bytes([c])) for c in short) + b"](?:"
+                    + b"|".join(re.escape(bytes([k])) + (b".{%d}" % k if k else b"")
+                                for k in range(256)) + b")")
+    return re.compile(b"(?:" + b"|".join(branches) + b")*+", re.S), counted, frozenset(line)
+
+
+_PUT, _LONG_BINPUT, _STOP, _FRAME = b"p"[0], b"r"[0], b"."[0], 0x95
+_TWO_LINES = frozenset(b"ci")  # GLOBAL, INST: module and name lines
+_SCANNED = frozenset((_PUT, _LONG_BINPUT, _STOP, _FRAME))
+_RUN, _COUNTED, _LINE = _opcode_tables()
+
+
+def _scan(data: bytes) -> None:
+    """Refuse what the C unpickler would allocate before checking it against the data.
+
+    A memo index (PUT / LONG_BINPUT) larger than the data makes it allocate and zero-fill a
+    memo table of 16 bytes per index (a 9-byte pickle took 1 GB, up to 64 GB); a counted
+    length (BINBYTES8, FRAME, ...) larger than the rest of the data is truncation. Runs of
+    fixed-size opcodes are skipped by one regex match; the loop only visits counted opcodes,
+    memo puts and line-terminated (protocol 0) opcodes. Fixed in CPython 3.15 (gh-115952).
+    """
+    n = len(data)
+    i = 2 if data[:1] == b"\x80" else 0
+    match = _RUN.match
+    while True:
+        i = match(data, i).end()
+        if i >= n:
+            return
+        code = data[i]
+        i += 1
+        counted = _COUNTED.get(code)
+        if counted is not None or code == _FRAME:
+            k, signed = counted or (8, False)
+            size = int.from_bytes(data[i:i + k], "little", signed=signed)
+            i += k
+            if size > n - i:
+                raise pickle.UnpicklingError(f"truncated pickle: an opcode at byte {i - k - 1} "
+                                             f"claims {size} bytes, {max(n - i, 0)} remain")
+            if size < 0:
+                return  # the unpickler refuses it
+            if code != _FRAME:  # a frame's opcodes are scanned in place
+                i += size
+        elif code == _LONG_BINPUT:
+            index = int.from_bytes(data[i:i + 4], "little")
+            if index > n:
+                raise UnsafePickleError(f"memo index {index} beyond the {n}-byte pickle")
+            i += 4
+        elif code == _STOP:
+            return
+        else:  # line-terminated arguments (protocol 0), or an opcode the unpickler refuses
+            end = data.find(b"\n", i)
+            if end < 0 or code not in _LINE:
+                return
+            if code == _PUT and data[i:end].strip().isdigit() and int(data[i:end]) > n:
+                raise UnsafePickleError(f"memo index {int(data[i:end])} beyond the {n}-byte pickle")
+            if code in _TWO_LINES:
+                end = data.find(b"\n", end + 1)
+                if end < 0:
+                    return
+            i = end + 1
+
+
 def safe_load(fh: BinaryIO, budget: int | None = None) -> Any:
     """Unpickle plain data from a binary file object; see module doc.
 
@@ -303,6 +497,7 @@ def safe_load(fh: BinaryIO, budget: int | None = None) -> Any:
 def safe_loads(data: bytes, budget: int | None = None) -> Any:
     """Unpickle plain data from bytes; see module doc."""
     limit = allocation_budget(len(data)) if budget is None else budget
+    _scan(data)
     return _RestrictedUnpickler(io.BytesIO(data), limit).load()
 
 
