@@ -323,3 +323,14 @@ def test_real_scenarionet_files_read_as_before():
         pytest.skip("no shared ScenarioNet data")
     ok = [r for f in files for r in iter_scene_records(f) if r.ok]
     assert len(ok) >= 5
+
+
+@pytest.mark.parametrize("name, folder", [("../outside.pkl", ""), ("a/b.pkl", ""),
+                                          ("sd_x.pkl", "../.."), ("sd_x.pkl", "/etc")])
+def test_dataset_summary_names_stay_inside_the_folder(tmp_path, name, folder):
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "dataset_summary.pkl").write_bytes(pickle.dumps({name: {}}))
+    (ds / "dataset_mapping.pkl").write_bytes(pickle.dumps({name: folder}))
+    [rec] = list(iter_scene_records(ds))
+    assert not rec.ok and "bad scenario file name" in str(rec.error), rec.error
