@@ -248,6 +248,13 @@ FIELDS = {
                   "expected a number, got 'fast'"),
     "speed list": (_set(_lane, "speed_limit_mph", [1, 2]), ".speed_limit_mph",
                    "expected a number, got a list"),
+    "speed array": (_set(_lane, "speed_limit_mph", np.zeros(3)), ".speed_limit_mph",
+                    "expected a number, got an array of shape (3,)"),
+    "neighbor list": (lambda sd: next(f for f in sd["map_features"].values()
+                                      if f.get("left_neighbor"))["left_neighbor"].__setitem__(0, [1]),
+                      ".left_neighbor[0]", "expected a dict, got list"),
+    "tracks_to_predict array": (_set(_META, "tracks_to_predict", np.zeros(2)),
+                                "metadata.tracks_to_predict", "expected a dict"),
     "interpolating array": (_set(_lane, "interpolating", np.ones(3)), ".interpolating",
                             "expected a bool"),
     "entry_lanes int": (_set(_lane, "entry_lanes", 5), ".entry_lanes", "expected a list, got 5"),

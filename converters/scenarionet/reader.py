@@ -57,6 +57,8 @@ def _describe(value: Any) -> str:
             return printable(repr(value), 60)
         except ValueError:  # an int too large to print
             return f"an int of {value.bit_length()} bits"  # type: ignore[union-attr]
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape}"
     name = type(value).__name__
     return f"{'an' if name[:1] in 'aeiou' else 'a'} {name}"
 
@@ -131,6 +133,11 @@ def _float(value: Any, path: str) -> float:
     return out
 
 
+def _default(value: Any, default: Any) -> Any:
+    """``default`` for None (as ``value or default`` did, without truth-testing arrays)."""
+    return default if value is None else value
+
+
 def _bool(value: Any, path: str) -> bool:
     if not isinstance(value, (bool, int, np.bool_, np.integer)):
         raise SceneValidationError(f"{path}: expected a bool, got {_describe(value)}")
@@ -198,7 +205,9 @@ def _scene(sd: Any) -> Scene:
     sdc_index = meta.get("sdc_track_index")
     if sdc_index is None:
         sdc_index = index_of.get(_text(sdc, "metadata.sdc_id"), -1) if sdc is not None else -1
-    ttp = meta.get("tracks_to_predict") or {}
+    ttp = meta.get("tracks_to_predict")
+    if ttp is None or (isinstance(ttp, (list, tuple)) and not ttp):
+        ttp = {}
     if not isinstance(ttp, dict):
         raise SceneValidationError("metadata.tracks_to_predict: expected a dict")
     sid = meta["scenario_id"] if "scenario_id" in meta else _get(sd, "id", "")
@@ -284,12 +293,11 @@ def _neighbors(items: Any, path: str) -> tuple[LaneNeighbor, ...]:
     out = []
     for j, nb in enumerate(_seq(items, path)):
         p = f"{path}[{j}]"
-        out.append(LaneNeighbor(
-            *(_int(_get(nb, k, p), f"{p}.{k}") for k in
-              ("feature_id", "self_start_index", "self_end_index", "neighbor_start_index",
-               "neighbor_end_index")),
-            boundaries=_segments(nb.get("boundaries"), p + ".boundaries"),
-        ))
+        indices = [_int(_get(nb, k, p), f"{p}.{k}") for k in
+                   ("feature_id", "self_start_index", "self_end_index", "neighbor_start_index",
+                    "neighbor_end_index")]
+        out.append(LaneNeighbor(*indices,
+                                boundaries=_segments(nb.get("boundaries"), p + ".boundaries")))
     return tuple(out)
 
 
@@ -308,7 +316,7 @@ def _roadmap(features: Any) -> RoadMap:
             kinds["lanes"].append(Lane(
                 id=fid, polyline=_points(_get(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
-                speed_limit_mph=_float(f.get("speed_limit_mph", 0.0) or 0.0,
+                speed_limit_mph=_float(_default(f.get("speed_limit_mph"), 0.0),
                                        path + ".speed_limit_mph"),
                 interpolating=_bool(f.get("interpolating", False), path + ".interpolating"),
                 entry_lanes=tuple(_int(v, path + ".entry_lanes")
@@ -416,7 +424,7 @@ def dataset_files(folder: str | PathLike) -> list[Path]:
         mapping: dict = {}
         if (root / MAPPING_FILE).exists():
             with open_regular(root / MAPPING_FILE) as fh:
-                mapping = safe_load(fh) or {}
+                mapping = _default(safe_load(fh), {})
     except LOAD_ERRORS as exc:
         raise SceneFormatError(root / SUMMARY_FILE, None,
                                f"unreadable dataset summary ({_reason(exc)})") from None
