@@ -8,7 +8,6 @@ one record is held in memory at a time.
 from __future__ import annotations
 
 import gzip
-import io
 import stat
 import struct
 import zlib

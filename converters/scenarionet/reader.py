@@ -17,7 +17,7 @@ import numpy as np
 from converters.files import open_regular
 from converters.scenarionet import schema
 from converters.scenarionet.safe_pickle import (
-    LOAD_ERRORS, UnsafePickleError, allocation_budget, safe_load, safe_loads,
+    UnsafePickleError, allocation_budget, safe_loads,
 )
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.outputs import printable
@@ -418,16 +418,18 @@ def dataset_files(folder: str | PathLike) -> list[Path]:
     relative paths inside the dataset; anything else is a :class:`SceneFormatError`.
     """
     root = Path(folder)
-    try:
-        with open_regular(root / SUMMARY_FILE) as fh:
-            summary = safe_load(fh)
-        mapping: dict = {}
-        if (root / MAPPING_FILE).exists():
-            with open_regular(root / MAPPING_FILE) as fh:
-                mapping = _default(safe_load(fh), {})
-    except LOAD_ERRORS as exc:
-        raise SceneFormatError(root / SUMMARY_FILE, None,
-                               f"unreadable dataset summary ({_reason(exc)})") from None
+
+    def load(name: str) -> Any:
+        with open_regular(root / name) as fh:  # SceneFormatError for a FIFO, a loop, ...
+            data = fh.read()
+        try:
+            return safe_loads(data)
+        except Exception as exc:  # LOAD_ERRORS, UnsafePickleError, anything else
+            raise SceneFormatError(root / name, None,
+                                   f"unreadable dataset summary ({_reason(exc)})") from None
+
+    summary = load(SUMMARY_FILE)
+    mapping = _default(load(MAPPING_FILE), {}) if (root / MAPPING_FILE).exists() else {}
     if not isinstance(summary, dict) or not isinstance(mapping, dict):
         raise SceneFormatError(root, None, "dataset summary/mapping is not a dict")
     files = []
