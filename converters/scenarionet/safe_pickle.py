@@ -11,20 +11,32 @@ allocate far more than the file holds.
 * **No object arrays.** A dtype holding Python objects (``dtype('O')``, a structured dtype with
   an object field, numpy 2's ``StringDType``) is refused wherever it is used: such an array
   built from the file's bytes would take its element pointers from the file (a crafted
-  111-byte pickle segfaults the interpreter). Structured dtypes must keep every field inside
-  the item (``dtype.__setstate__`` does not check offsets).
+  88-byte pickle segfaulted the interpreter).
+* **Dtypes are rebuilt, never patched.** ``numpy.dtype(code)`` yields a placeholder; the state
+  a BUILD gives it is checked and the dtype built with numpy's validating constructors.
+  numpy's own ``dtype.__setstate__`` trusts its argument (a 6-tuple state crashes the
+  interpreter, field offsets are not checked) and is never called with data from a file. A
+  dtype that is loaded as a value (not used by an array) stays such a placeholder.
 * **Arrays only through numpy's own pickle path.** ``numpy.ndarray`` may be *named* (numpy
   pickles pass it to ``_reconstruct``) but not called: direct construction
   ``ndarray(shape, dtype, buffer, offset, strides)`` reads memory the file describes. Arrays are
-  built by ``_reconstruct`` followed by ``__setstate__`` (checked: dtype, shape, and a data
-  string of exactly the array's size) or by ``_frombuffer`` (protocol 5, checked likewise).
+  built by ``_reconstruct`` followed by ``__setstate__`` (checked: dtype, and bytes data, whose
+  size numpy checks against the shape) or by ``_frombuffer`` (protocol 5, checked likewise).
+  Numpy scalars load as the equivalent Python values (``float``, ``int``, ``bytes``...), so no
+  numpy object with an unchecked ``__setstate__`` is ever reachable by a BUILD.
 * **Allocation budget.** Everything the allowlisted callables create (arrays,
   ``bytes``/``bytearray``/``str``, containers built from a ``range``) is charged against a
   budget of :func:`allocation_budget` bytes: ``max(64 MiB, 64 x file size)``. Real scenario
   pickles build arrays from their own bytes (about 1x their size); a file needing more than 64
   times its size is refused (a 48-byte ``bytearray(4e9)`` pickle, or stride-0 arrays growing
-  with a number in the file). The pickle is read into memory first (its size is known), so a
-  length field claiming more bytes than the file has is "truncated", never allocated.
+  with a number in the file). The reader applies the same budget to the scene it builds
+  (:func:`converters.scenarionet.reader.scene_from_scenarionet`), since the pickle memo lets
+  one array or list be referenced from any number of places.
+* **No allocation ahead of the data.** The pickle is read into memory and scanned once
+  (:func:`_scan`) before CPython's C unpickler sees it: a memo index (PUT / LONG_BINPUT) larger
+  than the file (the C unpickler would allocate and zero 16 bytes per index: 1 GB for a
+  9-byte pickle) is refused, and a counted length (BINBYTES8, BYTEARRAY8, FRAME...) larger
+  than the rest of the file is "truncated" instead of a preallocation.
 * **Codecs.** ``_codecs.encode`` (protocol <= 2 spelling of ``bytes``) is limited to
   ``latin-1`` / ``utf-8`` / ``ascii`` text.
 
