@@ -52,6 +52,8 @@ _F32_MAX = float(np.finfo(np.float32).max)
 
 def _describe(value: Any) -> str:
     """A short one-line rendering of ``value`` for a message (never a deep or huge repr)."""
+    if type(value) is str and len(value) <= 40 and value.isprintable():
+        return repr(value)  # fast path: dict keys of real files
     if isinstance(value, (str, bytes, int, float, bool, type(None), np.number, np.bool_)):
         try:
             return printable(repr(value), 60)
@@ -86,14 +88,19 @@ def _get(d: Any, key: str, path: str) -> Any:
 def _array(value: Any, shape: tuple[int, ...], dtype: Any, path: str) -> np.ndarray:
     try:
         arr = np.asarray(value)
-        if arr.dtype.kind not in "biuf":
+        kind = arr.dtype.kind
+        if kind not in "biuf":
             raise TypeError(f"dtype {arr.dtype}")
-        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+        narrowing = dtype is np.float32 and kind == "f" and arr.dtype.itemsize > 4
+        if narrowing:
+            with np.errstate(over="ignore"):  # overflow is reported below
+                out = arr.astype(dtype)
+        else:
             out = arr.astype(dtype, copy=False)
     except (TypeError, ValueError, OverflowError, RecursionError) as exc:
         raise SceneValidationError(f"{path}: expected a numeric array "
                                    f"({printable(str(exc), 80)})") from None
-    if out.dtype == np.float32 and arr.dtype.itemsize > 4 and out.size:
+    if narrowing and out.size:
         over = np.isinf(out) & ~np.isinf(arr)  # finite in the file, too large for float32
         if over.any():
             k = int(np.flatnonzero(over.reshape(-1))[0])
@@ -108,14 +115,18 @@ def _array(value: Any, shape: tuple[int, ...], dtype: Any, path: str) -> np.ndar
 
 
 def _int(value: Any, path: str) -> int:
-    try:
-        if isinstance(value, (bool, float, np.bool_, np.floating)) or value is None \
-                or not isinstance(value, (int, str, np.integer)):
-            raise ValueError
-        out = int(value)  # ScenarioNet stores some ids as decimal strings
-    except (TypeError, ValueError, OverflowError):
-        raise SceneValidationError(f"{path}: expected an integer, got {_describe(value)}") \
-            from None
+    kind = type(value)
+    if kind is int:  # fast path: most ids and indices
+        out = value
+    else:
+        try:
+            if kind is not str and (isinstance(value, (bool, np.bool_))
+                                    or not isinstance(value, (int, str, np.integer))):
+                raise ValueError
+            out = int(value)  # ScenarioNet stores some ids as decimal strings
+        except (TypeError, ValueError, OverflowError):
+            raise SceneValidationError(f"{path}: expected an integer, got {_describe(value)}") \
+                from None
     if not _INT64[0] <= out <= _INT64[1]:
         raise SceneValidationError(f"{path}: integer {_describe(out)} out of range (64-bit)")
     return out
