@@ -454,7 +454,8 @@ def _scan(data: bytes) -> None:
     memo table of 16 bytes per index (a 9-byte pickle took 1 GB, up to 64 GB); a counted
     length (BINBYTES8, FRAME, ...) larger than the rest of the data is truncation. Runs of
     fixed-size opcodes are skipped by one regex match; the loop only visits counted opcodes,
-    memo puts and line-terminated (protocol 0) opcodes. Fixed in CPython 3.15 (gh-115952).
+    memo puts and line-terminated (protocol 0) opcodes. (Newer CPython releases fix the C
+    unpickler itself, gh-115952; Python 3.11 does not.)
     """
     n = len(data)
     i = 2 if data[:1] == b"\x80" else 0
