@@ -6,11 +6,13 @@ scenario pickles, and ScenarioNet dataset folders (with ``dataset_summary.pkl``)
 
 from __future__ import annotations
 
+import stat
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
 from typing import Iterable, Iterator
 
+from converters.files import open_regular, path_problem
 from converters.scenarionet.reader import SUMMARY_FILE, iter_scenarionet
 from converters.womd.reader import iter_womd
 from magail_sumo.errors import SceneFormatError
@@ -36,17 +38,20 @@ class SceneRecord:
 def detect_format(path: str | PathLike) -> str:
     """``"womd"``, ``"scenarionet"`` or ``"scenarionet-dataset"``.
 
-    :raises SceneFormatError: missing path, or a directory that is not a ScenarioNet dataset.
+    :raises SceneFormatError: missing path, symlink loop, a FIFO / device / socket (refused
+        without reading: it could block or never end), or a directory that is not a
+        ScenarioNet dataset.
     """
     p = Path(path)
-    if p.is_dir():
+    problem, st = path_problem(p)
+    if problem:
+        raise SceneFormatError(p, None, problem)
+    if stat.S_ISDIR(st.st_mode):  # type: ignore[union-attr]
         if (p / SUMMARY_FILE).exists():
             return "scenarionet-dataset"
         raise SceneFormatError(p, None, "is a directory, expected a scene file "
                                         "(or a ScenarioNet dataset folder with dataset_summary.pkl)")
-    if not p.exists():
-        raise SceneFormatError(p, None, "no such file")
-    with open(p, "rb") as fh:
+    with open_regular(p) as fh:
         head = fh.read(2)
     if p.suffix == ".pkl" or head in _PICKLE_MAGIC:
         return "scenarionet"

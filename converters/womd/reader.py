@@ -53,9 +53,15 @@ def iter_womd(path: str | PathLike) -> Iterator[tuple[int, Scene | SceneFormatEr
             yield index, data
             continue
         try:
-            yield index, parse_scenario(data)
+            scene = parse_scenario(data)
         except SceneValidationError as exc:
             yield index, SceneFormatError(path, index, str(exc))
+            continue
+        except (ValueError, OverflowError, RecursionError, MemoryError) as exc:  # unforeseen
+            yield index, SceneFormatError(path, index, f"unexpected record structure "
+                                                       f"({type(exc).__name__}: {exc})")
+            continue
+        yield index, scene
 
 
 # ------------------------------------------------------------------ wrong-typed fields

@@ -21,6 +21,7 @@ import numpy as np
 from converters.womd.protos import sim_agents_submission_pb2 as pb
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.scene import Scene
+from magail_sumo.scene.validation import MAX_COORDINATE
 
 
 class SubmissionError(MagailSumoError):
@@ -90,7 +91,9 @@ def rollouts_from_proto(msg: pb.ScenarioRollouts) -> ScenarioRollouts:
     dup = [i for i, n in Counter(ids).items() if n > 1]
     if dup:
         raise SubmissionError(sid, f"rollout 0: agent {dup[0]} appears {ids.count(dup[0])} times")
-    steps = len(first[0].center_x)
+    # the step count is the most common length of rollout 0's coordinate fields, so that the
+    # one short field is named (not its correct siblings)
+    steps = Counter(len(getattr(t, name)) for t in first for name in _COORDS).most_common(1)[0][0]
     order = {i: k for k, i in enumerate(ids)}
     R, A = len(msg.joint_scenes), len(ids)
     out = np.empty((4, R, A, steps), np.float32)
@@ -222,3 +225,11 @@ def validate_rollouts(ro: ScenarioRollouts, scene: Scene, n_rollouts: int = 32,
             r, a, t = (int(i[0]) for i in np.nonzero(bad))
             raise SubmissionError(sid, f"rollout {r} agent {int(ro.object_id[a])}: non-finite "
                                        f"{name} at simulated step {t}")
+    for name in ("x", "y", "z"):  # finite but huge (1e308): out of range, not "non-finite"
+        arr = getattr(ro, name)
+        bad = np.abs(arr) > MAX_COORDINATE
+        if bad.any():
+            r, a, t = (int(i[0]) for i in np.nonzero(bad))
+            raise SubmissionError(sid, f"rollout {r} agent {int(ro.object_id[a])}: {name} "
+                                       f"{float(arr[r, a, t]):.6g} out of range (|{name}| > "
+                                       f"{MAX_COORDINATE:g} m) at simulated step {t}")
