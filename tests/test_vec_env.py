@@ -73,8 +73,9 @@ def test_state_replay_restores_exactly(specs):
 
 
 def test_dead_or_hung_worker_raises(specs):
-    venv = MultiSceneVecEnv(specs[:1], EnvConfig(controlled=3, max_steps=10), timeout_s=3.0)
+    venv = MultiSceneVecEnv(specs[:1], EnvConfig(controlled=3, max_steps=10))
     venv.reset()
+    venv.timeout_s = 3.0  # after start-up, which may take longer on a busy machine
     os.kill(venv._procs[0].pid, signal.SIGKILL)
     with pytest.raises(VecEnvWorkerError, match="died"):
         venv.step(np.zeros((venv.num_envs, 2)))
