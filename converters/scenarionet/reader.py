@@ -8,6 +8,7 @@ wrong shape or type raises an error naming the key path.
 from __future__ import annotations
 
 import contextvars
+import dataclasses
 from os import PathLike
 from pathlib import Path
 from typing import Any, Iterator
@@ -22,15 +23,19 @@ from converters.scenarionet.safe_pickle import (
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.outputs import printable
 from magail_sumo.scene import (
-    BoundarySegment, Crosswalk, Driveway, Lane, LaneNeighbor, ObjectType, RequiredPrediction,
-    RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError, SignalStates, SpeedBump, StopSign,
-    Tracks, validate_scene,
+    BoundarySegment, Crosswalk, DataQuality, DroppedReference, Driveway, Lane, LaneNeighbor,
+    ObjectType, RequiredPrediction, RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError,
+    SignalState, SignalStates, SourceIds, SpeedBump, StopSign, Tracks, infer_lane_connectivity,
+    validate_scene,
 )
 
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
 
-_OBJECT_TYPES = schema.inverse(schema.OBJECT_TYPES)
+_OBJECT_TYPES = {**schema.inverse(schema.OBJECT_TYPES),
+                 **{name: ObjectType.OTHER for name in schema.OTHER_OBJECT_TYPES}}
+_FEATURE_ALIASES = schema.FEATURE_TYPE_ALIASES
+_KMH_PER_MPH = 1.609344
 _LANE_TYPES = schema.inverse(schema.LANE_TYPES)
 _LINE_TYPES = schema.inverse(schema.ROAD_LINE_TYPES)
 _BOUNDARY_TYPES = {**schema.inverse(schema.BOUNDARY_TYPES), "UNKNOWN_LINE": 0}
@@ -190,6 +195,17 @@ def _enum(value: Any, table: dict, path: str):
 def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
     """Convert a ScenarioNet scenario dict (no validation beyond structure).
 
+    Both layouts are read: the newer ScenarioNet one (``state.length/width/height``,
+    ``metadata``; signals keyed by signal id with string states) and the older MetaDrive one
+    (``state.size`` T×3; signals keyed by lane with per-step ``state.lane``/``stop_point`` and
+    integer WOMD ``TrafficSignalLaneState`` codes; ``sdc_track_index`` (a track key) and ``ts``
+    at the top level, possibly no ``metadata``; areas with a ``polyline`` instead of a
+    ``polygon``). Track or map-feature keys that are not integers (nuScenes: UUIDs, ``"ego"``)
+    are numbered 0..N-1 in recorded order, the originals kept in ``Scene.source_ids``.
+    References to ids not in the map are dropped and listed in ``Scene.data_quality``; lane
+    connectivity is inferred from geometry for a map that has none
+    (:func:`~magail_sumo.scene.infer_lane_connectivity`).
+
     :param budget: bytes of memory the scene may take (None: unlimited); exceeding it is a
         :class:`SceneValidationError` raised before the memory is allocated.
     """
@@ -200,22 +216,76 @@ def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
         _BUDGET.reset(token)
 
 
+def _decimal(text: str) -> bool:
+    try:
+        int(text)
+    except ValueError:
+        return False
+    return True
+
+
+class _Ids:
+    """Integer ids of a dict's keys: the keys themselves when every key is an integer (or a
+    decimal string), else 0..n-1 in recorded order with the original keys kept as names."""
+
+    def __init__(self, keys: list, path: str) -> None:
+        self.names: list[str] | None = None
+        try:
+            self.ids = [_int(k, f"{path}[{_describe(k)}] key") for k in keys]
+            return
+        except SceneValidationError:
+            if not any(type(k) is str and not _decimal(k) for k in keys):
+                raise  # a bad integer key (a float, a bool, out of range): refused as before
+        self.names = [_text(k, f"{path}[{_describe(k)}] key") for k in keys]
+        self.ids = list(range(len(keys)))
+        self.by_name = {name: i for i, name in enumerate(self.names)}
+
+    @property
+    def renumbered(self) -> bool:
+        return self.names is not None
+
+    def pairs(self) -> tuple[tuple[int, str], ...]:
+        return tuple(enumerate(self.names)) if self.names is not None else ()
+
+    def resolve(self, value: Any, path: str) -> tuple[int | None, str]:
+        """``(our id or None when the source's id is unknown, the id as in the source)``."""
+        if self.names is None:
+            v = _int(value, path)
+            return v, str(v)
+        name = _text(value, path)
+        return self.by_name.get(name), name
+
+
 def _scene(sd: Any) -> Scene:
     if not isinstance(sd, dict):
         raise SceneValidationError(f"expected a scenario dict, got {type(sd).__name__}")
-    length = _int(_get(sd, "length", ""), "length")
+    meta = sd.get("metadata")
+    if meta is None:  # older MetaDrive files: sdc_track_index / ts / id at the top level
+        meta = {}
+    elif not isinstance(meta, dict):
+        raise SceneValidationError(f"metadata: expected a dict, got {type(meta).__name__}")
+    notes: list[str] = []
+    ts_raw, ts_path = (meta["ts"], "metadata.ts") if "ts" in meta else (sd.get("ts"), "ts")
+    if "length" in sd:
+        length = _int(sd["length"], "length")
+    elif ts_raw is not None:
+        length = len(_seq(ts_raw, ts_path))
+    else:
+        raise SceneValidationError("missing key 'length' (and no 'ts' to take it from)")
     if length < 0:
         raise SceneValidationError(f"length: {length} is negative")
-    meta = _get(sd, "metadata", "")
-    ts = _array(_get(meta, "ts", "metadata"), (length,), np.float64, "metadata.ts")
+    if ts_raw is not None:
+        ts = _array(ts_raw, (length,), np.float64, ts_path)
+    else:
+        ts = np.arange(length) * 0.1
+        notes.append("no timestamps (metadata.ts): 0.1 s steps assumed")
     tracks_d = _get(sd, "tracks", "")
     if not isinstance(tracks_d, dict):
         raise SceneValidationError("tracks: expected a dict")
-    tracks, index_of = _tracks(tracks_d, length)
-    sdc = meta.get("sdc_id")
-    sdc_index = meta.get("sdc_track_index")
-    if sdc_index is None:
-        sdc_index = index_of.get(_text(sdc, "metadata.sdc_id"), -1) if sdc is not None else -1
+    tracks, track_ids = _tracks(tracks_d, length)
+    index_of = {name: i for i, name in enumerate(
+        track_ids.names if track_ids.renumbered else (str(v) for v in track_ids.ids))}
+    sdc_index = _sdc_index(sd, meta, index_of, tracks.num_tracks)
     ttp = meta.get("tracks_to_predict")
     if ttp is None or (isinstance(ttp, (list, tuple)) and not ttp):
         ttp = {}
@@ -228,36 +298,74 @@ def _scene(sd: Any) -> Scene:
         predictions.append(RequiredPrediction(
             _int(_get(v, "track_index", p), p + ".track_index"),
             _int(v.get("difficulty", 0), p + ".difficulty")))
+    dropped: list[DroppedReference] = []
+    interest = []
+    for v in _seq(meta.get("objects_of_interest"), "metadata.objects_of_interest"):
+        if not track_ids.renumbered:
+            interest.append(_int(v, "metadata.objects_of_interest"))
+            continue
+        name = _text(v, "metadata.objects_of_interest")
+        if name in index_of:
+            interest.append(index_of[name])
+        else:
+            dropped.append(DroppedReference(-1, "objects_of_interest", name))
+    roadmap, feature_ids = _roadmap(_get(sd, "map_features", ""), dropped)
+    signals = _signals(_get(sd, "dynamic_map_states", ""), length, feature_ids, dropped, notes)
+    successors = neighbors = 0
+    lanes = roadmap.lanes
+    no_links = not any(l.entry_lanes or l.exit_lanes for l in lanes)
+    no_neighbors = not any(l.left_neighbors or l.right_neighbors for l in lanes)
+    if lanes and (no_links or no_neighbors):
+        inferred, successors, neighbors = infer_lane_connectivity(lanes, successors=no_links,
+                                                                  neighbors=no_neighbors)
+        roadmap = dataclasses.replace(roadmap, lanes=inferred)
     return Scene(
         scenario_id=_text(sid, "metadata.scenario_id"),
         timestamps=ts,
         tracks=tracks,
-        roadmap=_roadmap(_get(sd, "map_features", "")),
-        signals=_signals(_get(sd, "dynamic_map_states", ""), length),
-        sdc_track_index=_int(sdc_index, "metadata.sdc_track_index"),
+        roadmap=roadmap,
+        signals=signals,
+        sdc_track_index=sdc_index,
         current_time_index=_int(meta.get("current_time_index", 0), "metadata.current_time_index"),
         tracks_to_predict=tuple(predictions),
-        objects_of_interest=tuple(
-            _int(v, "metadata.objects_of_interest")
-            for v in _seq(meta.get("objects_of_interest"), "metadata.objects_of_interest")
-        ),
+        objects_of_interest=tuple(interest),
+        source_ids=SourceIds(track_ids.pairs(), feature_ids.pairs()),
+        data_quality=DataQuality(tuple(dropped), successors, neighbors, tuple(notes)),
     )
 
 
-def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, dict[str, int]]:
+def _sdc_index(sd: dict, meta: dict, index_of: dict[str, int], n: int) -> int:
+    """Index of the recording vehicle: ``metadata.sdc_track_index``, else the track keyed
+    ``metadata.sdc_id``, else the older layout's top-level ``sdc_track_index`` (a track key;
+    an index when no track has that key); -1 when none is given."""
+    if meta.get("sdc_track_index") is not None:
+        return _int(meta["sdc_track_index"], "metadata.sdc_track_index")
+    for value, path in ((meta.get("sdc_id"), "metadata.sdc_id"), (sd.get("sdc_id"), "sdc_id"),
+                        (sd.get("sdc_track_index"), "sdc_track_index")):
+        if value is None:
+            continue
+        key = _text(value, path)
+        if key in index_of:
+            return index_of[key]
+        if path == "sdc_track_index":
+            return _int(value, path)
+        return -1  # an sdc id that is not a track (as before: no sdc)
+    return -1
+
+
+def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, _Ids]:
     n = len(tracks_d)
     _charge(_PER_ITEM * n * length, "tracks")
     cols: dict[str, np.ndarray] = {k: np.zeros((n, length), np.float64) for k in ("x", "y", "z")}
     cols.update({k: np.zeros((n, length), np.float32)
                  for k in ("length", "width", "height", "heading", "vx", "vy")})
     valid = np.zeros((n, length), bool)
-    ids = np.zeros(n, np.int64)
     types = np.zeros(n, np.int8)
-    index_of: dict[str, int] = {}
-    for i, (key, obj) in enumerate(tracks_d.items()):
+    keys = list(tracks_d)
+    track_ids = _Ids(keys, "tracks")
+    for i, key in enumerate(keys):
+        obj = tracks_d[key]
         path = f"tracks[{_describe(key)}]"
-        index_of[_text(key, path + " key")] = i
-        ids[i] = _int(key, path + " key")
         types[i] = _enum(_get(obj, "type", path), _OBJECT_TYPES, path + ".type")
         state = _get(obj, "state", path)
         sp = path + ".state"
@@ -267,14 +375,24 @@ def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, dict[str, int]]:
         cols["x"][i], cols["y"][i] = pos[:, 0], pos[:, 1]
         if pos.shape[1] == 3:
             cols["z"][i] = pos[:, 2]
-        for name in ("length", "width", "height", "heading"):
-            if name in state or name == "heading":
-                cols[name][i] = _array(_get(state, name, sp), (length,), np.float32, f"{sp}.{name}")
+        if isinstance(state, dict) and "size" in state and "length" not in state:
+            size = _array(state["size"], (length, -1), np.float32, sp + ".size")  # older layout
+            if size.shape[1] not in (2, 3):
+                raise SceneValidationError(f"{sp}.size: expected 2 or 3 columns (length, width, "
+                                           f"height), got {size.shape[1]}")
+            cols["length"][i], cols["width"][i] = size[:, 0], size[:, 1]
+            if size.shape[1] == 3:
+                cols["height"][i] = size[:, 2]
+        else:
+            for name in ("length", "width", "height"):
+                if name in state:
+                    cols[name][i] = _array(state[name], (length,), np.float32, f"{sp}.{name}")
+        cols["heading"][i] = _array(_get(state, "heading", sp), (length,), np.float32, sp + ".heading")
         if "velocity" in state:
             vel = _array(state["velocity"], (length, 2), np.float32, sp + ".velocity")
             cols["vx"][i], cols["vy"][i] = vel[:, 0], vel[:, 1]
         valid[i] = _array(_get(state, "valid", sp), (length,), bool, sp + ".valid")
-    return Tracks(id=ids, type=types, valid=valid, **cols), index_of
+    return Tracks(id=np.array(track_ids.ids, np.int64), type=types, valid=valid, **cols), track_ids
 
 
 def _points(value: Any, path: str) -> np.ndarray:
@@ -287,57 +405,110 @@ def _points(value: Any, path: str) -> np.ndarray:
     return arr
 
 
-def _segments(items: Any, path: str) -> tuple[BoundarySegment, ...]:
+class _Refs:
+    """Resolves a map's references; one to an id not in the map is dropped and recorded."""
+
+    def __init__(self, ids: _Ids, lane_ids: set[int], all_ids: set[int],
+                 dropped: list[DroppedReference]) -> None:
+        self.ids, self.lane_ids, self.all_ids, self.dropped = ids, lane_ids, all_ids, dropped
+
+    def __call__(self, value: Any, owner: int, field: str, path: str,
+                 lanes_only: bool = True) -> int | None:
+        fid, name = self.ids.resolve(value, path)
+        if fid is None or fid not in (self.lane_ids if lanes_only else self.all_ids):
+            self.dropped.append(DroppedReference(owner, field, name))
+            return None
+        return fid
+
+    def lanes(self, items: Any, owner: int, field: str, path: str) -> tuple[int, ...]:
+        out = (self(v, owner, field, path) for v in _seq(items, path))
+        return tuple(v for v in out if v is not None)
+
+
+def _segments(items: Any, path: str, refs: _Refs, owner: int, field: str,
+              check: bool = True) -> tuple[BoundarySegment, ...]:
+    """Boundary segments; ``check=False`` (a neighbour's boundaries, where 0 means unset) keeps
+    unknown integer ids as recorded."""
     out = []
     for j, seg in enumerate(_seq(items, path)):
         p = f"{path}[{j}]"
+        raw = _get(seg, "boundary_feature_id", p)
+        if check or refs.ids.renumbered:
+            fid = refs(raw, owner, field, p + ".boundary_feature_id", lanes_only=False)
+            if fid is None:
+                continue
+        else:
+            fid = _int(raw, p + ".boundary_feature_id")
         out.append(BoundarySegment(
             _int(_get(seg, "lane_start_index", p), p + ".lane_start_index"),
             _int(_get(seg, "lane_end_index", p), p + ".lane_end_index"),
-            _int(_get(seg, "boundary_feature_id", p), p + ".boundary_feature_id"),
+            fid,
             _enum(seg.get("boundary_type", "UNKNOWN"), _BOUNDARY_TYPES, p + ".boundary_type"),
         ))
     return tuple(out)
 
 
-def _neighbors(items: Any, path: str) -> tuple[LaneNeighbor, ...]:
+def _neighbors(items: Any, path: str, refs: _Refs, owner: int,
+               field: str) -> tuple[LaneNeighbor, ...]:
     out = []
     for j, nb in enumerate(_seq(items, path)):
         p = f"{path}[{j}]"
+        fid = refs(_get(nb, "feature_id", p), owner, field, p + ".feature_id")
+        if fid is None:
+            continue
         indices = [_int(_get(nb, k, p), f"{p}.{k}") for k in
-                   ("feature_id", "self_start_index", "self_end_index", "neighbor_start_index",
+                   ("self_start_index", "self_end_index", "neighbor_start_index",
                     "neighbor_end_index")]
-        out.append(LaneNeighbor(*indices,
-                                boundaries=_segments(nb.get("boundaries"), p + ".boundaries")))
+        out.append(LaneNeighbor(fid, *indices, boundaries=_segments(
+            nb.get("boundaries"), p + ".boundaries", refs, owner, field + ".boundaries",
+            check=False)))
     return tuple(out)
 
 
-def _roadmap(features: Any) -> RoadMap:
+def _speed_mph(f: dict, path: str) -> float:
+    if f.get("speed_limit_mph") is not None:
+        return _float(f["speed_limit_mph"], path + ".speed_limit_mph")
+    if f.get("speed_limit_kmh") is not None:  # nuScenes and other non-WOMD datasets
+        return _float(f["speed_limit_kmh"], path + ".speed_limit_kmh") / _KMH_PER_MPH
+    return 0.0
+
+
+def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, _Ids]:
     if not isinstance(features, dict):
         raise SceneValidationError("map_features: expected a dict")
     kinds: dict[str, list] = {k: [] for k in ("lanes", "road_lines", "road_edges", "stop_signs",
                                               "crosswalks", "speed_bumps", "driveways")}
-    for key, f in features.items():
+    keys = list(features)
+    ids = _Ids(keys, "map_features")
+    ftypes = []
+    for key in keys:
         path = f"map_features[{_describe(key)}]"
-        fid = _int(key, path + " key")
-        ftype = _get(f, "type", path)
+        ftype = _get(features[key], "type", path)
         if not isinstance(ftype, str):
             raise SceneValidationError(f"{path}.type: expected a string, got {_describe(ftype)}")
+        ftypes.append(_FEATURE_ALIASES.get(ftype, ftype))
+    lane_ids = {fid for fid, t in zip(ids.ids, ftypes) if t in _LANE_TYPES}
+    refs = _Refs(ids, lane_ids, set(ids.ids), dropped)
+    for key, fid, ftype in zip(keys, ids.ids, ftypes):
+        f = features[key]
+        path = f"map_features[{_describe(key)}]"
         if ftype in _LANE_TYPES:
             kinds["lanes"].append(Lane(
                 id=fid, polyline=_points(_get(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
-                speed_limit_mph=_float(_default(f.get("speed_limit_mph"), 0.0),
-                                       path + ".speed_limit_mph"),
+                speed_limit_mph=_speed_mph(f, path),
                 interpolating=_bool(f.get("interpolating", False), path + ".interpolating"),
-                entry_lanes=tuple(_int(v, path + ".entry_lanes")
-                                  for v in _seq(f.get("entry_lanes"), path + ".entry_lanes")),
-                exit_lanes=tuple(_int(v, path + ".exit_lanes")
-                                 for v in _seq(f.get("exit_lanes"), path + ".exit_lanes")),
-                left_neighbors=_neighbors(f.get("left_neighbor"), path + ".left_neighbor"),
-                right_neighbors=_neighbors(f.get("right_neighbor"), path + ".right_neighbor"),
-                left_boundaries=_segments(f.get("left_boundaries"), path + ".left_boundaries"),
-                right_boundaries=_segments(f.get("right_boundaries"), path + ".right_boundaries"),
+                entry_lanes=refs.lanes(f.get("entry_lanes"), fid, "entry_lanes",
+                                       path + ".entry_lanes"),
+                exit_lanes=refs.lanes(f.get("exit_lanes"), fid, "exit_lanes", path + ".exit_lanes"),
+                left_neighbors=_neighbors(f.get("left_neighbor"), path + ".left_neighbor", refs,
+                                          fid, "left_neighbor"),
+                right_neighbors=_neighbors(f.get("right_neighbor"), path + ".right_neighbor", refs,
+                                           fid, "right_neighbor"),
+                left_boundaries=_segments(f.get("left_boundaries"), path + ".left_boundaries",
+                                          refs, fid, "left_boundaries"),
+                right_boundaries=_segments(f.get("right_boundaries"), path + ".right_boundaries",
+                                           refs, fid, "right_boundaries"),
             ))
         elif ftype in _LINE_TYPES:
             kinds["road_lines"].append(RoadLine(fid, _points(_get(f, "polyline", path),
@@ -351,36 +522,82 @@ def _roadmap(features: Any) -> RoadMap:
                 raise SceneValidationError(f"{path}.position: expected 3 coordinates, "
                                            f"got {pos.shape[0]}")
             kinds["stop_signs"].append(StopSign(
-                fid, tuple(_int(v, path + ".lane") for v in _seq(f.get("lane"), path + ".lane")),
+                fid, refs.lanes(f.get("lane"), fid, "lane", path + ".lane"),
                 np.pad(pos, (0, 3 - pos.shape[0])) if pos.shape[0] < 3 else pos))
         elif ftype in _AREA_TYPES:
             kind, cls = _AREA_TYPES[ftype]
-            kinds[kind].append(cls(fid, _points(_get(f, "polygon", path), path + ".polygon")))
+            # the older MetaDrive layout stores an area's outline as "polyline"
+            outline = f.get("polygon") if isinstance(f, dict) and f.get("polygon") is not None \
+                else (f.get("polyline") if isinstance(f, dict) else None)
+            points = (_points(outline, path + ".polygon") if outline is not None
+                      else np.zeros((0, 3)))
+            kinds[kind].append(cls(fid, points))
         else:
             raise SceneValidationError(f"{path}: unsupported map feature type {ftype!r}")
-    return RoadMap(**{k: tuple(v) for k, v in kinds.items()})
+    return RoadMap(**{k: tuple(v) for k, v in kinds.items()}), ids
 
 
-def _signals(dyn: Any, length: int) -> SignalStates:
+def _signal_state(value: Any, path: str) -> int:
+    """A signal state: a ``LANE_STATE_*`` name, or the older layout's integer WOMD
+    ``TrafficSignalLaneState`` code (0 unknown .. 8 flashing caution; same values as ours)."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
+        if not 0 <= value <= max(SignalState):
+            raise SceneValidationError(f"{path}: unknown signal state code {_describe(value)}")
+        return int(value)
+    return _enum(value, _SIGNAL_STATES, path)
+
+
+def _signals(dyn: Any, length: int, map_ids: _Ids, dropped: list[DroppedReference],
+             notes: list[str]) -> SignalStates:
     if not isinstance(dyn, dict):
         raise SceneValidationError("dynamic_map_states: expected a dict")
     _charge(_PER_ITEM * length, "dynamic_map_states")
     per_step: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in range(length)]
+    older_steps: set[int] = set()
+
+    def lane_id(value: Any, path: str) -> int | None:
+        fid, name = map_ids.resolve(value, path)
+        if fid is None:  # only for a map with named features (integer ids are kept as recorded)
+            dropped.append(DroppedReference(-1, "dynamic_map_states.lane", name))
+        return fid
+
     for key, light in dyn.items():
         path = f"dynamic_map_states[{_describe(key)}]"
         if not isinstance(light, dict):
             raise SceneValidationError(f"{path}: expected a dict, got {type(light).__name__}")
-        lane = _int(light.get("lane", key), path + ".lane")
-        states = _seq(_get(_get(light, "state", path), "object_state", path + ".state"),
-                      path + ".state.object_state")
+        state = _get(light, "state", path)
+        sp = path + ".state"
+        if isinstance(state, dict) and "lane" in state and "lane" not in light:
+            # older MetaDrive layout: per-step lane ids (0 = no record) and stop points
+            lanes = _array(state["lane"], (length,), np.int64, sp + ".lane")
+            codes = _array(_get(state, "object_state", sp), (length,), np.int64,
+                           sp + ".object_state")
+            stops = _array(_get(state, "stop_point", sp), (length, -1), np.float64,
+                           sp + ".stop_point")
+            if stops.shape[1] < 3:
+                stops = np.pad(stops, ((0, 0), (0, 3 - stops.shape[1])))
+            for t in np.flatnonzero(lanes != 0).tolist():
+                lane = lane_id(int(lanes[t]), sp + ".lane")
+                if lane is not None:
+                    per_step[t].append((lane, _signal_state(int(codes[t]), f"{sp}[{t}]"),
+                                        stops[t, :3]))
+                    older_steps.add(t)
+            continue
+        lane = lane_id(light.get("lane", key), path + ".lane")
+        states = _seq(_get(state, "object_state", sp), sp + ".object_state")
         if len(states) != length:
             raise SceneValidationError(
                 f"{path}.state.object_state: expected {length} steps, got {len(states)}")
         stop = _array(light.get("stop_point", np.zeros(3)), (-1,), np.float64, path + ".stop_point")
         stop = np.pad(stop, (0, 3 - stop.shape[0])) if stop.shape[0] < 3 else stop[:3]
+        if lane is None:
+            continue
         for t, s in enumerate(states):
             if s is not None:
-                per_step[t].append((lane, _enum(s, _SIGNAL_STATES, f"{path}.state[{t}]"), stop))
+                per_step[t].append((lane, _signal_state(s, f"{path}.state[{t}]"), stop))
+    if older_steps:
+        notes.append(f"older MetaDrive signal layout: states recorded at {len(older_steps)} of "
+                     f"{length} steps")
     rows = [(t, lane, s, p) for t, recs in enumerate(per_step) for lane, s, p in recs]
     if not rows:
         return SignalStates.empty()

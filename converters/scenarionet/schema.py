@@ -30,6 +30,14 @@ SIGNAL_STATES: dict[SignalState, str] = {s: f"LANE_STATE_{s.name}" for s in Sign
 STOP_SIGN, CROSSWALK, SPEED_BUMP, DRIVEWAY = "STOP_SIGN", "CROSSWALK", "SPEED_BUMP", "DRIVEWAY"
 TRAFFIC_LIGHT = "TRAFFIC_LIGHT"
 
+# Spellings only read (older MetaDrive layout, non-WOMD ScenarioNet datasets); we write the ones above.
+#: MetaDrive object types without a WOMD counterpart, read as ObjectType.OTHER (nuScenes, nuPlan:
+#: cones, barriers and other static objects).
+OTHER_OBJECT_TYPES = ("TRAFFIC_CONE", "TRAFFIC_BARRIER", "TRAFFIC_OBJECT")
+#: Map feature type aliases -> the spelling above.
+FEATURE_TYPE_ALIASES = {"CROSS_WALK": CROSSWALK, "ROAD_LINE_UNKNOWN": "UNKNOWN_LINE",
+                        "ROAD_EDGE_UNKNOWN": "UNKNOWN", "ROAD_EDGE_SIDEWALK": "ROAD_EDGE_BOUNDARY"}
+
 
 def inverse(mapping: dict) -> dict:
     return {v: k for k, v in mapping.items()}

@@ -26,25 +26,44 @@ PICKLE_PROTOCOL = 4
 DEFAULT_VERSION = "v1.2"
 
 
-def _segments(segs: Iterable[BoundarySegment]) -> list[dict]:
+class _Names:
+    """The ids to write: the original ids of a source numbered by the reader
+    (``Scene.source_ids``), else the integer ids."""
+
+    def __init__(self, scene: Scene) -> None:
+        self.tracks = scene.source_ids.track_names()
+        self.features = scene.source_ids.feature_names()
+
+    def track(self, tid: int) -> str:
+        return self.tracks.get(tid, str(tid))
+
+    def feature(self, fid: int) -> str:
+        return self.features.get(fid, str(fid))
+
+    def ref(self, fid: int) -> int | str:
+        """A reference to a map feature: an int (as ScenarioNet writes), or the original id."""
+        return self.features[fid] if fid in self.features else int(fid)
+
+
+def _segments(segs: Iterable[BoundarySegment], names: _Names) -> list[dict]:
     return [{"lane_start_index": str(s.lane_start_index), "lane_end_index": str(s.lane_end_index),
              "boundary_type": schema.BOUNDARY_TYPES[s.boundary_type],
-             "boundary_feature_id": str(s.boundary_feature_id)} for s in segs]
+             "boundary_feature_id": names.feature(s.boundary_feature_id)} for s in segs]
 
 
-def _neighbors(nbs: Iterable[LaneNeighbor]) -> list[dict]:
-    return [{"feature_id": str(n.feature_id), "self_start_index": str(n.self_start_index),
+def _neighbors(nbs: Iterable[LaneNeighbor], names: _Names) -> list[dict]:
+    return [{"feature_id": names.feature(n.feature_id), "self_start_index": str(n.self_start_index),
              "self_end_index": str(n.self_end_index),
              "neighbor_start_index": str(n.neighbor_start_index),
              "neighbor_end_index": str(n.neighbor_end_index),
-             "boundaries": _segments(n.boundaries)} for n in nbs]
+             "boundaries": _segments(n.boundaries, names)} for n in nbs]
 
 
-def _tracks(scene: Scene) -> dict[str, dict]:
+def _tracks(scene: Scene, names: _Names) -> dict[str, dict]:
     tr = scene.tracks
     out: dict[str, dict] = {}
     for i in range(tr.num_tracks):
-        key = str(int(tr.id[i]))
+        key = names.track(int(tr.id[i]))
         tname = schema.OBJECT_TYPES[ObjectType(int(tr.type[i]))]
         out[key] = {
             "type": tname,
@@ -61,48 +80,54 @@ def _tracks(scene: Scene) -> dict[str, dict]:
     return out
 
 
-def _map_features(scene: Scene) -> dict[str, dict]:
+def _map_features(scene: Scene, names: _Names) -> dict[str, dict]:
     rm = scene.roadmap
-    out: dict[str, dict] = {}
+    out: dict[int, tuple[str, dict]] = {}
     for lane in rm.lanes:
-        out[str(lane.id)] = {
+        out[lane.id] = (names.feature(lane.id), {
             "speed_limit_mph": float(lane.speed_limit_mph),
             "speed_limit_kmh": float(lane.speed_limit_mph) * 1.609344,
             "type": schema.LANE_TYPES[lane.type],
             "polyline": lane.polyline.copy(),
             "interpolating": bool(lane.interpolating),
-            "entry_lanes": [int(v) for v in lane.entry_lanes],
-            "exit_lanes": [int(v) for v in lane.exit_lanes],
-            "left_boundaries": _segments(lane.left_boundaries),
-            "right_boundaries": _segments(lane.right_boundaries),
-            "left_neighbor": _neighbors(lane.left_neighbors),
-            "right_neighbor": _neighbors(lane.right_neighbors),
-        }
+            "entry_lanes": [names.ref(v) for v in lane.entry_lanes],
+            "exit_lanes": [names.ref(v) for v in lane.exit_lanes],
+            "left_boundaries": _segments(lane.left_boundaries, names),
+            "right_boundaries": _segments(lane.right_boundaries, names),
+            "left_neighbor": _neighbors(lane.left_neighbors, names),
+            "right_neighbor": _neighbors(lane.right_neighbors, names),
+        })
     for line in rm.road_lines:
-        out[str(line.id)] = {"type": schema.ROAD_LINE_TYPES[line.type], "polyline": line.polyline.copy()}
+        out[line.id] = (names.feature(line.id), {"type": schema.ROAD_LINE_TYPES[line.type],
+                                                 "polyline": line.polyline.copy()})
     for edge in rm.road_edges:
-        out[str(edge.id)] = {"type": schema.ROAD_EDGE_TYPES[edge.type], "polyline": edge.polyline.copy()}
+        out[edge.id] = (names.feature(edge.id), {"type": schema.ROAD_EDGE_TYPES[edge.type],
+                                                 "polyline": edge.polyline.copy()})
     for sign in rm.stop_signs:
-        out[str(sign.id)] = {"type": schema.STOP_SIGN, "lane": [int(v) for v in sign.lanes],
-                             "position": sign.position.copy()}
+        out[sign.id] = (names.feature(sign.id), {
+            "type": schema.STOP_SIGN, "lane": [names.ref(v) for v in sign.lanes],
+            "position": sign.position.copy()})
     for kind, items in ((schema.CROSSWALK, rm.crosswalks), (schema.SPEED_BUMP, rm.speed_bumps),
                         (schema.DRIVEWAY, rm.driveways)):
         for area in items:
-            out[str(area.id)] = {"type": kind, "polygon": area.polygon.copy()}
-    return out
+            out[area.id] = (names.feature(area.id), {"type": kind, "polygon": area.polygon.copy()})
+    # a source the reader numbered is written in id order (its recorded order), so that
+    # reading the file back numbers it the same way
+    order = sorted(out) if names.features else list(out)
+    return dict(out[fid] for fid in order)
 
 
-def _dynamic_states(scene: Scene) -> dict[str, dict]:
+def _dynamic_states(scene: Scene, names: _Names) -> dict[str, dict]:
     sig = scene.signals
     out: dict[str, dict] = {}
     for step, lane, state, point in zip(sig.step.tolist(), sig.lane.tolist(), sig.state.tolist(),
                                         sig.stop_point):
-        key = str(lane)
+        key = names.feature(lane)
         if key not in out:
             out[key] = {
                 "type": schema.TRAFFIC_LIGHT,
                 "state": {"object_state": [None] * scene.num_steps},
-                "lane": int(lane), "stop_point": None,
+                "lane": names.ref(lane), "stop_point": None,
                 "metadata": {"track_length": scene.num_steps, "type": schema.TRAFFIC_LIGHT,
                              "object_id": key, "dataset": "waymo"},
             }
@@ -113,28 +138,33 @@ def _dynamic_states(scene: Scene) -> dict[str, dict]:
 
 def scene_to_scenarionet(scene: Scene, *, source_file: str = "", version: str = DEFAULT_VERSION,
                          dataset: str = "waymo") -> dict[str, Any]:
-    """The ScenarioNet scenario dict of a scene, with ScenarioNet's summaries."""
+    """The ScenarioNet scenario dict of a scene, with ScenarioNet's summaries.
+
+    A scene read from a source with non-integer ids (``Scene.source_ids``) is written with its
+    original track and map-feature ids.
+    """
     tr = scene.tracks
     sdc = scene.sdc_track_index
+    names = _Names(scene)
     sd: dict[str, Any] = {
         "id": scene.scenario_id,
         "version": version,
         "length": scene.num_steps,
-        "tracks": _tracks(scene),
-        "dynamic_map_states": _dynamic_states(scene),
-        "map_features": _map_features(scene),
+        "tracks": _tracks(scene, names),
+        "dynamic_map_states": _dynamic_states(scene, names),
+        "map_features": _map_features(scene, names),
     }
     meta: dict[str, Any] = {
         "id": scene.scenario_id, "coordinate": "waymo", "ts": scene.timestamps.copy(),
         "metadrive_processed": False,
-        "sdc_id": str(int(tr.id[sdc])) if sdc >= 0 else None,
+        "sdc_id": names.track(int(tr.id[sdc])) if sdc >= 0 else None,
         "dataset": dataset, "scenario_id": scene.scenario_id, "source_file": source_file,
         "track_length": scene.num_steps, "current_time_index": scene.current_time_index,
         "sdc_track_index": sdc,
-        "objects_of_interest": [str(v) for v in scene.objects_of_interest],
+        "objects_of_interest": [names.track(v) for v in scene.objects_of_interest],
         "tracks_to_predict": {
-            str(int(tr.id[r.track_index])): {
-                "track_index": r.track_index, "track_id": str(int(tr.id[r.track_index])),
+            names.track(int(tr.id[r.track_index])): {
+                "track_index": r.track_index, "track_id": names.track(int(tr.id[r.track_index])),
                 "difficulty": int(r.difficulty),
                 "object_type": schema.OBJECT_TYPES[ObjectType(int(tr.type[r.track_index]))],
             } for r in scene.tracks_to_predict

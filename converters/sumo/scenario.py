@@ -66,10 +66,14 @@ class ConversionReport:
     timings: dict[str, float] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
     synthesized: list[dict] = field(default_factory=list)  #: lanes made from off-map driving
+    #: what the reader repaired or inferred (``Scene.data_quality``: dropped references,
+    #: inferred lane connectivity, notes)
+    data_quality: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
-                                              "unconverted", "synthesized", "timings", "quality")}
+                                              "unconverted", "synthesized", "timings", "quality",
+                                              "data_quality")}
 
 
 def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
@@ -186,7 +190,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
     opts = options or ConvertOptions()
     sid = scene.scenario_id
     name = safe_name(sid)  # file names; sid stays the id in conversion.json and messages
-    rep = ConversionReport(sid)
+    rep = ConversionReport(sid, data_quality=scene.data_quality.to_dict())
     try:
         final = bundle_folder(out_root, sid)
         _check_replaceable(final, sid)

@@ -10,6 +10,7 @@ from typing import Any
 
 from converters.scene_files import iter_scene_records
 from magail_sumo.cli.progress import progress
+from magail_sumo.outputs import printable
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,7 +36,33 @@ def format_text(summary: dict[str, Any], duration: float) -> str:
         f"  signal states     {summary['signal_states']}",
         f"  sdc track index   {summary['sdc_track_index']}",
         f"  tracks to predict {summary['tracks_to_predict']}",
+        *format_data_quality(summary.get("data_quality")),
     ])
+
+
+#: dropped references listed one per line in the text output; the rest are counted
+MAX_LISTED = 10
+
+
+def format_data_quality(dq: dict[str, Any] | None) -> list[str]:
+    """Text lines of a scene's ``data_quality`` record (none for a clean scene)."""
+    if not dq:
+        return []
+    lines = []
+    dropped = dq.get("dropped_references", [])
+    if dropped:
+        lines.append(f"  dropped refs      {len(dropped)} (ids not in the map; the scene is kept)")
+        for r in dropped[:MAX_LISTED]:
+            owner = f"feature {r['feature_id']}" if r["feature_id"] >= 0 else "scene"
+            lines.append(f"    {owner}: {r['field']} -> {printable(str(r['missing_id']), 60)}")
+        if len(dropped) > MAX_LISTED:
+            lines.append(f"    ... and {len(dropped) - MAX_LISTED} more (--json lists all)")
+    inferred = dq.get("inferred_connectivity", {})
+    if inferred.get("successors") or inferred.get("neighbors"):
+        lines.append(f"  inferred lanes    {inferred.get('successors', 0)} successor and "
+                     f"{inferred.get('neighbors', 0)} neighbour links (source has none)")
+    lines.extend(f"  note              {printable(str(n), 200)}" for n in dq.get("notes", []))
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:

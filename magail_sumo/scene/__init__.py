@@ -8,16 +8,18 @@ from .roadmap import (
     FEATURE_KINDS, AreaFeature, BoundarySegment, Crosswalk, Driveway, Lane, LaneNeighbor,
     RoadEdge, RoadLine, RoadMap, SpeedBump, StopSign,
 )
+from .quality import DataQuality, DroppedReference, SourceIds
 from .scene import RequiredPrediction, Scene
+from .connectivity import infer_lane_connectivity
 from .signals import SignalStates
 from .tracks import STATE_FIELDS, Tracks
 from .types import Difficulty, LaneType, ObjectType, RoadEdgeType, RoadLineType, SignalState
 from .validation import SceneValidationError, validate_scene
 
 __all__ = [
-    "FEATURE_KINDS", "STATE_FIELDS", "AreaFeature", "BoundarySegment", "Crosswalk", "Difficulty",
-    "Driveway", "Lane", "LaneNeighbor", "LaneType", "ObjectType", "RequiredPrediction",
+    "FEATURE_KINDS", "STATE_FIELDS", "AreaFeature", "BoundarySegment", "Crosswalk", "DataQuality",
+    "Difficulty", "DroppedReference", "Driveway", "Lane", "LaneNeighbor", "LaneType", "ObjectType", "RequiredPrediction",
     "RoadEdge", "RoadEdgeType", "RoadLine", "RoadLineType", "RoadMap", "Scene",
-    "SceneValidationError", "SignalState", "SignalStates", "SpeedBump", "StopSign", "Tracks",
-    "validate_scene",
+    "SceneValidationError", "SignalState", "SignalStates", "SourceIds", "SpeedBump", "StopSign",
+    "Tracks", "infer_lane_connectivity", "validate_scene",
 ]

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from .base import ArrayDataclass, frozen_array
+from .quality import DataQuality, SourceIds
 from .roadmap import RoadMap
 from .signals import SignalStates
 from .tracks import Tracks
@@ -35,6 +36,9 @@ class Scene(ArrayDataclass):
     :param current_time_index: index of the "current" step (history ends here, 10 in WOMD).
     :param tracks_to_predict: tracks the dataset marks for prediction.
     :param objects_of_interest: ids of tracks with interactive behaviour.
+    :param source_ids: original ids of a source with non-integer ids (empty otherwise).
+    :param data_quality: what the reader repaired or inferred; not compared (a scene written
+        and read back has nothing left to repair).
     """
 
     scenario_id: str
@@ -46,6 +50,8 @@ class Scene(ArrayDataclass):
     current_time_index: int = 0
     tracks_to_predict: tuple[RequiredPrediction, ...] = ()
     objects_of_interest: tuple[int, ...] = ()
+    source_ids: SourceIds = field(default_factory=SourceIds)
+    data_quality: DataQuality = field(default_factory=DataQuality, compare=False)
 
     def __post_init__(self) -> None:
         try:
@@ -75,4 +81,5 @@ class Scene(ArrayDataclass):
             "signal_states": len(self.signals),
             "sdc_track_index": self.sdc_track_index,
             "tracks_to_predict": len(self.tracks_to_predict),
+            "data_quality": self.data_quality.to_dict(),
         }
