@@ -71,8 +71,9 @@ class Scene(ArrayDataclass):
         return float(self.timestamps[-1] - self.timestamps[0]) if self.num_steps else 0.0
 
     def summary(self) -> dict[str, Any]:
-        """Counts describing the scene (the ``magail-sumo inspect --json`` record)."""
-        return {
+        """Counts describing the scene (the ``magail-sumo inspect --json`` record); with a
+        ``data_quality`` record when the reader repaired or inferred anything."""
+        out = {
             "scenario_id": self.scenario_id,
             "num_steps": self.num_steps,
             "tracks_by_type": self.tracks.count_by_type(),
@@ -81,5 +82,7 @@ class Scene(ArrayDataclass):
             "signal_states": len(self.signals),
             "sdc_track_index": self.sdc_track_index,
             "tracks_to_predict": len(self.tracks_to_predict),
-            "data_quality": self.data_quality.to_dict(),
         }
+        if not self.data_quality.clean:
+            out["data_quality"] = self.data_quality.to_dict()
+        return out

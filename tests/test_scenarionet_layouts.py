@@ -1,0 +1,193 @@
+"""Issue 14: real ScenarioNet pickles of both layouts and of non-WOMD datasets (nuScenes).
+
+The three real files in data/scenarionet/ are tested unconditionally; every file of
+../shared/data/scenarionet/ (or $MAGAIL_SUMO_SHARED_DATA/scenarionet/) when present.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from converters.scenarionet import (
+    load_scenarionet, safe_loads, scene_to_scenarionet, write_scenarionet,
+)
+from converters.sumo import ConvertOptions, convert_scene
+from magail_sumo.scene import Lane, SignalState, infer_lane_connectivity
+from test_cli_inspect import run_cli
+
+BUNDLED = ROOT / "data" / "scenarionet"
+OLDER = BUNDLED / "250011f460de6135.pkl"  # older MetaDrive layout: state.size, areas as polylines
+NO_META = BUNDLED / "8799c31b5be1f312.pkl"  # older layout without metadata, int keys, signals
+NUSCENES = BUNDLED / "sd_nuscenes_v1.0-mini_scene-0757.pkl"  # string ids, no connectivity
+SHARED = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data")) \
+    / "scenarionet"
+SHARED_FILES = sorted(SHARED.glob("*/*.pkl")) if SHARED.is_dir() else []
+
+
+def _round_trip(path: Path, tmp_path: Path):
+    scene = load_scenarionet(path)
+    out = write_scenarionet(tmp_path / "rt.pkl", scene)
+    back = load_scenarionet(out)
+    assert back == scene, scene.differences(back)
+    assert back.data_quality.dropped_references == ()  # nothing left to repair
+    return scene
+
+
+@pytest.mark.parametrize("path", sorted(BUNDLED.glob("*.pkl")), ids=lambda p: p.stem)
+def test_bundled_real_files_read_and_round_trip(path, tmp_path):
+    scene = _round_trip(path, tmp_path)
+    assert scene.tracks.valid.any() and scene.roadmap.lanes
+
+
+@pytest.mark.parametrize("path", SHARED_FILES, ids=lambda p: p.stem)
+def test_shared_real_files_read_and_round_trip(path, tmp_path):
+    _round_trip(path, tmp_path)
+
+
+def test_shared_files_are_present_or_skipped():
+    if not SHARED_FILES:
+        pytest.skip("no shared ScenarioNet data")
+    assert len(SHARED_FILES) >= 18
+
+
+def test_older_layout_sizes_and_areas_without_polygon():
+    scene = load_scenarionet(OLDER)
+    sd = safe_loads(OLDER.read_bytes())
+    key = next(iter(sd["tracks"]))
+    size = sd["tracks"][key]["state"]["size"]
+    tr = scene.tracks
+    np.testing.assert_array_equal(tr.length[0], size[:, 0].astype(np.float32))
+    np.testing.assert_array_equal(tr.width[0], size[:, 1].astype(np.float32))
+    np.testing.assert_array_equal(tr.height[0], size[:, 2].astype(np.float32))
+    assert scene.sdc_track_index == list(sd["tracks"]).index(sd["metadata"]["sdc_id"])
+    bumps = scene.roadmap.speed_bumps
+    assert len(bumps) == 5 and all(b.polygon.shape[0] >= 3 for b in bumps)  # from "polyline"
+
+
+def test_no_metadata_top_level_sdc_and_integer_signal_codes():
+    sd = safe_loads(NO_META.read_bytes())
+    assert "metadata" not in sd and "length" not in sd
+    scene = load_scenarionet(NO_META)
+    assert scene.num_steps == len(sd["ts"]) == 198
+    # top-level sdc_track_index is a track key in this layout
+    assert int(scene.tracks.id[scene.sdc_track_index]) == sd["sdc_track_index"]
+    assert scene.roadmap.count_by_kind()["crosswalk"] == 4  # "CROSS_WALK"
+    sig = scene.signals
+    assert len(sig) == 6 and set(sig.step.tolist()) == {197}
+    assert set(sig.state.tolist()) == {SignalState.STOP}  # WOMD code 4
+    assert set(sig.lane.tolist()) == {47, 134, 135, 136, 137, 138}
+    assert np.all(np.abs(sig.stop_point[:, :2]) > 1)
+    assert "1 of 198 steps" in scene.data_quality.notes[0]
+
+
+def test_string_track_ids_are_numbered_and_written_back():
+    sd = safe_loads(NUSCENES.read_bytes())
+    scene = load_scenarionet(NUSCENES)
+    keys = list(sd["tracks"])
+    np.testing.assert_array_equal(scene.tracks.id, np.arange(len(keys)))
+    assert [name for _, name in scene.source_ids.tracks] == keys
+    assert keys[scene.sdc_track_index] == "ego"
+    out = scene_to_scenarionet(scene)
+    assert list(out["tracks"]) == keys and out["metadata"]["sdc_id"] == "ego"
+    assert list(out["map_features"]) == list(sd["map_features"])
+    assert scene.tracks.count_by_type()["other"] == 5  # traffic cones
+
+
+def test_connectivity_inferred_for_a_map_without_any():
+    scene = load_scenarionet(NUSCENES)
+    dq = scene.data_quality
+    assert dq.inferred_successors > 100 and dq.inferred_neighbors > 10
+    lanes = scene.roadmap.lanes
+    assert sum(len(l.exit_lanes) for l in lanes) == dq.inferred_successors
+    assert sum(len(l.entry_lanes) for l in lanes) == dq.inferred_successors
+    # every inferred successor starts where its predecessor ends
+    by_id = {l.id: l for l in lanes}
+    for lane in lanes:
+        for nxt in lane.exit_lanes:
+            assert np.linalg.norm(lane.polyline[-1, :2] - by_id[nxt].polyline[0, :2]) <= 1.5
+    # a WOMD map with connectivity gets nothing inferred
+    assert load_scenarionet(OLDER).data_quality.inferred_successors == 0
+
+
+def _straight(lid, x0, y0, x1, y1, n=11):
+    return Lane(lid, np.stack([np.linspace(x0, x1, n), np.linspace(y0, y1, n), np.zeros(n)], 1))
+
+
+def test_infer_lane_connectivity_geometry():
+    lanes = [
+        _straight(1, 0, 0, 10, 0),
+        _straight(2, 10.5, 0, 20, 0),  # successor of 1 (0.5 m gap, same heading)
+        _straight(3, 0, 3.5, 10, 3.5),  # left neighbour of 1
+        _straight(4, 10, -3.5, 0, -3.5),  # opposite direction: not a neighbour
+        _straight(5, 13, 0, 13, 10),  # starts 3 m from 1's end, turned 90°: not a successor
+        _straight(6, 10, 0.2, 10, 10),  # starts at 1's end but turned 90°: not a successor
+    ]
+    out, succ, nbs = infer_lane_connectivity(lanes)
+    by_id = {l.id: l for l in out}
+    assert by_id[1].exit_lanes == (2,) and by_id[2].entry_lanes == (1,) and succ == 1
+    assert [n.feature_id for n in by_id[1].left_neighbors] == [3]
+    assert [n.feature_id for n in by_id[3].right_neighbors] == [1]
+    assert by_id[1].right_neighbors == () and by_id[4].left_neighbors == ()
+    assert by_id[1].left_neighbors[0].self_end_index == 10
+    assert [n.feature_id for n in by_id[6].right_neighbors] == [5]  # 3 m apart, both north
+    assert nbs == 4
+    none, s0, n0 = infer_lane_connectivity(lanes, successors=False, neighbors=False)
+    assert (s0, n0) == (0, 0) and all(not l.exit_lanes for l in none)
+
+
+def _dangling_file(tmp_path: Path) -> Path:
+    """The older-layout scene (as we write it) with references to ids not in its map."""
+    sd = scene_to_scenarionet(load_scenarionet(OLDER))
+    feats = sd["map_features"]
+    lane_key = next(k for k, f in feats.items() if f["type"].startswith("LANE_")
+                    and len(f["polyline"]) > 2)
+    lane = feats[lane_key]
+    lane["right_neighbor"] = list(lane["right_neighbor"]) + [{
+        "feature_id": "99999", "self_start_index": 0, "self_end_index": 1,
+        "neighbor_start_index": 0, "neighbor_end_index": 1, "boundaries": []}]
+    lane["exit_lanes"] = list(lane["exit_lanes"]) + [88888]
+    lane["left_boundaries"] = list(lane["left_boundaries"]) + [{
+        "lane_start_index": 0, "lane_end_index": 1, "boundary_type": "UNKNOWN",
+        "boundary_feature_id": 77777}]
+    sign = next(f for f in feats.values() if f["type"] == "STOP_SIGN")
+    sign["lane"] = list(sign["lane"]) + [66666]
+    path = tmp_path / "dangling.pkl"
+    path.write_bytes(pickle.dumps(sd, protocol=4))
+    return path
+
+
+def test_dangling_references_keep_the_scene_and_are_listed(tmp_path):
+    path = _dangling_file(tmp_path)
+    scene = load_scenarionet(path)
+    dropped = {(r.field, r.missing_id) for r in scene.data_quality.dropped_references}
+    assert dropped == {("right_neighbor", "99999"), ("exit_lanes", "88888"),
+                       ("left_boundaries", "77777"), ("lane", "66666")}
+    assert scene == load_scenarionet(OLDER)  # the same scene once the references are dropped
+    out = run_cli("inspect", "--json", path)
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    assert len(rec["data_quality"]["dropped_references"]) == 4
+    text = run_cli("inspect", path).stdout
+    assert "dropped refs      4" in text and "right_neighbor -> 99999" in text
+
+
+def test_bundled_files_convert(tmp_path):
+    """Real netconvert; the dangling-reference scene lists its repairs in conversion.json."""
+    scenes = [load_scenarionet(_dangling_file(tmp_path)), load_scenarionet(NO_META),
+              load_scenarionet(NUSCENES)]
+    for scene in scenes:
+        rep = convert_scene(scene, tmp_path / "out", ConvertOptions(baseline=False))
+        assert rep.status == "ok", rep.reason
+        assert rep.quality["on_network_rate"] > 0.8, rep.quality
+    conv = json.loads((tmp_path / "out" / "250011f460de6135" / "conversion.json").read_text())
+    assert len(conv["data_quality"]["dropped_references"]) == 4
+    nus = json.loads((tmp_path / "out" / "scene-0757" / "conversion.json").read_text())
+    inferred = nus["data_quality"]["inferred_connectivity"]
+    assert inferred["successors"] > 100 and inferred["neighbors"] > 10
