@@ -191,3 +191,19 @@ def test_bundled_files_convert(tmp_path):
     nus = json.loads((tmp_path / "out" / "scene-0757" / "conversion.json").read_text())
     inferred = nus["data_quality"]["inferred_connectivity"]
     assert inferred["successors"] > 100 and inferred["neighbors"] > 10
+
+
+def test_source_ids_are_compared_and_validated():
+    import dataclasses
+
+    from magail_sumo.scene import DataQuality, SceneValidationError, SourceIds, validate_scene
+    scene = load_scenarionet(NUSCENES)
+    assert dataclasses.replace(scene, data_quality=DataQuality()) == scene  # not compared
+    assert dataclasses.replace(scene, source_ids=SourceIds()) != scene  # compared
+    pairs = scene.source_ids.tracks
+    twice = SourceIds(pairs[:-1] + ((pairs[-1][0], pairs[0][1]),), scene.source_ids.map_features)
+    with pytest.raises(SceneValidationError, match="appears twice"):
+        validate_scene(dataclasses.replace(scene, source_ids=twice))
+    unknown = SourceIds(pairs + ((10**6, "x"),), ())
+    with pytest.raises(SceneValidationError, match="track id 1000000 does not exist"):
+        validate_scene(dataclasses.replace(scene, source_ids=unknown))

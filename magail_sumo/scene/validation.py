@@ -37,7 +37,8 @@ def validate_scene(scene: Scene) -> None:
     points and stop points within :data:`MAP_MARGIN` of the bounding box of the valid states;
     unique map feature ids; lane references (entry/exit lanes, neighbours, boundaries,
     stop-sign lanes) that exist; indices (sdc, current time, tracks to predict) in range;
-    objects of interest that exist.
+    objects of interest that exist; original (source) ids of existing tracks / features, each
+    given once.
     """
     tr = scene.tracks
     if tr.num_tracks == 0:
@@ -118,6 +119,22 @@ def validate_scene(scene: Scene) -> None:
     for oid in scene.objects_of_interest:
         if oid not in known:
             raise SceneValidationError(f"objects_of_interest id {oid} is not a track id")
+    _check_source_ids(scene.source_ids.tracks, known, "track")
+    if scene.source_ids.map_features:
+        _check_source_ids(scene.source_ids.map_features,
+                          {f.id for kind in FEATURE_KINDS for f in scene.roadmap.features(kind)},
+                          "map feature")
+
+
+def _check_source_ids(pairs: tuple[tuple[int, str], ...], known: set[int], what: str) -> None:
+    """Original ids: one per existing id, each name once (the writer writes them as keys)."""
+    ids = [i for i, _ in pairs]
+    names = [n for _, n in pairs]
+    if len(set(ids)) != len(ids) or len(set(names)) != len(names):
+        raise SceneValidationError(f"source ids: a {what} id or original id appears twice")
+    unknown = set(ids) - known
+    if unknown:
+        raise SceneValidationError(f"source ids: {what} id {min(unknown)} does not exist")
 
 
 def _extent(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
