@@ -207,3 +207,34 @@ def test_source_ids_are_compared_and_validated():
     unknown = SourceIds(pairs + ((10**6, "x"),), ())
     with pytest.raises(SceneValidationError, match="track id 1000000 does not exist"):
         validate_scene(dataclasses.replace(scene, source_ids=unknown))
+
+
+def test_inference_skipped_above_the_lane_limit(monkeypatch):
+    from converters.scenarionet import reader
+    sd = scene_to_scenarionet(load_scenarionet(NUSCENES))
+    for f in sd["map_features"].values():
+        for key in ("entry_lanes", "exit_lanes", "left_neighbor", "right_neighbor"):
+            if key in f:
+                f[key] = []
+    assert reader.scene_from_scenarionet(sd).data_quality.inferred_successors > 100
+    monkeypatch.setattr(reader, "MAX_INFERRED_LANES", 10)
+    scene = reader.scene_from_scenarionet(sd)
+    assert scene.data_quality.inferred_successors == 0
+    assert "none inferred" in scene.data_quality.notes[0]
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("object_state", 9, "unknown signal state code 9"),
+    ("lane", 1.5, "expected an integer, got 1.5"),
+])
+def test_older_layout_bad_signal_arrays_are_named(field, value, message):
+    from converters.scenarionet import reader
+    from magail_sumo.scene import SceneValidationError
+    sd = safe_loads(NO_META.read_bytes())
+    light = sd["dynamic_map_states"]["47"]["state"]
+    arr = np.asarray(light[field], dtype=np.float64 if isinstance(value, float) else np.int64)
+    arr[197] = value
+    light[field] = arr
+    with pytest.raises(SceneValidationError, match=message) as err:
+        reader.scene_from_scenarionet(sd)
+    assert "dynamic_map_states['47'].state" in str(err.value)

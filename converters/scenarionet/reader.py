@@ -22,6 +22,7 @@ from converters.scenarionet.safe_pickle import (
 )
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.outputs import printable
+from magail_sumo.scene.connectivity import MAX_LANES as MAX_INFERRED_LANES
 from magail_sumo.scene import (
     BoundarySegment, Crosswalk, DataQuality, DroppedReference, Driveway, Lane, LaneNeighbor,
     ObjectType, RequiredPrediction, RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError,
@@ -315,7 +316,10 @@ def _scene(sd: Any) -> Scene:
     lanes = roadmap.lanes
     no_links = not any(l.entry_lanes or l.exit_lanes for l in lanes)
     no_neighbors = not any(l.left_neighbors or l.right_neighbors for l in lanes)
-    if lanes and (no_links or no_neighbors):
+    if len(lanes) > MAX_INFERRED_LANES and (no_links or no_neighbors):
+        notes.append(f"no lane connectivity and {len(lanes)} lanes (more than "
+                     f"{MAX_INFERRED_LANES}): none inferred")
+    elif lanes and (no_links or no_neighbors):
         inferred, successors, neighbors = infer_lane_connectivity(lanes, successors=no_links,
                                                                   neighbors=no_neighbors)
         roadmap = dataclasses.replace(roadmap, lanes=inferred)
@@ -537,6 +541,20 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, _
     return RoadMap(**{k: tuple(v) for k, v in kinds.items()}), ids
 
 
+def _int_array(value: Any, length: int, path: str) -> np.ndarray:
+    """(length,) int64 of whole numbers within 64 bits (floats are accepted when integral)."""
+    arr = _array(value, (length,), np.float64, path) if not (
+        isinstance(value, np.ndarray) and value.dtype.kind in "iub") else \
+        _array(value, (length,), np.int64, path)
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr) | (arr != np.round(arr)) | (np.abs(arr) >= 2.0 ** 63)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise SceneValidationError(f"{path}[{k}]: expected an integer, got {float(arr[k]):.6g}")
+        arr = arr.astype(np.int64)
+    return arr
+
+
 def _signal_state(value: Any, path: str) -> int:
     """A signal state: a ``LANE_STATE_*`` name, or the older layout's integer WOMD
     ``TrafficSignalLaneState`` code (0 unknown .. 8 flashing caution; same values as ours)."""
@@ -569,9 +587,8 @@ def _signals(dyn: Any, length: int, map_ids: _Ids, dropped: list[DroppedReferenc
         sp = path + ".state"
         if isinstance(state, dict) and "lane" in state and "lane" not in light:
             # older MetaDrive layout: per-step lane ids (0 = no record) and stop points
-            lanes = _array(state["lane"], (length,), np.int64, sp + ".lane")
-            codes = _array(_get(state, "object_state", sp), (length,), np.int64,
-                           sp + ".object_state")
+            lanes = _int_array(state["lane"], length, sp + ".lane")
+            codes = _int_array(_get(state, "object_state", sp), length, sp + ".object_state")
             stops = _array(_get(state, "stop_point", sp), (length, -1), np.float64,
                            sp + ".stop_point")
             if stops.shape[1] < 3:
