@@ -225,6 +225,12 @@ def _decimal(text: str) -> bool:
     return True
 
 
+def _key_int(key: Any, path: str) -> int:
+    if type(key) is str and 0 < len(key) < 19 and key.isdigit() and key.isascii():
+        return int(key)  # fast path: the decimal keys of real files (always within int64)
+    return _int(key, f"{path}[{_describe(key)}] key")
+
+
 class _Ids:
     """Integer ids of a dict's keys: the keys themselves when every key is an integer (or a
     decimal string), else 0..n-1 in recorded order with the original keys kept as names."""
@@ -232,7 +238,7 @@ class _Ids:
     def __init__(self, keys: list, path: str) -> None:
         self.names: list[str] | None = None
         try:
-            self.ids = [_int(k, f"{path}[{_describe(k)}] key") for k in keys]
+            self.ids = [_key_int(k, path) for k in keys]
             return
         except SceneValidationError:
             if not any(type(k) is str and not _decimal(k) for k in keys):
@@ -418,9 +424,13 @@ class _Refs:
 
     def __call__(self, value: Any, owner: int, field: str, path: str,
                  lanes_only: bool = True) -> int | None:
-        fid, name = self.ids.resolve(value, path)
+        if self.ids.names is None:  # fast path: integer ids
+            fid: int | None = value if type(value) is int else _int(value, path)
+            name = None
+        else:
+            fid, name = self.ids.resolve(value, path)
         if fid is None or fid not in (self.lane_ids if lanes_only else self.all_ids):
-            self.dropped.append(DroppedReference(owner, field, name))
+            self.dropped.append(DroppedReference(owner, field, str(fid) if name is None else name))
             return None
         return fid
 
@@ -455,6 +465,7 @@ def _segments(items: Any, path: str, refs: _Refs, owner: int, field: str,
 def _neighbors(items: Any, path: str, refs: _Refs, owner: int,
                field: str) -> tuple[LaneNeighbor, ...]:
     out = []
+    bfield = field + ".boundaries"
     for j, nb in enumerate(_seq(items, path)):
         p = f"{path}[{j}]"
         fid = refs(_get(nb, "feature_id", p), owner, field, p + ".feature_id")
@@ -464,8 +475,7 @@ def _neighbors(items: Any, path: str, refs: _Refs, owner: int,
                    ("self_start_index", "self_end_index", "neighbor_start_index",
                     "neighbor_end_index")]
         out.append(LaneNeighbor(fid, *indices, boundaries=_segments(
-            nb.get("boundaries"), p + ".boundaries", refs, owner, field + ".boundaries",
-            check=False)))
+            nb.get("boundaries"), p + ".boundaries", refs, owner, bfield, check=False)))
     return tuple(out)
 
 
