@@ -52,6 +52,8 @@ class ConvertOptions:
     #: with a "time budget ... exceeded" reason. Checked between stages and during the junction
     #: path search; netconvert is killed at it. None: no limit.
     time_budget_s: float | None = 600.0
+    #: also write ``<id>.xodr`` (OpenDRIVE, :mod:`converters.sumo.opendrive`)
+    opendrive: bool = False
 
 
 @dataclass
@@ -255,6 +257,12 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         write_routes(out / f"{name}.rou.xml", routes, STEP_LENGTH, end)
         write_sumocfg(out / f"{name}.sumocfg", name, additional, end)
         lap("routes")
+        if opts.opendrive:
+            from .opendrive import write_opendrive
+
+            stage = "opendrive"
+            write_opendrive(built.net_file, out / f"{name}.xodr", timeout_s=remaining())
+            lap("opendrive")
         rep.files = sorted(p.name for p in out.iterdir() if p.name != "conversion.json")
         stage = "quality"
         seg = lane_segments(net)
