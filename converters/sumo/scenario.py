@@ -68,10 +68,14 @@ class ConversionReport:
     timings: dict[str, float] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
     synthesized: list[dict] = field(default_factory=list)  #: lanes made from off-map driving
+    #: checks of the recorded data itself: ``signals`` (traffic-light sanity,
+    #: :func:`magail_sumo.evaluation.signal_sanity.signal_sanity`)
+    data_quality: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
-                                              "unconverted", "synthesized", "timings", "quality")}
+                                              "unconverted", "synthesized", "timings", "quality",
+                                              "data_quality")}
 
 
 def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
@@ -277,6 +281,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,
         }
+        from magail_sumo.evaluation.signal_sanity import signal_sanity
+
+        rep.data_quality = {"signals": signal_sanity(scene)}
         lap("quality")
         if opts.baseline:
             stage = "sumo run"
