@@ -217,3 +217,41 @@ def test_sumo_gui_shows_the_replay(replay_run, tmp_path):
     near = lambda im: (np.abs(im - agent).max(axis=2) < 40).sum()  # noqa: E731
     assert near(img) > 100, "no policy-coloured vehicles drawn"
     assert near(base) < near(img) / 10
+
+
+def test_training_workers_record_episodes(tmp_path):
+    """``env.fcd_dir`` / ``env.fcd_every`` of a training config: every scene worker of the
+    vectorised env writes its chosen episodes."""
+    from magail_sumo.env import EnvConfig
+    from magail_sumo.env.vec_env import MultiSceneVecEnv, scene_specs
+
+    specs = scene_specs([SCENE], ROOT / "networks", convert_missing=False)
+    cfg = EnvConfig(controlled=4, max_steps=5, fcd_dir=str(tmp_path / "fcd"), fcd_every=2)
+    venv = MultiSceneVecEnv(specs, cfg, seed=0)
+    try:
+        venv.reset()
+        while venv.episodes < 3:
+            venv.step(np.zeros((venv.num_envs, 2), np.float32))
+    finally:
+        venv.close()
+    cfgs = sorted(p.name for p in (tmp_path / "fcd").glob("*.sumocfg"))
+    assert [c.rsplit("-", 1)[1] for c in cfgs] == ["ep00000.sumocfg", "ep00002.sumocfg"], cfgs
+    fcd = _read_fcd(tmp_path / "fcd" / cfgs[0].replace(".sumocfg", ".fcd.xml"))
+    times = {t for t, _ in fcd}
+    assert 0.0 in times and len(times) >= 2  # the episode ends when its agents do
+
+
+def test_replay_cli_fcd_with_a_bundle_converted_on_the_fly(tmp_path):
+    """A scene without a shipped bundle: the network is copied beside the FCD."""
+    scene = ROOT / "data" / "womd" / "850c48d8bbfa008f.tfrecord"
+    proc = _cli("replay", str(scene), "--out", str(tmp_path / "v.gif"), "--size", "64",
+                "--fcd", str(tmp_path / "x"))
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "v.gif", "x.fcd.xml", "x.net.xml", "x.sumocfg", "x.types.add.xml"]
+    assert ET.parse(tmp_path / "x.sumocfg").getroot().find("./input/net-file").get("value") \
+        == "x.net.xml"
+    fcd = _read_fcd(tmp_path / "x.fcd.xml")
+    (tmp_path / "back").mkdir()
+    err = _inner_errors(fcd, _sumo_back(tmp_path / "x.sumocfg", tmp_path / "back"))
+    assert err.size > 300 and np.mean(err < 0.05) > 0.95
