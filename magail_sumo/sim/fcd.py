@@ -213,6 +213,7 @@ class FcdRecorder:
         n = 0
         if self._parts:
             t, ids, x, y, yaw, speed = self._records()
+            t = np.round(t, 6)  # one <timestep> per recorded time
             n = len(t)
             if net_file is not None:
                 index = LaneIndex(net_file)
@@ -343,6 +344,9 @@ def write_replay(recorder: FcdRecorder, fcd: str | PathLike, net_file: str | Pat
         <no-warnings value="true"/>
         <no-step-log value="true"/>
     </report>
+    <gui_only>
+        <delay value="{1000 * recorder.step_length:.0f}"/>
+    </gui_only>
 </configuration>
 """
     write_text(cfg_path, cfg)
