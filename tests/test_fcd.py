@@ -255,3 +255,21 @@ def test_replay_cli_fcd_with_a_bundle_converted_on_the_fly(tmp_path):
     (tmp_path / "back").mkdir()
     err = _inner_errors(fcd, _sumo_back(tmp_path / "x.sumocfg", tmp_path / "back"))
     assert err.size > 300 and np.mean(err < 0.05) > 0.95
+
+
+def test_city_env_run_replays_in_sumo(tmp_path):
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+
+    cfg = ROOT / "data" / "sumo" / "ingolstadt21" / "ingolstadt21.sumocfg"
+    env = SumoCityEnv(cfg, CityEnvConfig(warmup_s=120, max_steps=20, control_fraction=0.5))
+    env.record_fcd()
+    env.reset(seed=0)
+    while env.agents:
+        env.step({a: np.array([0.2, 0.0], np.float32) for a in env.agents})
+    files = env.write_fcd(tmp_path / "city.fcd.xml")
+    env.close()
+    fcd = _read_fcd(files.fcd)
+    assert files.records == len(fcd) and len({i for _, i in fcd}) >= 10
+    (tmp_path / "back").mkdir()
+    err = _inner_errors(fcd, _sumo_back(files.sumocfg, tmp_path / "back"))
+    assert err.size and np.mean(err < 0.05) > 0.9
