@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from magail_sumo.sim.fcd import FcdRecorder, KIND_COLORS, nav_angle, replay_paths, write_replay
+from magail_sumo.sim.fcd import KIND_COLORS, FcdRecorder, nav_angle, replay_paths
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "data" / "womd" / "637f20cafde22ff8.tfrecord"

@@ -167,7 +167,8 @@ class SumoDrivingEnv(ParallelEnv):
                 self._obs_spaces[a].seed(seed + k)
         self.close()
         self._fcd_episode += 1
-        if cfg.fcd_dir is not None and cfg.fcd_every > 0 and self._fcd_episode % cfg.fcd_every == 0:
+        every = cfg.fcd_every
+        if cfg.fcd_dir is not None and every > 0 and self._fcd_episode % every == 0:
             self._start_auto_fcd()
         self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
             seed=cfg.sumo_seed + (seed or 0)))
