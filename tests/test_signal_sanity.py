@@ -75,3 +75,15 @@ def test_bundled_scene_and_conversion_report(scene_637f, tmp_path):
     conv = convert_scene(scene_637f, tmp_path, ConvertOptions(baseline=False))
     assert conv.status == "ok"
     assert conv.to_dict()["data_quality"]["signals"] == rep
+
+
+def test_a_failing_check_is_reported_not_raised(monkeypatch):
+    import magail_sumo.evaluation.signal_sanity as mod
+
+    def boom(scene):
+        raise ValueError("odd\ndata")
+
+    monkeypatch.setattr(mod, "signal_sanity", boom)
+    rep = mod.checked_signal_sanity(_scene())
+    assert rep == {"error": "ValueError: odd data"}
+    assert mod.format_signal_sanity(rep) == "not checked (ValueError: odd data)"

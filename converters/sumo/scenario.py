@@ -281,9 +281,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,
         }
-        from magail_sumo.evaluation.signal_sanity import signal_sanity
+        from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
 
-        rep.data_quality = {"signals": signal_sanity(scene)}
+        rep.data_quality = {"signals": checked_signal_sanity(scene)}
         lap("quality")
         if opts.baseline:
             stage = "sumo run"

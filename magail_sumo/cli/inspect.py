@@ -58,10 +58,10 @@ def run(args: argparse.Namespace) -> int:
         scene = rec.scene
         assert scene is not None
         try:
-            from magail_sumo.evaluation.signal_sanity import signal_sanity
+            from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
 
             summary = scene.summary()
-            summary["signal_sanity"] = signal_sanity(scene)
+            summary["signal_sanity"] = checked_signal_sanity(scene)
         except Exception as exc:  # noqa: BLE001 - one scene's failure, not the batch's
             reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
             print(f"error: {rec.path}: record {rec.index}: scene {scene.scenario_id}: {reason}",

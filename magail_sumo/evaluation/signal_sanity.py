@@ -100,8 +100,19 @@ def signal_sanity(scene: Scene) -> dict[str, Any]:
     }
 
 
+def checked_signal_sanity(scene: Scene) -> dict[str, Any]:
+    """:func:`signal_sanity`, or ``{"error": "<one line>"}`` when it fails on odd data: the
+    check must not make a scene that reads and converts fail."""
+    try:
+        return signal_sanity(scene)
+    except Exception as exc:  # noqa: BLE001 - a diagnostic, never fatal
+        return {"error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]}
+
+
 def format_signal_sanity(report: dict[str, Any]) -> str:
     """One line for ``inspect``'s text output."""
+    if "error" in report:
+        return f"not checked ({report['error']})"
     if not report["signal_lanes"]:
         return "none (no signal records)"
     red, gaps, unk = report["red_light_runs"], report["gaps"], report["unknown"]
