@@ -25,7 +25,13 @@ def test_json_counts_for_every_real_scene():
     out = run_cli("inspect", "--json", *files)
     assert out.returncode == 0, out.stderr
     records = [json.loads(line) for line in out.stdout.splitlines()]
+    sanity = {r["scenario_id"]: r.pop("signal_sanity") for r in records}
     assert {r["scenario_id"]: r for r in records} == EXPECTED
+    s = sanity["637f20cafde22ff8"]
+    assert (s["signal_lanes"], s["records"]) == (12, 1092)
+    assert s["red_light_runs"]["events"] == 0 and s["gaps"]["steps"] == 0
+    assert s["unknown"] == {"steps": 540, "lanes": 12, "longest": 91}
+    assert sanity["850c48d8bbfa008f"]["signal_lanes"] == 0
 
 
 def test_text_output(tmp_path):
@@ -33,6 +39,7 @@ def test_text_output(tmp_path):
     assert out.returncode == 0
     assert "637f20cafde22ff8" in out.stdout and "4596" in out.stdout
     assert "70 vehicle, 10 pedestrian, 3 cyclist" in out.stdout
+    assert "signal sanity     12 lanes; red-light runs 0 (0 vehicles); gaps 0 steps" in out.stdout
 
 
 def _bad_files(tmp_path):

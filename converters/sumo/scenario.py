@@ -52,6 +52,8 @@ class ConvertOptions:
     #: with a "time budget ... exceeded" reason. Checked between stages and during the junction
     #: path search; netconvert is killed at it. None: no limit.
     time_budget_s: float | None = 600.0
+    #: also write ``<id>.xodr`` (OpenDRIVE, :mod:`converters.sumo.opendrive`)
+    opendrive: bool = False
 
 
 @dataclass
@@ -66,8 +68,10 @@ class ConversionReport:
     timings: dict[str, float] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
     synthesized: list[dict] = field(default_factory=list)  #: lanes made from off-map driving
-    #: what the reader repaired or inferred (``Scene.data_quality``: dropped references,
-    #: inferred lane connectivity, notes)
+    #: checks of the recorded data itself: what the reader repaired or inferred
+    #: (``Scene.data_quality``: ``dropped_references``, ``inferred_connectivity``, ``notes``)
+    #: and ``signals`` (traffic-light sanity,
+    #: :func:`magail_sumo.evaluation.signal_sanity.signal_sanity`)
     data_quality: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -259,6 +263,12 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         write_routes(out / f"{name}.rou.xml", routes, STEP_LENGTH, end)
         write_sumocfg(out / f"{name}.sumocfg", name, additional, end)
         lap("routes")
+        if opts.opendrive:
+            from .opendrive import write_opendrive
+
+            stage = "opendrive"
+            write_opendrive(built.net_file, out / f"{name}.xodr", timeout_s=remaining())
+            lap("opendrive")
         rep.files = sorted(p.name for p in out.iterdir() if p.name != "conversion.json")
         stage = "quality"
         seg = lane_segments(net)
@@ -273,6 +283,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,
         }
+        from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
+
+        rep.data_quality["signals"] = checked_signal_sanity(scene)
         lap("quality")
         if opts.baseline:
             stage = "sumo run"

@@ -28,6 +28,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="repeat the recorded signal states past the end of the log")
     p.add_argument("--no-baseline", action="store_true",
                    help="skip the SUMO run (no signal_fidelity / sumo_baseline)")
+    p.add_argument("--opendrive", action="store_true",
+                   help="also write DIR/<scenario_id>/<scenario_id>.xodr (OpenDRIVE, through "
+                        "netconvert)")
     p.add_argument("--timeout-s", type=timeout_s, default=600.0, metavar="S",
                    help="seconds one scene may take before it is reported failed (its worker "
                         "is killed with --workers > 1; default 600; 'none': no limit)")
@@ -66,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     # OUT/<safe name of the scenario id>/, never outside OUT
     claim_networks_dir(args.out, ["summary.csv"])
     opts = ConvertOptions(cycle_signals=args.cycle_signals, baseline=not args.no_baseline,
-                          time_budget_s=args.timeout_s)
+                          time_budget_s=args.timeout_s, opendrive=args.opendrive)
     rows = []
     for row in progress(convert_files(args.inputs, args.out, max(args.workers, 1), opts),
                         desc="scenes", unit="scene"):

@@ -31,6 +31,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "are converted into OUT/networks)")
     p.add_argument("--export-submission", type=Path, metavar="FILE.binproto",
                    help="also write the policy's rollouts as a SimAgentsChallengeSubmission")
+    p.add_argument("--fcd-rollouts", type=int, default=0, metavar="K",
+                   help="also write the first K rollouts of every scene and method as SUMO FCD "
+                        "with a replay config: sumo-gui -c DIR/fcd/<method>/<scenario>/"
+                        "rollout000.sumocfg (default 0: none)")
     p.add_argument("--seed", type=int, default=0, help="run seed (rollout r uses a seed "
                                                        "derived from it and r)")
     p.add_argument("--workers", type=int, default=2, metavar="N",
@@ -53,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
                        baselines=base, seed=args.seed, workers=args.workers,
                        networks=args.networks, submission=args.export_submission,
-                       timeout_s=args.timeout_s)
+                       timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
         raise OutputError(f"{exc.filename or args.out}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None

@@ -25,6 +25,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def format_text(summary: dict[str, Any], duration: float) -> str:
+    from magail_sumo.evaluation.signal_sanity import format_signal_sanity
+
     tb = summary["tracks_by_type"]
     mf = summary["map_features"]
     return "\n".join([
@@ -34,6 +36,8 @@ def format_text(summary: dict[str, Any], duration: float) -> str:
         f"  valid states      {summary['valid_states']}",
         f"  map features      {sum(mf.values())}: " + ", ".join(f"{v} {k}" for k, v in mf.items()),
         f"  signal states     {summary['signal_states']}",
+        *([f"  signal sanity     {format_signal_sanity(summary['signal_sanity'])}"]
+          if "signal_sanity" in summary else []),
         f"  sdc track index   {summary['sdc_track_index']}",
         f"  tracks to predict {summary['tracks_to_predict']}",
         *format_data_quality(summary.get("data_quality")),
@@ -81,7 +85,10 @@ def run(args: argparse.Namespace) -> int:
         scene = rec.scene
         assert scene is not None
         try:
+            from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
+
             summary = scene.summary()
+            summary["signal_sanity"] = checked_signal_sanity(scene)
         except Exception as exc:  # noqa: BLE001 - one scene's failure, not the batch's
             reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
             print(f"error: {rec.path}: record {rec.index}: scene {scene.scenario_id}: {reason}",

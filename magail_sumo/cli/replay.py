@@ -54,6 +54,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"frames per second of the video (1..{MAX_FPS})")
     p.add_argument("--size", type=bounded(int, MIN_SIZE, MAX_SIZE), default=512,
                    help=f"frame height and width in pixels ({MIN_SIZE}..{MAX_SIZE})")
+    p.add_argument("--fcd", type=Path, metavar="FILE.fcd.xml",
+                   help="also record the run as SUMO FCD, with FILE.sumocfg replaying it on the "
+                        "converted network: sumo-gui -c FILE.sumocfg")
     p.set_defaults(func=run)
 
 
@@ -80,6 +83,30 @@ def _write_video_atomic(path: Path, frames: list, fps: int) -> int:
     return n
 
 
+def _write_fcd(env, path: Path, bundle: Path, temporary: bool):
+    """Write the env's FCD recording and its replay config; a bundle converted into a
+    temporary folder has its network and signal programs copied beside the FCD
+    (``NAME.net.xml``, ``NAME.tll.xml``) so the config outlives it."""
+    import shutil
+
+    from magail_sumo.outputs import atomic_path, safe_name
+    from magail_sumo.sim.fcd import replay_paths, write_replay
+
+    if not temporary:
+        return env.write_fcd(path)
+    name = safe_name(env.scene.scenario_id)
+    stem = replay_paths(path)[2].with_suffix("")
+    copies = []
+    for suffix in (".net.xml", ".tll.xml"):
+        src = bundle / f"{name}{suffix}"
+        if src.is_file():
+            dst = stem.with_name(stem.name + suffix)
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(src, tmp)
+            copies.append(dst)
+    return write_replay(env.fcd, path, copies[0], copies[1:])
+
+
 def _umask() -> int:
     import os
 
@@ -99,6 +126,11 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() not in FORMATS:
         raise MagailSumoError(f"{args.out}: unsupported video format (use {' or '.join(FORMATS)})")
     check_writable(args.out)
+    if args.fcd is not None:
+        from magail_sumo.sim.fcd import replay_paths
+
+        args.fcd = replay_paths(args.fcd)[0]
+        check_writable(args.fcd)
     scene = load_scene(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
         bundle = args.bundle
@@ -116,6 +148,8 @@ def run(args: argparse.Namespace) -> int:
                         render_size=(args.size, args.size))
         env = SumoDrivingEnv(scene, bundle, cfg, render_mode="rgb_array")
         rng = np.random.default_rng(args.seed)
+        if args.fcd is not None:
+            env.record_fcd()
         env.reset(seed=args.seed)
         frames = [env.render()]
         for _ in progress(range(scene.num_steps - 1), desc="steps", unit="step"):
@@ -126,6 +160,12 @@ def run(args: argparse.Namespace) -> int:
             env.step(acts)
             frames.append(env.render())
         env.close()
+        if args.fcd is not None:
+            fcd = _write_fcd(env, args.fcd, bundle, temporary=args.bundle is None
+                             and bundle != shipped)
+    if args.fcd is not None:
+        print(f"{printable(scene.scenario_id)}: {fcd.records} FCD records -> {fcd.fcd}; "
+              f"replay: sumo-gui -c {fcd.sumocfg}", file=sys.stderr)
     try:
         n = _write_video_atomic(args.out, frames, args.fps)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback

@@ -129,6 +129,9 @@ class SumoCityEnv(ParallelEnv):
         self.config = cfg = config or CityEnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         net_file, vehicle_ids = _scenario_files(self.sumocfg)
+        self.net_file = net_file
+        #: FCD recorder (:meth:`record_fcd`), None when not recording
+        self.fcd = None
         self.network: NetworkMap = network_map(net_file)
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         stub = Scene(self.sumocfg.stem, np.zeros(1), Tracks.empty(1), self.network.roadmap)
@@ -203,6 +206,7 @@ class SumoCityEnv(ParallelEnv):
         joiners = self._join(self._sumo.ids)
         self.agents = [self._names[k] for k in np.flatnonzero(self._active)]
         obs, _ = self._observe(joiners)
+        self._record_fcd()
         return obs, {a: self._info(self._index[a], {}, None) for a in self.agents}
 
     def close(self) -> None:
@@ -378,4 +382,42 @@ class SumoCityEnv(ParallelEnv):
         for k in gone:
             sess.remove(self._names[k])
         self.agents = [self._names[k] for k in np.flatnonzero(self._active)]
+        self._record_fcd()
         return obs, rewards, terms, truncs, infos
+
+    # ------------------------------------------------------------------ FCD
+    def record_fcd(self, recorder=None):
+        """Record every vehicle's pose from now on, each step (agents from their bicycle
+        state, the others from SUMO), into ``recorder`` (default: a new
+        :class:`~magail_sumo.sim.fcd.FcdRecorder`); returns it. Times are episode seconds."""
+        from magail_sumo.sim.fcd import FcdRecorder
+
+        self.fcd = recorder if recorder is not None else FcdRecorder(self.dt)
+        if self._session is not None:
+            self._record_fcd()
+        return self.fcd
+
+    def write_fcd(self, path: str | Path, recorder=None):
+        """Write the recording as SUMO FCD plus a ``.sumocfg`` replaying it on the scenario's
+        network in ``sumo-gui`` (:func:`~magail_sumo.sim.fcd.write_replay`)."""
+        from magail_sumo.sim.fcd import write_replay
+
+        rec = recorder if recorder is not None else self.fcd
+        if rec is None:
+            raise RuntimeError("nothing recorded: call record_fcd() first")
+        return write_replay(rec, path, self.net_file)
+
+    def _record_fcd(self) -> None:
+        if self.fcd is None or self._session is None:
+            return
+        agents = np.flatnonzero(self._active)
+        boxes, ids = self._world(agents)
+        if not ids:
+            return
+        kind = ["agent"] * agents.size + ["sumo"] * (len(ids) - agents.size)
+        ctrl = set(ids[:agents.size])
+        v = self._sumo
+        speed = np.concatenate([self._speed[agents],
+                                [sp for vid, sp in zip(v.ids, v.speed) if vid not in ctrl]])
+        self.fcd.add(self.t * self.dt, ids, boxes.x, boxes.y, boxes.yaw, boxes.length,
+                     boxes.width, kind, "passenger", speed)

@@ -35,6 +35,10 @@ class EnvConfig:
     :param sumo_seed: added to the reset seed to seed SUMO.
     :param action_layout: order of the normalised action: ``"accel_steer"`` or the seed's
         ``"steer_throttle"``.
+    :param fcd_dir: folder for SUMO FCD recordings of episodes (with a ``.sumocfg`` replaying
+        each in ``sumo-gui``; :mod:`magail_sumo.sim.fcd`); None: none.
+    :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
+        (``<scenario>-<pid>-ep<k>.fcd.xml``); 0: none.
     """
 
     controlled: str | int = "all"
@@ -50,6 +54,8 @@ class EnvConfig:
     render_size: tuple[int, int] = (512, 512)
     sumo_seed: int = 0
     action_layout: str = "accel_steer"
+    fcd_dir: str | None = None
+    fcd_every: int = 0
 
     def __post_init__(self) -> None:
         check(self.action_layout in ACTION_LAYOUTS, "action_layout",
@@ -63,6 +69,11 @@ class EnvConfig:
               f"must be 'log' or 'sumo', got {show(self.background)}")
         bad = set(self.terminate_on) - set(EVENTS)
         check(not bad, "terminate_on", f"unknown events {sorted(bad)} (events: {list(EVENTS)})")
+        check(isinstance(self.fcd_every, int) and not isinstance(self.fcd_every, bool)
+              and self.fcd_every >= 0, "fcd_every",
+              f"must be an int >= 0 (0: no recording), got {show(self.fcd_every)}")
+        check(self.fcd_dir is None or (isinstance(self.fcd_dir, str) and self.fcd_dir != ""),
+              "fcd_dir", f"must be a folder name or null, got {show(self.fcd_dir)}")
         check_positive(self, "lane_width")
         check_positive(self, "off_road_margin", "destination_radius", "start_step",
                        allow_zero=True)

@@ -127,6 +127,11 @@ class SumoDrivingEnv(ParallelEnv):
         self.agents: list[str] = []
         self.t = 0
         self.sensor_time = 0.0  #: s spent in sensors and observations since reset
+        #: FCD recorder of the running episode (:meth:`record_fcd`; ``EnvConfig.fcd_every``)
+        self.fcd = None
+        self._fcd_episode = -1  # episodes reset so far - 1 (for EnvConfig.fcd_every)
+        self._fcd_auto: Path | None = None  # where the automatic recording is written
+        self._id_order: np.ndarray | None = None
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Box:
@@ -161,6 +166,10 @@ class SumoDrivingEnv(ParallelEnv):
                 self._act_spaces[a].seed(seed + k)
                 self._obs_spaces[a].seed(seed + k)
         self.close()
+        self._fcd_episode += 1
+        every = cfg.fcd_every
+        if cfg.fcd_dir is not None and every > 0 and self._fcd_episode % every == 0:
+            self._start_auto_fcd()
         self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
             seed=cfg.sumo_seed + (seed or 0)))
         self._session.start()
@@ -189,9 +198,12 @@ class SumoDrivingEnv(ParallelEnv):
         self.agents = [self._ctrl_names[k] for k in joiners]
         obs, _ = self._observe(joiners, joiners)
         infos = {a: self._info(k, {}, None, -1) for a, k in zip(self.agents, joiners)}
+        self._record_fcd()
         return obs, infos
 
     def close(self) -> None:
+        if self._fcd_auto is not None:
+            self._finish_auto_fcd()
         if self._session is not None:
             self._session.close()
             self._session = None
@@ -371,7 +383,85 @@ class SumoDrivingEnv(ParallelEnv):
                     rewards[name], terms[name], truncs[name] = 0.0, False, False
                     infos[name] = self._info(k, {}, None, -1)
         self.agents = [self._ctrl_names[k] for k in np.flatnonzero(self._active)]
+        self._record_fcd()
+        if not self.agents and self._fcd_auto is not None:
+            self._finish_auto_fcd()
         return obs, rewards, terms, truncs, infos
+
+    # ------------------------------------------------------------------ FCD
+    def record_fcd(self, recorder=None):
+        """Record every road user's pose from now on, each step, into ``recorder`` (a new
+        :class:`~magail_sumo.sim.fcd.FcdRecorder` when None; None stops recording when given
+        to ``stop_fcd``); returns it. Write it with :meth:`write_fcd`. Recording starts with
+        the current step when an episode is running."""
+        from magail_sumo.sim.fcd import FcdRecorder
+
+        self.fcd = recorder if recorder is not None else FcdRecorder(self.dt)
+        if self._session is not None:
+            self._record_fcd()
+        return self.fcd
+
+    def write_fcd(self, path: str | Path, recorder=None):
+        """Write ``recorder`` (default: :attr:`fcd`) as SUMO FCD plus a ``.sumocfg`` replaying
+        it on this scene's converted network with its signal programs
+        (:func:`~magail_sumo.sim.fcd.write_replay`); returns the
+        :class:`~magail_sumo.sim.fcd.ReplayFiles`."""
+        from magail_sumo.sim.fcd import write_replay
+
+        rec = recorder if recorder is not None else self.fcd
+        if rec is None:
+            raise RuntimeError("nothing recorded: call record_fcd() first")
+        from magail_sumo.outputs import safe_name
+
+        name = safe_name(self.scene.scenario_id)
+        tll = self.bundle.folder / f"{name}.tll.xml"
+        return write_replay(rec, path, self.bundle.folder / f"{name}.net.xml",
+                            [tll] if tll.is_file() else [])
+
+    def _record_fcd(self) -> None:
+        """Add step t's poses of all road users to :attr:`fcd` (agents, SUMO- and
+        log-driven objects; the same world the sensors see)."""
+        if self.fcd is None or self._session is None:
+            return
+        from magail_sumo.sim.fcd import SHAPES
+
+        tr = self.scene.tracks
+        agents = np.flatnonzero(self._active)
+        boxes, ids = self._world(agents)
+        if not len(ids):
+            return
+        if self._id_order is None:
+            self._id_order = np.argsort(tr.id, kind="stable")
+        pos = np.clip(np.searchsorted(tr.id[self._id_order], ids), 0, len(tr.id) - 1)
+        rows = self._id_order[pos]
+        kind = np.full(len(ids), "log", dtype=object)
+        if self.config.background == "sumo":
+            kind[np.isin(ids, [int(v) for v in self.bundle.sumo_ids])] = "sumo"
+        kind[:agents.size] = "agent"
+        shape = [SHAPES.get(int(t), "passenger") for t in tr.type[rows]]
+        speed = np.hypot(tr.vx[rows, self.t], tr.vy[rows, self.t]).astype(np.float64)
+        speed[:agents.size] = self._speed[agents]
+        if self.config.background == "sumo":
+            speed[kind == "sumo"] = np.nan  # derived from the recorded positions
+        self.fcd.add(self.t * self.dt, [str(int(i)) for i in ids], boxes.x, boxes.y, boxes.yaw,
+                     boxes.length, boxes.width, list(kind), shape, speed)
+
+    def _start_auto_fcd(self) -> None:
+        import os
+
+        from magail_sumo.outputs import safe_name
+
+        if self._fcd_auto is not None:
+            self._finish_auto_fcd()
+        name = f"{safe_name(self.scene.scenario_id)}-{os.getpid()}-ep{self._fcd_episode:05d}"
+        self._fcd_auto = Path(self.config.fcd_dir) / f"{name}.fcd.xml"
+        self.record_fcd()
+
+    def _finish_auto_fcd(self) -> None:
+        path, self._fcd_auto = self._fcd_auto, None
+        if path is not None and self.fcd is not None and len(self.fcd):
+            self.write_fcd(path)
+        self.fcd = None
 
     # ------------------------------------------------------------------ helpers
     def agent_states(self) -> AgentStates:

@@ -479,6 +479,45 @@ def rollouts_path(out: str | Path, method: str, scenario_id: str) -> Path:
     return inside(out, "rollouts", safe_name(method), f"{safe_name(scenario_id)}.parquet")
 
 
+def write_rollout_fcd(out: str | Path, scene: Scene, ro: ScenarioRollouts, method: str,
+                      bundle: Path, rollouts: int) -> list[Path]:
+    """SUMO FCD of the first ``rollouts`` rollouts, each with a ``.sumocfg`` replaying it on the
+    scene's converted network in ``sumo-gui`` (:mod:`magail_sumo.sim.fcd`):
+    ``out/fcd/<method>/<scenario_id>/rollout<r>.fcd.xml`` (names through
+    :func:`~magail_sumo.outputs.safe_name`). The recorded history (log steps ``0..current``,
+    where valid) is followed by the simulated steps; times are ``step * 0.1`` s. Returns the
+    ``.sumocfg`` paths."""
+    from magail_sumo.sim.fcd import SHAPES, FcdRecorder, write_replay
+
+    tr = scene.tracks
+    cur = scene.current_time_index
+    r_n, a_n, t_n = ro.shape
+    row_of = {int(i): k for k, i in enumerate(tr.id.tolist())}
+    rows = np.array([row_of[int(i)] for i in ro.object_id], np.int64)
+    hist = slice(0, cur + 1)
+    valid = np.concatenate([tr.valid[rows, hist], np.ones((a_n, t_n), bool)], axis=1)
+    size = {}
+    for name in ("length", "width"):
+        v = np.where(tr.valid[rows], getattr(tr, name)[rows], np.nan)
+        size[name] = np.nan_to_num(np.nanmedian(v, axis=1), nan=1.0)  # valid at current
+    shape = [SHAPES.get(int(t), "passenger") for t in tr.type[rows]]
+    name = safe_name(scene.scenario_id)
+    net = bundle / f"{name}.net.xml"
+    tll = bundle / f"{name}.tll.xml"
+    times = np.arange(cur + 1 + t_n) * DT
+    written = []
+    for r in range(min(rollouts, r_n)):
+        rec = FcdRecorder(DT)
+        x, y, hd = (np.concatenate([getattr(tr, n)[rows, hist].astype(np.float64),
+                                    getattr(ro, m)[r].astype(np.float64)], axis=1)
+                    for n, m in (("x", "x"), ("y", "y"), ("heading", "heading")))
+        rec.add_tracks(times, ro.object_id, x, y, hd, valid, size["length"], size["width"],
+                       "agent", shape)
+        path = inside(out, "fcd", safe_name(method), name, f"rollout{r:03d}.fcd.xml")
+        written.append(write_replay(rec, path, net, [tll] if tll.is_file() else []).sumocfg)
+    return written
+
+
 def write_parquet(path: str | Path, frame) -> None:
     """Write ``frame`` to ``path`` atomically (a temporary file renamed into place)."""
     path = Path(path)
@@ -623,9 +662,12 @@ def _bundle(scene: Scene, networks: Path | None, out: Path,
 def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
              baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
              networks: str | Path | None = None, submission: str | Path | None = None,
-             timeout_s: float | None = DEFAULT_TIMEOUT_S) -> EvaluationResult:
+             timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0
+             ) -> EvaluationResult:
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
-    ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``.
+    ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``; with
+    ``fcd_rollouts`` > 0 the first that many rollouts of every scene and method also as SUMO
+    FCD with a ``sumo-gui`` replay config (:func:`write_rollout_fcd`).
 
     ``out`` must be new, empty or written by magail_sumo
     (:func:`~magail_sumo.outputs.claim_output_dir`, else
@@ -643,6 +685,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     out = Path(out)
     if n_rollouts < 1:
         raise EvaluationError(f"--rollouts must be >= 1, got {n_rollouts}")
+    if fcd_rollouts < 0:
+        raise EvaluationError(f"--fcd-rollouts must be >= 0, got {fcd_rollouts}")
     bad = [b for b in baselines if b not in BASELINES]
     if bad:
         raise EvaluationError(f"unknown baseline {bad[0]} (known: {', '.join(BASELINES)})")
@@ -653,7 +697,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     method_files = NameRegistry()
     for s in specs:
         method_files.name(names[s])
-    claim_output_dir(out, "evaluate", ["manifest.json", "rollouts", "networks"])
+    claim_output_dir(out, "evaluate", ["manifest.json", "rollouts", "networks"]
+                     + (["fcd"] if fcd_rollouts else []))
     scene_names = NameRegistry()  # rollouts file names of the scenes
     errors: list[str] = []
 
@@ -688,7 +733,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
             error(" ".join(str(exc).split()))
         except Exception as exc:  # noqa: BLE001 - one file's failure, the batch goes on
             error(f"{f}: {type(exc).__name__}: {_line(exc)}")
-    need_sumo = any(needs_worker(s) for s in specs)
+    need_sumo = any(needs_worker(s) for s in specs) or fcd_rollouts > 0  # FCD: the network
     for sid, (f, sc, _) in list(scenes.items()):
         if need_sumo:
             try:
@@ -736,6 +781,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                       f"{_line(exc)}")
                 continue
             write_parquet(rollouts_path(out, names[s], sid), to_frame(sc, ro, names[s]))
+            if fcd_rollouts and bdir is not None:
+                write_rollout_fcd(out, sc, ro, names[s], Path(bdir), fcd_rollouts)
             done.append((sid, names[s]))
             if s == policy:
                 policy_ros.append(ro)
