@@ -216,27 +216,55 @@ def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
 
 
 # ------------------------------------------------------------------------------ SUMO rollouts
+def _departures(folder: Path, sumocfg: Path) -> dict[str, int]:
+    """Departure step of every vehicle of a bundle's route file."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(Path(folder) / sumocfg.name.replace(".sumocfg", ".rou.xml")).getroot()
+    return {v.get("id", ""): int(round(float(v.get("depart", "0")) / DT))
+            for v in root.iter("vehicle")}
+
+
+def _drop(ls, ids, routed: set[str]) -> None:
+    """Take route vehicles that have not departed out of SUMO's insertion queue."""
+    for i in ids:
+        if str(int(i)) in routed:
+            try:
+                ls.vehicle.remove(str(int(i)))
+            except Exception:  # never loaded or already gone
+                pass
+
+
 def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray, ...]:
     """One rollout of SUMO's own car-following (see module doc); (x, y, yaw) (A, T)."""
     import libsumo as ls
 
     from magail_sumo.env.bundle import SceneBundle
     from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
-    from magail_sumo.sim.session import SessionConfig, SumoSession
+    from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
 
     bundle = SceneBundle.load(scene, bundle_dir)
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     rows, x0, y0, _, h0, vx0, vy0 = _current_state(scene, ids)
     length = scene.tracks.length[rows, scene.current_time_index].astype(np.float64)
+    width = scene.tracks.width[rows, scene.current_time_index].astype(np.float64)
     cur = scene.current_time_index
     rng = np.random.default_rng(seed)
     track = _Track.empty(len(ids))
     held: list[str] = []
+    routed = set(bundle.sumo_ids)
+    departs = _departures(bundle.folder, bundle.sumocfg)
+    due: set[str] = set()
+    later: set[str] = set()
+    obstacles: Obstacles | None = None
+    obs = np.zeros(0, np.int64)
+    ox, oy, oyaw = constant_velocity(scene, ids)  # the future of every agent SUMO does not drive
     with SumoSession(bundle.sumocfg, config=SessionConfig(seed=seed)) as sess:
         for k in range(cur + 1 + N_STEPS):  # after k + 1 steps SUMO shows log step k
             if k == cur:  # start the future from the recorded state: pose and speed
-                for vid in ls.vehicle.getIDList():
+                present = set(ls.vehicle.getIDList())
+                for vid in present:
                     a = col.get(vid)
                     if a is None or vid in bundle.parked:
                         continue
@@ -249,16 +277,42 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                         held.append(vid)
                     except Exception:  # off its route: SUMO keeps its own state
                         pass
-            elif k == cur + 1:
+                # every other agent becomes an obstacle SUMO's drivers see: pedestrians,
+                # objects SUMO does not carry, parked vehicles (off the lanes in SUMO) and route
+                # vehicles not in SUMO yet (those departing later drop theirs when they depart)
+                due = {vid for vid in col if departs.get(vid, -1) == cur}  # inserted this step
+                later = {vid for vid in col if departs.get(vid, -1) > cur}
+                driven = (present | due) - bundle.parked
+                obs = np.array([a for vid, a in col.items() if vid not in driven], np.int64)
+                _drop(ls, [ids[a] for a in obs], routed - present - later)
+                obstacles = Obstacles(sess, [str(int(ids[a])) for a in obs], length[obs],
+                                      width[obs])
+            elif k == cur + 1 and obstacles is not None:  # insertions SUMO refused at the current step
+                now = set(ls.vehicle.getIDList())
+                late = np.array([col[vid] for vid in sorted(due - now - bundle.parked)], np.int64)
+                if len(late):
+                    _drop(ls, [ids[a] for a in late], routed - now)
+                    obstacles.add([str(int(ids[a])) for a in late], length[late], width[late])
+                    obs = np.r_[obs, late]
+            if obstacles is not None and k >= cur:
+                t = k - cur - 1  # column of log step k (-1: the current step)
+                if t < 0:
+                    obstacles.place(x0[obs], y0[obs], h0[obs])
+                else:
+                    obstacles.place(ox[obs, t], oy[obs, t], oyaw[obs, t])
+            if k == cur + 1:
                 for vid in held:
                     try:
                         ls.vehicle.setSpeed(vid, -1.0)
                     except Exception:
                         pass
             departed, _ = sess.step()
+            if obstacles is not None and later.intersection(departed):
+                obstacles.retire(later.intersection(departed))
             for vid in departed:
-                f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))
-                ls.vehicle.setSpeedFactor(vid, f)
+                if not vid.startswith(OBSTACLE_PREFIX):
+                    f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))
+                    ls.vehicle.setSpeedFactor(vid, f)
             if k > cur:
                 v = sess.vehicles()
                 t = k - cur - 1
