@@ -70,3 +70,25 @@ def test_sumo_baseline_collides_no_more_than_the_log(bundle):
     sim = scenario_metrics(scene, ro, validate=False)
     log = scenario_metrics(scene, log_replay(scene, 1), validate=False)
     assert sim["simulated_collision_rate"] <= log["simulated_collision_rate"] + 0.05
+
+
+def test_env_shows_pedestrians_to_sumo_background(bundle):
+    import libsumo as ls
+
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv, expert_actions
+    from magail_sumo.scene import ObjectType
+
+    scene, folder = bundle
+    tr = scene.tracks
+    env = SumoDrivingEnv(scene, folder, EnvConfig(controlled="sdc", background="sumo",
+                                                  start_step=10, max_steps=5))
+    try:
+        env.reset(seed=0)
+        env.step(expert_actions(env))
+        in_sumo = {v[len(OBSTACLE_PREFIX):].split("#")[0] for v in ls.vehicle.getIDList()
+                   if v.startswith(OBSTACLE_PREFIX)}
+        on_lane_peds = in_sumo & {str(int(i)) for i in tr.id[tr.type == ObjectType.PEDESTRIAN]}
+        assert on_lane_peds  # pedestrians on the road are in SUMO's way
+        assert all(not a.startswith(OBSTACLE_PREFIX) for a in env.agents)
+    finally:
+        env.close()

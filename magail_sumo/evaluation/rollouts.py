@@ -10,7 +10,11 @@ sim-agent set). Methods:
   are placed at their recorded pose and speed at the current step, then released (parked
   vehicles, which SUMO holds on its own parking position, keep their recorded pose); each vehicle
   gets a speed factor ~ N(1, 0.1) (clipped to [0.8, 1.2]) drawn from the rollout seed, which
-  also seeds SUMO (driver imperfection ``sigma``), so rollouts differ.
+  also seeds SUMO (driver imperfection ``sigma``), so rollouts differ. Every other sim agent
+  (pedestrians, objects SUMO does not carry, parked vehicles, route vehicles that depart later
+  or whose insertion SUMO refused) moves at constant velocity and is an obstacle in SUMO
+  (:class:`~magail_sumo.sim.session.Obstacles`) that SUMO's drivers brake for; a route vehicle
+  departing later leaves its obstacle when SUMO inserts it, one refused is taken out of SUMO.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
   drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
   (bicycle model, SUMO co-simulation, no event terminates an agent).
