@@ -274,6 +274,7 @@ class Obstacles:
         self._gen: list[int] = []  # a removed obstacle comes back under a fresh SUMO id
         self._placed: list[bool] = []
         self._retired: set[int] = set()
+        self._miss = np.zeros((0, 2))  # front position last found off every lane (NaN: none)
         self._route = f"{OBSTACLE_PREFIX}route"
         self.add(ids, length, width)
 
@@ -289,6 +290,7 @@ class Obstacles:
         self.width = np.r_[self.width, np.maximum(np.asarray(width, np.float64), 0.3)]
         self._gen += [0] * len(ids)
         self._placed += [False] * len(ids)
+        self._miss = np.r_[self._miss, np.full((len(ids), 2), np.nan)]
         for k in range(start, len(self.ids)):
             vt = f"{OBSTACLE_PREFIX}{self.ids[k]}"
             ls.vehicletype.copy("DEFAULT_VEHTYPE", vt)
@@ -327,6 +329,9 @@ class Obstacles:
         for k in range(len(self.ids)):  # libsumo moves one vehicle per call (~20 µs each)
             if k in self._retired:
                 continue
+            if not self._placed[k] and abs(fx[k] - self._miss[k, 0]) < 0.01 \
+                    and abs(fy[k] - self._miss[k, 1]) < 0.01:
+                continue  # standing where no lane was found (a parked car off the network)
             try:
                 if not (np.isfinite(fx[k]) and np.isfinite(fy[k])):
                     raise ValueError("no position")
@@ -335,6 +340,7 @@ class Obstacles:
                 self._placed[k] = True
                 on += 1
             except Exception:  # no lane within the threshold: not in SUMO's way
+                self._miss[k] = fx[k], fy[k]
                 if self._placed[k]:
                     try:
                         ls.vehicle.remove(self.sumo_id(k))
