@@ -56,6 +56,9 @@ SUMO_METHODS = ("sumo",)  #: baselines that need SUMO (worker processes)
 COLUMNS = ("scenario_id", "method", "rollout", "object_id", "step", "x", "y", "z", "heading",
            "valid")
 SPEED_FACTOR_SD = 0.1
+#: m, a route vehicle whose insertion SUMO put off is inserted at its recorded pose at the current
+#: step when its route passes this close (else it is an obstacle)
+QUEUED_MATCH = 5.0
 
 
 class EvaluationError(MagailSumoError):
@@ -268,7 +271,11 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
         for k in range(cur + 1 + N_STEPS):  # after k + 1 steps SUMO shows log step k
             if k == cur:  # start the future from the recorded state: pose and speed
                 present = set(ls.vehicle.getIDList())
-                for vid in present:
+                # route vehicles whose insertion SUMO has put off (no room at their departure)
+                # are inserted at their recorded pose on their route, when it is that close
+                queued = {vid for vid in col if vid in routed and vid not in present
+                          and vid not in bundle.parked and departs.get(vid, cur) < cur}
+                for vid in sorted(present | queued):
                     a = col.get(vid)
                     if a is None or vid in bundle.parked:
                         continue
@@ -276,9 +283,11 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                                              length[a:a + 1])
                     try:
                         ls.vehicle.moveToXY(vid, "", -1, float(fx[0]), float(fy[0]),
-                                            float(yaw_to_sumo_angle(h0[a:a + 1])[0]), 1)
+                                            float(yaw_to_sumo_angle(h0[a:a + 1])[0]), 1,
+                                            100.0 if vid in present else QUEUED_MATCH)
                         ls.vehicle.setSpeed(vid, float(np.hypot(vx0[a], vy0[a])))
                         held.append(vid)
+                        present.add(vid)
                     except Exception:  # off its route: SUMO keeps its own state
                         pass
                 # every other agent becomes an obstacle SUMO's drivers see: pedestrians,
