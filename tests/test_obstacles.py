@@ -92,3 +92,19 @@ def test_env_shows_pedestrians_to_sumo_background(bundle):
         assert all(not a.startswith(OBSTACLE_PREFIX) for a in env.agents)
     finally:
         env.close()
+
+
+def test_put_off_insertion_starts_at_the_current_step(tmp_path):
+    """2831b6fde0420b0d: SUMO puts off vehicle 1520's insertion (no room at its departure); it is
+    inserted at its recorded pose at the current step and driven by SUMO, not left to move at
+    constant velocity into the vehicle ahead of it."""
+    scene = load_scene(WOMD_DIR / "2831b6fde0420b0d.tfrecord")
+    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
+    assert rep.status == "ok", rep.reason
+    ro = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    a = int(np.flatnonzero(ro.object_id == 1520)[0])
+    cx, cy, _ = rl.constant_velocity(scene, ro.object_id)
+    assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0  # starts at the log
+    assert np.hypot(ro.x[0, a, -1] - cx[a, -1], ro.y[0, a, -1] - cy[a, -1]) > 5.0  # SUMO drives it
+    sim = scenario_metrics(scene, ro, validate=False)
+    assert sim["simulated_collision_rate"] == 0.0

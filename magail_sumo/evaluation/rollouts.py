@@ -14,7 +14,9 @@ sim-agent set). Methods:
   (pedestrians, objects SUMO does not carry, parked vehicles, route vehicles that depart later
   or whose insertion SUMO refused) moves at constant velocity and is an obstacle in SUMO
   (:class:`~magail_sumo.sim.session.Obstacles`) that SUMO's drivers brake for; a route vehicle
-  departing later leaves its obstacle when SUMO inserts it, one refused is taken out of SUMO.
+  departing later leaves its obstacle when SUMO inserts it. A route vehicle whose insertion SUMO
+  put off (no room at its departure) is inserted at its recorded pose at the current step when
+  its route passes within :data:`QUEUED_MATCH` m, else it is taken out of SUMO and an obstacle.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
   drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
   (bicycle model, SUMO co-simulation, no event terminates an agent).
