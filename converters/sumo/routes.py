@@ -138,17 +138,15 @@ def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges:
     for a, b in zip(edges[:-1], edges[1:]):
         names |= _via_edges(net, a, b)
     on = covered(names, np.arange(len(xy)))
-    if not on.any():
-        return edges, 0
-    head = np.arange(int(np.argmax(on)))
-    tail = np.arange(len(on) - int(np.argmax(on[::-1])), len(on))
+    head = np.arange(int(np.argmax(on)) if on.any() else len(on))  # none covered: all of them
+    tail = np.arange(len(on) - int(np.argmax(on[::-1])), len(on)) if on.any() else head
     added = 0
     if len(head):
         best = max(((covered(_via_edges(net, e.getID(), edges[0]), head).sum(), e.getID())
                     for e in net.getEdge(edges[0]).getIncoming()), default=(0, ""))
         if best[0] > 0 and best[1] not in edges:
             edges, added = [best[1], *edges], 1
-    if len(tail):
+    if len(tail) and (on.any() or not added):
         best = max(((covered(_via_edges(net, edges[-1], e.getID()), tail).sum(), e.getID())
                     for e in net.getEdge(edges[-1]).getOutgoing()), default=(0, ""))
         if best[0] > 0 and best[1] not in edges:
