@@ -14,7 +14,8 @@ sim-agent set). Methods:
   (pedestrians, objects SUMO does not carry, parked vehicles, route vehicles that depart later
   or whose insertion SUMO refused) moves at constant velocity and is an obstacle in SUMO
   (:class:`~magail_sumo.sim.session.Obstacles`) that SUMO's drivers brake for; a route vehicle
-  departing later leaves its obstacle when SUMO inserts it. A route vehicle whose insertion SUMO
+  departing later leaves its obstacle when SUMO inserts it; one that leaves SUMO early (its route
+  ends) goes on at constant velocity as an obstacle. A route vehicle whose insertion SUMO
   put off (no room at its departure) is inserted at its recorded pose at the current step when
   its route passes within :data:`QUEUED_MATCH` m, else it is taken out of SUMO and an obstacle.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
@@ -266,6 +267,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
     departs = _departures(bundle.folder, bundle.sumocfg)
     due: set[str] = set()
     later: set[str] = set()
+    gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO
     obstacles: Obstacles | None = None
     obs = np.zeros(0, np.int64)
     ox, oy, oyaw = constant_velocity(scene, ids)  # the future of every agent SUMO does not drive
@@ -314,16 +316,32 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                 if t < 0:
                     obstacles.place(x0[obs], y0[obs], h0[obs])
                 else:
-                    obstacles.place(ox[obs, t], oy[obs, t], oyaw[obs, t])
+                    px, py, pyaw = ox[obs, t], oy[obs, t], oyaw[obs, t]
+                    for j in np.flatnonzero(np.isin(obs, list(gone))).tolist():
+                        a, t0 = int(obs[j]), gone[int(obs[j])]  # on from its last SUMO state
+                        d = track.speed[a, t0] * (t - t0) * DT
+                        px[j] = track.x[a, t0] + d * np.cos(track.yaw[a, t0])
+                        py[j] = track.y[a, t0] + d * np.sin(track.yaw[a, t0])
+                        pyaw[j] = track.yaw[a, t0]
+                    obstacles.place(px, py, pyaw)
             if k == cur + 1:
                 for vid in held:
                     try:
                         ls.vehicle.setSpeed(vid, -1.0)
                     except Exception:
                         pass
-            departed, _ = sess.step()
+            departed, arrived = sess.step()
             if obstacles is not None and later.intersection(departed):
                 obstacles.retire(later.intersection(departed))
+            # an agent leaving SUMO (its route ends) goes on at constant velocity: an obstacle
+            left = [col[vid] for vid in arrived if vid in col and vid not in bundle.parked]
+            if obstacles is not None and k > cur + 1 and left:
+                t0 = k - cur - 2  # column of its last state in SUMO
+                left = [a for a in left if np.isfinite(track.x[a, t0]) and a not in gone]
+                if left:
+                    gone.update({a: t0 for a in left})
+                    obstacles.add([str(int(ids[a])) for a in left], length[left], width[left])
+                    obs = np.r_[obs, np.array(left, np.int64)]
             for vid in departed:
                 if not vid.startswith(OBSTACLE_PREFIX):
                     f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))

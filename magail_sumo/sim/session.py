@@ -285,7 +285,11 @@ class Obstacles:
             ls.route.add(self._route, [next(e for e in ls.edge.getIDList()
                                             if not e.startswith(":"))])
         start = len(self.ids)
-        self.ids += [str(i) for i in ids]
+        for i in ids:  # an id seen before (a vehicle back as an obstacle) gets a fresh name
+            name, n = str(i), 1
+            while name in self.ids:
+                name, n = f"{i}~{n}", n + 1
+            self.ids.append(name)
         self.length = np.r_[self.length, np.maximum(np.asarray(length, np.float64), 0.3)]
         self.width = np.r_[self.width, np.maximum(np.asarray(width, np.float64), 0.3)]
         self._gen += [0] * len(ids)
