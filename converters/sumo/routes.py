@@ -110,9 +110,56 @@ def _longest_connected(net, edges: list[str]) -> list[str]:
     return max(best, run, key=len)
 
 
+def _via_edges(net, a: str, b: str) -> set[str]:
+    """Internal edges a vehicle passes from edge ``a`` into edge ``b`` (every lane pair)."""
+    names: set[str] = set()
+    for c in net.getEdge(a).getOutgoing().get(net.getEdge(b), []):
+        via = c.getViaLaneID()
+        while via:
+            names.add(via.rsplit("_", 1)[0])
+            nxt = net.getLane(via).getOutgoing()
+            via = nxt[0].getViaLaneID() if nxt and nxt[0].getViaLaneID() else ""
+    return names
+
+
+def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges: list[str]
+                           ) -> tuple[list[str], int]:
+    """(edges, number of edges put in front): where the recorded states before the route's
+    first covered state (after its last one) lie on the junction lanes that lead into its first
+    edge (out of its last edge) in the built network -- netconvert's junction took that part of
+    the mapped lane -- the route starts one edge earlier (ends one edge later), through them.
+    The edge whose junction lanes carry the most of those states is taken."""
+    from .quality import on_lanes  # quality imports this module
+
+    def covered(names: set[str], rows: np.ndarray) -> np.ndarray:
+        return on_lanes(seg, xy[rows], heading[rows], np.isin(seg.edge, list(names)))
+
+    names = set(edges)
+    for a, b in zip(edges[:-1], edges[1:]):
+        names |= _via_edges(net, a, b)
+    on = covered(names, np.arange(len(xy)))
+    head = np.arange(int(np.argmax(on)) if on.any() else len(on))  # none covered: all of them
+    tail = np.arange(len(on) - int(np.argmax(on[::-1])), len(on)) if on.any() else head
+    added = 0
+    if len(head):
+        best = max(((covered(_via_edges(net, e.getID(), edges[0]), head).sum(), e.getID())
+                    for e in net.getEdge(edges[0]).getIncoming()), default=(0, ""))
+        if best[0] > 0 and best[1] not in edges:
+            edges, added = [best[1], *edges], 1
+    if len(tail) and (on.any() or not added):
+        best = max(((covered(_via_edges(net, edges[-1], e.getID()), tail).sum(), e.getID())
+                    for e in net.getEdge(edges[-1]).getOutgoing()), default=(0, ""))
+        if best[0] > 0 and best[1] not in edges:
+            edges = [*edges, best[1]]
+    return edges, added
+
+
 def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bike: LaneIndex,
                  net) -> tuple[list[VehicleRoute], list[dict]]:
     """Routes for every vehicle and cyclist track; the rest listed as unconverted."""
+    from .quality import lane_segments  # quality imports this module
+
+    seg = None
     tr = scene.tracks
     moved = moved_distance(scene)
     routes: list[VehicleRoute] = []
@@ -196,12 +243,18 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
             pos0 = polygonOffsetWithMinimumDistanceToPoint(tuple(front), shape)
         elif head is not None and edges[0] == head.from_edge:  # whole track inside the junction
             edge0, lane0 = head.from_edge, head.from_lane
+            depart_edge = 0  # departs at the end of the incoming edge, not on the next one
             st = steps[matched[0]]
             pos0 = net.getLane(f"{edge0}_{lane0}").getLength()
         else:
             unconverted.append({"kind": kind.name.lower(), "id": tid,
                                 "reason": "no connected route through the matched lanes"})
             continue
+        if not parked and connected:
+            if seg is None:
+                seg = lane_segments(net)
+            edges, added = _extend_into_junctions(net, seg, xy, heading, edges)
+            depart_edge += added
         lane_len = net.getLane(f"{edge0}_{lane0}").getLength()
         speed = float(np.hypot(tr.vx[n, st], tr.vy[n, st]))
         speeds = np.hypot(tr.vx[n, steps], tr.vy[n, steps])

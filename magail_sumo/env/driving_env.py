@@ -5,7 +5,9 @@ move by the kinematic bicycle model (:mod:`magail_sumo.sim.dynamics`) from norma
 ``[accel, steer]`` in [-1, 1]² and are placed in SUMO with ``moveToXY``; their bicycle state,
 not SUMO's, is their pose. Background route vehicles replay the log (placed in SUMO at their
 recorded poses) or are driven by SUMO; objects SUMO does not carry (parked off-network
-vehicles, pedestrians, ...) replay the log in the sensor and collision world only.
+vehicles, pedestrians, ...) replay the log in the sensor and collision world; with SUMO
+driving the background they are also obstacles in SUMO (placed at their recorded poses each
+step, :class:`~magail_sumo.sim.session.Obstacles`), so SUMO's drivers brake for them.
 
 Timeline: after ``reset`` the observation is of log step ``start_step``; SUMO time after the
 step that produced log step ``t`` is ``(t + 1)·0.1`` s (a vehicle departing at ``t·0.1`` s is
@@ -37,7 +39,7 @@ from pettingzoo import ParallelEnv
 from magail_sumo.scene import Scene
 from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
 from magail_sumo.sim import dynamics
-from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
+from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
 from .actions import ACTION_COUNTS, checked_actions, count_actions
 from .bundle import SceneBundle
@@ -116,6 +118,10 @@ class SumoDrivingEnv(ParallelEnv):
         self._bg_rows = self.bundle.sumo_rows[~is_ctrl[self.bundle.sumo_rows]]
         self._bg_ids = [str(int(tr.id[r])) for r in self._bg_rows]
         self._log_rows = np.flatnonzero(~is_ctrl & (~in_routes | (cfg.background == "log")))
+        #: road users SUMO does not carry (pedestrians, vehicles off the lane network): with SUMO
+        #: driving the background they are obstacles its drivers see (:class:`Obstacles`)
+        self._obstacle_rows = np.flatnonzero(~is_ctrl & ~in_routes) \
+            if cfg.background == "sumo" else np.zeros(0, np.int64)
         self._row_of_sumo = dict(zip(self.bundle.sumo_ids, self.bundle.sumo_rows.tolist()))
         self.suite = SensorSuite(scene, cfg.observation)
         self.stop_lines = StopLines.build(scene)
@@ -123,6 +129,7 @@ class SumoDrivingEnv(ParallelEnv):
         self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
         self._act_spaces = {a: spaces.Box(-1.0, 1.0, (2,), np.float32) for a in self.possible_agents}
         self._session: SumoSession | None = None
+        self._obstacles: Obstacles | None = None
         self._renderer: TopDownRenderer | None = None
         self.agents: list[str] = []
         self.t = 0
@@ -173,6 +180,10 @@ class SumoDrivingEnv(ParallelEnv):
         self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
             seed=cfg.sumo_seed + (seed or 0)))
         self._session.start()
+        self._obstacles = Obstacles(
+            self._session, [str(int(i)) for i in self.scene.tracks.id[self._obstacle_rows]],
+            self._length[self._obstacle_rows], self._width[self._obstacle_rows]) \
+            if self._obstacle_rows.size else None
         c = len(self._ctrl)
         self._x, self._y, self._yaw, self._speed = (np.zeros(c) for _ in range(4))
         self._prev_action = np.zeros((c, 2))
@@ -235,6 +246,12 @@ class SumoDrivingEnv(ParallelEnv):
         if ids:
             x, y, yaw, length = (np.concatenate(p) for p in zip(*parts))
             sess.move(ids, x, y, yaw, length)
+        if self._obstacles is not None and nxt < self._T:  # their recorded poses (NaN: gone)
+            tr, r = self.scene.tracks, self._obstacle_rows
+            ok = tr.valid[r, nxt]
+            self._obstacles.place(np.where(ok, tr.x[r, nxt], np.nan),
+                                  np.where(ok, tr.y[r, nxt], np.nan),
+                                  tr.heading[r, nxt].astype(np.float64))
         departed, arrived = sess.step()
         done_names = {self._ctrl_names[k] for k in np.flatnonzero(self._joined & ~self._active)}
         for vid in departed:

@@ -10,7 +10,14 @@ sim-agent set). Methods:
   are placed at their recorded pose and speed at the current step, then released (parked
   vehicles, which SUMO holds on its own parking position, keep their recorded pose); each vehicle
   gets a speed factor ~ N(1, 0.1) (clipped to [0.8, 1.2]) drawn from the rollout seed, which
-  also seeds SUMO (driver imperfection ``sigma``), so rollouts differ.
+  also seeds SUMO (driver imperfection ``sigma``), so rollouts differ. Every other sim agent
+  (pedestrians, objects SUMO does not carry, parked vehicles, route vehicles that depart later
+  or whose insertion SUMO refused) moves at constant velocity and is an obstacle in SUMO
+  (:class:`~magail_sumo.sim.session.Obstacles`) that SUMO's drivers brake for; a route vehicle
+  departing later leaves its obstacle when SUMO inserts it; one that leaves SUMO early (its route
+  ends) goes on at constant velocity as an obstacle. A route vehicle whose insertion SUMO
+  put off (no room at its departure) is inserted at its recorded pose at the current step when
+  its route passes within :data:`QUEUED_MATCH` m, else it is taken out of SUMO and an obstacle.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
   drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
   (bicycle model, SUMO co-simulation, no event terminates an agent).
@@ -52,6 +59,9 @@ SUMO_METHODS = ("sumo",)  #: baselines that need SUMO (worker processes)
 COLUMNS = ("scenario_id", "method", "rollout", "object_id", "step", "x", "y", "z", "heading",
            "valid")
 SPEED_FACTOR_SD = 0.1
+#: m, a route vehicle whose insertion SUMO put off is inserted at its recorded pose at the current
+#: step when its route passes this close (else it is an obstacle)
+QUEUED_MATCH = 5.0
 
 
 class EvaluationError(MagailSumoError):
@@ -216,27 +226,60 @@ def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
 
 
 # ------------------------------------------------------------------------------ SUMO rollouts
+def _departures(folder: Path, sumocfg: Path) -> dict[str, int]:
+    """Departure step of every vehicle of a bundle's route file."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(Path(folder) / sumocfg.name.replace(".sumocfg", ".rou.xml")).getroot()
+    return {v.get("id", ""): int(round(float(v.get("depart", "0")) / DT))
+            for v in root.iter("vehicle")}
+
+
+def _drop(ls, ids, routed: set[str]) -> None:
+    """Take route vehicles that have not departed out of SUMO's insertion queue."""
+    for i in ids:
+        if str(int(i)) in routed:
+            try:
+                ls.vehicle.remove(str(int(i)))
+            except Exception:  # never loaded or already gone
+                pass
+
+
 def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray, ...]:
     """One rollout of SUMO's own car-following (see module doc); (x, y, yaw) (A, T)."""
     import libsumo as ls
 
     from magail_sumo.env.bundle import SceneBundle
     from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
-    from magail_sumo.sim.session import SessionConfig, SumoSession
+    from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
 
     bundle = SceneBundle.load(scene, bundle_dir)
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     rows, x0, y0, _, h0, vx0, vy0 = _current_state(scene, ids)
     length = scene.tracks.length[rows, scene.current_time_index].astype(np.float64)
+    width = scene.tracks.width[rows, scene.current_time_index].astype(np.float64)
     cur = scene.current_time_index
     rng = np.random.default_rng(seed)
     track = _Track.empty(len(ids))
     held: list[str] = []
+    routed = set(bundle.sumo_ids)
+    departs = _departures(bundle.folder, bundle.sumocfg)
+    due: set[str] = set()
+    later: set[str] = set()
+    gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO
+    obstacles: Obstacles | None = None
+    obs = np.zeros(0, np.int64)
+    ox, oy, oyaw = constant_velocity(scene, ids)  # the future of every agent SUMO does not drive
     with SumoSession(bundle.sumocfg, config=SessionConfig(seed=seed)) as sess:
         for k in range(cur + 1 + N_STEPS):  # after k + 1 steps SUMO shows log step k
             if k == cur:  # start the future from the recorded state: pose and speed
-                for vid in ls.vehicle.getIDList():
+                present = set(ls.vehicle.getIDList())
+                # route vehicles whose insertion SUMO has put off (no room at their departure)
+                # are inserted at their recorded pose on their route, when it is that close
+                queued = {vid for vid in col if vid in routed and vid not in present
+                          and vid not in bundle.parked and departs.get(vid, cur) < cur}
+                for vid in sorted(present | queued):
                     a = col.get(vid)
                     if a is None or vid in bundle.parked:
                         continue
@@ -244,21 +287,65 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                                              length[a:a + 1])
                     try:
                         ls.vehicle.moveToXY(vid, "", -1, float(fx[0]), float(fy[0]),
-                                            float(yaw_to_sumo_angle(h0[a:a + 1])[0]), 1)
+                                            float(yaw_to_sumo_angle(h0[a:a + 1])[0]), 1,
+                                            100.0 if vid in present else QUEUED_MATCH)
                         ls.vehicle.setSpeed(vid, float(np.hypot(vx0[a], vy0[a])))
                         held.append(vid)
+                        present.add(vid)
                     except Exception:  # off its route: SUMO keeps its own state
                         pass
-            elif k == cur + 1:
+                # every other agent becomes an obstacle SUMO's drivers see: pedestrians,
+                # objects SUMO does not carry, parked vehicles (off the lanes in SUMO) and route
+                # vehicles not in SUMO yet (those departing later drop theirs when they depart)
+                due = {vid for vid in col if departs.get(vid, -1) == cur}  # inserted this step
+                later = {vid for vid in col if departs.get(vid, -1) > cur}
+                driven = (present | due) - bundle.parked
+                obs = np.array([a for vid, a in col.items() if vid not in driven], np.int64)
+                _drop(ls, [ids[a] for a in obs], routed - present - later)
+                obstacles = Obstacles(sess, [str(int(ids[a])) for a in obs], length[obs],
+                                      width[obs])
+            elif k == cur + 1 and obstacles is not None:  # insertions SUMO refused at the current step
+                now = set(ls.vehicle.getIDList())
+                late = np.array([col[vid] for vid in sorted(due - now - bundle.parked)], np.int64)
+                if len(late):
+                    _drop(ls, [ids[a] for a in late], routed - now)
+                    obstacles.add([str(int(ids[a])) for a in late], length[late], width[late])
+                    obs = np.r_[obs, late]
+            if obstacles is not None and k >= cur:
+                t = k - cur - 1  # column of log step k (-1: the current step)
+                if t < 0:
+                    obstacles.place(x0[obs], y0[obs], h0[obs])
+                else:
+                    px, py, pyaw = ox[obs, t], oy[obs, t], oyaw[obs, t]
+                    for j in np.flatnonzero(np.isin(obs, list(gone))).tolist():
+                        a, t0 = int(obs[j]), gone[int(obs[j])]  # on from its last SUMO state
+                        d = track.speed[a, t0] * (t - t0) * DT
+                        px[j] = track.x[a, t0] + d * np.cos(track.yaw[a, t0])
+                        py[j] = track.y[a, t0] + d * np.sin(track.yaw[a, t0])
+                        pyaw[j] = track.yaw[a, t0]
+                    obstacles.place(px, py, pyaw)
+            if k == cur + 1:
                 for vid in held:
                     try:
                         ls.vehicle.setSpeed(vid, -1.0)
                     except Exception:
                         pass
-            departed, _ = sess.step()
+            departed, arrived = sess.step()
+            if obstacles is not None and later.intersection(departed):
+                obstacles.retire(later.intersection(departed))
+            # an agent leaving SUMO (its route ends) goes on at constant velocity: an obstacle
+            left = [col[vid] for vid in arrived if vid in col and vid not in bundle.parked]
+            if obstacles is not None and k > cur + 1 and left:
+                t0 = k - cur - 2  # column of its last state in SUMO
+                left = [a for a in left if np.isfinite(track.x[a, t0]) and a not in gone]
+                if left:
+                    gone.update({a: t0 for a in left})
+                    obstacles.add([str(int(ids[a])) for a in left], length[left], width[left])
+                    obs = np.r_[obs, np.array(left, np.int64)]
             for vid in departed:
-                f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))
-                ls.vehicle.setSpeedFactor(vid, f)
+                if not vid.startswith(OBSTACLE_PREFIX):
+                    f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))
+                    ls.vehicle.setSpeedFactor(vid, f)
             if k > cur:
                 v = sess.vehicles()
                 t = k - cur - 1

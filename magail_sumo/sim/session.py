@@ -174,7 +174,8 @@ class SumoSession:
         self.time = float(ls.simulation.getTime())
         var = self._variables()
         for vid in departed:
-            ls.vehicle.subscribe(vid, var)
+            if not vid.startswith(OBSTACLE_PREFIX):
+                ls.vehicle.subscribe(vid, var)
         return departed, arrived
 
     def vehicles(self) -> VehicleArrays:
@@ -242,6 +243,117 @@ class SumoSession:
             except Exception as exc:
                 raise SimulationError(f"moving vehicle {vid} failed at t={self.time:.1f} s: "
                                       f"{_one_line(exc)}") from None
+
+
+OBSTACLE_PREFIX = "obstacle:"  #: SUMO id prefix of :class:`Obstacles` vehicles
+OBSTACLE_MATCH = 1.5  #: m, an obstacle blocks a lane when its front is this close to its centre
+_NO_ANGLE = -1073741824.0  # libsumo's INVALID_DOUBLE_VALUE: map by distance only
+
+
+class Obstacles:
+    """Road users SUMO does not drive (pedestrians, vehicles parked off the lane network, route
+    vehicles not yet inserted), shown to SUMO's car-following as vehicles placed each step.
+
+    Each obstacle is a SUMO vehicle of vClass ``ignoring`` (allowed on every lane) with the
+    recorded box, id ``obstacle:<id>``. :meth:`place` puts it at its box-centre pose for the
+    next step (``moveToXY``, keepRoute=0) on the lane whose centre line lies within
+    :data:`OBSTACLE_MATCH` m of its front: SUMO drivers on that lane then brake for it like for
+    a leader (their own gap ``minGap``), drivers on other lanes pass it. An obstacle off every
+    lane (on a sidewalk, in a parking bay) is taken out of SUMO until it comes back onto one,
+    so it never blocks a lane it does not touch. SUMO's speed of a placed obstacle is its moved
+    distance per step. Obstacles are not subscribed: :meth:`SumoSession.vehicles` leaves them out.
+    """
+
+    def __init__(self, session: "SumoSession", ids: Sequence[str], length: np.ndarray,
+                 width: np.ndarray, match_threshold: float = OBSTACLE_MATCH) -> None:
+        self.session = session
+        self.threshold = match_threshold
+        self.ids: list[str] = []
+        self.length = np.zeros(0)
+        self.width = np.zeros(0)
+        self._gen: list[int] = []  # a removed obstacle comes back under a fresh SUMO id
+        self._placed: list[bool] = []
+        self._retired: set[int] = set()
+        self._miss = np.zeros((0, 2))  # front position last found off every lane (NaN: none)
+        self._route = f"{OBSTACLE_PREFIX}route"
+        self.add(ids, length, width)
+
+    def add(self, ids: Sequence[str], length: np.ndarray, width: np.ndarray) -> None:
+        """More obstacles (recorded box length and width in m)."""
+        ls = _libsumo()
+        if len(ids) and self._route not in ls.route.getIDList():
+            ls.route.add(self._route, [next(e for e in ls.edge.getIDList()
+                                            if not e.startswith(":"))])
+        start = len(self.ids)
+        for i in ids:  # an id seen before (a vehicle back as an obstacle) gets a fresh name
+            name, n = str(i), 1
+            while name in self.ids:
+                name, n = f"{i}~{n}", n + 1
+            self.ids.append(name)
+        self.length = np.r_[self.length, np.maximum(np.asarray(length, np.float64), 0.3)]
+        self.width = np.r_[self.width, np.maximum(np.asarray(width, np.float64), 0.3)]
+        self._gen += [0] * len(ids)
+        self._placed += [False] * len(ids)
+        self._miss = np.r_[self._miss, np.full((len(ids), 2), np.nan)]
+        for k in range(start, len(self.ids)):
+            vt = f"{OBSTACLE_PREFIX}{self.ids[k]}"
+            ls.vehicletype.copy("DEFAULT_VEHTYPE", vt)
+            ls.vehicletype.setVehicleClass(vt, "ignoring")
+            ls.vehicletype.setLength(vt, float(self.length[k]))
+            ls.vehicletype.setWidth(vt, float(self.width[k]))
+            ls.vehicletype.setMinGap(vt, 0.5)
+            self._add(k)
+
+    def sumo_id(self, k: int) -> str:
+        return f"{OBSTACLE_PREFIX}{self.ids[k]}" + (f"#{self._gen[k]}" if self._gen[k] else "")
+
+    def _add(self, k: int) -> None:
+        # a far departure: only moveToXY inserts it (SUMO never departs it on its own)
+        _libsumo().vehicle.add(self.sumo_id(k), self._route, f"{OBSTACLE_PREFIX}{self.ids[k]}",
+                               depart="1e9")
+
+    def retire(self, ids: Sequence[str]) -> None:
+        """Take obstacles out of SUMO for good (e.g. a route vehicle that SUMO now drives)."""
+        ls = _libsumo()
+        for k, oid in enumerate(self.ids):
+            if oid in ids and k not in self._retired:
+                self._retired.add(k)
+                try:
+                    ls.vehicle.remove(self.sumo_id(k))
+                except Exception:  # never placed: dropped from the insertion queue all the same
+                    pass
+
+    def place(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> int:
+        """Place every obstacle at box-centre poses (scene frame) for the next step; NaN
+        positions take it out. Returns how many are on a lane."""
+        ls = _libsumo()
+        fx, fy = centre_to_front(np.asarray(x, np.float64), np.asarray(y, np.float64),
+                                 np.asarray(yaw, np.float64), self.length)
+        on = 0
+        for k in range(len(self.ids)):  # libsumo moves one vehicle per call (~20 µs each)
+            if k in self._retired:
+                continue
+            if not self._placed[k] and abs(fx[k] - self._miss[k, 0]) < 0.01 \
+                    and abs(fy[k] - self._miss[k, 1]) < 0.01:
+                continue  # standing where no lane was found (a parked car off the network)
+            try:
+                if not (np.isfinite(fx[k]) and np.isfinite(fy[k])):
+                    raise ValueError("no position")
+                ls.vehicle.moveToXY(self.sumo_id(k), "", -1, float(fx[k]), float(fy[k]),
+                                    _NO_ANGLE, 0, self.threshold)
+                self._placed[k] = True
+                on += 1
+            except Exception:  # no lane within the threshold: not in SUMO's way
+                self._miss[k] = fx[k], fy[k]
+                if self._placed[k]:
+                    try:
+                        ls.vehicle.remove(self.sumo_id(k))
+                    except Exception:
+                        pass
+                    self._placed[k] = False
+                    self._gen[k] += 1
+                    self._add(k)
+        return on
 
 
 def _one_line(exc: BaseException) -> str:

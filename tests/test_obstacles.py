@@ -1,0 +1,110 @@
+"""Road users SUMO does not drive are obstacles its car-following sees (issue 14, item 3).
+
+Real SUMO on the bundled scenes: an obstacle on a lane stops the SUMO driver behind it; one off
+every lane is not in SUMO; the ``sumo`` baseline shows pedestrians, parked and not-yet-inserted
+vehicles to SUMO's drivers, so its collisions of scored agents stay at log replay's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import WOMD_DIR
+from converters import load_scene
+from converters.sumo.scenario import ConvertOptions, convert_scene
+from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation.realism import log_replay, scenario_metrics
+from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SumoSession
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    scene = load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
+    out = tmp_path_factory.mktemp("net")
+    rep = convert_scene(scene, out, ConvertOptions(baseline=False))
+    assert rep.status == "ok", rep.reason
+    return scene, out / scene.scenario_id
+
+
+def test_driver_brakes_for_an_obstacle_on_its_lane(bundle):
+    import libsumo as ls
+
+    scene, folder = bundle
+    with SumoSession(folder / f"{scene.scenario_id}.sumocfg") as sim:
+        for _ in range(12):
+            sim.step()
+        # a moving vehicle with 40 m of lane ahead on its route
+        vid = next(v for v in sim.vehicles().ids if ls.vehicle.getSpeed(v) > 5.0
+                   and ls.lane.getLength(ls.vehicle.getLaneID(v))
+                   - ls.vehicle.getLanePosition(v) > 40.0)
+        lane, pos = ls.vehicle.getLaneID(vid), ls.vehicle.getLanePosition(vid)
+        ahead = pos + 25.0
+        px, py = ls.simulation.convert2D(lane.rsplit("_", 1)[0], ahead, int(lane.rsplit("_", 1)[1]))
+        yaw = np.radians(90.0 - ls.vehicle.getAngle(vid))
+        # a pedestrian-sized obstacle standing on the lane ahead, one off every lane
+        obs = Obstacles(sim, ["ped", "far"], np.array([0.8, 0.8]), np.array([0.8, 0.8]))
+        off = np.array([px + 400.0, py + 400.0])  # far outside the map
+        saw, hits = False, set()
+        for _ in range(120):
+            placed = obs.place(np.array([px, off[0]]), np.array([py, off[1]]),
+                               np.array([yaw, yaw]))
+            sim.step()
+            hits.update(ls.simulation.getCollidingVehiclesIDList())
+            if vid in ls.vehicle.getIDList():
+                leader = ls.vehicle.getLeader(vid, 50.0)
+                saw |= bool(leader) and leader[0] == f"{OBSTACLE_PREFIX}ped"
+        assert placed == 1
+        ids = ls.vehicle.getIDList()
+        assert f"{OBSTACLE_PREFIX}ped" in ids and f"{OBSTACLE_PREFIX}far" not in ids
+        assert all(not v.startswith(OBSTACLE_PREFIX) for v in sim.vehicles().ids)
+        # the driver saw it as its leader and never ran into it (it stops or changes lanes)
+        assert saw and vid not in hits and f"{OBSTACLE_PREFIX}ped" not in hits
+
+
+def test_sumo_baseline_collides_no_more_than_the_log(bundle):
+    """On 637f20cafde22ff8 SUMO drove scored agents into a pedestrian and a vehicle it
+    was not inserted (collision rate 0.5 against log replay's 0.25)."""
+    scene, folder = bundle
+    ro = rl.simulate(scene, "sumo", [0], bundle_dir=folder)
+    sim = scenario_metrics(scene, ro, validate=False)
+    log = scenario_metrics(scene, log_replay(scene, 1), validate=False)
+    assert sim["simulated_collision_rate"] <= log["simulated_collision_rate"] + 0.05
+
+
+def test_env_shows_pedestrians_to_sumo_background(bundle):
+    import libsumo as ls
+
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv, expert_actions
+    from magail_sumo.scene import ObjectType
+
+    scene, folder = bundle
+    tr = scene.tracks
+    env = SumoDrivingEnv(scene, folder, EnvConfig(controlled="sdc", background="sumo",
+                                                  start_step=10, max_steps=5))
+    try:
+        env.reset(seed=0)
+        env.step(expert_actions(env))
+        in_sumo = {v[len(OBSTACLE_PREFIX):].split("#")[0] for v in ls.vehicle.getIDList()
+                   if v.startswith(OBSTACLE_PREFIX)}
+        on_lane_peds = in_sumo & {str(int(i)) for i in tr.id[tr.type == ObjectType.PEDESTRIAN]}
+        assert on_lane_peds  # pedestrians on the road are in SUMO's way
+        assert all(not a.startswith(OBSTACLE_PREFIX) for a in env.agents)
+    finally:
+        env.close()
+
+
+def test_put_off_insertion_starts_at_the_current_step(tmp_path):
+    """2831b6fde0420b0d: SUMO puts off vehicle 1520's insertion (no room at its departure); it is
+    inserted at its recorded pose at the current step and driven by SUMO, not left to move at
+    constant velocity into the vehicle ahead of it."""
+    scene = load_scene(WOMD_DIR / "2831b6fde0420b0d.tfrecord")
+    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
+    assert rep.status == "ok", rep.reason
+    ro = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    a = int(np.flatnonzero(ro.object_id == 1520)[0])
+    cx, cy, _ = rl.constant_velocity(scene, ro.object_id)
+    assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0  # starts at the log
+    assert np.hypot(ro.x[0, a, -1] - cx[a, -1], ro.y[0, a, -1] - cy[a, -1]) > 5.0  # SUMO drives it
+    sim = scenario_metrics(scene, ro, validate=False)
+    assert sim["simulated_collision_rate"] == 0.0
