@@ -30,6 +30,7 @@ def test_network_map_lanes_and_borders():
     assert len(m.roadmap.road_edges) > 1000 and len(m.roadmap.road_lines) > 500
 
 
+@pytest.mark.sumo
 def test_city_episode_with_hundreds_of_agents():
     env = SumoCityEnv(CFG, CityEnvConfig(warmup_s=600, max_steps=30))
     obs, _ = env.reset(seed=0)
@@ -57,6 +58,7 @@ def test_city_episode_with_hundreds_of_agents():
     assert reasons.get("off_road", 0) + reasons.get("collision", 0) > 0
 
 
+@pytest.mark.sumo
 def test_control_fraction_is_seeded():
     env = SumoCityEnv(CFG, CityEnvConfig(warmup_s=600, max_steps=5, control_fraction=0.25))
     env.reset(seed=1)
@@ -69,6 +71,7 @@ def test_control_fraction_is_seeded():
     assert a == b and a != c and 0.1 < len(a) / 377 < 0.4
 
 
+@pytest.mark.sumo
 def test_parallel_api():
     env = SumoCityEnv(CFG, CityEnvConfig(warmup_s=600, max_steps=10, control_fraction=0.05))
     parallel_api_test(env, num_cycles=10)

@@ -42,6 +42,7 @@ def converted(tmp_path_factory) -> dict[str, tuple[Path, dict]]:
     return result
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("sid", SCENES)
 def test_conversion_json(converted, sid):
     folder, rep = converted[sid]
@@ -62,12 +63,14 @@ def test_conversion_json(converted, sid):
     assert base["teleports"] == 0 and base["collisions"] == 0
 
 
+@pytest.mark.sumo
 def test_signal_fidelity(converted):
     _, rep = converted["637f20cafde22ff8"]
     assert rep["quality"]["signal_fidelity"] >= 0.99
     assert converted["2831b6fde0420b0d"][1]["quality"]["signal_fidelity"] is None
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("sid", SCENES)
 def test_network_loads_and_keeps_log_coordinates(converted, sid):
     folder, _ = converted[sid]
@@ -86,6 +89,7 @@ def test_network_loads_and_keeps_log_coordinates(converted, sid):
     assert any(e.getLaneNumber() > 1 for e in net.getEdges())
 
 
+@pytest.mark.sumo
 def test_bike_lanes_allow_bicycles_only(converted):
     folder, _ = converted["637f20cafde22ff8"]
     scene = load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
@@ -101,6 +105,7 @@ def test_bike_lanes_allow_bicycles_only(converted):
     assert found
 
 
+@pytest.mark.sumo
 def test_junction_types(converted):
     net = sumolib.net.readNet(str(converted["637f20cafde22ff8"][0] / "637f20cafde22ff8.net.xml"))
     types = {n.getType() for n in net.getNodes()}
@@ -113,6 +118,7 @@ def test_junction_types(converted):
             assert len(n.getIncoming()) + len(n.getOutgoing()) > 2, n.getID()
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("sid", SCENES)
 def test_sumo_cfg_runs_as_is(converted, sid):
     folder, _ = converted[sid]
@@ -122,6 +128,7 @@ def test_sumo_cfg_runs_as_is(converted, sid):
     assert "Error" not in proc.stderr, [l for l in proc.stderr.splitlines() if "Error" in l][:3]
 
 
+@pytest.mark.sumo
 def test_routes_connected_and_typed(converted):
     folder, _ = converted["637f20cafde22ff8"]
     net = sumolib.net.readNet(str(folder / "637f20cafde22ff8.net.xml"))
@@ -137,6 +144,7 @@ def test_routes_connected_and_typed(converted):
     assert any(v.find("stop") is not None for v in vehicles)  # parked vehicles stay put
 
 
+@pytest.mark.sumo
 def test_signal_program_replays_log(converted):
     folder, _ = converted["637f20cafde22ff8"]
     scene = load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
@@ -149,6 +157,7 @@ def test_signal_program_replays_log(converted):
     assert all(len(v) == scene.num_steps for v in table.values())
 
 
+@pytest.mark.sumo
 def test_cycle_option(tmp_path):
     scene = load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
     rep = convert_scene(scene, tmp_path, ConvertOptions(cycle_signals=True, baseline=False))
@@ -158,12 +167,14 @@ def test_cycle_option(tmp_path):
     assert total == pytest.approx((scene.num_steps + 1) * 0.1, abs=1e-6)
 
 
+@pytest.mark.sumo
 def test_pedestrians_listed_unconverted(converted):
     _, rep = converted["637f20cafde22ff8"]
     peds = [u for u in rep["unconverted"] if u["kind"] == "pedestrian"]
     assert len(peds) == 10
 
 
+@pytest.mark.sumo
 def test_cli_batch_with_bad_input(tmp_path, capsys):
     bad = tmp_path / "broken.tfrecord"
     bad.write_bytes(b"\x00" * 40)
@@ -186,6 +197,7 @@ def test_cli_stops_at_bad_input_without_skip_bad(tmp_path):
     assert main(["convert", str(bad), "--out", str(tmp_path / "o")]) == 1
 
 
+@pytest.mark.sumo
 def test_off_map_driving_gets_a_synthesized_lane(converted):
     """Track 1675 of 637f turns off the mapped lanes into an unmapped lot (53 of its 91 states)."""
     sid = "637f20cafde22ff8"
@@ -230,6 +242,7 @@ def _corrupt_record(path: Path, index: int) -> None:
     path.write_bytes(bytes(raw))
 
 
+@pytest.mark.sumo
 def test_cli_shard_with_corrupt_record(tmp_path):
     shard = tmp_path / "three.tfrecord"
     write_womd(shard, [load_scene(WOMD_DIR / f"{sid}.tfrecord") for sid in SCENES])

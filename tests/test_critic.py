@@ -60,6 +60,7 @@ def values(policy, obs: np.ndarray, mask: np.ndarray | None = None) -> np.ndarra
         policy.set_scene_layout(policy._slot_scene, src)
 
 
+@pytest.mark.sumo
 def test_wiring_from_the_env(scenes):
     model, venv, obs, active = scenes
     a, b = venv.scene_slices
@@ -81,6 +82,7 @@ def test_wiring_from_the_env(scenes):
     assert not any(k.startswith("value_net.") for k in keys)
 
 
+@pytest.mark.sumo
 def test_values_need_the_scene_context(scenes):
     """Changing one vehicle changes the values of the others of its scene."""
     model, venv, obs, active = scenes
@@ -93,6 +95,7 @@ def test_values_need_the_scene_context(scenes):
     assert np.abs(v2[rows[1:]] - v[rows[1:]]).max() > 1e-4
 
 
+@pytest.mark.sumo
 def test_permutation_equivariant_within_a_scene(scenes):
     model, venv, obs, active = scenes
     a = venv.scene_slices[0]
@@ -112,6 +115,7 @@ def test_permutation_equivariant_within_a_scene(scenes):
     np.testing.assert_allclose(vt.detach().numpy()[:, 0], v[rows][shuffle], atol=1e-5)
 
 
+@pytest.mark.sumo
 def test_free_slots_and_other_scenes_do_not_matter(scenes):
     model, venv, obs, active = scenes
     a, b = venv.scene_slices
@@ -132,6 +136,7 @@ def test_free_slots_and_other_scenes_do_not_matter(scenes):
     assert np.abs(vb[b][active[b]] - v[b][active[b]]).max() > 1e-4
 
 
+@pytest.mark.sumo
 def test_terminal_observation_is_a_one_vehicle_scene(scenes):
     """SB3 bootstraps a truncated agent from ``predict_values`` of its terminal observation
     alone: a one-vehicle scene."""
@@ -216,6 +221,7 @@ def setup(tmp_path_factory):
     return root, cfg
 
 
+@pytest.mark.sumo
 def test_transformer_critic_training_resumes_exactly(setup):
     """A real run with the transformer critic writes checkpoints; 2 updates straight equal
     1 update + resume + 1 bit for bit (critic dropout on, so its RNG use is covered too)."""

@@ -29,6 +29,7 @@ def bundles(tmp_path_factory):
     return got
 
 
+@pytest.mark.sumo
 def test_parallel_api(bundles):
     scene, folder = bundles["850c48d8bbfa008f"]
     env = SumoDrivingEnv(scene, folder, EnvConfig(max_steps=40), render_mode="rgb_array")
@@ -40,6 +41,7 @@ def test_parallel_api(bundles):
     env.close()
 
 
+@pytest.mark.sumo
 def test_random_episode(bundles):
     scene, folder = bundles["637f20cafde22ff8"]
     env = SumoDrivingEnv(scene, folder, EnvConfig(controlled=8, max_steps=60))
@@ -57,6 +59,7 @@ def test_random_episode(bundles):
     env.close()
 
 
+@pytest.mark.sumo
 def test_nan_and_out_of_range_actions_are_counted_and_clipped(bundles):
     scene, folder = bundles["637f20cafde22ff8"]
     env = SumoDrivingEnv(scene, folder, EnvConfig(controlled=3, terminate_on=()))
@@ -75,6 +78,7 @@ def test_nan_and_out_of_range_actions_are_counted_and_clipped(bundles):
     env.close()
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("sid", SCENES)
 def test_expert_actions_follow_the_log(bundles, sid):
     """Issue fidelity check: expert (inverse-dynamics) actions keep every controlled vehicle
@@ -168,12 +172,14 @@ def test_red_light_and_off_road_rules(scene_637f):
     assert off_road(np.array([1.0, 2.9]), 3.7, 1.0).tolist() == [False, True]
 
 
+@pytest.mark.sumo
 def test_missing_bundle_file(bundles, tmp_path):
     scene, folder = bundles["850c48d8bbfa008f"]
     with pytest.raises(BundleError, match=r"850c48d8bbfa008f\.sumocfg: bundle file not found"):
         SumoDrivingEnv(scene, tmp_path)
 
 
+@pytest.mark.sumo
 def test_seed_action_layout_expert_replay(bundles):
     """With the seed's (steer, throttle) layout the expert actions still follow the log."""
     scene, folder = bundles["850c48d8bbfa008f"]

@@ -44,6 +44,7 @@ def run(tmp_path_factory):
     return out, load_scene(WOMD_DIR / f"{SID}.tfrecord")
 
 
+@pytest.mark.sumo
 def test_parquet_layout_and_manifest(run):
     out, scene = run
     man = json.loads((out / "manifest.json").read_text())
@@ -67,6 +68,7 @@ def test_parquet_layout_and_manifest(run):
             assert not np.allclose(ro.x[0], ro.x[1]), f"{m}: rollouts do not differ"
 
 
+@pytest.mark.sumo
 def test_sumo_starts_from_the_log(run):
     out, scene = run
     ro = rl.read_rollouts(out / "rollouts" / "sumo" / f"{SID}.parquet", scene)
@@ -76,6 +78,7 @@ def test_sumo_starts_from_the_log(run):
     assert np.median(err) < 1.0
 
 
+@pytest.mark.sumo
 def test_exported_submission(run):
     out, scene = run
     (rec,) = list(iter_submission(out / "random.binproto"))
@@ -85,6 +88,7 @@ def test_exported_submission(run):
     assert np.allclose(rec.rollouts.x, ro.x)
 
 
+@pytest.mark.sumo
 def test_seeded_and_pluggable_policy():
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
     f = str(WOMD_DIR / f"{SID}.tfrecord")

@@ -26,6 +26,7 @@ def expert_dir(tmp_path_factory):
     return root / "expert"
 
 
+@pytest.mark.sumo
 def test_files_and_columns(expert_dir):
     meta = json.loads((expert_dir / "metadata.json").read_text())
     assert meta["observation_names"] == observation_names()
@@ -36,6 +37,7 @@ def test_files_and_columns(expert_dir):
     assert table.num_rows == meta["scenes"][0]["rows"]
 
 
+@pytest.mark.sumo
 def test_transitions_chain_and_actions_are_policy_scaled(expert_dir):
     ds = ExpertDataset(expert_dir, observation_names())
     names = ds.observation_names
@@ -52,6 +54,7 @@ def test_transitions_chain_and_actions_are_policy_scaled(expert_dir):
         assert ds.done[rows[-1]] and not ds.done[rows[:-1]].any()
 
 
+@pytest.mark.sumo
 def test_sampling(expert_dir):
     ds = ExpertDataset(expert_dir)
     rng = np.random.default_rng(0)
@@ -62,6 +65,7 @@ def test_sampling(expert_dir):
     assert s.shape == (16, ds.obs_dim) and a.shape == (16, 2)
 
 
+@pytest.mark.sumo
 def test_bad_expert_dirs_are_refused(expert_dir, tmp_path):
     with pytest.raises(ExpertDataError, match="no metadata.json"):
         ExpertDataset(tmp_path)

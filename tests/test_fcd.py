@@ -102,6 +102,7 @@ def replay_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.sumo
 def test_replay_cli_fcd_reproduces_the_run_in_sumo(replay_run, tmp_path):
     cfg = replay_run / "run.sumocfg"
     root = ET.parse(cfg).getroot()
@@ -115,6 +116,7 @@ def test_replay_cli_fcd_reproduces_the_run_in_sumo(replay_run, tmp_path):
     assert np.mean(err < 0.05) > 0.95, np.percentile(err, [50, 90, 99])
 
 
+@pytest.mark.sumo
 def test_env_fcd_every_records_chosen_episodes(tmp_path):
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
     from magail_sumo.env.expert import expert_actions
@@ -137,6 +139,7 @@ def test_env_fcd_every_records_chosen_episodes(tmp_path):
         EnvConfig(fcd_every=-1)
 
 
+@pytest.mark.sumo
 def test_evaluate_fcd_rollouts(tmp_path):
     proc = _cli("evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "2",
                 "--fcd-rollouts", "1", "--scenes", str(SCENE), "--networks",
@@ -186,6 +189,7 @@ def _snapshot(cfg: Path, png: Path, time_s: float, display: str, extra: list[str
         f"sumo-gui wrote no snapshot (exit {proc.returncode}): {proc.stderr[-500:]}"
 
 
+@pytest.mark.sumo
 def test_sumo_gui_shows_the_replay(replay_run, tmp_path):
     from PIL import Image
 
@@ -219,6 +223,7 @@ def test_sumo_gui_shows_the_replay(replay_run, tmp_path):
     assert near(base) < near(img) / 10
 
 
+@pytest.mark.sumo
 def test_training_workers_record_episodes(tmp_path):
     """``env.fcd_dir`` / ``env.fcd_every`` of a training config: every scene worker of the
     vectorised env writes its chosen episodes."""
@@ -241,6 +246,7 @@ def test_training_workers_record_episodes(tmp_path):
     assert 0.0 in times and len(times) >= 2  # the episode ends when its agents do
 
 
+@pytest.mark.sumo
 def test_replay_cli_fcd_with_a_bundle_converted_on_the_fly(tmp_path):
     """A scene without a shipped bundle: the network is copied beside the FCD."""
     scene = ROOT / "data" / "womd" / "850c48d8bbfa008f.tfrecord"
@@ -257,6 +263,7 @@ def test_replay_cli_fcd_with_a_bundle_converted_on_the_fly(tmp_path):
     assert err.size > 300 and np.mean(err < 0.05) > 0.95
 
 
+@pytest.mark.sumo
 def test_city_env_run_replays_in_sumo(tmp_path):
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
 

@@ -84,6 +84,7 @@ def test_crafted_checkpoint_refused_by_evaluate(tmp_path, capsys):
     assert "posix.system" in line or "refused" in line
 
 
+@pytest.mark.sumo
 def test_crafted_latest_refused_by_resume(setup, tmp_path, capsys):
     _, _, cfg_path = setup
     marker = tmp_path / "MARKER"
@@ -97,6 +98,7 @@ def test_crafted_latest_refused_by_resume(setup, tmp_path, capsys):
     assert not marker.exists()
 
 
+@pytest.mark.sumo
 def test_checkpoint_holds_only_tensors_and_plain_data(gail_run):
     state = torch.load(gail_run / "checkpoints" / "latest.pt", weights_only=True)
     assert state["format"] == "magail_sumo.checkpoint/2"
@@ -123,6 +125,7 @@ def _format1_bc(setup, path: Path) -> Path:
     return path
 
 
+@pytest.mark.sumo
 def test_format1_refused_and_trusted_upgrade(setup, tmp_path):
     old = _format1_bc(setup, tmp_path / "old.pt")
     with pytest.raises(CheckpointError, match=r"old\.pt: .*older magail_sumo version.*unsafe"
@@ -156,6 +159,7 @@ def _edited(run: Path, tmp_path: Path, edit) -> Path:
     (lambda s: s.__setitem__("rng", {"torch": "x", "numpy": 1, "python": None}), "rng"),
     (lambda s: s.pop("last_obs"), "lacks last_obs"),
 ])
+@pytest.mark.sumo
 def test_bad_resume_state_is_one_line(setup, gail_run, tmp_path, edit, message):
     _, cfg, _ = setup
     run = _edited(gail_run, tmp_path, edit)
@@ -165,6 +169,7 @@ def test_bad_resume_state_is_one_line(setup, gail_run, tmp_path, edit, message):
     assert "\n" not in text and "latest.pt" in text and len(text) < 400
 
 
+@pytest.mark.sumo
 def test_state_dict_mismatch_is_summarised(gail_run, tmp_path):
     def edit(state):
         pol = state["policy"]
@@ -179,6 +184,7 @@ def test_state_dict_mismatch_is_summarised(gail_run, tmp_path):
     assert "\n" not in str(exc.value)
 
 
+@pytest.mark.sumo
 def test_invalid_config_in_checkpoint_names_the_file(gail_run, tmp_path):
     state = torch.load(gail_run / "checkpoints" / "latest.pt", weights_only=True)
     state["config"]["ppo"]["n_steps"] = 0
@@ -187,6 +193,7 @@ def test_invalid_config_in_checkpoint_names_the_file(gail_run, tmp_path):
         load_policy(tmp_path / "badcfg.pt")
 
 
+@pytest.mark.sumo
 def test_resume_state_round_trip_is_exact(setup, gail_run, tmp_path):
     """Resume of the saved run reaches the same state as a straight run (checked in detail by
     tests/test_training.py); here: the decoded numpy parts are bit-identical to the saved ones."""
@@ -206,6 +213,7 @@ def _bc_config(setup, tmp_path) -> Path:
     return p
 
 
+@pytest.mark.sumo
 def test_overwrite_refuses_a_folder_train_did_not_write(setup, tmp_path, capsys):
     cfg = _bc_config(setup, tmp_path)
     d = tmp_path / "project"
@@ -220,6 +228,7 @@ def test_overwrite_refuses_a_folder_train_did_not_write(setup, tmp_path, capsys)
     assert (d / "data.csv").read_text() == "a,b\n1,2\n"
 
 
+@pytest.mark.sumo
 def test_overwrite_replaces_a_run_and_keeps_user_files(setup, tmp_path):
     cfg = _bc_config(setup, tmp_path)
     d = tmp_path / "run"
@@ -242,6 +251,7 @@ def test_overwrite_replaces_a_run_and_keeps_user_files(setup, tmp_path):
     assert not list(d.glob(".*.tmp")) and not list((d / "checkpoints").glob(".*.tmp"))
 
 
+@pytest.mark.sumo
 def test_new_run_refuses_a_foreign_folder(setup, tmp_path):
     _, cfg, _ = setup
     d = tmp_path / "foreign"
@@ -253,6 +263,7 @@ def test_new_run_refuses_a_foreign_folder(setup, tmp_path):
     np.testing.assert_equal((d / "x.txt").read_text(), "x")
 
 
+@pytest.mark.sumo
 def test_failed_set_up_leaves_no_run_dir(setup, tmp_path):
     _, cfg, _ = setup
     with pytest.raises(Exception):

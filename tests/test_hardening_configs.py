@@ -134,6 +134,7 @@ def test_check_train_config_accepts_the_defaults_and_bundled_scenes():
     check_train_config(from_dict(TrainConfig, {"scenes": {"files": [SCENE]}}), "x.yaml")
 
 
+@pytest.mark.sumo
 def test_batch_size_larger_than_the_rollout_refused(tmp_path):
     from magail_sumo.training.trainer import GailRun
 

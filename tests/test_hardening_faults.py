@@ -160,6 +160,7 @@ def test_pool_reports_dead_and_stuck_workers_and_finishes_the_others():
     assert all("\n" not in r.reason for r in res)
 
 
+@pytest.mark.sumo
 def test_convert_workers_report_hung_scenes_and_bad_records(tmp_path):
     from converters.sumo.batch import convert_files
     from converters.sumo.scenario import ConvertOptions
@@ -182,6 +183,7 @@ def test_convert_workers_report_hung_scenes_and_bad_records(tmp_path):
 
 
 # ------------------------------------------------------------------ 2. stopped SUMO worker in evaluate
+@pytest.mark.sumo
 def test_evaluate_reports_a_stopped_worker_and_goes_on(tmp_path, bundle_root, monkeypatch,
                                                        capsys):
     marker = tmp_path / "stopped"
@@ -201,6 +203,7 @@ def test_evaluate_reports_a_stopped_worker_and_goes_on(tmp_path, bundle_root, mo
     assert (out / "rollouts" / "constvel" / f"{SID}.parquet").is_file()  # the rest went on
 
 
+@pytest.mark.sumo
 def test_controlled_sumo_run_that_stops_times_out(tmp_path, bundle_root):
     from magail_sumo.evaluation.traffic import sumo_outputs as so
 
@@ -213,6 +216,7 @@ def test_controlled_sumo_run_that_stops_times_out(tmp_path, bundle_root):
 
 
 # ------------------------------------------------------------------ 3. dense junction, time budget
+@pytest.mark.sumo
 def test_dense_junction_converts_within_seconds(tmp_path):
     from converters.sumo.scenario import ConvertOptions, convert_scene
     from converters.sumo.topology import plan_network
@@ -364,6 +368,7 @@ def test_unloadable_checkpoint_is_one_line(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ 7. missing / unknown actions
+@pytest.mark.sumo
 def test_env_counts_missing_and_unknown_actions(bundle_root):
     from magail_sumo.workers import run_one
 
@@ -387,6 +392,7 @@ def test_action_summary_words_the_counts():
                     "non-finite action(s) replaced by 0; 1 action(s) outside [-1, 1] clipped")
 
 
+@pytest.mark.sumo
 def test_evaluate_logs_a_policys_missing_actions(tmp_path, bundle_root, capfd):
     rc = main(["evaluate", "--policy", f"{__name__}:partial_policy", "--baselines", "none",
                "--scenes", str(SCENE), "--networks", str(bundle_root), "--rollouts", "1",
@@ -401,6 +407,7 @@ def test_evaluate_logs_a_policys_missing_actions(tmp_path, bundle_root, capfd):
 
 
 # ------------------------------------------------------------------ vec env: every wait bounded
+@pytest.mark.sumo
 def test_vec_env_large_request_to_a_stopped_worker_times_out(bundle_root):
     from magail_sumo.env import EnvConfig
     from magail_sumo.env.vec_env import MultiSceneVecEnv, SceneSpec, VecEnvWorkerError

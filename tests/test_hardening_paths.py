@@ -99,6 +99,7 @@ def test_safe_names_are_files_and_real_ids_unchanged(world):
         assert "/" not in n and "\x00" not in n and not n.startswith(".") and len(n) <= 100
 
 
+@pytest.mark.sumo
 def test_pipeline_with_hostile_ids_stays_inside(world, capsys, monkeypatch):
     """README layout (convert --out out, expert --networks out --out out/expert, evaluate
     --networks out --out out/eval, report out/eval) over every hostile id: every file lands
@@ -156,6 +157,7 @@ def test_pipeline_with_hostile_ids_stays_inside(world, capsys, monkeypatch):
     assert not [p for p in after if p.endswith((".tmp", ".old"))]  # no temporaries left
 
 
+@pytest.mark.sumo
 def test_replay_with_hostile_id(tmp_path):
     one = tmp_path / "one.tfrecord"
     write_womd(one, [dataclasses.replace(load_scene(WOMD_DIR / f"{SID}.tfrecord"),
@@ -174,6 +176,7 @@ def test_replay_with_hostile_id(tmp_path):
     assert sorted(os.listdir(gif.parent)) == ["r.gif"]
 
 
+@pytest.mark.sumo
 def test_name_collision_is_an_error_not_an_overwrite(tmp_path, capsys):
     base = load_scene(WOMD_DIR / f"{SID}.tfrecord")
     twin = safe_name("a/b")  # a plain id equal to the safe name of another id
@@ -199,6 +202,7 @@ def test_name_collision_is_an_error_not_an_overwrite(tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "ex").glob("*.parquet")) == [f"{twin}.parquet"]
 
 
+@pytest.mark.sumo
 def test_error_lines_with_hostile_ids_stay_one_line(world, tmp_path, capsys):
     """Errors naming a hostile id (newline, NUL, 5,000 characters) are one escaped line each."""
     root, ids = world
@@ -337,6 +341,7 @@ def _partial_files(folder: Path) -> list[str]:
                   or p.startswith("."))
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("needle", [".rou.xml", "conversion.json"])
 def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, monkeypatch,
                                                            needle):
@@ -357,6 +362,7 @@ def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, mo
     assert _partial_files(fresh) == [MARKER] and _partial_files(again) == [MARKER]
 
 
+@pytest.mark.sumo
 def test_full_disk_on_summary_and_manifest_keeps_old_files(tmp_path, capsys, monkeypatch):
     from magail_sumo.evaluation.report import _write_csv
     from magail_sumo.evaluation.report.render import Document

@@ -173,6 +173,7 @@ def test_segfault_pickle_is_one_line_error_and_batch_goes_on(tmp_path):
     assert "read 2 scene(s) from 3 file(s); skipped 1" in out.stderr
 
 
+@pytest.mark.sumo
 def test_convert_skip_bad_goes_on_past_the_segfault_pickle(tmp_path):
     scene = load_scene(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
     a, bad = tmp_path / "a.pkl", tmp_path / "bad.pkl"

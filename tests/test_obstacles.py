@@ -27,6 +27,7 @@ def bundle(tmp_path_factory):
     return scene, out / scene.scenario_id
 
 
+@pytest.mark.sumo
 def test_driver_brakes_for_an_obstacle_on_its_lane(bundle):
     import libsumo as ls
 
@@ -62,6 +63,7 @@ def test_driver_brakes_for_an_obstacle_on_its_lane(bundle):
         assert saw and vid not in hits and f"{OBSTACLE_PREFIX}ped" not in hits
 
 
+@pytest.mark.sumo
 def test_sumo_baseline_collides_no_more_than_the_log(bundle):
     """On 637f20cafde22ff8 SUMO drove scored agents into a pedestrian and a vehicle it
     was not inserted (collision rate 0.5 against log replay's 0.25)."""
@@ -72,6 +74,7 @@ def test_sumo_baseline_collides_no_more_than_the_log(bundle):
     assert sim["simulated_collision_rate"] <= log["simulated_collision_rate"] + 0.05
 
 
+@pytest.mark.sumo
 def test_env_shows_pedestrians_to_sumo_background(bundle):
     import libsumo as ls
 
@@ -94,6 +97,7 @@ def test_env_shows_pedestrians_to_sumo_background(bundle):
         env.close()
 
 
+@pytest.mark.sumo
 def test_put_off_insertion_starts_at_the_current_step(tmp_path):
     """2831b6fde0420b0d: SUMO puts off vehicle 1520's insertion (no room at its departure); it is
     inserted at its recorded pose at the current step and driven by SUMO, not left to move at

@@ -25,6 +25,7 @@ def _lanes(net_file: Path) -> tuple[int, int, float]:
     return len(net.getEdges(withInternal=True)), len(lanes), sum(ln.getLength() for ln in lanes)
 
 
+@pytest.mark.sumo
 def test_convert_opendrive_reads_back(tmp_path):
     from converters.sumo.opendrive import read_back
 
@@ -49,6 +50,7 @@ def test_convert_opendrive_reads_back(tmp_path):
     assert len1 == pytest.approx(len0, rel=0.1)  # 5230 m vs 5505 m
 
 
+@pytest.mark.sumo
 def test_opendrive_off_by_default(tmp_path):
     from converters import load_scene
     from converters.sumo.scenario import ConvertOptions, convert_scene

@@ -43,6 +43,7 @@ def checkpoint(tmp_path_factory):
     return root, run / "checkpoints" / "latest.pt"
 
 
+@pytest.mark.sumo
 def test_registered_loader_gives_deterministic_actions(checkpoint):
     _, ckpt = checkpoint
     assert ".pt" in rl.POLICY_LOADERS
@@ -58,6 +59,7 @@ def test_registered_loader_gives_deterministic_actions(checkpoint):
         pol.act({"1": np.zeros(3, np.float32)})
 
 
+@pytest.mark.sumo
 def test_other_env_refused(checkpoint):
     _, ckpt = checkpoint
     with pytest.raises(CheckpointError, match=r"env\.limits\.max_accel"):
@@ -65,6 +67,7 @@ def test_other_env_refused(checkpoint):
                                                                       max_accel=3.0)))
 
 
+@pytest.mark.sumo
 def test_evaluate_checkpoint_end_to_end(checkpoint):
     root, ckpt = checkpoint
     out = root / "eval"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import pytest
 import subprocess
 import sys
 
@@ -19,6 +20,7 @@ def _cli(*args):
                           cwd=ROOT)
 
 
+@pytest.mark.sumo
 def test_replay_gif_and_mp4(tmp_path):
     gif = tmp_path / "log.gif"
     out = _cli("replay", WOMD_DIR / "850c48d8bbfa008f.tfrecord", "--out", gif, "--size", "128")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+import pytest
 
 import numpy as np
 import sumolib
@@ -14,6 +15,7 @@ from converters.sumo.routes import _via_edges
 from converters.sumo.scenario import ConvertOptions, convert_scene
 
 
+@pytest.mark.sumo
 def test_route_starts_in_the_junction_its_track_starts_in(tmp_path):
     """2831b6fde0420b0d: vehicles whose track starts inside the junction before their first
     mapped edge (netconvert's junction covers that part of the lane) get the edge before it in

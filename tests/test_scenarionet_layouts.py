@@ -178,6 +178,7 @@ def test_dangling_references_keep_the_scene_and_are_listed(tmp_path):
     assert "dropped refs      4" in text and "right_neighbor -> 99999" in text
 
 
+@pytest.mark.sumo
 def test_bundled_files_convert(tmp_path):
     """Real netconvert; the dangling-reference scene lists its repairs in conversion.json."""
     scenes = [load_scenarionet(_dangling_file(tmp_path)), load_scenarionet(NO_META),

@@ -31,6 +31,7 @@ def test_frame_conventions():
     assert cx[0] == pytest.approx(0.0, abs=1e-12) and cy[0] == pytest.approx(0.0)
 
 
+@pytest.mark.sumo
 def test_step_state_and_move_to_logged_pose(bundle):
     scene, cfg = bundle
     tr = scene.tracks
@@ -55,6 +56,7 @@ def test_step_state_and_move_to_logged_pose(bundle):
         np.testing.assert_allclose(after.y[idx], tr.y[r, t], atol=1e-6)
 
 
+@pytest.mark.sumo
 def test_one_simulation_per_process(bundle):
     _, cfg = bundle
     with SumoSession(cfg):
@@ -62,6 +64,7 @@ def test_one_simulation_per_process(bundle):
             SumoSession(cfg).start()
 
 
+@pytest.mark.sumo
 def test_bad_inputs(tmp_path, bundle):
     _, cfg = bundle
     with pytest.raises(SimulationError, match="missing.sumocfg: SUMO config file not found"):
@@ -84,6 +87,7 @@ def test_bad_inputs(tmp_path, bundle):
         sim.step()
 
 
+@pytest.mark.sumo
 def test_move_far_off_the_road_is_exact(bundle):
     """No lane within the fast 5 m match threshold: the vehicle is still placed exactly."""
     import libsumo

@@ -17,6 +17,7 @@ def test_a_bundle_is_shipped():
     assert [b.name for b in BUNDLES] == ["637f20cafde22ff8"]
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("bundle", BUNDLES, ids=lambda p: p.name)
 def test_bundle_runs_in_sumo_and_meets_bars(bundle):
     report = json.loads((bundle / "conversion.json").read_text())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from magail_sumo.evaluation.signal_sanity import longest_run, signal_sanity
 from magail_sumo.scene import Lane, ObjectType, RoadMap, Scene, SignalStates, Tracks
@@ -64,6 +65,7 @@ def test_no_signals_is_all_zero(scene_637f):
     assert rep["gaps"]["steps"] == 0 and rep["lanes"] == []
 
 
+@pytest.mark.sumo
 def test_bundled_scene_and_conversion_report(scene_637f, tmp_path):
     from converters.sumo.scenario import ConvertOptions, convert_scene
 

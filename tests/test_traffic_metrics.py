@@ -108,6 +108,7 @@ def test_factory_and_units():
         assert cls.name == name and cls.unit and cls.description
 
 
+@pytest.mark.sumo
 def test_sumo_city_outputs(tmp_path):
     default = run_sumo_outputs(COLOGNE, tmp_path / "default", end=25400, seed=1)
     slow = run_sumo_outputs(COLOGNE, tmp_path / "slow", end=25400, seed=1,

@@ -59,6 +59,7 @@ def test_kl_rule():
     assert adapt_learning_rate(1e-2, 0.0001, 0.01, 1e-5, 1e-2) == 1e-2
 
 
+@pytest.mark.sumo
 def test_resume_continues_exactly(setup):
     root, cfg = setup
     straight = train(cfg, run_dir=root / "straight", log=lambda s: None)
@@ -82,6 +83,7 @@ def test_resume_continues_exactly(setup):
     assert (straight / "config.yaml").is_file() and any((straight / "tb").iterdir())
 
 
+@pytest.mark.sumo
 def test_mlp_gail_and_bc(setup, tmp_path):
     root, cfg = setup
     mlp = replace(cfg, updates=1, discriminator=replace(cfg.discriminator, kind="mlp",
@@ -97,6 +99,7 @@ def test_mlp_gail_and_bc(setup, tmp_path):
     assert act.shape == (4, 2) and np.all(np.abs(act) <= 1)
 
 
+@pytest.mark.sumo
 def test_bad_config_and_checkpoint(setup, tmp_path, capsys):
     root, cfg = setup
     bad = tmp_path / "bad.yaml"
@@ -124,6 +127,7 @@ def test_bad_config_and_checkpoint(setup, tmp_path, capsys):
         train(seed_layout, run_dir=tmp_path / "x")
 
 
+@pytest.mark.sumo
 def test_deferred_rewards_equal_per_step_rewards(setup):
     """Training computes the imitation rewards once per rollout in batched forwards; they are
     the per-step rewards (frozen discriminator) up to float rounding."""
@@ -157,6 +161,7 @@ def test_deferred_rewards_equal_per_step_rewards(setup):
     assert s_def["imitation_mean"] == pytest.approx(s_step["imitation_mean"], abs=1e-5)
 
 
+@pytest.mark.sumo
 def test_resume_refuses_a_changed_config(setup, tmp_path):
     from magail_sumo.config import to_dict
     from magail_sumo.training.trainer import _check_resume_config
@@ -171,6 +176,7 @@ def test_resume_refuses_a_changed_config(setup, tmp_path):
         _check_resume_config(changed, saved, tmp_path)
 
 
+@pytest.mark.sumo
 def test_cli_seed_overrides_the_config(setup, tmp_path):
     import yaml
 

@@ -21,6 +21,7 @@ def specs(tmp_path_factory):
                     convert_missing=False)
 
 
+@pytest.mark.sumo
 def test_slots_masks_and_dones(specs):
     venv = MultiSceneVecEnv(specs, EnvConfig(controlled=6, max_steps=30), seed=1)
     try:
@@ -49,6 +50,7 @@ def test_slots_masks_and_dones(specs):
         venv.close()
 
 
+@pytest.mark.sumo
 def test_state_replay_restores_exactly(specs):
     cfg = EnvConfig(controlled=5, max_steps=25)
     venv = MultiSceneVecEnv(specs, cfg, seed=3)
@@ -72,6 +74,7 @@ def test_state_replay_restores_exactly(specs):
         np.testing.assert_array_equal(x, y)
 
 
+@pytest.mark.sumo
 def test_dead_or_hung_worker_raises(specs):
     venv = MultiSceneVecEnv(specs[:1], EnvConfig(controlled=3, max_steps=10))
     venv.reset()
@@ -102,6 +105,7 @@ def test_place_workers_balances_cores():
     assert abs(per_core[0] - per_core[1]) <= 12.0 and all(len(c) == 1 for c in cpus)
 
 
+@pytest.mark.sumo
 def test_workers_are_pinned_when_asked(specs):
     if not hasattr(os, "sched_getaffinity"):
         pytest.skip("no CPU affinity on this platform")
