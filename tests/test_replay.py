@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import shutil
-import pytest
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from conftest import ROOT, WOMD_DIR

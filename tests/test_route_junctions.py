@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-import pytest
 
 import numpy as np
+import pytest
 import sumolib
 
 from conftest import WOMD_DIR
