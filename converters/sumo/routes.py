@@ -99,6 +99,29 @@ def _connect(net, edges: list[str]) -> tuple[list[str], bool]:
     return out, ok
 
 
+def _connect_trimmed(net, seq: list[str], head_added: bool, tail_added: bool
+                     ) -> tuple[list[str], bool]:
+    """:func:`_connect` of ``seq``; where that leaves a gap, the same without the edge put in
+    front of the matched edges for a start inside a junction (``head_added``), without the one
+    put behind them for an end inside a junction (``tail_added``), or without both -- the first
+    of these that connects. Such an edge comes from the connection owning the first (last)
+    matched junction lane; when the match jumped onto a junction lane of a connection that
+    does not join the route (or the route starts on a synthesised lane from a dead end), the
+    edge leads nowhere on the route and would cut it short."""
+    edges, ok = _connect(net, seq)
+    if ok:
+        return edges, ok
+    for drop_head, drop_tail in ((True, False), (False, True), (True, True)):
+        if (drop_head and not head_added) or (drop_tail and not tail_added):
+            continue
+        trimmed = seq[int(drop_head):len(seq) - int(drop_tail)]
+        if trimmed:
+            out, ok = _connect(net, trimmed)
+            if ok:
+                return out, ok
+    return edges, False
+
+
 def _longest_connected(net, edges: list[str]) -> list[str]:
     """The longest run of ``edges`` in which each edge leads to the next."""
     best, run = [], [edges[0]]
@@ -210,19 +233,22 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
         last_lane = int(lane_of[matched[-1]])
         if last_lane in plan.junction_lanes and not parked:
             tail = _junction_connection(plan, last_lane, from_edge=seq[-1] if seq else None)
+        head_added = tail_added = False
         if head is not None and (not seq or seq[0] != head.from_edge):
             seq.insert(0, head.from_edge)
+            head_added = True
         if not seq and tail is not None:
             seq.append(tail.from_edge)
         if tail is not None and seq[-1] != tail.to_edge:
             seq.append(tail.to_edge)
+            tail_added = True
         if not seq:
             unconverted.append({"kind": kind.name.lower(), "id": tid,
                                 "reason": "matched junction lanes belong to no connection"})
             continue
         if parked:
             seq = seq[:1]
-        edges, connected = _connect(net, seq)
+        edges, connected = _connect_trimmed(net, seq, head_added, tail_added)
         if not connected:
             edges = _longest_connected(net, edges)
         depart_edge = 0
