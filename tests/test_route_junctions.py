@@ -49,6 +49,7 @@ def test_route_starts_in_the_junction_its_track_starts_in(tmp_path):
 SHARED = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data")) \
     / "scenarionet"
 SHARED_6F85 = SHARED / "womd" / "6f85f27e0243fc10.pkl"
+SHARED_53E9 = SHARED / "womd" / "53e9adfdac0eb822.pkl"
 
 
 @pytest.mark.sumo
@@ -81,3 +82,26 @@ def test_junction_end_edges_that_lead_nowhere_are_dropped(tmp_path, path, vehicl
         n = int(np.flatnonzero(scene.tracks.id == int(vid))[0])
         covered = route_covers(scene, seg, SimpleNamespace(track=n, edges=edges), net)
         assert covered >= COVERAGE, (vid, covered)
+
+
+@pytest.mark.sumo
+@pytest.mark.skipif(not SHARED_53E9.is_file(), reason="../shared/data/scenarionet/womd not present")
+def test_slow_driveway_track_reaches_its_synthesised_lane(tmp_path):
+    """53e9adfdac0eb822 vehicle 276 stands at the very end of a mapped lane (whose end node,
+    the centre of a large junction, is far away) and then creeps into a driveway: its
+    synthesised lane joins at that end node -- a split there would fall short of the matched
+    position and leave the vehicle on the part that does not lead to the lane -- so its route
+    runs from the mapped edge onto the synthesised lane (route_rate 0.94 before)."""
+    scene = load_scene(SHARED_53E9)
+    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
+    assert rep.status == "ok" and rep.quality["route_rate"] == 1.0
+    syn = next(s for s in rep.synthesized if s["track_id"] == 276)
+    assert syn["start"].startswith("node ")
+    folder = tmp_path / scene.scenario_id
+    net = sumolib.net.readNet(str(folder / f"{scene.scenario_id}.net.xml"), withInternal=True)
+    v = next(v for v in ET.parse(folder / f"{scene.scenario_id}.rou.xml").getroot().iter("vehicle")
+             if v.get("id") == "276")
+    edges = v.find("route").get("edges").split()
+    assert syn["edges"][0] in edges and len(edges) >= 2
+    for a, b in zip(edges[:-1], edges[1:]):
+        assert net.getEdge(b) in net.getEdge(a).getOutgoing(), (a, b)

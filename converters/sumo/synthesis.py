@@ -12,9 +12,10 @@ the scene frame (m); width = median vehicle width + :data:`WIDTH_MARGIN`; speed 
 
 Joins use the same map matching as the routes: where the track leaves the map the lane starts at
 the end node of the edge of the last matched state when that node is within :data:`SNAP` m of it
-(or the track passed a junction lane since), otherwise at a new node splitting that edge at the
-matched position; where it re-enters, likewise at the start node of the next matched edge or a
-split. Without a matched state within :data:`MAX_JOIN` - :data:`SNAP` m of the stretch it starts
+(or the track passed a junction lane since, or the state lies within :data:`MIN_SPLIT` +
+:data:`SPLIT_SHIFT` m of the end of its edge piece), otherwise at a new node splitting that edge
+at the matched position; where it re-enters, likewise at the start node of the next matched edge
+or a split. Without a matched state within :data:`MAX_JOIN` - :data:`SNAP` m of the stretch it starts
 /ends at a new dead-end node (where the track starts/ends, or at the map border)."""
 
 from __future__ import annotations
@@ -218,7 +219,12 @@ def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.n
         edge, idx, p = _piece(plan, int(m.lane[k]), float(m.pos[k]))  # fresh: splits move pieces
         ep = _edge(plan, edge)
         node = ep.to_node if leaving else ep.from_node
-        if junction[between].any() or np.hypot(*(plan.nodes[node] - xy[k])) < SNAP:
+        s0, s1 = next((a0, a1) for e_, i_, a0, a1 in plan.lane_edges[int(m.lane[k])]
+                      if e_ == edge and i_ == idx)
+        # a split this near the piece's end (start) would fall short of (beyond) the matched
+        # state, leaving it on the wrong part: the piece's end (start) node is the join
+        at_end = p + SPLIT_SHIFT > s1 - s0 - MIN_SPLIT if leaving else p - SPLIT_SHIFT < MIN_SPLIT
+        if junction[between].any() or at_end or np.hypot(*(plan.nodes[node] - xy[k])) < SNAP:
             return node, (edge, idx), f"node {node}"
         if leaving:
             node, _ = split_edge(plan, edge, idx, p + SPLIT_SHIFT, f"{tag}a")
