@@ -41,6 +41,11 @@ from .topology import TimeBudgetExceeded, plan_network
 
 STEP_LENGTH = 0.1  #: s
 
+#: Version of the converter's outputs, recorded in ``conversion.json`` (``converter_version``,
+#: with a digest of this package's sources appended: see :func:`converter_version`). ``convert``
+#: skips a scene whose bundle has the same version and options; bump it when outputs change.
+CONVERTER_VERSION = "1"
+
 
 @dataclass
 class ConvertOptions:
@@ -52,6 +57,32 @@ class ConvertOptions:
     #: with a "time budget ... exceeded" reason. Checked between stages and during the junction
     #: path search; netconvert is killed at it. None: no limit.
     time_budget_s: float | None = 600.0
+
+
+def converter_version() -> str:
+    """``CONVERTER_VERSION`` plus a digest of the ``converters/sumo`` sources, so that a changed
+    converter never reuses a bundle written by another one."""
+    global _VERSION
+    if _VERSION is None:
+        import hashlib
+
+        h = hashlib.sha256()
+        for f in sorted(Path(__file__).parent.glob("*.py")):
+            h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+        _VERSION = f"{CONVERTER_VERSION}+{h.hexdigest()[:12]}"
+    return _VERSION
+
+
+_VERSION: str | None = None
+
+
+def options_key(options: ConvertOptions) -> str:
+    """Digest of the options that affect a bundle's files (all but ``time_budget_s``)."""
+    import dataclasses
+    import hashlib
+
+    d = {k: v for k, v in dataclasses.asdict(options).items() if k != "time_budget_s"}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=repr).encode()).hexdigest()[:16]
 
 
 @dataclass
@@ -66,10 +97,13 @@ class ConversionReport:
     timings: dict[str, float] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
     synthesized: list[dict] = field(default_factory=list)  #: lanes made from off-map driving
+    converter_version: str = ""  #: :func:`converter_version` of the converter that wrote it
+    options_key: str = ""  #: :func:`options_key` of the options it was written with
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
-                                              "unconverted", "synthesized", "timings", "quality")}
+                                              "unconverted", "synthesized", "timings", "quality",
+                                              "converter_version", "options_key")}
 
 
 def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
@@ -186,7 +220,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
     opts = options or ConvertOptions()
     sid = scene.scenario_id
     name = safe_name(sid)  # file names; sid stays the id in conversion.json and messages
-    rep = ConversionReport(sid)
+    rep = ConversionReport(sid, converter_version=converter_version(),
+                           options_key=options_key(opts))
     try:
         final = bundle_folder(out_root, sid)
         _check_replaceable(final, sid)
