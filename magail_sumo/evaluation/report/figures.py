@@ -75,31 +75,53 @@ def distributions(scores: Scores, features: list[tuple[str, str]]) -> bytes:
     return _png(fig)
 
 
-def trajectories(scores: Scores, sid: str, max_rollouts: int = 8) -> bytes:
-    """Top-down view of one scene: lanes (grey), road edges (black), recorded futures (black
-    dashed) and the rollouts (colour) of every method, one panel per method."""
+def _joined(x: np.ndarray, y: np.ndarray, valid: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Lines (rows of ``x``/``y``, (L, T)) joined into one NaN-separated polyline; states not
+    ``valid`` become NaN, so a line breaks there and no vertex is drawn at them."""
+    x = np.asarray(x, np.float64).reshape(-1, np.shape(x)[-1])
+    y = np.asarray(y, np.float64).reshape(-1, np.shape(y)[-1])
+    if valid is not None:
+        v = np.asarray(valid, bool).reshape(x.shape)
+        x, y = np.where(v, x, np.nan), np.where(v, y, np.nan)
+    gap = np.full((x.shape[0], 1), np.nan)
+    return np.hstack([x, gap]).ravel(), np.hstack([y, gap]).ravel()
+
+
+def _polylines(lines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Map polylines ((P, >=2) arrays) as one NaN-separated polyline."""
+    if not lines:
+        return np.zeros(0), np.zeros(0)
+    gap = np.full((1, 2), np.nan)
+    xy = np.concatenate([a for ln in lines for a in (np.asarray(ln)[:, :2], gap)])
+    return xy[:, 0], xy[:, 1]
+
+
+def trajectory_figure(scores: Scores, sid: str, max_rollouts: int = 8):
+    """The matplotlib figure of :func:`trajectories` (for tests: every line is one
+    NaN-separated ``Line2D``; invalid log and rollout states are NaN, never drawn)."""
     scene = scores.scenes[sid]
     methods = [m for m in scores.methods if (sid, m) in scores.rollouts]
-    fig, axes = plt.subplots(1, max(1, len(methods)), figsize=(4.2 * max(1, len(methods)), 4.2),
+    fig, axes = plt.subplots(1, max(1, len(methods)), figsize=(3.6 * max(1, len(methods)), 3.6),
                              squeeze=False)
     tr = scene.tracks
     cur = scene.current_time_index
+    lanes = _polylines([ln.polyline for ln in scene.roadmap.lanes])
+    edges = _polylines([e.polyline for e in scene.roadmap.road_edges])
     for k, (ax, m) in enumerate(zip(axes[0], methods)):
         ro = scores.rollouts[(sid, m)]
-        for ln in scene.roadmap.lanes:
-            ax.plot(ln.polyline[:, 0], ln.polyline[:, 1], color="#cccccc", lw=0.5)
-        for e in scene.roadmap.road_edges:
-            ax.plot(e.polyline[:, 0], e.polyline[:, 1], color="#333333", lw=0.8)
-        rows = [int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id]
+        ax.plot(*lanes, color="#cccccc", lw=0.5)
+        ax.plot(*edges, color="#333333", lw=0.8)
+        rows = np.array([int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id])
         fut = slice(cur, cur + 1 + ro.shape[2])
-        for r in rows:
-            v = tr.valid[r, fut]
-            ax.plot(tr.x[r, fut][v], tr.y[r, fut][v], "k--", lw=0.8)
-        for r in range(min(max_rollouts, ro.shape[0])):
-            ax.plot(ro.x[r].T, ro.y[r].T, color=COLORS[k % 7], lw=0.6, alpha=0.5)
+        ax.plot(*_joined(tr.x[rows, fut], tr.y[rows, fut], tr.valid[rows, fut]), "k--", lw=0.8)
+        n = min(max_rollouts, ro.shape[0])
+        valid = scores.valid.get((sid, m))
+        ax.plot(*_joined(ro.x[:n], ro.y[:n], None if valid is None else valid[:n]),
+                color=COLORS[k % 7], lw=0.6, alpha=0.5)
         v = tr.valid[rows, cur]
-        ax.scatter(tr.x[rows, cur][v], tr.y[rows, cur][v], s=6, color="k", zorder=3)
         xs, ys = tr.x[rows, cur][v], tr.y[rows, cur][v]
+        ax.scatter(xs, ys, s=6, color="k", zorder=3)
         if xs.size:
             pad = 25.0
             ax.set_xlim(xs.min() - pad, xs.max() + pad)
@@ -109,4 +131,11 @@ def trajectories(scores: Scores, sid: str, max_rollouts: int = 8) -> bytes:
         ax.tick_params(labelsize=6)
     fig.suptitle(f"{printable(sid, 60)}: log (dashed) vs rollouts", fontsize=10)
     fig.tight_layout()
-    return _png(fig)
+    return fig
+
+
+def trajectories(scores: Scores, sid: str, max_rollouts: int = 8) -> bytes:
+    """Top-down view of one scene: lanes (grey), road edges (black), recorded futures (black
+    dashed) and the rollouts (colour) of every method, one panel per method; states a method or
+    the log marks invalid are not drawn (the lines break there)."""
+    return _png(trajectory_figure(scores, sid, max_rollouts))
