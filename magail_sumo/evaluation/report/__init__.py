@@ -49,14 +49,15 @@ def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
 
 
 def build_report(folder: str | Path, out: str | Path | None = None,
-                 submissions: dict[str, list[str]] | None = None) -> ReportFiles:
-    """Score ``folder`` (see :func:`~magail_sumo.evaluation.report.scoring.collect`) and write
-    the report into ``out`` (default ``folder/report``)."""
+                 submissions: dict[str, list[str]] | None = None,
+                 workers: int | None = None) -> ReportFiles:
+    """Score ``folder`` (see :func:`~magail_sumo.evaluation.report.scoring.collect`, scored in
+    ``workers`` processes) and write the report into ``out`` (default ``folder/report``)."""
     folder = Path(folder)
     out = Path(out) if out else folder / "report"
     claim_output_dir(out, "report", ["report.html", "report.md", "metrics.csv", "summary.csv",
                                      "agents.csv", "img"])
-    sc = collect(folder, submissions)
+    sc = collect(folder, submissions, workers)
     units = {n: METRICS[n].unit for n in METRICS}
     means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
     man = sc.manifest
@@ -87,7 +88,7 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     doc.table(["method"] + [printable(s) for s in sids], [[m, *(per[(s, m)]["metametric"] if (s, m) in per
                                          else float("nan") for s in sids)]
                                   for m in sc.methods], "per-scene")
-    if sc.inputs:
+    if sc.counts:
         doc.heading("Simulated vs logged distributions")
         doc.image(figures.distributions(sc, [("linear_speed", "speed (m/s)"),
                                              ("linear_acceleration", "acceleration (m/s²)"),

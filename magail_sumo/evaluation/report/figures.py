@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from magail_sumo.evaluation.traffic.distributions import BINS, histogram  # noqa: E402
+from magail_sumo.evaluation.traffic.distributions import BINS  # noqa: E402
 from magail_sumo.outputs import printable  # noqa: E402
 
 from .scoring import Scores  # noqa: E402
@@ -20,7 +20,7 @@ COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e3
 
 def _png(fig) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=90)  # laid out by tight_layout: no second draw pass
     plt.close(fig)
     return buf.getvalue()
 
@@ -56,17 +56,17 @@ def distributions(scores: Scores, features: list[tuple[str, str]]) -> bytes:
         log_by_scene: dict[str, np.ndarray] = {}
         for k, m in enumerate(scores.methods):
             sims = []
-            for (sid, mm), inp in scores.inputs.items():
-                if mm == m:
-                    lv, sv = inp.log_and_sim(feat)
-                    sims.append(sv)
-                    log_by_scene.setdefault(sid, lv)
-            if sims:
-                ax.plot(centres, histogram(np.concatenate(sims), feat), color=COLORS[k % 7],
-                        label=m, lw=1.3)
+            for (sid, mm), counts in scores.counts.items():
+                if mm == m and feat in counts:
+                    lc, sc = counts[feat]
+                    sims.append(sc)
+                    log_by_scene.setdefault(sid, lc)
+            if sims:  # pooled over scenes: the summed counts, normalised
+                h = np.sum(sims, axis=0).astype(np.float64)
+                ax.plot(centres, h / max(h.sum(), 1.0), color=COLORS[k % 7], label=m, lw=1.3)
         if log_by_scene:
-            ax.plot(centres, histogram(np.concatenate(list(log_by_scene.values())), feat),
-                    "k--", label="log", lw=1.6)
+            h = np.sum(list(log_by_scene.values()), axis=0).astype(np.float64)
+            ax.plot(centres, h / max(h.sum(), 1.0), "k--", label="log", lw=1.6)
         ax.set_title(label, fontsize=9)
         ax.set_ylabel("share", fontsize=8)
         ax.tick_params(labelsize=7)
