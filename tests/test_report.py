@@ -184,3 +184,19 @@ def test_bad_rollouts_are_reported_and_others_scored(folder, tmp_path, capsys):
     got = set(zip(metrics.scenario_id, metrics.method))
     assert got == {(b, "constvel"), (a, "ext")}
     assert "Problems" in (dst / "report" / "report.html").read_text()
+
+
+def test_scene_with_another_current_step_is_scored():
+    """A scene whose current step is not 10 (ScenarioNet scenes with a longer or shorter
+    history) is scored on its own 80 simulated steps instead of failing the report."""
+    import dataclasses
+
+    from magail_sumo.evaluation.report.scoring import score_pair
+
+    scene = load_scene(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
+    scene = dataclasses.replace(scene, current_time_index=5)
+    res = score_pair(scene, "logreplay", log_replay(scene, 2))
+    assert res.error is None, res.error
+    assert res.row["ade"] == 0.0 and res.row["average_displacement_error"] == 0.0
+    assert 0 < res.row["metametric"] <= 1 and res.agent_rows
+    assert sum(res.counts["linear_speed"][0]) > 0
