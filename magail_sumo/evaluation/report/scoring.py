@@ -271,8 +271,13 @@ def _score_job(job: tuple[str, str, str, list[str]]) -> list[tuple]:
     """Worker: score the given methods of one scene (read from its file) of a folder.
 
     :returns: per method ``("ok", PairScore, rollouts, valid)`` or ``("error", message)``."""
+    import numba
+
     from converters import iter_scenes
 
+    # the workers share the cores: one numba thread each (numba's parallel kernels would
+    # otherwise start a thread per core in every worker and spin against each other)
+    numba.set_num_threads(1)
     folder, scene_file, sid, methods = job
     scene = next(s for s in iter_scenes(scene_file) if s.scenario_id == sid)
     out: list[tuple] = []
