@@ -270,3 +270,47 @@ def test_off_map_stretch_definition():
     off[35:47] = True  # 1.2 s, 0.5 s after the previous one: merged
     assert off_map_stretches(off, steps) == [(20, 46)]
     assert off_map_stretches(np.zeros(60, bool), steps) == []
+
+
+def test_cli_convert_is_resumable(tmp_path, capsys):
+    """Issue 14: a bundle converted by this converter version with the same options is skipped
+    (a ``skipped`` row keeping its quality); other options, another version or --force
+    reconvert; a scenario id repeated within one run is converted once."""
+    sid = "850c48d8bbfa008f"
+    src = str(WOMD_DIR / f"{sid}.tfrecord")
+    out = tmp_path / "out"
+    args = ["convert", src, "--out", str(out), "--no-baseline"]
+
+    def rows():
+        return list(csv.DictReader(open(out / "summary.csv")))
+
+    def stamp():
+        return (out / sid / f"{sid}.net.xml").stat().st_mtime_ns
+
+    assert main(args) == 0
+    first, t0 = rows()[0], stamp()
+    rep = json.loads((out / sid / "conversion.json").read_text())
+    assert rep["converter_version"].startswith("1+") and len(rep["options_key"]) == 16
+    capsys.readouterr()
+    assert main(args) == 0  # nothing to do: skipped, bundle untouched, quality kept
+    (again,) = rows()
+    assert again["status"] == "skipped" and "already converted" in again["reason"]
+    assert again["on_network_rate"] == first["on_network_rate"] and stamp() == t0
+    assert "0 scene(s), 1 skipped" in capsys.readouterr().err
+    assert main(args + ["--cycle-signals"]) == 0  # other options: reconverted
+    assert rows()[0]["status"] == "ok" and stamp() != t0
+    t1 = stamp()
+    assert main(args + ["--cycle-signals", "--force"]) == 0
+    assert rows()[0]["status"] == "ok" and stamp() != t1
+    rep = json.loads((out / sid / "conversion.json").read_text())
+    rep["converter_version"] = "0+old"
+    (out / sid / "conversion.json").write_text(json.dumps(rep))
+    assert main(args + ["--cycle-signals"]) == 0  # another converter's bundle: reconverted
+    assert rows()[0]["status"] == "ok"
+    out2 = tmp_path / "twice"
+    assert main(["convert", src, src, "--out", str(out2), "--no-baseline", "--workers", "2"]) == 0
+    got = list(csv.DictReader(open(out2 / "summary.csv")))
+    assert sorted(r["status"] for r in got) == ["ok", "skipped"]  # skipped: as soon as met
+    assert "repeated scenario id" in next(r["reason"] for r in got if r["status"] == "skipped")
+    err = capsys.readouterr().err
+    assert "scenes/s per core" in err

@@ -158,3 +158,26 @@ def test_bad_scene_is_reported_and_others_continue(tmp_path, capsys):
     rc = main(["evaluate", "--policy", "nonsense", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"),
                "--out", str(tmp_path / "p")])
     assert rc == 1 and "nonsense: not a method" in capsys.readouterr().err
+
+
+def test_method_names(tmp_path):
+    """Issue 14: a checkpoint is named after its run, not ``latest``; ``--name`` names the policy
+    in the rollouts and the manifest; a built-in's name is refused."""
+    ckdir = tmp_path / "magail_run" / "checkpoints"
+    ckdir.mkdir(parents=True)
+    for stem in ("latest", "update_000020"):
+        (ckdir / f"{stem}.pt").write_bytes(b"x")
+    assert rl.method_name(str(ckdir / "latest.pt")) == "magail_run"
+    assert rl.method_name(str(ckdir / "update_000020.pt")) == "magail_run-update_000020"
+    out = tmp_path / "ev"
+    assert main(["evaluate", "--policy", "constvel", "--name", "cv_named", "--baselines",
+                 "logreplay", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"), "--rollouts", "1",
+                 "--out", str(out)]) == 0
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["methods"] == ["cv_named", "logreplay"] and man["policy"] == "cv_named"
+    assert (out / "rollouts" / "cv_named" / f"{SID}.parquet").is_file()
+    assert set(pd.read_parquet(out / "rollouts" / "cv_named" / f"{SID}.parquet").method) == \
+        {"cv_named"}
+    with pytest.raises(rl.EvaluationError, match="built-in"):
+        rl.evaluate([str(WOMD_DIR / f"{SID}.tfrecord")], "constvel", tmp_path / "e2",
+                    n_rollouts=1, baselines=["logreplay"], name="logreplay")

@@ -351,8 +351,8 @@ def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, mo
     old = _tree(again / SID)
     capsys.readouterr()
     _full_disk(monkeypatch, needle)
-    for out in (fresh, again):
-        assert main(["convert", src, "--out", str(out), "--no-baseline"]) == 1
+    for out in (fresh, again):  # --force: reconvert the bundle convert would skip as done
+        assert main(["convert", src, "--out", str(out), "--no-baseline", "--force"]) == 1
         err = capsys.readouterr().err
         _one_line_errors(err)
         assert "No space left on device" in err

@@ -58,13 +58,18 @@ def test_report_renders_in_headless_chromium(folder, tmp_path):
               "--disable-background-networking", "--disable-component-update", "--disable-sync",
               "--no-first-run", "--disable-dev-shm-usage"]
     dom = subprocess.run(common + [f"--user-data-dir={tmp_path / 'p1'}", "--dump-dom",
-                                   page.as_uri()],
+                                   "--virtual-time-budget=2500", page.as_uri()],
                          capture_output=True, text=True, timeout=120).stdout
     assert "<table" in dom
     for m in METHODS:
         assert re.search(rf"<tr><td>{m}</td>", dom), m
     imgs = re.findall(r'<img[^>]+src="data:image/png;base64,', dom)
     assert len(imgs) >= 2 + len(SCENES)  # bars, distributions, one overlay per scene
+    # the animated views ran: one player per scene, past its first frame, a canvas per panel
+    frames = dict(re.findall(r'<div class="anim" data-scene="([^"]+)" data-frame="(\d+)"', dom))
+    assert set(frames) == set(SCENES) and all(int(f) > 0 for f in frames.values()), frames
+    assert dom.count("<canvas") == len(SCENES) * (1 + len(METHODS))
+    assert '<table class="agents">' in dom
     shot = tmp_path / "shot.png"
     subprocess.run(common + [f"--user-data-dir={tmp_path / 'p2'}", f"--screenshot={shot}",
                              "--window-size=1200,1600", page.as_uri()],
@@ -73,6 +78,72 @@ def test_report_renders_in_headless_chromium(folder, tmp_path):
 
     pix = plt.imread(shot)
     assert pix.shape[0] >= 1000 and pix[..., :3].std() > 0.05  # not blank
+
+
+def test_invalid_states_never_drawn(folder):
+    """Issue 14: log replay carries (0, 0) at the log's invalid states; neither the static
+    panels nor the animated view draw a vertex there (NaN breaks the lines / null)."""
+    from magail_sumo.evaluation.report import animation, figures
+    from magail_sumo.evaluation.report.scoring import collect
+
+    sc = collect(folder)
+    sid = SCENES[0]
+    ro, valid = sc.rollouts[(sid, "logreplay")], sc.valid[(sid, "logreplay")]
+    assert (~valid).any()
+    pts = lambda x, y: set(zip(np.asarray(x, float).tolist(), np.asarray(y, float).tolist()))  # noqa: E731
+    bad = pts(ro.x[~valid], ro.y[~valid]) - pts(ro.x[valid], ro.y[valid])
+    tr = sc.scenes[sid].tracks
+    bad_log = pts(tr.x[~tr.valid], tr.y[~tr.valid]) - pts(tr.x[tr.valid], tr.y[tr.valid])
+    assert (0.0, 0.0) in bad and bad_log
+    fig = figures.trajectory_figure(sc, sid)
+    drawn = set()
+    for ax in fig.axes:
+        for line in ax.get_lines():
+            xy = line.get_xydata()
+            xy = xy[np.isfinite(xy).all(1)]
+            drawn |= pts(xy[:, 0], xy[:, 1])
+        for coll in ax.collections:
+            off = coll.get_offsets()
+            drawn |= pts(off[:, 0], off[:, 1])
+    assert drawn and not drawn & (bad | bad_log)
+    data = animation.scene_data(sc, sid)
+    panel = next(p for p in data["panels"] if p["name"] == "logreplay")
+    for a in range(ro.shape[1]):
+        xs = panel["x"][a][1:]
+        assert all(x is None for x, v in zip(xs, valid[0, a]) if not v)
+        assert all(x is not None for x, v in zip(xs, valid[0, a]) if v)
+    log = data["panels"][0]
+    rows = [int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id]
+    cur = sc.scenes[sid].current_time_index
+    for a, r in enumerate(rows):
+        v = tr.valid[r, cur:cur + 1 + ro.shape[2]]
+        assert [x is not None for x in log["x"][a][:len(v)]] == v.tolist()
+
+
+def test_agent_table_and_named_method(folder, tmp_path):
+    """Issue 14: the per-agent realism table (HTML and agents.csv) and a policy named with
+    ``evaluate --name`` reported under that name."""
+    dst = _copy(folder, tmp_path)
+    assert main(["evaluate", "--policy", "constvel", "--name", "cv_named", "--baselines", "none",
+                 "--scenes", *(str(WOMD_DIR / f"{s}.tfrecord") for s in SCENES),
+                 "--rollouts", "2", "--out", str(dst)]) == 0
+    assert main(["report", str(dst)]) == 0
+    rep = dst / "report"
+    assert list(pd.read_csv(rep / "summary.csv").method) == [*METHODS, "cv_named"]
+    agents = pd.read_csv(rep / "agents.csv")
+    n_eval = {"637f20cafde22ff8": 4, "850c48d8bbfa008f": 1}  # SDC + tracks to predict
+    assert len(agents) == sum(n_eval.values()) * (len(METHODS) + 1)
+    assert agents.groupby("scenario_id").object_id.nunique().to_dict() == n_eval
+    assert agents.sdc.sum() == len(SCENES) * (len(METHODS) + 1)
+    lr = agents[agents.method == "logreplay"]
+    assert (lr.ade == 0).all() and (lr.min_ade == 0).all()
+    cv = agents[agents.method == "constvel"].set_index(["scenario_id", "object_id"])
+    named = agents[agents.method == "cv_named"].set_index(["scenario_id", "object_id"])
+    pd.testing.assert_frame_equal(cv.drop(columns="method"), named.drop(columns="method"))
+    lik = agents.filter(like="_likelihood").to_numpy()
+    assert ((lik[np.isfinite(lik)] > 0) & (lik[np.isfinite(lik)] <= 1)).all()
+    page = (rep / "report.html").read_text()
+    assert '<table class="agents">' in page and "<td>cv_named</td>" in page
 
 
 def _copy(folder, tmp_path):
@@ -113,3 +184,19 @@ def test_bad_rollouts_are_reported_and_others_scored(folder, tmp_path, capsys):
     got = set(zip(metrics.scenario_id, metrics.method))
     assert got == {(b, "constvel"), (a, "ext")}
     assert "Problems" in (dst / "report" / "report.html").read_text()
+
+
+def test_scene_with_another_current_step_is_scored():
+    """A scene whose current step is not 10 (ScenarioNet scenes with a longer or shorter
+    history) is scored on its own 80 simulated steps instead of failing the report."""
+    import dataclasses
+
+    from magail_sumo.evaluation.report.scoring import score_pair
+
+    scene = load_scene(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
+    scene = dataclasses.replace(scene, current_time_index=5)
+    res = score_pair(scene, "logreplay", log_replay(scene, 2))
+    assert res.error is None, res.error
+    assert res.row["ade"] == 0.0 and res.row["average_displacement_error"] == 0.0
+    assert 0 < res.row["metametric"] <= 1 and res.agent_rows
+    assert sum(res.counts["linear_speed"][0]) > 0

@@ -4,11 +4,20 @@ Bad records and failing conversions (a worker that dies or hangs included) are r
 scene; the batch goes on. Two scenes whose ids map to the same bundle name
 (:class:`magail_sumo.outputs.NameRegistry`) are not both converted: the second is a failed row.
 The summary CSV keeps the original scenario ids and is written atomically.
+
+Resumable: a scene whose bundle already exists with status ``ok``, the same converter version
+(:func:`.scenario.converter_version`) and the same options (:func:`.scenario.options_key`) is
+not converted again but is a ``skipped`` row (its quality read from its ``conversion.json``),
+unless ``force``. A scenario id met a second time within one batch is a ``skipped`` row too
+(the bundle is the first one's: one folder per id). Memory stays flat over any number of
+scenes: records are read lazily, at most ``workers`` scenes are in flight, and rows hold only
+the small quality dict.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -17,7 +26,8 @@ from converters.scene_files import SceneRecord, iter_scene_records
 from magail_sumo.outputs import NameRegistry, OutputError, atomic_write, printable
 from magail_sumo.scene import Scene
 
-from .scenario import ConvertOptions, convert_scene
+from .scenario import (ConvertOptions, bundle_folder, convert_scene, converter_version,
+                       options_key)
 
 SUMMARY_COLUMNS = ("file", "record", "scenario_id", "status", "reason", "on_network_rate",
                    "route_rate", "signal_fidelity", "synthesized_lanes", "netconvert_warnings",
@@ -31,7 +41,7 @@ class BatchRow:
     file: str
     record: int | None
     scenario_id: str
-    status: str  # ok / failed / unreadable
+    status: str  # ok / skipped / failed / unreadable
     reason: str
     quality: dict
     seconds: float
@@ -44,6 +54,27 @@ class BatchRow:
                 q.get("signal_fidelity"), q.get("synthesized_lanes"), q.get("netconvert_warnings"),
                 base.get("ade"), base.get("fde"), base.get("collisions"), base.get("teleports"),
                 round(self.seconds, 3)]
+
+
+def converted_before(out: Path, scenario_id: str, options: ConvertOptions) -> dict | None:
+    """The ``conversion.json`` of ``scenario_id``'s bundle in ``out`` when it is a finished
+    conversion (status ok, all its files present) by this converter version with the same
+    options; else None."""
+    try:
+        folder = bundle_folder(out, scenario_id)
+        rep = json.loads((folder / "conversion.json").read_text())
+    except (OSError, ValueError, UnicodeDecodeError, OutputError):
+        return None
+    if not isinstance(rep, dict) or rep.get("status") != "ok" or \
+            rep.get("scenario_id") != scenario_id or \
+            rep.get("converter_version") != converter_version() or \
+            rep.get("options_key") != options_key(options):
+        return None
+    files = rep.get("files")
+    if not isinstance(files, list) or not files or \
+            not all(isinstance(f, str) and (folder / f).is_file() for f in files):
+        return None
+    return rep
 
 
 def _convert(job: tuple[str, int | None, Scene, str, ConvertOptions]) -> BatchRow:
@@ -65,12 +96,14 @@ KILL_GRACE_S = 60.0
 
 def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
                   options: ConvertOptions | None = None,
-                  timeout_s: float | None = None) -> Iterator[BatchRow]:
-    """Rows for every record of ``inputs``: scenes in input order, an unreadable record as soon
-    as it is met.
+                  timeout_s: float | None = None, force: bool = False) -> Iterator[BatchRow]:
+    """Rows for every record of ``inputs``: scenes in input order, an unreadable record or a
+    skipped scene as soon as it is met.
 
     A scene that fails in any way (its conversion fails, raises, its worker process dies or
-    hangs) is a ``failed`` row with the reason; the batch goes on.
+    hangs) is a ``failed`` row with the reason; the batch goes on. A scene already converted
+    with this converter version and options, or whose id was met before in this batch, is a
+    ``skipped`` row (see the module doc); ``force`` reconverts the former.
 
     :param workers: > 1: each scene is converted in a fresh worker process
         (:func:`magail_sumo.workers.run_jobs`), killed after ``timeout_s`` seconds (default:
@@ -84,6 +117,7 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
         timeout_s = opts.time_budget_s + KILL_GRACE_S
 
     names = NameRegistry()
+    seen: dict[str, str] = {}  # scenario id -> where it was first met (file#record)
 
     def jobs() -> Iterator[tuple | BatchRow]:
         for rec in records:
@@ -91,12 +125,26 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
                 yield BatchRow(str(rec.path), rec.index, "", "unreadable",
                                printable(str(rec.error), 1000), {}, 0.0)
                 continue
+            sid = rec.scene.scenario_id
             try:
-                names.name(rec.scene.scenario_id)
+                names.name(sid)
             except OutputError as exc:
-                yield BatchRow(str(rec.path), rec.index, rec.scene.scenario_id, "failed",
-                               str(exc), {}, 0.0)
+                yield BatchRow(str(rec.path), rec.index, sid, "failed", str(exc), {}, 0.0)
                 continue
+            if sid in seen:
+                yield BatchRow(str(rec.path), rec.index, sid, "skipped",
+                               f"{printable(sid)}: repeated scenario id (first met at "
+                               f"{seen[sid]}); one bundle per id", {}, 0.0)
+                continue
+            seen[sid] = f"{printable(str(rec.path))}#{rec.index}"
+            if not force:
+                done = converted_before(Path(out), sid, opts)
+                if done is not None:
+                    yield BatchRow(str(rec.path), rec.index, sid, "skipped",
+                                   f"{printable(sid)}: already converted (converter "
+                                   f"{done['converter_version']}, same options; --force "
+                                   "reconverts)", done.get("quality") or {}, 0.0)
+                    continue
             yield (str(rec.path), rec.index, rec.scene, str(out), opts)
 
     if workers <= 1:
@@ -110,7 +158,7 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
                 row = _failed(job, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
             yield row
         return
-    unreadable: list[BatchRow] = []  # reported as soon as met, like the in-process path
+    unreadable: list[BatchRow] = []  # (and skipped) reported as soon as met, like in-process
 
     def scene_jobs() -> Iterator[tuple]:
         for job in jobs():

@@ -41,6 +41,11 @@ from .topology import TimeBudgetExceeded, plan_network
 
 STEP_LENGTH = 0.1  #: s
 
+#: Version of the converter's outputs, recorded in ``conversion.json`` (``converter_version``,
+#: with a digest of this package's sources appended: see :func:`converter_version`). ``convert``
+#: skips a scene whose bundle has the same version and options; bump it when outputs change.
+CONVERTER_VERSION = "1"
+
 
 @dataclass
 class ConvertOptions:
@@ -54,6 +59,32 @@ class ConvertOptions:
     time_budget_s: float | None = 600.0
     #: also write ``<id>.xodr`` (OpenDRIVE, :mod:`converters.sumo.opendrive`)
     opendrive: bool = False
+
+
+def converter_version() -> str:
+    """``CONVERTER_VERSION`` plus a digest of the ``converters/sumo`` sources, so that a changed
+    converter never reuses a bundle written by another one."""
+    global _VERSION
+    if _VERSION is None:
+        import hashlib
+
+        h = hashlib.sha256()
+        for f in sorted(Path(__file__).parent.glob("*.py")):
+            h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+        _VERSION = f"{CONVERTER_VERSION}+{h.hexdigest()[:12]}"
+    return _VERSION
+
+
+_VERSION: str | None = None
+
+
+def options_key(options: ConvertOptions) -> str:
+    """Digest of the options that affect a bundle's files (all but ``time_budget_s``)."""
+    import dataclasses
+    import hashlib
+
+    d = {k: v for k, v in dataclasses.asdict(options).items() if k != "time_budget_s"}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=repr).encode()).hexdigest()[:16]
 
 
 @dataclass
@@ -73,11 +104,14 @@ class ConversionReport:
     #: and ``signals`` (traffic-light sanity,
     #: :func:`magail_sumo.evaluation.signal_sanity.signal_sanity`)
     data_quality: dict[str, Any] = field(default_factory=dict)
+    converter_version: str = ""  #: :func:`converter_version` of the converter that wrote it
+    options_key: str = ""  #: :func:`options_key` of the options it was written with
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
                                               "unconverted", "synthesized", "timings", "quality",
-                                              "data_quality")}
+                                              "data_quality",
+                                              "converter_version", "options_key")}
 
 
 def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
@@ -194,7 +228,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
     opts = options or ConvertOptions()
     sid = scene.scenario_id
     name = safe_name(sid)  # file names; sid stays the id in conversion.json and messages
-    rep = ConversionReport(sid, data_quality=scene.data_quality.to_dict())
+    rep = ConversionReport(sid, data_quality=scene.data_quality.to_dict(),
+                           converter_version=converter_version(),
+                           options_key=options_key(opts))
     try:
         final = bundle_folder(out_root, sid)
         _check_replaceable(final, sid)

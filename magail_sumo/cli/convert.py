@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import time
 from pathlib import Path
 
 from magail_sumo.cli.argtypes import timeout_s
@@ -31,6 +33,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--opendrive", action="store_true",
                    help="also write DIR/<scenario_id>/<scenario_id>.xodr (OpenDRIVE, through "
                         "netconvert)")
+    p.add_argument("--force", action="store_true",
+                   help="reconvert scenes whose bundle in DIR was already converted by this "
+                        "converter version with the same options (default: skip them)")
     p.add_argument("--timeout-s", type=timeout_s, default=600.0, metavar="S",
                    help="seconds one scene may take before it is reported failed (its worker "
                         "is killed with --workers > 1; default 600; 'none': no limit)")
@@ -71,12 +76,16 @@ def run(args: argparse.Namespace) -> int:
     opts = ConvertOptions(cycle_signals=args.cycle_signals, baseline=not args.no_baseline,
                           time_budget_s=args.timeout_s, opendrive=args.opendrive)
     rows = []
-    for row in progress(convert_files(args.inputs, args.out, max(args.workers, 1), opts),
+    workers = max(args.workers, 1)
+    clock = time.perf_counter()
+    for row in progress(convert_files(args.inputs, args.out, workers, opts, force=args.force),
                         desc="scenes", unit="scene"):
         rows.append(row)
         if row.status == "ok":
             print(format_quality(printable(row.scenario_id), row.quality,
                                  args.out / safe_name(row.scenario_id)), flush=True)
+        elif row.status == "skipped":
+            print(f"skipped: {_line(row.reason)}", flush=True)
         else:
             print(f"error: {_line(row.reason)}", file=sys.stderr, flush=True)
             if not args.skip_bad:
@@ -89,10 +98,15 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise OutputError(f"{args.out / 'summary.csv'}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None
+    wall = time.perf_counter() - clock
     ok = sum(r.status == "ok" for r in rows)
-    bad = len(rows) - ok
-    print(f"converted {ok} scene(s), {bad} failed or unreadable; summary: "
+    skipped = sum(r.status == "skipped" for r in rows)
+    bad = len(rows) - ok - skipped
+    cores = min(workers, os.cpu_count() or 1)
+    rate = f"{ok / wall / cores:.3f}" if ok and wall > 0 else "n/a"
+    print(f"converted {ok} scene(s), {skipped} skipped (already converted), {bad} failed or "
+          f"unreadable in {wall:.1f} s: {rate} scenes/s per core ({cores} core(s)); summary: "
           f"{args.out / 'summary.csv'}", file=sys.stderr)
     if bad and not args.skip_bad:
         return 1
-    return 0 if ok else 1
+    return 0 if ok or skipped else 1

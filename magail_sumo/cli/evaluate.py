@@ -19,6 +19,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "by magail-sumo).")
     p.add_argument("--policy", required=True, metavar="POLICY",
                    help="logreplay | constvel | sumo | random | CHECKPOINT | module:factory")
+    p.add_argument("--name", metavar="NAME",
+                   help="method name of the policy in the rollouts, manifest and report "
+                        "(default: the built-in's name; a checkpoint RUN/checkpoints/latest.pt: "
+                        "RUN's folder name; a factory's name)")
     p.add_argument("--scenes", nargs="+", required=True, metavar="FILE",
                    help="scene files (WOMD TFRecords, ScenarioNet pickles or folders)")
     p.add_argument("--rollouts", type=int, default=32, metavar="R", help="rollouts per scene")
@@ -57,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
                        baselines=base, seed=args.seed, workers=args.workers,
                        networks=args.networks, submission=args.export_submission,
-                       timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts)
+                       timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
+                       name=args.name)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
         raise OutputError(f"{exc.filename or args.out}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None

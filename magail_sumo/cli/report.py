@@ -20,6 +20,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    metavar=("NAME", "FILE.binproto"),
                    help="also score an external SimAgentsChallengeSubmission as method NAME "
                         "(repeatable)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="processes scoring the scenes and methods (default: up to 2, one per "
+                        "core; 1: in this process)")
     p.set_defaults(func=run)
 
 
@@ -31,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     for name, path in args.submission:
         subs.setdefault(name, []).append(path)
     try:
-        res = build_report(args.folder, args.out, subs)
+        res = build_report(args.folder, args.out, subs, args.workers)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
         raise OutputError(f"{exc.filename or args.out or args.folder}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None

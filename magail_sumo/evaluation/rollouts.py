@@ -149,12 +149,18 @@ def _built(spec: str, factory: Callable, *args) -> Policy:
 
 
 def method_name(spec: str) -> str:
-    """Name a method is stored under: the spec itself for built-ins, else the file stem /
-    factory name."""
+    """Name a method is stored under (``evaluate --name`` overrides it): the spec itself for
+    built-ins; for a checkpoint in a run's ``checkpoints/`` folder the run folder's name
+    (``runs/magail/checkpoints/latest.pt`` -> ``magail``; another file there -> ``magail-<stem>``,
+    e.g. ``magail-update_000020``); another file's stem; a factory's name."""
     if spec in BASELINES + BUILTIN_POLICIES:
         return spec
-    if Path(spec).is_file():
-        return Path(spec).stem
+    p = Path(spec)
+    if p.is_file():
+        run = p.resolve().parent
+        if run.name == "checkpoints" and run.parent.name:
+            return run.parent.name if p.stem == "latest" else f"{run.parent.name}-{p.stem}"
+        return p.stem
     return spec.rpartition(":")[2] or spec
 
 
@@ -749,8 +755,8 @@ def _bundle(scene: Scene, networks: Path | None, out: Path,
 def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
              baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
              networks: str | Path | None = None, submission: str | Path | None = None,
-             timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0
-             ) -> EvaluationResult:
+             timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0,
+             name: str | None = None) -> EvaluationResult:
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
     ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``; with
     ``fcd_rollouts`` > 0 the first that many rollouts of every scene and method also as SUMO
@@ -764,7 +770,10 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     worker that dies, or one running past ``timeout_s`` seconds: killed) are reported (stderr,
     one line each) and the rest goes on.
 
-    :raises EvaluationError: an unknown baseline, an unusable policy spec or bad counts.
+    :param name: the policy's method name (default :func:`method_name` of the spec); rollouts,
+        the manifest and the report use it.
+    :raises EvaluationError: an unknown baseline, an unusable policy spec, bad counts or a
+        name that is empty, not printable or another method's.
     """
     from converters.scene_files import iter_scene_records
     from magail_sumo.evaluation.submission import validate_rollouts, write_submission
@@ -781,6 +790,13 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
         make_policy(policy, seed)  # fail early on an unusable spec
     specs = list(dict.fromkeys([policy, *baselines]))
     names = {s: method_name(s) for s in specs}
+    if name is not None:
+        if not name.strip() or not name.isprintable() or len(name) > 100:
+            raise EvaluationError(f"--name {printable(name)!r}: must be a non-empty printable "
+                                  "name of at most 100 characters")
+        if name in BASELINES + BUILTIN_POLICIES and name != policy:
+            raise EvaluationError(f"--name {name!r}: is a built-in method's name")
+        names[policy] = name
     method_files = NameRegistry()
     for s in specs:
         method_files.name(names[s])

@@ -1,9 +1,11 @@
 """Evaluation report of a ``magail-sumo evaluate`` folder: metric table against the baselines,
 bar charts, sim-vs-log distributions, top-down trajectory overlays and the realism breakdown.
 
-``build_report(DIR)`` writes ``DIR/report/report.html`` (self-contained), ``report.md`` (with
-``img/*.png``), ``metrics.csv`` (one row per scene and method, every field) and
-``summary.csv`` (mean over scenes per method). The report folder must be new, empty or written
+``build_report(DIR)`` writes ``DIR/report/report.html`` (self-contained: figures inlined, an
+animated player per scene), ``report.md`` (with ``img/*.png``), ``metrics.csv`` (one row per
+scene and method, every field), ``agents.csv`` (one row per scene, method and evaluated agent:
+realism likelihoods, ADE / minADE, collision and off-road rates) and ``summary.csv`` (mean
+over scenes per method). The report folder must be new, empty or written
 by magail_sumo (:func:`~magail_sumo.outputs.claim_output_dir`); every file is written
 atomically and image names from scenario ids go through :func:`~magail_sumo.outputs.safe_name`.
 """
@@ -17,9 +19,9 @@ from pathlib import Path
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
 
-from . import figures
+from . import animation, figures
 from .render import REALISM_FIELDS, Document
-from .scoring import Scores, collect, method_means
+from .scoring import AGENT_FIELDS, Scores, collect, method_means
 
 #: Traffic metrics in the main table, in order.
 MAIN = ["ade", "min_ade", "fde", "collision_rate", "offroad_rate", "red_light_rate",
@@ -34,6 +36,7 @@ class ReportFiles:
     markdown: Path
     metrics_csv: Path
     summary_csv: Path
+    agents_csv: Path
     errors: tuple[str, ...]
     scores: Scores
 
@@ -46,14 +49,15 @@ def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
 
 
 def build_report(folder: str | Path, out: str | Path | None = None,
-                 submissions: dict[str, list[str]] | None = None) -> ReportFiles:
-    """Score ``folder`` (see :func:`~magail_sumo.evaluation.report.scoring.collect`) and write
-    the report into ``out`` (default ``folder/report``)."""
+                 submissions: dict[str, list[str]] | None = None,
+                 workers: int | None = None) -> ReportFiles:
+    """Score ``folder`` (see :func:`~magail_sumo.evaluation.report.scoring.collect`, scored in
+    ``workers`` processes) and write the report into ``out`` (default ``folder/report``)."""
     folder = Path(folder)
     out = Path(out) if out else folder / "report"
     claim_output_dir(out, "report", ["report.html", "report.md", "metrics.csv", "summary.csv",
-                                     "img"])
-    sc = collect(folder, submissions)
+                                     "agents.csv", "img"])
+    sc = collect(folder, submissions, workers)
     units = {n: METRICS[n].unit for n in METRICS}
     means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
     man = sc.manifest
@@ -84,7 +88,7 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     doc.table(["method"] + [printable(s) for s in sids], [[m, *(per[(s, m)]["metametric"] if (s, m) in per
                                          else float("nan") for s in sids)]
                                   for m in sc.methods], "per-scene")
-    if sc.inputs:
+    if sc.counts:
         doc.heading("Simulated vs logged distributions")
         doc.image(figures.distributions(sc, [("linear_speed", "speed (m/s)"),
                                              ("linear_acceleration", "acceleration (m/s²)"),
@@ -95,6 +99,29 @@ def build_report(folder: str | Path, out: str | Path | None = None,
             if any((sid, m) in sc.rollouts for m in sc.methods):
                 doc.image(figures.trajectories(sc, sid), f"traj_{safe_name(sid)}",
                           f"top-down trajectories of scene {printable(sid)}")
+        doc.heading("Animated scenes")
+        doc.para("Log (left) vs the first rollout of each method, 10 Hz from the current step; "
+                 "play / pause, or drag the slider.")
+        for sid in sids:
+            if any((sid, m) in sc.rollouts for m in sc.methods):
+                doc.heading(printable(sid), 3)
+                doc.raw(animation.scene_animation(sc, sid),
+                        "(animated view: see report.html)")
+        doc.css.append(animation.CSS)
+        doc.scripts.append(animation.SCRIPT)
+    if sc.agent_rows:
+        doc.heading("Realism per agent")
+        doc.para("Per evaluated agent (the SDC and the tracks to predict): each realism "
+                 "feature's likelihood, ADE / minADE over rollouts (m) and the share of "
+                 "rollouts in which it collides / goes off-road.")
+        order = {m: k for k, m in enumerate(sc.methods)}
+        arows = sorted(sc.agent_rows, key=lambda r: (r["scenario_id"], r["object_id"],
+                                                     order.get(r["method"], 0)))
+        short = [f.replace("_likelihood", "") for f in AGENT_FIELDS]
+        doc.table(["scene", "agent", "type", "method", *short],
+                  [[printable(r["scenario_id"], 40), f"{r['object_id']}{' (SDC)' if r['sdc'] else ''}",
+                    r["type"], r["method"], *(r[f] for f in AGENT_FIELDS)] for r in arows],
+                  "agents")
     if sc.errors:
         doc.heading("Problems")
         doc.errors(sc.errors)
@@ -104,8 +131,12 @@ def build_report(folder: str | Path, out: str | Path | None = None,
         [f for f in sc.rows[0] if f not in METRICS and f not in ("scenario_id", "method",
                                                                   "rollouts")] if sc.rows else []
     metrics_csv, summary_csv = out / "metrics.csv", out / "summary.csv"
+    agents_csv = out / "agents.csv"
+    afields = ["scenario_id", "method", "object_id", "type", "sdc", *AGENT_FIELDS]
+    _write_csv(agents_csv, afields, [[r[f] for f in afields] for r in sc.agent_rows])
     _write_csv(metrics_csv, all_fields, [[r.get(f) for f in all_fields] for r in sc.rows])
     sfields = ["metametric", *MAIN, *REALISM_FIELDS]
     _write_csv(summary_csv, ["method", *sfields],
                [[m, *(means[m][f] for f in sfields)] for m in sc.methods])
-    return ReportFiles(html_path, md_path, metrics_csv, summary_csv, tuple(sc.errors), sc)
+    return ReportFiles(html_path, md_path, metrics_csv, summary_csv, agents_csv,
+                       tuple(sc.errors), sc)

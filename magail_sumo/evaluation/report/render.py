@@ -52,6 +52,13 @@ class Document:
         self.md: list[str] = [f"# {title}"]
         self.img_dir = img_dir
         self._n = 0
+        self.css: list[str] = []  #: extra style sheets
+        self.scripts: list[str] = []  #: inline scripts run at the end of the page
+
+    def raw(self, fragment: str, md: str) -> None:
+        """An HTML fragment (trusted: built by the report itself) and its Markdown stand-in."""
+        self.html.append(fragment)
+        self.md.append(md)
 
     def heading(self, text: str, level: int = 2) -> None:
         self.html.append(f"<h{level}>{html.escape(text)}</h{level}>")
@@ -80,8 +87,9 @@ class Document:
 
     def write(self, html_path: Path, md_path: Path) -> None:
         page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>"
-                f"{html.escape(self.title)}</title><style>{CSS}</style></head><body>"
-                + "\n".join(self.html) + "</body></html>\n")
+                f"{html.escape(self.title)}</title><style>{CSS}{''.join(self.css)}</style></head>"
+                "<body>" + "\n".join(self.html)
+                + "".join(f"<script>{js}</script>" for js in self.scripts) + "</body></html>\n")
         write_bytes(html_path, page.encode("utf-8"))  # atomic: the old file or the new one
         write_bytes(md_path, ("\n\n".join(self.md) + "\n").encode("utf-8"))
 

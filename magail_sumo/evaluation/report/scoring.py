@@ -4,24 +4,37 @@ Reads ``DIR/manifest.json`` and ``DIR/rollouts/<method>/<scenario_id>.parquet`` 
 ``magail-sumo evaluate``), optionally plus external submissions. Every rollout set is checked
 against its scene (agent set, 80 steps, finite values); a bad one gives a one-line error naming
 the scene / agent and the others are still scored.
+
+Per (scene, method) the realism features are computed once and give both the scene's fields
+and the per-agent rows (:func:`agent_metrics`); the states a method marks invalid (``valid``
+column; log replay where the log has none) are kept as a mask so figures never draw them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.realism import scenario_metrics
+from magail_sumo.evaluation.realism.config import CHALLENGE_2025, Bernoulli, Histogram
+from magail_sumo.evaluation.realism.estimators import (
+    bernoulli_log_likelihood, histogram_log_likelihood,
+)
+from magail_sumo.evaluation.realism.metrics import (
+    _FLAGS, _MASKS, Features, compute_features, metrics_from_features,
+)
+from magail_sumo.evaluation.realism.trajectories import joint_trajectories
+from magail_sumo.evaluation.realism import kinematic
 from magail_sumo.evaluation.rollouts import N_STEPS, read_manifest, read_rollouts, rollouts_path
 from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
 )
 from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
 from magail_sumo.outputs import OutputError, printable
-from magail_sumo.scene import Scene
+from magail_sumo.scene import ObjectType, Scene
 
 
 @dataclass
@@ -29,18 +42,83 @@ class Scores:
     """Everything a report shows.
 
     :param rows: one dict per (scenario_id, method): traffic metrics and realism fields.
-    :param inputs: the metric inputs (features) per (scenario_id, method), for figures.
+    :param counts: per (scenario_id, method), per :data:`FIGURE_FEATURES` feature, the log's
+        and the rollouts' histogram counts on the feature's bins (for the distribution figure).
     :param rollouts: the rollouts per (scenario_id, method).
     :param errors: one-line problems (scene / method / agent named).
+    :param agent_rows: one dict per (scenario_id, method, evaluated agent): see
+        :func:`agent_metrics`.
+    :param valid: per (scenario_id, method), (R, A, T) bool: the states the method marked
+        valid (absent: all valid).
     """
 
     manifest: dict
     scenes: dict[str, Scene]
     methods: list[str]
     rows: list[dict] = field(default_factory=list)
-    inputs: dict[tuple[str, str], MetricInput] = field(default_factory=dict)
+    counts: dict[tuple[str, str], dict[str, tuple[np.ndarray, np.ndarray]]] = \
+        field(default_factory=dict)
     rollouts: dict[tuple[str, str], ScenarioRollouts] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
+    agent_rows: list[dict] = field(default_factory=list)
+    valid: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+
+
+#: Per-agent columns of :func:`agent_metrics` (after scenario_id, method, object_id, type).
+AGENT_FIELDS = [f"{fc.name}_likelihood" for fc in CHALLENGE_2025.features] + [
+    "ade", "min_ade", "collision_rate", "offroad_rate"]
+
+
+def agent_metrics(feat: Features, config=CHALLENGE_2025) -> dict[str, np.ndarray]:
+    """Per evaluated agent (E,): each realism feature's likelihood (histogram features: exp of
+    the mean log-likelihood over that agent's masked steps, NaN where it has none; Bernoulli
+    features: the likelihood of its logged flag), ADE and minADE over rollouts (m), and the
+    share of rollouts in which it collides / goes off-road — the per-agent parts of
+    :func:`~magail_sumo.evaluation.realism.metrics.metrics_from_features`."""
+    valid = feat.valid
+    speed_mask = kinematic.central_valid(valid)
+    masks = {"valid": valid, "speed": speed_mask, "accel": kinematic.central_valid(speed_mask),
+             "vehicle": valid & feat.is_vehicle[:, None]}
+    flag_mask = {"collision_indication": valid, "offroad_indication": valid,
+                 "traffic_light_violation": valid & feat.is_vehicle[:, None]}
+    out: dict[str, np.ndarray] = {}
+    flags = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for fc in config.features:
+            if isinstance(fc.estimator, Histogram):
+                vals = feat.values[fc.name]
+                ll = histogram_log_likelihood(vals[0], vals[1:], fc.estimator)
+                m = masks[_MASKS[fc.name]]
+                out[f"{fc.name}_likelihood"] = np.exp(np.where(m, ll, 0.0).sum(1) / m.sum(1))
+            else:
+                assert isinstance(fc.estimator, Bernoulli)
+                f = (feat.values[_FLAGS[fc.name]] & flag_mask[fc.name]).any(-1)
+                flags[fc.name] = f
+                out[f"{fc.name}_likelihood"] = np.exp(
+                    bernoulli_log_likelihood(f[0], f[1:], fc.estimator))
+        lv = feat.log_valid_all
+        ade = np.where(lv[None], feat.displacement, 0).sum(-1) / lv.sum(-1)  # (R, E)
+    out["ade"] = ade.mean(0)
+    out["min_ade"] = ade.min(0)
+    out["collision_rate"] = flags["collision_indication"][1:].mean(0)
+    out["offroad_rate"] = flags["offroad_indication"][1:].mean(0)
+    return out
+
+
+def read_valid(path: Path, scene: Scene, ro: ScenarioRollouts) -> np.ndarray | None:
+    """(R, A, T) ``valid`` column of a rollouts file over the simulated steps, in
+    :func:`~magail_sumo.evaluation.rollouts.read_rollouts`' order; None when all are valid."""
+    import pandas as pd
+
+    try:
+        df = pd.read_parquet(path, columns=["rollout", "object_id", "step", "valid"])
+        fut = df[df["step"] > scene.current_time_index]
+        if bool(fut["valid"].all()):
+            return None
+        fut = fut.sort_values(["rollout", "object_id", "step"])
+        return fut["valid"].to_numpy(bool).reshape(ro.shape)
+    except Exception:  # noqa: BLE001 - read_rollouts accepted the file: draw every state
+        return None
 
 
 def load_scenes(manifest: dict, errors: list[str]) -> dict[str, Scene]:
@@ -61,54 +139,207 @@ def load_scenes(manifest: dict, errors: list[str]) -> dict[str, Scene]:
     return got
 
 
-def score(scores: Scores, sid: str, method: str, ro: ScenarioRollouts) -> None:
-    """Validate and score one rollout set (errors are recorded, not raised)."""
-    scene = scores.scenes[sid]
+def _eval_subset(feat: Features, n_eval: int) -> Features:
+    """The features of the first ``n_eval`` agents (the evaluated ones): every feature of an
+    agent depends only on its own row against all objects, so this equals computing the
+    realism features with ``n_eval`` evaluated agents."""
+    return Features(feat.object_id[:n_eval], feat.is_vehicle[:n_eval], feat.valid[:n_eval],
+                    {k: v[:, :n_eval] for k, v in feat.values.items()},
+                    feat.displacement[:, :n_eval], feat.log_valid_all[:n_eval])
+
+
+#: Features whose log / rollout histograms the report's distribution figure pools over scenes.
+FIGURE_FEATURES = ("linear_speed", "linear_acceleration", "time_to_collision")
+
+
+def _counts(values: np.ndarray, feature: str) -> np.ndarray:
+    """Histogram counts of ``values`` on the feature's bins (as
+    :func:`~magail_sumo.evaluation.traffic.distributions.histogram`, not normalised)."""
+    from magail_sumo.evaluation.traffic.distributions import BINS
+
+    lo, hi, n = BINS[feature]
+    edges = np.linspace(lo, hi, n + 1)
+    idx = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, n - 1)
+    return np.bincount(idx, minlength=n).astype(np.int64)
+
+
+@dataclass
+class PairScore:
+    """The scores of one (scene, method): its metrics row, its per-agent rows and the
+    histogram counts of :data:`FIGURE_FEATURES`; or the one-line ``error``."""
+
+    scenario_id: str
+    method: str
+    row: dict | None = None
+    agent_rows: list[dict] = field(default_factory=list)
+    counts: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    error: str | None = None
+
+
+def score_pair(scene: Scene, method: str, ro: ScenarioRollouts) -> PairScore:
+    """Validate and score one rollout set; never raises (a failure is ``error``).
+
+    The features of all sim agents are computed once (the traffic metrics need them all) and
+    the realism fields use the evaluated agents' rows; the simulated steps start after the
+    scene's own current step (a scene recorded with another history length is scored on its
+    80 simulated steps like any other)."""
+    sid = scene.scenario_id
+    res = PairScore(sid, method)
     try:
         validate_rollouts(ro, scene, ro.shape[0], N_STEPS)
-        realism = scenario_metrics(scene, ro, validate=False)
-        inp = MetricInput.build(scene, ro)
+        config = CHALLENGE_2025
+        if scene.current_time_index != config.current_time_index:
+            config = dataclasses.replace(config, current_time_index=scene.current_time_index)
+        jt = joint_trajectories(scene, ro)
+        n_eval = jt.n_eval
+        jt = dataclasses.replace(jt, n_eval=len(jt.object_id))
+        feat_all = compute_features(scene, jt, config)
+        feat = _eval_subset(feat_all, n_eval)
+        realism = metrics_from_features(feat, config)
+        per_agent = agent_metrics(feat, config)
+        fut = slice(scene.current_time_index + 1, None)
+        inp = MetricInput(scene, jt, feat_all, jt.x[..., fut], jt.y[..., fut],
+                          jt.heading[..., fut], jt.log_valid[:, fut],
+                          jt.object_type == int(ObjectType.VEHICLE))
         traffic = compute_metrics(inp)
+        for name in FIGURE_FEATURES:
+            lv, sv = inp.log_and_sim(name)
+            res.counts[name] = (_counts(lv, name), _counts(sv, name))
     except SubmissionError as exc:
-        scores.errors.append(f"method {method}: {exc}")
-        return
+        res.error = f"method {method}: {exc}"
+        return res
     except ValueError as exc:
-        scores.errors.append(f"method {method}: scenario {sid}: {exc}")
+        res.error = f"method {method}: scenario {printable(sid)}: {exc}"
+        return res
+    except Exception as exc:  # noqa: BLE001 - one scene's failure, the others are scored
+        res.error = (f"method {method}: scenario {printable(sid)}: cannot score "
+                     f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]})")
+        return res
+    res.row = {"scenario_id": sid, "method": method, "rollouts": ro.shape[0],
+               **traffic, **realism}
+    tr = scene.tracks
+    for k, oid in enumerate(feat.object_id):
+        row = int(np.flatnonzero(tr.id == oid)[0])
+        res.agent_rows.append({
+            "scenario_id": sid, "method": method, "object_id": int(oid),
+            "type": ObjectType(int(tr.type[row])).name.lower(),
+            "sdc": row == scene.sdc_track_index,
+            **{f: float(per_agent[f][k]) for f in AGENT_FIELDS}})
+    return res
+
+
+def _add(scores: Scores, res: PairScore, ro: ScenarioRollouts,
+         valid: np.ndarray | None) -> None:
+    if res.error is not None:
+        scores.errors.append(res.error)
         return
-    scores.rows.append({"scenario_id": sid, "method": method, "rollouts": ro.shape[0],
-                        **traffic, **realism})
-    scores.inputs[(sid, method)] = inp
-    scores.rollouts[(sid, method)] = ro
-    if method not in scores.methods:
-        scores.methods.append(method)
+    key = (res.scenario_id, res.method)
+    scores.rows.append(res.row)  # type: ignore[arg-type]
+    scores.agent_rows.extend(res.agent_rows)
+    scores.counts[key] = res.counts
+    scores.rollouts[key] = ro
+    if valid is not None:
+        scores.valid[key] = valid
+    if res.method not in scores.methods:
+        scores.methods.append(res.method)
 
 
-def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None) -> Scores:
+def score(scores: Scores, sid: str, method: str, ro: ScenarioRollouts,
+          valid: np.ndarray | None = None) -> None:
+    """Validate and score one rollout set into ``scores`` (errors are recorded, not raised)."""
+    _add(scores, score_pair(scores.scenes[sid], method, ro), ro, valid)
+
+
+def _read_pair(folder: Path, method: str, scene: Scene
+               ) -> tuple[ScenarioRollouts, np.ndarray | None] | str:
+    """The rollouts and valid mask of (method, scene), or a one-line error."""
+    sid = scene.scenario_id
+    try:
+        path = rollouts_path(folder, method, sid)
+    except OutputError as exc:
+        return f"method {printable(method)}: {exc}"
+    if not path.is_file():
+        return f"method {printable(method)}: scenario {printable(sid)}: no rollouts ({path})"
+    try:
+        ro = read_rollouts(path, scene)
+    except MagailSumoError as exc:
+        return f"method {method}: {' '.join(str(exc).split())}"
+    return ro, read_valid(path, scene, ro)
+
+
+def _score_job(job: tuple[str, str, str, list[str]]) -> list[tuple]:
+    """Worker: score the given methods of one scene (read from its file) of a folder.
+
+    :returns: per method ``("ok", PairScore, rollouts, valid)`` or ``("error", message)``."""
+    import numba
+
+    from converters import iter_scenes
+
+    # the workers share the cores: one numba thread each (numba's parallel kernels would
+    # otherwise start a thread per core in every worker and spin against each other)
+    numba.set_num_threads(1)
+    folder, scene_file, sid, methods = job
+    scene = next(s for s in iter_scenes(scene_file) if s.scenario_id == sid)
+    out: list[tuple] = []
+    for m in methods:
+        got = _read_pair(Path(folder), m, scene)
+        if isinstance(got, str):
+            out.append(("error", got))
+        else:
+            out.append(("ok", score_pair(scene, m, got[0]), *got))
+    return out
+
+
+def default_workers() -> int:
+    """Scoring processes by default: up to 2, one per core."""
+    import os
+
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
+            workers: int | None = None) -> Scores:
     """Score every method and scene of an evaluation folder, plus named external submissions
     (``{method name: [submission files]}``; a scenario not among the folder's scenes is an
-    error)."""
+    error).
+
+    :param workers: > 1: the (scene, method) pairs are scored in that many worker processes
+        (:func:`magail_sumo.workers.run_jobs`; jobs of a few methods of one scene each); the
+        result is the same as in-process scoring (default :func:`default_workers`)."""
     folder = Path(folder)
     manifest = read_manifest(folder)
     errors: list[str] = []
     scenes = load_scenes(manifest, errors)
     scores = Scores(manifest, scenes, [], errors=errors)
-    for method in manifest.get("methods", []):
+    methods = list(manifest.get("methods", []))
+    workers = default_workers() if workers is None else max(1, int(workers))
+    results: dict[tuple[str, str], tuple] = {}
+    if workers > 1 and len(scenes) * len(methods) > 1:
+        from magail_sumo.workers import run_jobs
+
+        files = {s["scenario_id"]: s["file"] for s in manifest.get("scenes", [])}
+        # about 4 jobs per worker: a few methods of one scene each
+        per = max(1, -(-len(methods) * len(scenes) // (4 * workers)))
+        jobs = [(str(folder), files[sid], sid, methods[i:i + per])
+                for sid in scenes for i in range(0, len(methods), per)]
+        for res in run_jobs(_score_job, jobs, workers=workers, ordered=True):
+            _, _, sid, ms = res.job
+            for k, m in enumerate(ms):
+                results[(m, sid)] = res.value[k] if res.ok else \
+                    ("error", f"method {printable(m)}: scenario {printable(sid)}: cannot "
+                              f"score ({res.reason})")
+    for method in methods:
         for sid in scenes:
-            try:
-                path = rollouts_path(folder, method, sid)
-            except OutputError as exc:
-                scores.errors.append(f"method {printable(method)}: {exc}")
-                continue
-            if not path.is_file():
-                scores.errors.append(f"method {printable(method)}: scenario {printable(sid)}: "
-                                     f"no rollouts ({path})")
-                continue
-            try:
-                ro = read_rollouts(path, scenes[sid])
-            except MagailSumoError as exc:
-                scores.errors.append(f"method {method}: {' '.join(str(exc).split())}")
-                continue
-            score(scores, sid, method, ro)
+            if (method, sid) in results:
+                item = results.pop((method, sid))
+            else:
+                got = _read_pair(folder, method, scenes[sid])
+                item = ("error", got) if isinstance(got, str) else \
+                    ("ok", score_pair(scenes[sid], method, got[0]), *got)
+            if item[0] == "error":
+                scores.errors.append(item[1])
+            else:
+                _add(scores, *item[1:])
     for method, files in (submissions or {}).items():
         try:
             for rec in iter_submission(files):
