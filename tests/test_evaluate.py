@@ -103,7 +103,7 @@ def test_seeded_and_pluggable_policy():
                    rl.Batch(f, SID, bundle, "random", (0,), 3),
                    rl.Batch(f, SID, bundle, spec, (0,), 3)]
         sys.path.insert(0, str(WOMD_DIR.parents[1] / "tests"))
-        got = [(b.spec, ro) for b, ro, err in rl.run_batches(batches, 2) if err is None]
+        got = [(b.spec, ro) for b, ro, err, _ in rl.run_batches(batches, 2) if err is None]
     assert len(got) == 3
     rand = [ro for s, ro in got if s == "random"]
     assert np.array_equal(rand[0].x, rand[1].x)  # same seed, same rollout

@@ -6,6 +6,7 @@ module-level so that spawned workers can import them.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import time
@@ -404,6 +405,14 @@ def test_evaluate_logs_a_policys_missing_actions(tmp_path, bundle_root, capfd):
     assert warn[0].startswith(f"warning: scenario {SID}: method {__name__}:partial_policy "
                               "rollout(s) 0: policy gave no action for ")
     assert "action(s) for unknown agents ignored" in warn[0]
+    # counted in the manifest and shown in the report
+    man = json.loads((tmp_path / "e" / "manifest.json").read_text())
+    (fix,) = man["action_fixes"]
+    assert fix["scenario_id"] == SID and fix["method"] == man["policy"]
+    assert fix["missing"] > 0 and fix["unknown"] > 0
+    assert main(["report", str(tmp_path / "e")]) == 0
+    html = (tmp_path / "e" / "report" / "report.html").read_text()
+    assert "Policy actions fixed up by the env" in html
 
 
 # ------------------------------------------------------------------ vec env: every wait bounded

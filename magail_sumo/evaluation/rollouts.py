@@ -407,11 +407,15 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
 
 # ------------------------------------------------------------------------------- one method
 def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
-             bundle_dir: str | Path | None = None) -> ScenarioRollouts:
+             bundle_dir: str | Path | None = None,
+             action_counts: dict[str, int] | None = None) -> ScenarioRollouts:
     """Rollouts ``rollouts`` (indices) of one method on one scene, in this process.
 
     SUMO methods run one simulation after another here; callers batch them in fresh worker
     processes (:func:`run_batches`).
+
+    :param action_counts: a policy's fixed-up actions (the env's ``action_counts``: missing,
+        unknown, non-finite, clipped) are added to it; they are also logged once.
     """
     ids = sim_agent_ids(scene)
     idx = list(rollouts)
@@ -441,8 +445,11 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
 
     fixed = action_summary(counts)
     if fixed:  # once per batch, in the run log
-        log(f"warning: scenario {scene.scenario_id}: method {method} rollout(s) "
+        log(f"warning: scenario {printable(scene.scenario_id)}: method {method} rollout(s) "
             f"{_span(tuple(idx))}: {fixed}")
+    if action_counts is not None:
+        for k, v in counts.items():
+            action_counts[k] = action_counts.get(k, 0) + int(v)
     return _as_rollouts(scene, ids, xs, ys, yaws)
 
 
@@ -470,10 +477,13 @@ def _load(scene_file: str, scenario_id: str) -> Scene:
     raise EvaluationError(f"{scene_file}: scenario {printable(scenario_id)} not found")
 
 
-def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts]:
-    """Worker entry point (module level, picklable)."""
+def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
+    """Worker entry point (module level, picklable): the batch, its rollouts and the policy's
+    fixed-up action counts."""
     scene = _load(batch.scene_file, batch.scenario_id)
-    return batch, simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir)
+    counts: dict[str, int] = {}
+    ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts)
+    return batch, ro, counts
 
 
 def needs_worker(spec: str) -> bool:
@@ -485,8 +495,9 @@ DEFAULT_TIMEOUT_S = 1800.0
 
 
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
-                ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None]]:
-    """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line).
+                ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
+    """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line,
+    fixed-up action counts).
 
     A batch whose worker fails (crashes, dies, raises anything but a
     :class:`~magail_sumo.errors.MagailSumoError`) is retried once rollout by rollout (each in
@@ -502,17 +513,18 @@ def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DE
         b = res.job
         what = f"scenario {b.scenario_id}: method {b.spec}"
         if res.ok:
-            yield (*res.value, None)
+            batch, ro, counts = res.value
+            yield batch, ro, None, counts
         elif res.kind == "error" and res.expected:
-            yield b, None, res.reason
+            yield b, None, res.reason, {}
         elif res.kind == "timeout":
             yield b, None, (f"{what} rollout(s) {_span(b.rollouts)}: worker {res.reason} "
-                            "(--timeout-s)")
+                            "(--timeout-s)"), {}
         elif len(b.rollouts) > 1:  # worker crash (libsumo) or bug: retry singly
             retry += [Batch(b.scene_file, b.scenario_id, b.bundle_dir, b.spec, (r,), b.seed)
                       for r in b.rollouts]
         else:
-            yield b, None, f"{what} rollout {b.rollouts[0]} failed: {res.reason}"
+            yield b, None, f"{what} rollout {b.rollouts[0]} failed: {res.reason}", {}
     if retry:
         yield from run_batches(retry, workers, timeout_s)
 
@@ -688,7 +700,11 @@ def write_manifest(out: Path, manifest: dict) -> None:
     scenes = {s["scenario_id"]: s for s in old.get("scenes", [])}
     scenes.update({s["scenario_id"]: s for s in manifest["scenes"]})
     methods = list(dict.fromkeys(list(old.get("methods", [])) + list(manifest["methods"])))
-    merged = {**old, **manifest, "scenes": list(scenes.values()), "methods": methods}
+    fixes = {(f["scenario_id"], f["method"]): f for f in old.get("action_fixes", [])
+             if isinstance(f, dict) and f.get("method") not in manifest["methods"]}
+    fixes.update({(f["scenario_id"], f["method"]): f for f in manifest.get("action_fixes", [])})
+    merged = {**old, **manifest, "scenes": list(scenes.values()), "methods": methods,
+              "action_fixes": list(fixes.values())}
     write_text(path, json.dumps(merged, indent=2) + "\n")
 
 
@@ -861,12 +877,16 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                 except Exception as exc:  # noqa: BLE001 - one scene's failure
                     error(f"scenario {sid}: method {s}: {type(exc).__name__}: {_line(exc)}")
     failed: set[tuple[str, str]] = set()
-    for b, ro, err in run_batches(batches, workers, timeout_s):
+    fixes: dict[tuple[str, str], dict[str, int]] = {}  # a policy's fixed-up actions
+    for b, ro, err, counts in run_batches(batches, workers, timeout_s):
         if err is not None:
             error(err)
             failed.add((b.scenario_id, b.spec))
         else:
             results.setdefault((b.scenario_id, b.spec), []).append((b.rollouts[0], ro))
+            tally = fixes.setdefault((b.scenario_id, b.spec), {})
+            for k, v in counts.items():
+                tally[k] = tally.get(k, 0) + v
     done: list[tuple[str, str]] = []
     policy_ros: list[ScenarioRollouts] = []
     for sid, (f, sc, bdir) in scenes.items():
@@ -897,6 +917,12 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
         "methods": [names[s] for s in specs], "policy": names[policy], "policy_spec": policy,
         "baselines": [names[b] for b in baselines], "rollouts": n_rollouts, "steps": N_STEPS,
         "seed": seed, "versions": versions(),
+        # actions the policy did not give (agents coasted), gave for unknown agents, or gave
+        # non-finite / outside [-1, 1] (fixed up by the env), per scene and method
+        "action_fixes": [{"scenario_id": sid, "method": names[s], **c}
+                         for (sid, s), c in fixes.items() if (sid, names[s]) in done
+                         and any(c.get(k) for k in ("missing", "unknown", "nonfinite",
+                                                    "clipped"))],
     }
     out.mkdir(parents=True, exist_ok=True)
     write_manifest(out, manifest)

@@ -122,6 +122,18 @@ def build_report(folder: str | Path, out: str | Path | None = None,
                   [[printable(r["scenario_id"], 40), f"{r['object_id']}{' (SDC)' if r['sdc'] else ''}",
                     r["type"], r["method"], *(r[f] for f in AGENT_FIELDS)] for r in arows],
                   "agents")
+    fixes = [f for f in man.get("action_fixes", []) if isinstance(f, dict)]
+    if fixes:
+        doc.heading("Policy actions fixed up by the env")
+        doc.para("Agent-steps for which the policy gave no action (the agent coasted: zero "
+                 "acceleration and steering), actions for agents not in the scene (ignored), "
+                 "and non-finite or out-of-range actions (replaced by 0 / clipped to [-1, 1]).")
+        doc.table(["scene", "method", "missing", "unknown", "non-finite", "clipped"],
+                  [[printable(str(f.get("scenario_id")), 40), f.get("method"),
+                    int(f.get("missing", 0)), int(f.get("unknown", 0)),
+                    max(0, int(f.get("nonfinite", 0)) - int(f.get("missing", 0))),
+                    int(f.get("clipped", 0))]
+                   for f in fixes], "action-fixes")
     if sc.errors:
         doc.heading("Problems")
         doc.errors(sc.errors)
