@@ -9,6 +9,7 @@ the number of scored agents (the SDC plus the tracks to predict). Issue 14's goa
 collision rate ≤ log replay's + 0.05 and meta-metric ≥ 0.60 on scenes not used to tune it.
 
     python benchmarks/sumo_baseline.py data/womd/*.tfrecord [--rollouts 8] [--out DIR] [--json]
+    python benchmarks/sumo_baseline.py --rescore DIR     # score an earlier run's rollouts again
 """
 
 from __future__ import annotations
@@ -34,22 +35,30 @@ META_GOAL = 0.60
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("scenes", nargs="+", help="scene files (TFRecords, ScenarioNet pickles)")
+    ap.add_argument("scenes", nargs="*", help="scene files (TFRecords, ScenarioNet pickles)")
     ap.add_argument("--rollouts", type=int, default=8)
     ap.add_argument("--out", type=Path, help="evaluation folder (default: a temporary one)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rescore", type=Path, metavar="DIR",
+                    help="no rollouts: report an earlier run's evaluation folder again")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    if bool(args.scenes) == bool(args.rescore):
+        ap.error("give scene files or --rescore DIR")
 
     from magail_sumo.evaluation.realism.trajectories import evaluated_ids
     from magail_sumo.evaluation.report import build_report
     from magail_sumo.evaluation.rollouts import evaluate
 
-    out = args.out or Path(tempfile.mkdtemp(prefix="sumo_baseline_"))
-    ev = evaluate(args.scenes, "sumo", out, n_rollouts=args.rollouts,
-                  baselines=["logreplay", "constvel"], seed=args.seed, workers=args.workers)
+    errors: list[str] = []
+    out = args.rescore or args.out or Path(tempfile.mkdtemp(prefix="sumo_baseline_"))
+    if not args.rescore:
+        errors += evaluate(args.scenes, "sumo", out, n_rollouts=args.rollouts,
+                           baselines=["logreplay", "constvel"], seed=args.seed,
+                           workers=args.workers).errors
     rep = build_report(out)
+    n_rollouts = rep.scores.manifest.get("rollouts")
     for e in rep.errors:
         print(f"error: {e}", file=sys.stderr)
     with open(rep.metrics_csv, newline="") as fh:
@@ -67,12 +76,12 @@ def main() -> int:
              means["sumo"]["simulated_collision_rate"]
              <= means["logreplay"]["simulated_collision_rate"] + COLLISION_MARGIN,
              "metametric_ge_0.60": means["sumo"]["metametric"] >= META_GOAL}
-    res = {"out": str(out), "rollouts": args.rollouts, "scenes_complete": scenes,
-           "errors": ev.errors + list(rep.errors), "rows": rows, "means": means, "goals": goals}
+    res = {"out": str(out), "rollouts": n_rollouts, "scenes_complete": scenes,
+           "errors": errors + list(rep.errors), "rows": rows, "means": means, "goals": goals}
     if args.json:
         print(json.dumps(res, indent=2))
         return 0
-    print(f"{args.rollouts} rollouts per scene; {len(scenes)} scene(s) with all methods "
+    print(f"{n_rollouts} rollouts per scene; {len(scenes)} scene(s) with all methods "
           f"(means over those); evaluation in {out}")
     print(f"{'scene':<22}{'method':<11}" + "".join(f"{v:>10}" for v in FIELDS.values())
           + f"{'scored':>8}")
