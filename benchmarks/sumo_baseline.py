@@ -38,6 +38,7 @@ def main() -> int:
     ap.add_argument("scenes", nargs="*", help="scene files (TFRecords, ScenarioNet pickles)")
     ap.add_argument("--rollouts", type=int, default=8)
     ap.add_argument("--out", type=Path, help="evaluation folder (default: a temporary one)")
+    ap.add_argument("--networks", type=Path, help="converted bundles to reuse (evaluate --networks)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rescore", type=Path, metavar="DIR",
@@ -56,7 +57,7 @@ def main() -> int:
     if not args.rescore:
         errors += evaluate(args.scenes, "sumo", out, n_rollouts=args.rollouts,
                            baselines=["logreplay", "constvel"], seed=args.seed,
-                           workers=args.workers).errors
+                           workers=args.workers, networks=args.networks).errors
     rep = build_report(out)
     n_rollouts = rep.scores.manifest.get("rollouts")
     for e in rep.errors:
