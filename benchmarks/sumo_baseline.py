@@ -7,7 +7,8 @@ off-road rates of the scored agents (``simulated_collision_rate`` / ``simulated_
 of the report's ``metrics.csv``: share of scored agents × rollouts with at least one event), the
 number of scored agents (the SDC plus the tracks to predict; the SDC alone in a scene without
 tracks to predict) and, as a less noisy figure, the report's ``collision_rate`` over all
-simulated objects (same collision test) with their number. Issue 14's goals for ``sumo``:
+simulated objects (same collision test) with their number. Scenes the report cannot score (a map
+without road edges, as in the nuScenes pickles) are reported as errors and left out of the means. Issue 14's goals for ``sumo``:
 collision rate ≤ log replay's + 0.05 and meta-metric ≥ 0.60 on scenes not used to tune it.
 
     python benchmarks/sumo_baseline.py data/womd/*.tfrecord [--rollouts 8] [--out DIR] [--json]
