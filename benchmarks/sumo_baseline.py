@@ -81,7 +81,9 @@ def main() -> int:
     goals = {"collision_le_logreplay_plus_0.05":
              means["sumo"]["simulated_collision_rate"]
              <= means["logreplay"]["simulated_collision_rate"] + COLLISION_MARGIN,
-             "metametric_ge_0.60": means["sumo"]["metametric"] >= META_GOAL}
+             "metametric_ge_0.60": means["sumo"]["metametric"] >= META_GOAL} if scenes else {}
+    verdict = {k: "n/a" if k not in goals else "met" if goals[k] else "NOT met"
+               for k in ("collision_le_logreplay_plus_0.05", "metametric_ge_0.60")}
     res = {"out": str(out), "rollouts": n_rollouts, "scenes_complete": scenes,
            "errors": errors + list(rep.errors), "rows": rows, "means": means, "goals": goals}
     if args.json:
@@ -100,8 +102,8 @@ def main() -> int:
         print(f"{'mean':<22}{m:<11}" + "".join(f"{means[m][f]:>10.4f}" for f in FIELDS)
               + f"{sum(scored[s] for s in scenes):>8}{sum(agents[s] for s in scenes):>6}")
     print(f"goals (sumo, means): collision ≤ logreplay + {COLLISION_MARGIN}: "
-          f"{'met' if goals['collision_le_logreplay_plus_0.05'] else 'NOT met'}; "
-          f"meta-metric ≥ {META_GOAL}: {'met' if goals['metametric_ge_0.60'] else 'NOT met'}")
+          f"{verdict['collision_le_logreplay_plus_0.05']}; meta-metric ≥ {META_GOAL}: "
+          f"{verdict['metametric_ge_0.60']}")
     return 0
 
 
