@@ -187,3 +187,19 @@ def test_text_table(capsys):
     assert rc == 0
     assert out.splitlines()[0].split() == ["field", "637f20cafde22ff8"]
     assert "metametric" in out and "0.258" in out
+
+
+def test_scene_with_history_of_one_step_scores_all_80_simulated_steps():
+    """A scene whose current step is 0 (ScenarioNet's 20-s scenes, nuScenes) is scored over all
+    80 simulated steps, not from the WOSAC default's step 11 on."""
+    import dataclasses
+
+    from magail_sumo.evaluation.realism.metrics import compute_features
+    from magail_sumo.evaluation.realism.trajectories import joint_trajectories
+
+    sc = dataclasses.replace(load_scene(OTHER), current_time_index=0)
+    ro = log_replay(sc, 2)
+    feat = compute_features(sc, joint_trajectories(sc, ro))
+    assert feat.valid.shape[-1] == 80
+    assert feat.values["linear_speed"].shape[-1] == 80
+    assert scenario_metrics(sc, ro, validate=False)["simulated_collision_rate"] == 0.0

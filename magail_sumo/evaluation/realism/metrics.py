@@ -63,7 +63,7 @@ def compute_features(scene: Scene, jt: JointTrajectories,
                      config: ChallengeConfig = CHALLENGE_2025) -> Features:
     """All per-step features of the log and rollouts of ``jt`` (vectorised over both)."""
     E = jt.n_eval
-    fut = slice(config.current_time_index + 1, None)
+    fut = slice(scene.current_time_index + 1, None)  # the scene's own history length
     dt = config.step_duration_s
     x, y, z, h, v = jt.x, jt.y, jt.z, jt.heading, jt.valid
     speed, accel, ang_speed, ang_accel = kinematic.kinematic_features(
