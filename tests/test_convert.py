@@ -272,6 +272,7 @@ def test_off_map_stretch_definition():
     assert off_map_stretches(np.zeros(60, bool), steps) == []
 
 
+@pytest.mark.sumo
 def test_cli_convert_is_resumable(tmp_path, capsys):
     """Issue 14: a bundle converted by this converter version with the same options is skipped
     (a ``skipped`` row keeping its quality); other options, another version or --force
