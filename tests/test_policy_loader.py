@@ -75,8 +75,8 @@ def test_evaluate_checkpoint_end_to_end(checkpoint):
                "--baselines", "constvel", "--networks", str(root / "nets"), "--out", str(out)])
     assert rc == 0
     man = json.loads((out / "manifest.json").read_text())
-    assert man["methods"] == ["latest", "constvel"] and man["policy_spec"] == str(ckpt)
-    df = pd.read_parquet(out / "rollouts" / "latest" / f"{SID}.parquet")
+    assert man["methods"] == ["run", "constvel"] and man["policy_spec"] == str(ckpt)
+    df = pd.read_parquet(out / "rollouts" / "run" / f"{SID}.parquet")
     assert tuple(df.columns) == rl.COLUMNS and df["rollout"].nunique() == 2
     assert np.isfinite(df[["x", "y", "heading"]].to_numpy()).all()
     assert main(["report", str(out)]) == 0
