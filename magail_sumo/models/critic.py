@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .discriminator import set_encoder
+from .discriminator import check_set_encoder_sizes, set_encoder
 
 
 @dataclass(frozen=True)
@@ -43,16 +43,7 @@ class CriticTransformerConfig:
     dropout: float = 0.0
 
     def __post_init__(self) -> None:
-        from magail_sumo.config import FieldError
-
-        for name in ("embed_dim", "num_layers", "num_heads", "ff_dim"):
-            if getattr(self, name) < 1:
-                raise FieldError(name, f"must be >= 1, got {getattr(self, name)}")
-        if self.embed_dim % self.num_heads:
-            raise FieldError("num_heads", f"must divide embed_dim ({self.embed_dim}), "
-                             f"got {self.num_heads}")
-        if not 0.0 <= self.dropout < 1.0:
-            raise FieldError("dropout", f"must be in [0, 1), got {self.dropout}")
+        check_set_encoder_sizes(self)
 
 
 def group_positions(group: torch.Tensor) -> tuple[torch.Tensor, int, int]:

@@ -38,16 +38,25 @@ class TransformerConfig:
     def __post_init__(self) -> None:
         from magail_sumo.config import FieldError
 
-        for name in ("embed_dim", "num_layers", "num_heads", "ff_dim"):
-            if getattr(self, name) < 1:
-                raise FieldError(name, f"must be >= 1, got {getattr(self, name)}")
-        if self.embed_dim % self.num_heads:
-            raise FieldError("num_heads", f"must divide embed_dim ({self.embed_dim}), "
-                             f"got {self.num_heads}")
-        if not 0.0 <= self.dropout < 1.0:
-            raise FieldError("dropout", f"must be in [0, 1), got {self.dropout}")
+        check_set_encoder_sizes(self)
         if self.pooling not in ("mean", "cls"):
             raise FieldError("pooling", f"must be 'mean' or 'cls', got {self.pooling!r}"[:120])
+
+
+def check_set_encoder_sizes(cfg) -> None:
+    """Range rules of the sizes :func:`set_encoder` takes (``embed_dim``, ``num_layers``,
+    ``num_heads``, ``ff_dim``, ``dropout`` of a config dataclass), raised as
+    :class:`~magail_sumo.config.FieldError` naming the field."""
+    from magail_sumo.config import FieldError
+
+    for name in ("embed_dim", "num_layers", "num_heads", "ff_dim"):
+        if getattr(cfg, name) < 1:
+            raise FieldError(name, f"must be >= 1, got {getattr(cfg, name)}")
+    if cfg.embed_dim % cfg.num_heads:
+        raise FieldError("num_heads", f"must divide embed_dim ({cfg.embed_dim}), "
+                         f"got {cfg.num_heads}")
+    if not 0.0 <= cfg.dropout < 1.0:
+        raise FieldError("dropout", f"must be in [0, 1), got {cfg.dropout}")
 
 
 def set_encoder(embed_dim: int, num_heads: int, ff_dim: int, dropout: float, num_layers: int

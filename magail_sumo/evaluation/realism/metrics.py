@@ -106,15 +106,24 @@ _FLAGS = {"collision_indication": "collision_per_step", "offroad_indication": "o
           "traffic_light_violation": "traffic_light_violation_per_step"}
 
 
-def metrics_from_features(feat: Features, config: ChallengeConfig = CHALLENGE_2025
-                          ) -> dict[str, float]:
-    """The official per-scenario fields from a feature bundle."""
+def feature_masks(feat: Features) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The (E, T) step masks of the realism features: histogram features by mask name
+    (``valid``, ``speed``, ``accel``, ``vehicle``; see ``_MASKS``) and Bernoulli features by
+    feature name (collision and off-road over valid steps, traffic lights over vehicles')."""
     valid = feat.valid
     speed_mask = kinematic.central_valid(valid)
     masks = {"valid": valid, "speed": speed_mask, "accel": kinematic.central_valid(speed_mask),
              "vehicle": valid & feat.is_vehicle[:, None]}
     flag_mask = {"collision_indication": valid, "offroad_indication": valid,
                  "traffic_light_violation": valid & feat.is_vehicle[:, None]}
+    return masks, flag_mask
+
+
+def metrics_from_features(feat: Features, config: ChallengeConfig = CHALLENGE_2025
+                          ) -> dict[str, float]:
+    """The official per-scenario fields from a feature bundle."""
+    valid = feat.valid
+    masks, flag_mask = feature_masks(feat)
     out: dict[str, float] = {}
     flags = {}
     for fc in config.features:

@@ -24,10 +24,9 @@ from magail_sumo.evaluation.realism.estimators import (
     bernoulli_log_likelihood, histogram_log_likelihood,
 )
 from magail_sumo.evaluation.realism.metrics import (
-    _FLAGS, _MASKS, Features, compute_features, metrics_from_features,
+    _FLAGS, _MASKS, Features, compute_features, feature_masks, metrics_from_features,
 )
 from magail_sumo.evaluation.realism.trajectories import joint_trajectories
-from magail_sumo.evaluation.realism import kinematic
 from magail_sumo.evaluation.rollouts import N_STEPS, read_manifest, read_rollouts, rollouts_path
 from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
@@ -75,12 +74,7 @@ def agent_metrics(feat: Features, config=CHALLENGE_2025) -> dict[str, np.ndarray
     features: the likelihood of its logged flag), ADE and minADE over rollouts (m), and the
     share of rollouts in which it collides / goes off-road — the per-agent parts of
     :func:`~magail_sumo.evaluation.realism.metrics.metrics_from_features`."""
-    valid = feat.valid
-    speed_mask = kinematic.central_valid(valid)
-    masks = {"valid": valid, "speed": speed_mask, "accel": kinematic.central_valid(speed_mask),
-             "vehicle": valid & feat.is_vehicle[:, None]}
-    flag_mask = {"collision_indication": valid, "offroad_indication": valid,
-                 "traffic_light_violation": valid & feat.is_vehicle[:, None]}
+    masks, flag_mask = feature_masks(feat)
     out: dict[str, np.ndarray] = {}
     flags = {}
     with np.errstate(invalid="ignore", divide="ignore"):
