@@ -48,8 +48,9 @@ def path_problem(path: str | PathLike) -> tuple[str, os.stat_result | None]:
 
 
 def open_regular(path: str | PathLike, record: int | None = None,
-                 buffering: int = -1) -> BinaryIO:
-    """Open a regular file for binary reading; :class:`SceneFormatError` for anything else.
+                 buffering: int = -1, expected: str = "a file") -> BinaryIO:
+    """Open a regular file for binary reading; :class:`SceneFormatError` for anything else
+    (a directory: "is a directory, expected ``expected``").
 
     Opened non-blocking and checked with ``fstat`` (a path swapped for a FIFO after the check
     still cannot block), then switched back to blocking reads.
@@ -59,7 +60,7 @@ def open_regular(path: str | PathLike, record: int | None = None,
     if problem:
         raise SceneFormatError(p, record, problem)
     if stat.S_ISDIR(st.st_mode):  # type: ignore[union-attr]
-        raise SceneFormatError(p, record, "is a directory, expected a file")
+        raise SceneFormatError(p, record, f"is a directory, expected {expected}")
     try:
         fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:

@@ -8,7 +8,7 @@ one record is held in memory at a time.
 from __future__ import annotations
 
 import gzip
-import stat
+import os
 import struct
 import zlib
 from os import PathLike
@@ -17,7 +17,7 @@ from typing import BinaryIO, Iterable, Iterator
 
 import google_crc32c
 
-from converters.files import open_regular, path_problem
+from converters.files import open_regular
 from magail_sumo.errors import SceneFormatError
 
 _MASK_DELTA = 0xA282EAD8
@@ -71,15 +71,10 @@ def iter_records(path: str | PathLike) -> Iterator[tuple[int, bytes | SceneForma
     unreadable) are raised. Memory is bounded by one record of the bytes actually present.
     """
     p = Path(path)
-    problem, st = path_problem(p)
-    if problem:
-        raise SceneFormatError(p, None, problem)
-    if stat.S_ISDIR(st.st_mode):  # type: ignore[union-attr]
-        raise SceneFormatError(p, None, "is a directory, expected a TFRecord file")
-    if st.st_size == 0:  # type: ignore[union-attr]
-        raise SceneFormatError(p, None, "empty file (no records)")
-    size = st.st_size  # type: ignore[union-attr]
-    with open_regular(p, buffering=1 << 20) as raw:
+    with open_regular(p, buffering=1 << 20, expected="a TFRecord file") as raw:
+        size = os.fstat(raw.fileno()).st_size
+        if size == 0:
+            raise SceneFormatError(p, None, "empty file (no records)")
         compressed = raw.read(2) == _GZIP_MAGIC
         raw.seek(0)
         fh: BinaryIO = gzip.GzipFile(fileobj=raw, mode="rb") if compressed else raw  # type: ignore

@@ -54,6 +54,12 @@ def printable(text: str, limit: int = 120) -> str:
     return out if len(out) <= limit else out[:limit - 3] + "..."
 
 
+def one_line(text: object, limit: int = 300) -> str:
+    """``str(text)`` (e.g. an exception) for a one-line message: whitespace runs collapsed,
+    control characters escaped, cut to ``limit`` (see :func:`printable`)."""
+    return printable(" ".join(str(text).split()), limit)
+
+
 def _digest(name: str) -> str:
     return hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
 

@@ -60,9 +60,9 @@ class JobResult:
 
 
 def _one_line(text: str, limit: int = 400) -> str:
-    from magail_sumo.outputs import printable
+    from magail_sumo.outputs import one_line
 
-    return printable(" ".join(str(text).split()), limit)
+    return one_line(text, limit)
 
 
 def _child(conn, fn: Callable[[Any], Any], arg: Any) -> None:

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
-                                 read_marker, safe_name, write_text)
+from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, one_line,
+                                 printable, read_marker, safe_name, write_text)
 from magail_sumo.scene import LaneType, Scene
 
 from .matching import build_index
@@ -195,7 +195,7 @@ def _umask() -> int:
 
 
 def _one_line(exc: BaseException) -> str:
-    return printable(" ".join(str(exc).split()) or type(exc).__name__, 300)
+    return one_line(exc) or type(exc).__name__
 
 
 def write_sumocfg(path: Path, sid: str, additional: list[str], end: float) -> None:

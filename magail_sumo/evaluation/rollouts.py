@@ -48,7 +48,7 @@ from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.realism.kinematic import wrap_angle
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
 from magail_sumo.outputs import (NameRegistry, OutputError, atomic_path, claim_output_dir, inside,
-                                 printable, safe_name, write_text)
+                                 one_line, printable, safe_name, write_text)
 from magail_sumo.scene import Scene
 
 N_STEPS = 80  #: simulated steps per rollout (8 s)
@@ -128,9 +128,7 @@ def make_policy(spec: str, seed: int) -> Policy:
 
 
 def _line(exc: BaseException) -> str:
-    from magail_sumo.outputs import printable
-
-    return printable(" ".join(str(exc).split()), 300)
+    return one_line(exc)
 
 
 def _built(spec: str, factory: Callable, *args) -> Policy:

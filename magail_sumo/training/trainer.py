@@ -33,7 +33,7 @@ from gymnasium import spaces
 
 from magail_sumo.config import ConfigError, from_dict, record_run, to_dict
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import atomic_path, claim_output_dir, printable, read_marker
+from magail_sumo.outputs import atomic_path, claim_output_dir, one_line, printable, read_marker
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscriminator
 from magail_sumo.models.policies import TanhGaussianPolicy
@@ -149,7 +149,7 @@ def load_checkpoint(path: str | Path) -> dict:
                                   ", not only tensors and plain data (not a magail_sumo "
                                   "checkpoint, or a crafted one)") from None
         raise CheckpointError(f"{p}: corrupt or unreadable checkpoint ({type(exc).__name__}: "
-                              f"{printable(' '.join(str(exc).split()), 200)})") from None
+                              f"{one_line(exc, 200)})") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{p}: not a magail_sumo checkpoint"
                               + (" (format " + printable(str(state.get("format")), 60) + ")"
@@ -181,7 +181,7 @@ def upgrade_checkpoint(path: str | Path, out: str | Path | None = None, *,
         state = torch.load(p, map_location="cpu", weights_only=False)
     except Exception as exc:  # noqa: BLE001
         raise CheckpointError(f"{p}: corrupt or unreadable checkpoint ({type(exc).__name__}: "
-                              f"{printable(' '.join(str(exc).split()), 200)})") from None
+                              f"{one_line(exc, 200)})") from None
     if not isinstance(state, dict) or state.get("format") not in OLD_CHECKPOINT_FORMATS:
         raise CheckpointError(f"{p}: not a format-1 magail_sumo checkpoint")
     try:
