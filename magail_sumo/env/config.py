@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from magail_sumo.config import check, check_positive, show
 
 from magail_sumo.sensors.observation import ObservationConfig
@@ -12,6 +14,10 @@ from magail_sumo.sim.dynamics import ACTION_LAYOUTS, BicycleLimits
 
 #: Event names, in the order the first one found becomes ``infos[agent]["reason"]``.
 EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination", "end_of_life")
+#: named controlled sets (``EnvConfig.controlled``; an int K is the other choice)
+CONTROLLED: tuple[str, ...] = ("all", "sdc", "tracks_to_predict", "scored")
+#: ``EnvConfig.start_window`` choices
+START_WINDOWS: tuple[str, ...] = ("fixed", "random")
 
 
 @dataclass(frozen=True)
@@ -19,8 +25,10 @@ class EnvConfig:
     """What the environment controls, how the rest moves and when agents leave.
 
     :param controlled: ``"all"`` (every vehicle and cyclist in the SUMO routes), ``"sdc"``,
-        ``"tracks_to_predict"``, or an int K: the K route vehicles nearest to the SDC at
-        ``start_step`` (the SDC included when it is in the routes).
+        ``"tracks_to_predict"``, ``"scored"`` (the SDC plus the tracks to predict: the agents
+        WOSAC scores), or an int K: the K route vehicles nearest to the SDC at the episode's
+        start step (the SDC included when it is in the routes); always restricted to the
+        route vehicles.
     :param background: ``"log"`` (uncontrolled route vehicles replay their recorded poses and are
         placed there in SUMO) or ``"sumo"`` (SUMO drives them from their departure on).
     :param terminate_on: events that end an agent (``terminated``); the others are only
@@ -29,8 +37,16 @@ class EnvConfig:
     :param lane_width: nominal lane width for off-road and red-light rules (m).
     :param off_road_margin: tolerance added to half the lane width for off-road (m).
     :param destination_radius: distance to the last recorded position that counts as reached (m).
-    :param start_step: log step at which episodes start.
-    :param max_steps: steps per episode (None: until the end of the scene log).
+    :param start_window: where episodes start: ``"fixed"`` (at ``start_step``) or
+        ``"random"`` (each episode at a step drawn uniformly from the window starts,
+        :func:`window_starts`, and run for ``max_steps`` steps; ``max_steps`` must be set and
+        ``start_step`` left 0). A start ``t > 0`` replays log steps ``0 .. t`` as the
+        agents' history (in SUMO, and their previous action in the first observation).
+    :param min_history: with ``start_window: random``, the earliest start step (log steps
+        before it are history; WOMD's current step is 10, WOSAC's history).
+    :param start_step: log step at which episodes start (``start_window: fixed``).
+    :param max_steps: steps per episode (None: until the end of the scene log; required with
+        ``start_window: random``, where it is the window length, e.g. WOSAC's 80).
     :param render_size: (height, width) of :meth:`render` frames in pixels.
     :param sumo_seed: added to the reset seed to seed SUMO.
     :param action_layout: order of the normalised action: ``"accel_steer"`` or the seed's
@@ -49,6 +65,8 @@ class EnvConfig:
     lane_width: float = 3.7
     off_road_margin: float = 1.0
     destination_radius: float = 2.0
+    start_window: str = "fixed"
+    min_history: int = 10
     start_step: int = 0
     max_steps: int | None = None
     render_size: tuple[int, int] = (512, 512)
@@ -60,10 +78,10 @@ class EnvConfig:
     def __post_init__(self) -> None:
         check(self.action_layout in ACTION_LAYOUTS, "action_layout",
               f"must be one of {ACTION_LAYOUTS}, got {show(self.action_layout)}")
-        check(self.controlled in ("all", "sdc", "tracks_to_predict")
+        check(self.controlled in CONTROLLED
               or (isinstance(self.controlled, int) and not isinstance(self.controlled, bool)
                   and self.controlled > 0), "controlled",
-              "must be 'all', 'sdc', 'tracks_to_predict' or a positive int, got "
+              f"must be one of {list(CONTROLLED)} or a positive int, got "
               f"{show(self.controlled)}")
         check(self.background in ("log", "sumo"), "background",
               f"must be 'log' or 'sumo', got {show(self.background)}")
@@ -79,6 +97,17 @@ class EnvConfig:
                        allow_zero=True)
         check(self.max_steps is None or self.max_steps >= 1, "max_steps",
               f"must be >= 1 (or null: to the end of the log), got {self.max_steps}")
+        check(self.start_window in START_WINDOWS, "start_window",
+              f"must be one of {list(START_WINDOWS)}, got {show(self.start_window)}")
+        check(isinstance(self.min_history, int) and not isinstance(self.min_history, bool)
+              and self.min_history >= 0, "min_history",
+              f"must be an int >= 0, got {show(self.min_history)}")
+        if self.start_window == "random":
+            check(self.max_steps is not None, "max_steps",
+                  "must be set with start_window 'random' (the window length, e.g. 80), got null")
+            check(self.start_step == 0, "start_step",
+                  "is not used with start_window 'random' (episodes start at a random step >= "
+                  f"min_history): leave it 0, got {show(self.start_step)}")
         check(len(self.render_size) == 2 and min(self.render_size) >= 1, "render_size",
               f"must be (height, width) >= 1, got {show(self.render_size)}")
         lim = self.limits
@@ -99,3 +128,29 @@ class EnvConfig:
                   f"must be in (0, 2 pi], got {show(beam.fov)}")
         check(math.isfinite(obs.lane_cell) and obs.lane_cell > 0, "observation.lane_cell",
               f"must be > 0, got {show(obs.lane_cell)}")
+
+
+def window_starts(config: EnvConfig, num_steps: int) -> tuple[int, int]:
+    """The inclusive range ``(lo, hi)`` of episode start steps in a scene of ``num_steps`` log
+    steps (``T``).
+
+    ``start_window: fixed``: ``lo = hi = min(start_step, T - 1)``. ``random``: ``lo =
+    min(min_history, T - 2)`` and ``hi = max(lo, T - 1 - max_steps)``, so a window of
+    ``max_steps`` steps fits in the log after ``min_history`` steps of history; when the scene
+    is too short for that, the start is ``lo`` and the episode ends with the log (fewer than
+    ``max_steps`` steps). A scene of one step has ``lo = hi = 0``.
+    """
+    t_last = num_steps - 1
+    if config.start_window == "fixed":
+        s = max(0, min(config.start_step, t_last))
+        return s, s
+    lo = max(0, min(config.min_history, num_steps - 2))
+    steps = config.max_steps if config.max_steps is not None else 1
+    return lo, max(lo, t_last - steps)
+
+
+def draw_start(config: EnvConfig, num_steps: int, rng: np.random.Generator) -> int:
+    """One episode start step, uniform over :func:`window_starts` (``rng`` is drawn from only
+    with ``start_window: random``)."""
+    lo, hi = window_starts(config, num_steps)
+    return lo if config.start_window == "fixed" else int(rng.integers(lo, hi + 1))

@@ -9,12 +9,17 @@ vehicles, pedestrians, ...) replay the log in the sensor and collision world; wi
 driving the background they are also obstacles in SUMO (placed at their recorded poses each
 step, :class:`~magail_sumo.sim.session.Obstacles`), so SUMO's drivers brake for them.
 
-Timeline: after ``reset`` the observation is of log step ``start_step``; SUMO time after the
-step that produced log step ``t`` is ``(t + 1)·0.1`` s (a vehicle departing at ``t·0.1`` s is
-inserted by that step). An agent joins at the first log step its track is valid (from
-``start_step`` on) and leaves on an event (see :mod:`magail_sumo.env.events`; collision =
-oriented-box overlap with any other road user) or at the last valid step of its track
-(``end_of_life``, truncation). Rewards are 0 (imitation learning supplies its own).
+Timeline: after ``reset`` the observation is of the episode's start step (``env.start``:
+``EnvConfig.start_step``, a random step of the window with ``start_window: random``, or
+``reset(options={"start_step": t})``); SUMO time after the step that produced log step ``t`` is
+``(t + 1)·0.1`` s (a vehicle departing at ``t·0.1`` s is inserted by that step). The log before
+the start is history: SUMO runs those steps (placing the log-replayed vehicles), agents join at
+the start at their recorded poses, and one valid at the step before too starts with the log's
+previous action (the expert data's, :func:`~magail_sumo.env.expert.log_prev_actions`), the
+others with 0. An episode ends ``max_steps`` steps after its start (or with the log). An agent
+joins at the first log step its track is valid (from the start on) and leaves on an event (see
+:mod:`magail_sumo.env.events`; collision = oriented-box overlap with any other road user) or at
+the last valid step of its track (``end_of_life``, truncation). Rewards are 0 (imitation learning supplies its own).
 ``infos[agent]``: ``step``, ``events`` (name -> bool), ``reason`` (first event of
 :data:`~magail_sumo.env.config.EVENTS` that ended the agent, else None), ``collided_with``
 (track id or -1), ``nan_actions`` and ``clipped_actions`` (this agent's running counts of
@@ -44,7 +49,7 @@ from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoS
 from .actions import ACTION_COUNTS, checked_actions, count_actions
 from .bundle import SceneBundle
 from .collision import first_overlap
-from .config import EVENTS, EnvConfig
+from .config import EVENTS, EnvConfig, draw_start, window_starts
 from .events import StopLines, off_road, reached
 from .outcomes import StepDicts
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
@@ -106,22 +111,17 @@ class SumoDrivingEnv(ParallelEnv):
         self._dest_yaw = tr.heading[rows, last].astype(np.float64)
         self._length = _median_valid(tr.length, tr.valid)
         self._width = _median_valid(tr.width, tr.valid)
-        self._ctrl = self._select_controlled()
-        self._ctrl_names = [str(int(tr.id[r])) for r in self._ctrl]
-        self._name_index = {a: k for k, a in enumerate(self._ctrl_names)}
-        self.possible_agents = list(self._ctrl_names)
-        is_ctrl = np.zeros(n, bool)
-        is_ctrl[self._ctrl] = True
-        self._is_ctrl = is_ctrl
-        in_routes = np.zeros(n, bool)
-        in_routes[self.bundle.sumo_rows] = True
-        self._bg_rows = self.bundle.sumo_rows[~is_ctrl[self.bundle.sumo_rows]]
-        self._bg_ids = [str(int(tr.id[r])) for r in self._bg_rows]
-        self._log_rows = np.flatnonzero(~is_ctrl & (~in_routes | (cfg.background == "log")))
-        #: road users SUMO does not carry (pedestrians, vehicles off the lane network): with SUMO
-        #: driving the background they are obstacles its drivers see (:class:`Obstacles`)
-        self._obstacle_rows = np.flatnonzero(~is_ctrl & ~in_routes) \
-            if cfg.background == "sumo" else np.zeros(0, np.int64)
+        self._in_routes = np.zeros(n, bool)
+        self._in_routes[self.bundle.sumo_rows] = True
+        #: log step the current (or, before any reset, the first) episode starts at
+        self.start = window_starts(cfg, t_steps)[0]
+        self._set_controlled(self._select_controlled(self.start))
+        # the K nearest change with a random start: any route vehicle may be an agent
+        self.possible_agents = [str(int(tr.id[r])) for r in np.sort(self.bundle.sumo_rows)] \
+            if self._ctrl_depends_on_start() and cfg.start_window == "random" \
+            else list(self._ctrl_names)
+        self._window_rng: np.random.Generator | None = None
+        self._prev_table: tuple[int, np.ndarray] | None = None  # (last step, log_prev_actions)
         self._row_of_sumo = dict(zip(self.bundle.sumo_ids, self.bundle.sumo_rows.tolist()))
         self.suite = SensorSuite(scene, cfg.observation)
         self.stop_lines = StopLines.build(scene)
@@ -147,27 +147,85 @@ class SumoDrivingEnv(ParallelEnv):
     def action_space(self, agent: str) -> spaces.Box:
         return self._act_spaces[agent]
 
-    def _select_controlled(self) -> np.ndarray:
+    def _ctrl_depends_on_start(self) -> bool:
+        return not isinstance(self.config.controlled, str)
+
+    def _select_controlled(self, start: int) -> np.ndarray:
+        """Sorted track rows of the controlled vehicles of an episode starting at ``start``."""
         sc, cfg = self.scene, self.config
         routes = self.bundle.sumo_rows
         if cfg.controlled == "all":
             return np.sort(routes)
         if cfg.controlled == "sdc":
             return routes[routes == sc.sdc_track_index]
-        if cfg.controlled == "tracks_to_predict":
+        if cfg.controlled in ("tracks_to_predict", "scored"):
             want = {p.track_index for p in sc.tracks_to_predict}
+            if cfg.controlled == "scored":
+                want.add(sc.sdc_track_index)
             return np.sort(routes[[r in want for r in routes.tolist()]]).astype(np.int64)
-        tr, t = sc.tracks, min(cfg.start_step, self._T - 1)
+        tr, t = sc.tracks, min(start, self._T - 1)
         sdc = sc.sdc_track_index
         d = np.hypot(tr.x[routes, t] - tr.x[sdc, t], tr.y[routes, t] - tr.y[sdc, t])
         d = np.where(tr.valid[routes, t], d, np.inf)
         d = np.where(routes == sdc, -1.0, d)
         return np.sort(routes[np.argsort(d, kind="stable")[:int(cfg.controlled)]])
 
+    def _set_controlled(self, ctrl: np.ndarray) -> None:
+        """Make track rows ``ctrl`` (sorted) the controlled vehicles; the rest background."""
+        tr, cfg = self.scene.tracks, self.config
+        self._ctrl = ctrl
+        self._ctrl_names = [str(int(tr.id[r])) for r in ctrl]
+        self._name_index = {a: k for k, a in enumerate(self._ctrl_names)}
+        is_ctrl = np.zeros(len(tr.id), bool)
+        is_ctrl[ctrl] = True
+        self._is_ctrl = is_ctrl
+        in_routes = self._in_routes
+        self._bg_rows = self.bundle.sumo_rows[~is_ctrl[self.bundle.sumo_rows]]
+        self._bg_ids = [str(int(tr.id[r])) for r in self._bg_rows]
+        self._log_rows = np.flatnonzero(~is_ctrl & (~in_routes | (cfg.background == "log")))
+        #: road users SUMO does not carry (pedestrians, vehicles off the lane network): with SUMO
+        #: driving the background they are obstacles its drivers see (:class:`Obstacles`)
+        self._obstacle_rows = np.flatnonzero(~is_ctrl & ~in_routes) \
+            if cfg.background == "sumo" else np.zeros(0, np.int64)
+
+    def _episode_start(self, seed: int | None, options: dict | None) -> int:
+        """The start step of the episode ``reset(seed, options)`` begins (module doc)."""
+        cfg = self.config
+        if seed is not None:
+            self._window_rng = np.random.default_rng(seed % (1 << 64))
+        opt = (options or {}).get("start_step")
+        if opt is not None:
+            top = max(0, self._T - 2)  # a step left to take
+            ok = isinstance(opt, (int, np.integer)) and not isinstance(opt, bool) \
+                and 0 <= opt <= top
+            if not ok:
+                raise ValueError(f"reset options start_step: must be an int in [0, {top}]"
+                                 f" (scene {self.scene.scenario_id} has {self._T} steps), got "
+                                 f"{opt!r}")
+            return int(opt)
+        if cfg.start_window == "random" and self._window_rng is None:
+            self._window_rng = np.random.default_rng()
+        return draw_start(cfg, self._T, self._window_rng)
+
     # ------------------------------------------------------------------ lifecycle
     def reset(self, seed: int | None = None, options: dict | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        """Start an episode (module doc). ``seed`` seeds SUMO (plus ``sumo_seed``), the spaces
+        and the draw of a random window's start; ``options={"start_step": t}`` starts this
+        episode at log step ``t`` (in [0, T - 2]) whatever ``start_window`` says (other option
+        keys are ignored)."""
         cfg = self.config
+        start = self._episode_start(seed, options)
+        if self._ctrl_depends_on_start() and start != self.start:
+            self._set_controlled(self._select_controlled(start))
+            new = [a for a in self._ctrl_names if a not in self._obs_spaces]
+            if new:  # an overridden start of a fixed window brought other vehicles in
+                low, high = observation_bounds(cfg.observation)
+                for a in new:
+                    self._obs_spaces[a] = spaces.Box(low, high, dtype=np.float32)
+                    self._act_spaces[a] = spaces.Box(-1.0, 1.0, (2,), np.float32)
+                self.possible_agents = self.possible_agents + new
+        self.start = start
         if seed is not None:
             for k, a in enumerate(self.possible_agents):
                 self._act_spaces[a].seed(seed + k)
@@ -198,9 +256,9 @@ class SumoDrivingEnv(ParallelEnv):
         self.sensor_time = 0.0
         self.t = -1
         self._end = self._T - 1 if cfg.max_steps is None else \
-            min(self._T - 1, cfg.start_step + cfg.max_steps)
+            min(self._T - 1, start + cfg.max_steps)
         self._advance()  # SUMO step producing log step 0
-        while self.t < min(cfg.start_step, self._end):
+        while self.t < min(start, self._end):
             self._advance()
         joiners = self._join()
         while not joiners.size and self.t < self._end and (~self._joined).any():
@@ -267,17 +325,43 @@ class SumoDrivingEnv(ParallelEnv):
         self.t = nxt
         self._sumo_bg = None
 
+    def log_state(self, rows: np.ndarray, t: int) -> dynamics.VehicleState:
+        """Bicycle state of track ``rows`` at log step ``t`` as an agent joins with it: the
+        recorded pose, and the recorded velocity along the heading as speed."""
+        tr = self.scene.tracks
+        yaw = tr.heading[rows, t].astype(np.float64)
+        return dynamics.VehicleState(tr.x[rows, t], tr.y[rows, t], yaw,
+                                     tr.vx[rows, t] * np.cos(yaw) + tr.vy[rows, t] * np.sin(yaw))
+
+    def _log_prev_actions(self, t: int) -> np.ndarray:
+        """:func:`~magail_sumo.env.expert.log_prev_actions` covering step ``t`` (cached)."""
+        from .expert import log_prev_actions
+
+        if self._prev_table is None or self._prev_table[0] < t:
+            # the first need computes up to it (evaluation: the current step), a later one
+            # further the whole log
+            upto = t if self._prev_table is None else self._T - 1
+            self._prev_table = (upto, log_prev_actions(self, upto))
+        return self._prev_table[1]
+
     def _join(self) -> np.ndarray:
-        """Controlled tracks valid at step t that never joined become agents; their indices."""
+        """Controlled tracks valid at step t that never joined become agents; their indices.
+
+        A joiner valid at t - 1 too (only at the episode start: the log before it is history)
+        gets the log's previous action (:func:`~magail_sumo.env.expert.log_prev_actions`),
+        the others 0."""
         tr, t = self.scene.tracks, self.t
         new = np.flatnonzero(~self._joined & tr.valid[self._ctrl, t])
         if new.size:
             r = self._ctrl[new]
-            self._x[new], self._y[new] = tr.x[r, t], tr.y[r, t]
-            self._yaw[new] = tr.heading[r, t].astype(np.float64)
-            h = self._yaw[new]
-            self._speed[new] = tr.vx[r, t] * np.cos(h) + tr.vy[r, t] * np.sin(h)
+            st = self.log_state(r, t)
+            self._x[new], self._y[new], self._yaw[new], self._speed[new] = \
+                st.x, st.y, st.yaw, st.speed
             self._prev_action[new] = 0.0
+            if t > 0:
+                hist = tr.valid[r, t - 1]
+                if hist.any():
+                    self._prev_action[new[hist]] = self._log_prev_actions(t)[r[hist], t]
             self._joined[new] = self._active[new] = True
         return new
 

@@ -36,6 +36,30 @@ def log_targets(env: SumoDrivingEnv, rows: np.ndarray, step: int
     return x, y, yaw
 
 
+def replay_actions(env: SumoDrivingEnv, rows: np.ndarray, state: dynamics.VehicleState,
+                   wheelbase: np.ndarray, step: int, limits: dynamics.BicycleLimits,
+                   layout: str = "accel_steer") -> np.ndarray:
+    """(A, 2) float32 normalised actions (``limits``, ``layout``; clipped to [-1, 1]) that move
+    vehicles in ``state`` (track ``rows``, ``wheelbase`` m) from log step ``step`` to their
+    recorded pose at ``step + 1`` (:func:`log_targets`, :func:`magail_sumo.sim.dynamics.inverse`
+    with the recorded heading as ``yaw_next``)."""
+    x, y, yaw = log_targets(env, rows, min(step + 1, env.scene.num_steps - 1))
+    accel, steer = dynamics.inverse(state, x, y, wheelbase, env.dt, yaw_next=yaw)
+    return dynamics.normalise(accel, steer, limits, layout).astype(np.float32)
+
+
+def training_actions(actions: np.ndarray, limits: dynamics.BicycleLimits,
+                     layout: str = "accel_steer"
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Expert actions normalised with :data:`REPLAY_LIMITS` (``accel_steer``) to the training
+    scale: (A, 2) float32 normalised with ``limits`` in ``layout`` and clipped to [-1, 1] (the
+    action a policy would have to output), plus the physical (A,) accel (m/s²) and steer
+    (rad)."""
+    accel, steer = dynamics.denormalise(np.asarray(actions, np.float64), REPLAY_LIMITS)
+    act = np.clip(dynamics.normalise(accel, steer, limits, layout), -1.0, 1.0)
+    return act.astype(np.float32), accel, steer
+
+
 def expert_actions(env: SumoDrivingEnv) -> dict[str, np.ndarray]:
     """Per live agent, the (2,) float32 action in [-1, 1]² (accel, steer) that moves it from its
     current bicycle state to its recorded position at the next log step
@@ -43,8 +67,53 @@ def expert_actions(env: SumoDrivingEnv) -> dict[str, np.ndarray]:
     st = env.agent_states()
     if not st.names:
         return {}
-    x, y, yaw = log_targets(env, st.rows, min(env.t + 1, env.scene.num_steps - 1))
-    accel, steer = dynamics.inverse(st.state, x, y, st.wheelbase, env.dt, yaw_next=yaw)
-    act = dynamics.normalise(accel, steer, env.config.limits,
-                             env.config.action_layout).astype(np.float32)
+    act = replay_actions(env, st.rows, st.state, st.wheelbase, env.t, env.config.limits,
+                         env.config.action_layout)
     return dict(zip(st.names, act))
+
+
+def log_prev_actions(env: SumoDrivingEnv, until: int | None = None) -> np.ndarray:
+    """(N, T, 2) float32: per track row and log step ``t``, the previous action the expert data
+    (:mod:`magail_sumo.expert.record`) gives that vehicle at ``t``: the action of its step
+    ``t - 1 -> t`` in ``env.config``'s training limits and action layout
+    (:func:`training_actions`), 0 where it took none.
+
+    It replays what the recording does, without SUMO (the bicycle states depend on the log
+    alone): every route vehicle joins at its first valid step with :meth:`SumoDrivingEnv.
+    log_state`, follows :func:`replay_actions` under :data:`REPLAY_LIMITS` (float32 actions,
+    as the env receives them) until its last valid step, and moves by
+    :func:`magail_sumo.sim.dynamics.step`. Steps after ``until`` (default: the log's end) are
+    not computed (0). One loop over steps, arrays over the vehicles of each step.
+    """
+    tr = env.scene.tracks
+    n, t_steps = tr.valid.shape
+    out = np.zeros((n, t_steps, 2), np.float32)
+    rows = np.sort(env.bundle.sumo_rows)
+    first, last = env._first[rows], env._last[rows]
+    live = first < t_steps
+    rows, first, last = rows[live], first[live], last[live]
+    if not rows.size:
+        return out
+    stop = t_steps - 1 if until is None else min(until, t_steps - 1)
+    x, y, yaw, speed = (np.zeros(rows.size) for _ in range(4))
+    wheelbase = dynamics.WHEELBASE_RATIO * env._length[rows]
+    for s in range(int(first.min()), stop):  # the step s -> s + 1
+        new = np.flatnonzero(first == s)
+        if new.size:
+            st = env.log_state(rows[new], s)
+            x[new], y[new], yaw[new], speed[new] = st.x, st.y, st.yaw, st.speed
+        # an agent acts from its first valid step until the step reaching its last one
+        # (at least once: one valid step joins and leaves after a step)
+        k = np.flatnonzero((first <= s) & ((s < last) | (s == first)))
+        if not k.size:
+            continue
+        st = dynamics.VehicleState(x[k], y[k], yaw[k], speed[k])
+        act = replay_actions(env, rows[k], st, wheelbase[k], s, REPLAY_LIMITS)
+        clean = np.clip(np.nan_to_num(act.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0),
+                        -1.0, 1.0)  # as the env takes it (magail_sumo.env.actions)
+        accel, steer = dynamics.denormalise(clean, REPLAY_LIMITS)
+        nxt = dynamics.step(st, accel, steer, wheelbase[k], env.dt, REPLAY_LIMITS)
+        x[k], y[k], yaw[k], speed[k] = nxt.x, nxt.y, nxt.yaw, nxt.speed
+        out[rows[k], s + 1] = training_actions(act, env.config.limits,
+                                               env.config.action_layout)[0]
+    return out

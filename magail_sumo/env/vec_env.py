@@ -19,7 +19,9 @@ terminated, and ``"reason"``) and also when a free slot is given to a new agent,
 runs from one agent into another. When a scene has no agents left it is reset (next episode
 seed) inside the same step.
 
-Determinism: episode ``e`` of scene ``k`` is reset with seed ``seed + 100_003·k + e``; every
+Determinism: episode ``e`` of scene ``k`` is reset with seed ``seed + 100_003·k + e``; with
+``EnvConfig.start_window: random`` its start step is drawn from :func:`episode_rng` of that
+worker's seed ``seed + 100_003·k`` and ``e`` (a pure function of the two); every
 worker logs the actions of its current episode, so :meth:`MultiSceneVecEnv.get_state` /
 :meth:`~MultiSceneVecEnv.set_state` restore the exact simulation state in fresh workers by
 replaying them (used for exact training resume).
@@ -43,7 +45,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 
 from magail_sumo.errors import MagailSumoError
 
-from .config import EnvConfig
+from .config import EnvConfig, draw_start
 
 SEED_STRIDE = 100_003
 #: per-step cost of a scene worker in units of one agent's cost (SUMO step, log replay, sensor
@@ -100,8 +102,15 @@ def load_spec_scene(spec: SceneSpec):
     raise VecEnvWorkerError(f"{spec.scene_file}: no scene {spec.scenario_id}")
 
 
+def episode_rng(seed: int, episode: int) -> np.random.Generator:
+    """The generator drawing episode ``episode``'s start window of a worker seeded ``seed``."""
+    return np.random.default_rng(np.random.SeedSequence([seed % (1 << 64), episode]))
+
+
 def max_concurrent_agents(env) -> int:
-    """Upper bound of the number of agents of ``env`` alive at one step (>= 1)."""
+    """Upper bound of the number of agents of ``env`` alive at one step (>= 1), over every
+    episode window its config allows (``start_window: random``: over the whole log; never
+    more than K with ``controlled: K``)."""
     tr = env.scene.tracks
     row_of = {int(t): k for k, t in enumerate(tr.id.tolist())}
     rows = np.array([row_of[int(a)] for a in env.possible_agents], np.int64)
@@ -109,15 +118,21 @@ def max_concurrent_agents(env) -> int:
         return 1
     cfg = env.config
     t_steps = tr.valid.shape[1]
-    start = min(cfg.start_step, t_steps - 1)
-    end = t_steps - 1 if cfg.max_steps is None else min(t_steps - 1, start + cfg.max_steps)
+    if cfg.start_window == "random":  # every window lies in the log; tracks join no earlier
+        start, end = 0, t_steps - 1
+    else:
+        start = min(cfg.start_step, t_steps - 1)
+        end = t_steps - 1 if cfg.max_steps is None else min(t_steps - 1, start + cfg.max_steps)
     valid = tr.valid[rows]
     steps = np.arange(t_steps)
     join = np.where(valid & (steps[None] >= start), steps[None], t_steps).min(axis=1)
     last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
     alive = (steps[None] >= join[:, None]) & (steps[None] <= last[:, None]) & \
         (steps[None] <= end)
-    return max(1, int(alive.sum(axis=0).max()))
+    most = int(alive.sum(axis=0).max())
+    if not isinstance(cfg.controlled, str):
+        most = min(most, int(cfg.controlled))
+    return max(1, most)
 
 
 # ---------------------------------------------------------------------------------- worker side
@@ -169,7 +184,12 @@ class _SlotEnv:
         self.actions = []
         self.names = [None] * self.slots
         self.slot_of = {}
-        obs, _ = self.env.reset(seed=self.base_seed + self.episode)
+        cfg = self.env.config
+        options = None
+        if cfg.start_window == "random":
+            options = {"start_step": draw_start(cfg, self.env.scene.num_steps,
+                                                episode_rng(self.base_seed, self.episode))}
+        obs, _ = self.env.reset(seed=self.base_seed + self.episode, options=options)
         self._assign(obs, packet)
 
     def reset(self) -> dict:

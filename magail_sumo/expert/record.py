@@ -54,7 +54,7 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
     import pyarrow.parquet as pq
 
     from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv, expert_actions
-    from magail_sumo.sim import dynamics
+    from magail_sumo.env.expert import training_actions
 
     scene = load_spec_scene(spec)
     cfg = EnvConfig(controlled="all", background="log", terminate_on=(), observation=observation,
@@ -71,8 +71,7 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
         nobs, _, terms, truncs, _ = env.step(acts)
         names_now = list(acts)
         raw = np.stack([acts[a] for a in names_now]).astype(np.float64)
-        accel, steer = dynamics.denormalise(raw, REPLAY_LIMITS)
-        a_train = np.clip(dynamics.normalise(accel, steer, limits), -1.0, 1.0).astype(np.float32)
+        a_train, accel, steer = training_actions(raw, limits)
         s = np.stack([obs[a] for a in names_now]).astype(np.float32)
         s_next = np.stack([nobs[a] for a in names_now]).astype(np.float32)
         if len(prev) == 2:

@@ -3,7 +3,8 @@
 Every hyperparameter of a run lives here; unknown keys, wrong types and values out of range
 (checked in each dataclass's ``__post_init__``) are refused naming the key.
 :func:`check_train_config` adds the checks that need the machine or the scene files (device
-available, scene files readable, ``env.start_step`` inside every scene), before any set-up.
+available, scene files readable, ``env.start_step`` / ``env.min_history`` inside every scene),
+before any set-up.
 """
 
 from __future__ import annotations
@@ -249,8 +250,9 @@ def check_device(device: str) -> None:
 
 def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -> None:
     """Checks of ``cfg`` that need this machine and the scene files, before any set-up:
-    the device exists, every scene file is readable and ``env.start_step`` leaves at least one
-    step in each of its scenes. :class:`ConfigError` naming ``source`` (the config file) and
+    the device exists, every scene file is readable and ``env.start_step`` (with
+    ``env.start_window: random``, ``env.min_history``) leaves at least one step in each of its
+    scenes. :class:`ConfigError` naming ``source`` (the config file) and
     the key."""
     from pathlib import Path
 
@@ -271,9 +273,11 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
             raise ConfigError(f"{where}{key}: {show(f, 200)}: no such file")
         try:
             for scene in iter_scenes(f):
-                if cfg.env.start_step > scene.num_steps - 2:
+                key_start = "min_history" if cfg.env.start_window == "random" else "start_step"
+                first = getattr(cfg.env, key_start)  # the earliest start of an episode
+                if first > scene.num_steps - 2:
                     raise ConfigError(
-                        f"{where}env.start_step: {cfg.env.start_step} leaves no step to take in "
+                        f"{where}env.{key_start}: {first} leaves no step to take in "
                         f"scene {show(scene.scenario_id)} of {f} ({scene.num_steps} steps)")
         except ConfigError:
             raise
