@@ -18,7 +18,9 @@ from pathlib import Path
 from magail_sumo.config import ConfigError, check, load_config
 
 
-def _stem(path: str) -> str:
+def scene_stem(path: str) -> str:
+    """A scene file's name without folder and scene-file extensions (``.tfrecord[.gz]``,
+    ``.pkl``): files of one scene in two formats share it."""
     name = os.path.basename(os.path.normpath(path))
     for ext in (".gz", ".tfrecord", ".pkl"):
         name = name[:-len(ext)] if name.endswith(ext) else name
@@ -47,11 +49,11 @@ class SceneSplit:
             dup = next((f for k, f in enumerate(norm) if f in norm[:k]), None)
             check(dup is None, key, f"{dup} is listed twice")
         train = {os.path.normpath(f): f for f in self.train}
-        train_stems = {_stem(f): f for f in self.train}
+        train_stems = {scene_stem(f): f for f in self.train}
         for f in self.test:
             check(os.path.normpath(f) not in train, "test", f"{f} is also a training scene")
-            check(_stem(f) not in train_stems, "test",
-                  f"{f} is the same scene as training file {train_stems.get(_stem(f))}")
+            check(scene_stem(f) not in train_stems, "test",
+                  f"{f} is the same scene as training file {train_stems.get(scene_stem(f))}")
 
     def files(self, which: str, root: str | PathLike = ".") -> list[Path]:
         """The ``train`` or ``test`` files, relative ones resolved against ``root``.
