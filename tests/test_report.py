@@ -38,6 +38,9 @@ def test_report_files(folder):
     assert summary.set_index("method").loc["logreplay", "ade"] == 0.0
     metrics = pd.read_csv(rep / "metrics.csv")
     assert len(metrics) == len(SCENES) * len(METHODS) and "metametric" in metrics
+    # speed bias (simulated - logged mean speed, m/s): 0 for log replay, in both tables
+    assert summary.set_index("method").loc["logreplay", "speed_bias"] == pytest.approx(0, abs=1e-6)
+    assert np.isfinite(metrics["speed_bias"]).all()
     md = (rep / "report.md").read_text()
     assert "| constvel |" in md and "![" in md
     for img in re.findall(r"\]\((img/[^)]+)\)", md):

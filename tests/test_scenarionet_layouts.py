@@ -1,6 +1,6 @@
 """Issue 14: real ScenarioNet pickles of both layouts and of non-WOMD datasets (nuScenes).
 
-The three real files in data/scenarionet/ are tested unconditionally; every file of
+The real files in data/scenarionet/ are tested unconditionally; every file of
 ../shared/data/scenarionet/ (or $MAGAIL_SUMO_SHARED_DATA/scenarionet/) when present.
 """
 

@@ -101,6 +101,42 @@ def test_lane_change_counting(replay, monkeypatch):
     assert lanes.lane_changes(replay).sum() == 0  # a successor switch is no lane change
 
 
+def _scaled(scene, k: float):
+    """Log replay with every position scaled by ``k`` about the scene's centre: every
+    horizontal velocity times ``k``."""
+    ro = log_replay(scene, 3)
+    cx, cy = np.float32(ro.x.mean()), np.float32(ro.y.mean())
+    return replace(ro, x=cx + (ro.x - cx) * np.float32(k), y=cy + (ro.y - cy) * np.float32(k))
+
+
+def test_speed_bias(scene_637f, replay):
+    assert make_metric("speed_bias").unit == "m/s"
+    assert make_metric("speed_bias").compute(replay) == pytest.approx(0.0, abs=1e-6)
+    logged = make_metric("mean_speed").compute(replay)  # the log's mean speed on the mask
+    assert logged > 1.0
+    for k in (0.8, 1.1):
+        inp = MetricInput.build(scene_637f, _scaled(scene_637f, k))
+        bias = make_metric("speed_bias").compute(inp)
+        assert bias == pytest.approx((k - 1.0) * logged, rel=0.02), k
+        # all speeds finite here: the difference of the two means
+        assert bias == pytest.approx(make_metric("mean_speed").compute(inp) - logged, abs=1e-4)
+    # object-steps where the log has no speed do not count: a wild rollout there changes nothing
+    m, lv = replay.mask("linear_speed"), replay.valid
+    a = int(np.flatnonzero((~lv).any(1) & m.any(1))[0])  # an object the log loses a while
+    t = int(np.flatnonzero(~lv[a])[0])  # a step the log has no state for
+    ro = log_replay(scene_637f, 4)
+    col = int(np.flatnonzero(ro.object_id == replay.jt.object_id[a])[0])
+    x = ro.x.copy()
+    x[:, col, t] += 50.0
+    wild = MetricInput.build(scene_637f, replace(ro, x=x))
+    hit = wild.mask("linear_speed")
+    assert np.array_equal(hit, m)
+    changed = np.isfinite(wild.feature("linear_speed")[1:, a]) & \
+        (wild.feature("linear_speed")[1:, a] != replay.feature("linear_speed")[1:, a])
+    assert changed.any() and not (changed & m[a][None]).any()
+    assert make_metric("speed_bias").compute(wild) == pytest.approx(0.0, abs=1e-6)
+
+
 def test_factory_and_units():
     with pytest.raises(KeyError, match="unknown traffic metric"):
         make_metric("nope")

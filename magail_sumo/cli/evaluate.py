@@ -18,11 +18,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    ".parquet and DIR/manifest.json (DIR: new, empty or written "
                                    "by magail-sumo).")
     p.add_argument("--policy", required=True, metavar="POLICY",
-                   help="logreplay | constvel | sumo | random | CHECKPOINT | module:factory")
+                   help="logreplay | constvel | sumo | random | pretrained[:NAME] (a shipped "
+                        "policy; $MAGAIL_SUMO_PRETRAINED_DIR: another registry folder) | "
+                        "CHECKPOINT | module:factory")
     p.add_argument("--name", metavar="NAME",
                    help="method name of the policy in the rollouts, manifest and report "
-                        "(default: the built-in's name; a checkpoint RUN/checkpoints/latest.pt: "
-                        "RUN's folder name; a factory's name)")
+                        "(default: the built-in's name; pretrained:NAME: NAME; a checkpoint "
+                        "RUN/checkpoints/latest.pt: RUN's folder name; a factory's name)")
     p.add_argument("--scenes", nargs="+", required=True, metavar="FILE",
                    help="scene files (WOMD TFRecords, ScenarioNet pickles or folders)")
     p.add_argument("--rollouts", type=int, default=32, metavar="R", help="rollouts per scene")

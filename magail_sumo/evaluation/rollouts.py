@@ -104,10 +104,20 @@ POLICY_LOADERS[".pt"] = _training_checkpoint
 
 
 def make_policy(spec: str, seed: int) -> Policy:
-    """The policy named by ``spec``: ``random``, a checkpoint file with a registered loader,
-    or ``package.module:factory`` (``factory(seed) -> Policy``)."""
+    """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
+    shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
+    another registry folder), a checkpoint file with a registered loader, or
+    ``package.module:factory`` (``factory(seed) -> Policy``)."""
     if spec == "random":
         return RandomPolicy(seed)
+    from magail_sumo.pretrained import is_pretrained_spec, resolve
+
+    if is_pretrained_spec(spec):
+        entry = resolve(spec)
+        loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
+        if loader is None:  # only if a caller unregistered ".pt"
+            raise EvaluationError(f"{spec}: no policy loader for '.pt' checkpoints")
+        return _built(spec, loader, entry.checkpoint, seed)
     path = Path(spec)
     if path.is_file():
         loader = POLICY_LOADERS.get(path.suffix)
@@ -124,7 +134,7 @@ def make_policy(spec: str, seed: int) -> Policy:
                                   f"({type(exc).__name__}: {_line(exc)})") from None
         return _built(spec, factory, seed)
     raise EvaluationError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
-                          "a checkpoint file or a module:factory spec")
+                          "pretrained[:NAME], a checkpoint file or a module:factory spec")
 
 
 def _line(exc: BaseException) -> str:
@@ -150,9 +160,17 @@ def method_name(spec: str) -> str:
     """Name a method is stored under (``evaluate --name`` overrides it): the spec itself for
     built-ins; for a checkpoint in a run's ``checkpoints/`` folder the run folder's name
     (``runs/magail/checkpoints/latest.pt`` -> ``magail``; another file there -> ``magail-<stem>``,
-    e.g. ``magail-update_000020``); another file's stem; a factory's name."""
+    e.g. ``magail-update_000020``); another file's stem; a factory's name; for
+    ``pretrained:NAME`` the registry name ``NAME`` (``pretrained``: the default's name)."""
     if spec in BASELINES + BUILTIN_POLICIES:
         return spec
+    from magail_sumo.pretrained import PretrainedError, is_pretrained_spec, name_of
+
+    if is_pretrained_spec(spec):
+        try:
+            return name_of(spec)
+        except PretrainedError:
+            return spec.replace(":", "-")
     p = Path(spec)
     if p.is_file():
         run = p.resolve().parent

@@ -15,11 +15,13 @@ from .signals import SignalStates
 from .tracks import STATE_FIELDS, Tracks
 from .types import Difficulty, LaneType, ObjectType, RoadEdgeType, RoadLineType, SignalState
 from .validation import SceneValidationError, validate_scene
+from .window import WindowError, choose_tracks_to_predict, window, window_id
 
 __all__ = [
     "FEATURE_KINDS", "STATE_FIELDS", "AreaFeature", "BoundarySegment", "Crosswalk", "DataQuality",
     "Difficulty", "DroppedReference", "Driveway", "Lane", "LaneNeighbor", "LaneType", "ObjectType", "RequiredPrediction",
     "RoadEdge", "RoadEdgeType", "RoadLine", "RoadLineType", "RoadMap", "Scene",
     "SceneValidationError", "SignalState", "SignalStates", "SourceIds", "SpeedBump", "StopSign",
-    "Tracks", "infer_lane_connectivity", "validate_scene",
+    "Tracks", "WindowError", "choose_tracks_to_predict", "infer_lane_connectivity",
+    "validate_scene", "window", "window_id",
 ]

@@ -25,7 +25,7 @@ from .scoring import AGENT_FIELDS, Scores, collect, method_means
 
 #: Traffic metrics in the main table, in order.
 MAIN = ["ade", "min_ade", "fde", "collision_rate", "offroad_rate", "red_light_rate",
-        "hard_braking_rate", "lane_changes", "route_completion", "mean_speed",
+        "hard_braking_rate", "lane_changes", "route_completion", "mean_speed", "speed_bias",
         "nearest_object_distance", "ttc_below_1s", "speed_js", "acceleration_js", "jerk_js",
         "yaw_rate_js", "nearest_object_distance_js", "ttc_js"]
 

@@ -80,6 +80,29 @@ class MeanSpeed(TrafficMetric):
 
 
 @register
+class SpeedBias(TrafficMetric):
+    """Mean simulated minus mean logged speed over the same object-steps (m/s):
+
+    ``b = mean_{r,(a,t) in S} v^sim_{r,a,t} - mean_{r,(a,t) in S} v^log_{a,t}``, where ``S`` is
+    the set of object-steps where the log defines the speed (:meth:`MetricInput.mask` of
+    ``linear_speed``: log-valid with valid neighbours) and both speeds are finite, and
+    ``r`` runs over the rollouts. Negative: the method drives slower than the recorded road
+    users; 0 is best (so it is neither a higher- nor a lower-is-better figure)."""
+
+    name, unit, lower_is_better = "speed_bias", "m/s", False
+    description = "mean simulated minus mean logged speed over the same object-steps"
+
+    def compute(self, inp: MetricInput) -> float:
+        v = inp.feature("linear_speed")
+        m = inp.mask("linear_speed")
+        log, sim = v[0][m], v[1:][:, m]  # (K,), (R, K)
+        ok = np.isfinite(sim) & np.isfinite(log)[None]
+        if not ok.any():
+            return float("nan")
+        return float(sim[ok].mean() - np.broadcast_to(log, sim.shape)[ok].mean())
+
+
+@register
 class NearestObjectDistance(TrafficMetric):
     name, unit, lower_is_better = "nearest_object_distance", "m", False
     description = "median distance to the nearest other object (box to box)"

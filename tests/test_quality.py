@@ -1,0 +1,222 @@
+"""Pretrained policies (``--policy pretrained[:NAME]``) and the quality benchmark
+(benchmarks/quality.py) end to end, with a checkpoint of a 1-update training run."""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from conftest import ROOT, WOMD_DIR
+from magail_sumo import pretrained as pt
+from magail_sumo.cli.main import main
+from magail_sumo.config import from_dict
+from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation.realism.config import BUCKETS, CHALLENGE_2025
+from magail_sumo.expert import record_expert
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.trainer import train
+
+SID = "850c48d8bbfa008f"  # a training scene of configs/splits/womd14.yaml
+SCENE = str(WOMD_DIR / f"{SID}.tfrecord")
+SPLIT = ROOT / "configs" / "splits" / "womd14.yaml"
+HELD_OUT = ROOT / "data" / "scenarionet" / "8799c31b5be1f312.pkl"  # a test scene
+
+
+# ------------------------------------------------------------------ registry without SUMO
+def test_registry_errors_name_the_spec_and_the_available(tmp_path, monkeypatch):
+    monkeypatch.delenv(pt.ENV_VAR, raising=False)
+    assert pt.available(tmp_path / "absent") == [] and pt.default_name(tmp_path) is None
+    with pytest.raises(pt.PretrainedError, match=r"^pretrained: no default pretrained policy "
+                                                 r"\(index.json names none.*available: none"):
+        pt.resolve("pretrained", tmp_path)
+    (tmp_path / "a.pt").write_bytes(b"x")
+    (tmp_path / "a.json").write_text("{}")
+    (tmp_path / "b.pt").write_bytes(b"x")  # no card: not available
+    assert pt.available(tmp_path) == ["a"]
+    with pytest.raises(pt.PretrainedError, match=r"pretrained:nope: unknown pretrained policy "
+                                                 r"'nope' \(available: a; folder "):
+        pt.resolve("pretrained:nope", tmp_path)
+    with pytest.raises(pt.PretrainedError, match=r"b.json: card missing beside b.pt"):
+        pt.resolve("pretrained:b", tmp_path)
+    for bad in ("../a", "sumo", ".a", ""):
+        with pytest.raises(pt.PretrainedError, match="is not a pretrained policy name"):
+            pt.resolve(f"pretrained:{bad}", tmp_path)
+    (tmp_path / "index.json").write_text('["a"]')
+    with pytest.raises(pt.PretrainedError, match="index must be a JSON object"):
+        pt.resolve("pretrained", tmp_path)
+    (tmp_path / "index.json").write_text('{"default": "a"}')
+    assert pt.resolve("pretrained", tmp_path).name == "a"
+    # the environment variable selects the folder; evaluate's spec errors are one line
+    monkeypatch.setenv(pt.ENV_VAR, str(tmp_path))
+    assert pt.registry_dir() == tmp_path and rl.method_name("pretrained") == "a"
+    assert rl.method_name("pretrained:zz") == "zz"
+    with pytest.raises(pt.PretrainedError, match="unknown pretrained policy 'zz'"):
+        rl.make_policy("pretrained:zz", 0)
+
+
+def test_shipped_registry_and_package_data():
+    folder = Path(pt.__file__).parent
+    default = pt.default_name(folder)
+    assert default is None or default in pt.available(folder)
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    patterns = data["tool"]["setuptools"]["package-data"]["magail_sumo.pretrained"]
+    for name in ("x.pt", "x.json", "index.json", "README.md"):
+        assert any(fnmatch.fnmatch(name, p) for p in patterns), name
+    assert (folder / "__init__.py").is_file()  # a package: setuptools' find includes it
+
+
+# --------------------------------------------------------------- with a trained checkpoint
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pretrained")
+    nets = root / "nets"
+    record_expert(scene_specs([SCENE], nets), root / "expert")
+    cfg = from_dict(TrainConfig, {
+        "seed": 1, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),
+        "updates": 1, "env": {"max_steps": 20},
+        "scenes": {"files": [SCENE], "networks": str(nets)},
+        "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},
+        "ppo": {"n_steps": 8, "batch_size": 16, "n_epochs": 1},
+        "discriminator": {"epochs": 2, "batch_size": 4, "transformer": {
+            "embed_dim": 16, "num_layers": 1, "num_heads": 2, "ff_dim": 32}},
+        "bc": {"epochs": 1, "batch_size": 64}})
+    run = train(cfg, run_dir=root / "run", log=lambda s: None)
+    return root, run / "checkpoints" / "latest.pt"
+
+
+@pytest.fixture(scope="module")
+def registry(checkpoint):
+    root, ckpt = checkpoint
+    reg = root / "registry"
+    entry = pt.export(ckpt, "tiny", reg, description="1-update test run", split=SPLIT,
+                      figures={"note": "none"}, make_default=True)
+    return reg, entry
+
+
+@pytest.mark.sumo
+def test_export_writes_a_slim_checkpoint_and_its_card(checkpoint, registry, tmp_path,
+                                                     monkeypatch):
+    _, ckpt = checkpoint
+    reg, entry = registry
+    assert entry.name == "tiny" and entry.checkpoint == reg / "tiny.pt"
+    assert pt.available(reg) == ["tiny"] and pt.default_name(reg) == "tiny"
+    state = torch.load(entry.checkpoint, weights_only=True)
+    assert sorted(state) == ["config", "format", "policy", "update"]
+    card = json.loads((reg / "tiny.json").read_text())
+    assert card["checkpoint"]["sha256"] == pt.sha256(entry.checkpoint)
+    assert card["config"]["scenes"]["files"] == [SCENE] and card["figures"] == {"note": "none"}
+    assert card["split"]["test"][-1] == "data/scenarionet/8799c31b5be1f312.pkl"
+    # the same policy as the run's checkpoint
+    monkeypatch.setenv(pt.ENV_VAR, str(reg))
+    a, b = rl.make_policy("pretrained", 0), rl.make_policy(str(ckpt), 0)
+    obs = {str(k): np.random.default_rng(k).normal(size=a.obs_dim).astype(np.float32)
+           for k in range(4)}
+    got, want = a.act(obs), b.act(obs)
+    assert all(np.array_equal(got[k], want[k]) for k in obs)
+    # a replaced checkpoint is refused
+    copy = tmp_path / "reg"
+    copy.mkdir()
+    for f in ("tiny.pt", "tiny.json"):
+        (copy / f).write_bytes((reg / f).read_bytes())
+    with open(copy / "tiny.pt", "ab") as fh:
+        fh.write(b"\0")
+    with pytest.raises(pt.PretrainedError, match="sha256 differs from its card's"):
+        pt.resolve("pretrained:tiny", copy)
+    # a run trained on a split's test scene is refused
+    split = tmp_path / "split.yaml"
+    split.write_text(f"train: [data/womd/637f20cafde22ff8.tfrecord]\ntest: [{SCENE}]\n")
+    with pytest.raises(pt.PretrainedError, match=f"trained on {SCENE}, a test scene"):
+        pt.export(ckpt, "other", tmp_path / "reg2", split=split)
+    assert not (tmp_path / "reg2" / "other.pt").exists()
+
+
+@pytest.mark.sumo
+def test_evaluate_pretrained_end_to_end(checkpoint, registry, monkeypatch, capsys):
+    root, _ = checkpoint
+    reg, _ = registry
+    monkeypatch.setenv(pt.ENV_VAR, str(reg))
+    out = root / "eval"
+    rc = main(["evaluate", "--policy", "pretrained:tiny", "--scenes", SCENE, "--rollouts", "2",
+               "--baselines", "constvel", "--networks", str(root / "nets"), "--out", str(out)])
+    assert rc == 0
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["methods"] == ["tiny", "constvel"] and man["policy_spec"] == "pretrained:tiny"
+    df = pd.read_parquet(out / "rollouts" / "tiny" / f"{SID}.parquet")
+    assert tuple(df.columns) == rl.COLUMNS and df["rollout"].nunique() == 2
+    assert np.isfinite(df[["x", "y", "heading"]].to_numpy()).all()
+    capsys.readouterr()
+    rc = main(["evaluate", "--policy", "pretrained:nope", "--scenes", SCENE, "--rollouts", "2",
+               "--out", str(root / "eval2")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and err == [f"error: magail-sumo evaluate: pretrained:nope: unknown "
+                               f"pretrained policy 'nope' (available: tiny; folder {reg})"]
+
+
+def _benchmark(args: list[str], reg: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env[pt.ENV_VAR] = str(reg)
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"), *args],
+                          env=env, capture_output=True, text=True, timeout=900)
+
+
+@pytest.mark.sumo
+def test_quality_benchmark_end_to_end(checkpoint, registry, tmp_path):
+    reg, _ = registry
+    out = tmp_path / "q"
+    res = _benchmark(["--policy", "tiny=pretrained:tiny", "--baselines", "constvel",
+                      "logreplay", "--scenes", str(HELD_OUT), "--seeds", "0", "--rollouts", "2",
+                      "--workers", "2", "--out", str(out), "--json"], reg)
+    assert res.returncode == 0, res.stderr[-3000:]
+    got = json.loads(res.stdout)
+    assert got["methods"] == {"constvel": "constvel", "logreplay": "logreplay",
+                              "tiny": "pretrained:tiny"}
+    (scene,) = got["scenes"]
+    assert scene["scenario_id"] == "8799c31b5be1f312-w0" and scene["split"] == "test"
+    assert scene["source_file"] == "data/scenarionet/8799c31b5be1f312.pkl"
+    assert scene["scored_agents"] > 1  # the window has tracks to predict besides the SDC
+    assert got["scored"] == {m: ["8799c31b5be1f312-w0"] for m in got["methods"]}
+    rows = {(r["method"], r["metric"]): r for r in got["rows"]}
+    fields = ["realism_meta_metric", "kinematic_metrics", "interactive_metrics",
+              "map_based_metrics", "min_ade", "simulated_collision_rate",
+              "simulated_offroad_rate", "simulated_traffic_light_violation_rate", "speed_bias"]
+    assert sorted(rows) == sorted((m, f) for m in got["methods"] for f in fields)
+    for r in got["rows"]:
+        assert r["seeds"] == [0] and r["mean"] == r["min"] == r["max"] == r["per_seed"][0]
+    # the values are the report's (evaluate + report ran once per seed into OUT/seed0)
+    metrics = pd.read_csv(out / "seed0" / "report" / "metrics.csv").set_index("method")
+    for m in got["methods"]:
+        assert rows[(m, "realism_meta_metric")]["mean"] == pytest.approx(
+            metrics.loc[m, "metametric"], abs=1e-12)
+        assert rows[(m, "speed_bias")]["mean"] == pytest.approx(metrics.loc[m, "speed_bias"],
+                                                                abs=1e-12)
+        assert rows[(m, "min_ade")]["mean"] == pytest.approx(
+            metrics.loc[m, "min_average_displacement_error"], abs=1e-12)
+        # the meta-metric is the weighted sum of its three components
+        total = sum(rows[(m, b)]["mean"] * sum(CHALLENGE_2025.feature(n).weight for n in ns)
+                    for b, ns in BUCKETS.items())
+        assert total == pytest.approx(rows[(m, "realism_meta_metric")]["mean"], abs=1e-9)
+    assert rows[("logreplay", "min_ade")]["mean"] == 0.0
+    assert rows[("logreplay", "speed_bias")]["mean"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[("logreplay", "realism_meta_metric")]["mean"] > \
+        rows[("constvel", "realism_meta_metric")]["mean"]
+    man = json.loads((out / "seed0" / "manifest.json").read_text())
+    assert man["methods"] == ["constvel", "logreplay", "tiny"]  # baselines once, then the policy
+    # a policy is never scored on a scene it was trained on
+    res = _benchmark(["--policy", "tiny=pretrained:tiny", "--baselines", "--scenes", SCENE,
+                      "--seeds", "0", "--rollouts", "2", "--out", str(tmp_path / "q2")], reg)
+    assert res.returncode == 1
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"error: policy tiny was trained on scene {SID}, which is scored here "
+        "(--allow-trained-scenes marks such scenes instead)")
+    assert not (tmp_path / "q2").exists()
