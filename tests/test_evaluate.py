@@ -131,6 +131,29 @@ def test_policy_specs(tmp_path):
     assert set(a) == {"1", "2"} and all(np.all(np.abs(v) <= 1) for v in a.values())
 
 
+def test_loaders_get_the_deterministic_choice(tmp_path):
+    """A loader with a ``deterministic`` keyword gets evaluation's choice; a (path, seed) one
+    is called as before; factories and ``random`` ignore it."""
+    ckpt = tmp_path / "agent.ckpt"
+    ckpt.write_bytes(b"x")
+    seen = []
+    rl.POLICY_LOADERS[".ckpt"] = lambda path, seed, deterministic=False: \
+        seen.append((seed, deterministic)) or _StopPolicy(seed)
+    try:
+        rl.make_policy(str(ckpt), 5)
+        rl.make_policy(str(ckpt), 6, deterministic=True)
+        assert seen == [(5, False), (6, True)]
+        rl.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
+        assert rl.make_policy(str(ckpt), 7, deterministic=True).seed == 7
+    finally:
+        del rl.POLICY_LOADERS[".ckpt"]
+    assert isinstance(rl.make_policy("random", 0, deterministic=True), rl.RandomPolicy)
+    assert rl.make_policy(f"{__name__}:stop_policy", 3, deterministic=True).seed == 3
+    # the choice travels with a batch into the workers (and its single-rollout retries)
+    b = rl.Batch("f", SID, "b", "random", (0, 1), 3, True)
+    assert b.deterministic and not rl.Batch("f", SID, "b", "random", (0,), 3).deterministic
+
+
 def test_constant_velocity_fill():
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
     ids = sim_agent_ids(scene)

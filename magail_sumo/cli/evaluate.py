@@ -43,6 +43,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "rollout000.sumocfg (default 0: none)")
     p.add_argument("--seed", type=int, default=0, help="run seed (rollout r uses a seed "
                                                        "derived from it and r)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="a checkpoint policy acts with the tanh of its Gaussian mean, the same "
+                        "in every rollout (default: it samples its actions, seeded per rollout)")
     p.add_argument("--workers", type=int, default=2, metavar="N",
                    help="worker processes for SUMO rollouts")
     p.add_argument("--timeout-s", type=timeout_s, default=1800.0, metavar="S",
@@ -64,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
                        baselines=base, seed=args.seed, workers=args.workers,
                        networks=args.networks, submission=args.export_submission,
                        timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
-                       name=args.name)
+                       name=args.name, deterministic=args.deterministic)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
         raise OutputError(f"{exc.filename or args.out}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None

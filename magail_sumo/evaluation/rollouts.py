@@ -20,7 +20,9 @@ sim-agent set). Methods:
   its route passes within :data:`QUEUED_MATCH` m, else it is taken out of SUMO and an obstacle.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
   drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
-  (bicycle model, SUMO co-simulation, no event terminates an agent).
+  (bicycle model, SUMO co-simulation, no event terminates an agent). Each rollout builds its
+  policy with the rollout seed; a training checkpoint samples its actions from that seed
+  (``deterministic=True``: the tanh of the Gaussian mean, the same in every rollout).
 
 Objects a method does not move (pedestrians, objects SUMO does not carry, vehicles not yet
 inserted) and objects that leave the simulation early (arrived at their route end, end of
@@ -35,10 +37,11 @@ simulation per process and has crashed when a second one starts after vehicle re
 from __future__ import annotations
 
 import importlib
+import inspect
 import json
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Protocol
 
@@ -88,26 +91,43 @@ class RandomPolicy:
         return dict(zip(names, a))
 
 
-#: Checkpoint loaders by file suffix (e.g. ``".pt"``): ``loader(path, seed) -> Policy``. The
-#: training package registers its own; ``module:factory`` specs work without registering.
-POLICY_LOADERS: dict[str, Callable[[Path, int], Policy]] = {}
+#: Checkpoint loaders by file suffix (e.g. ``".pt"``): ``loader(path, seed) -> Policy``; a
+#: loader with a ``deterministic`` keyword also gets evaluation's choice (sample the policy with
+#: ``seed``, or act deterministically). The training package registers its own;
+#: ``module:factory`` specs work without registering.
+POLICY_LOADERS: dict[str, Callable[..., Policy]] = {}
 
 
-def _training_checkpoint(path: Path, seed: int) -> Policy:
+def _training_checkpoint(path: Path, seed: int, deterministic: bool = False) -> Policy:
     """``magail-sumo train`` checkpoints (imported lazily: torch / SB3 only when used)."""
     from magail_sumo.training.policy_loader import load_checkpoint_policy
 
-    return load_checkpoint_policy(path, seed)
+    return load_checkpoint_policy(path, seed, deterministic=deterministic)
 
 
 POLICY_LOADERS[".pt"] = _training_checkpoint
 
 
-def make_policy(spec: str, seed: int) -> Policy:
+def _takes_deterministic(loader: Callable) -> bool:
+    """Whether ``loader`` accepts a ``deterministic`` keyword."""
+    try:
+        params = inspect.signature(loader).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin)
+        return False
+    return any(p.name == "deterministic" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+               or p.kind == p.VAR_KEYWORD for p in params)
+
+
+def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
     """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
     shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
     another registry folder), a checkpoint file with a registered loader, or
-    ``package.module:factory`` (``factory(seed) -> Policy``)."""
+    ``package.module:factory`` (``factory(seed) -> Policy``).
+
+    :param seed: the policy's seed (evaluation passes :func:`rollout_seed`).
+    :param deterministic: passed to a checkpoint loader that takes it (a training checkpoint
+        then acts with the tanh of its Gaussian mean instead of sampling); ``random`` and
+        factories ignore it."""
     if spec == "random":
         return RandomPolicy(seed)
     from magail_sumo.pretrained import is_pretrained_spec, resolve
@@ -117,14 +137,14 @@ def make_policy(spec: str, seed: int) -> Policy:
         loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
         if loader is None:  # only if a caller unregistered ".pt"
             raise EvaluationError(f"{spec}: no policy loader for '.pt' checkpoints")
-        return _built(spec, loader, entry.checkpoint, seed)
+        return _checkpoint_policy(spec, loader, entry.checkpoint, seed, deterministic)
     path = Path(spec)
     if path.is_file():
         loader = POLICY_LOADERS.get(path.suffix)
         if loader is None:
             raise EvaluationError(f"{spec}: no policy loader for '{path.suffix}' checkpoints "
                                   "(register one in magail_sumo.evaluation.rollouts.POLICY_LOADERS)")
-        return _built(spec, loader, path, seed)
+        return _checkpoint_policy(spec, loader, path, seed, deterministic)
     if ":" in spec:
         mod, _, attr = spec.partition(":")
         try:
@@ -135,6 +155,13 @@ def make_policy(spec: str, seed: int) -> Policy:
         return _built(spec, factory, seed)
     raise EvaluationError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
                           "pretrained[:NAME], a checkpoint file or a module:factory spec")
+
+
+def _checkpoint_policy(spec: str, loader: Callable, path: Path, seed: int,
+                       deterministic: bool) -> Policy:
+    if _takes_deterministic(loader):
+        return _built(spec, lambda p, s: loader(p, s, deterministic=deterministic), path, seed)
+    return _built(spec, loader, path, seed)
 
 
 def _line(exc: BaseException) -> str:
@@ -424,11 +451,13 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
 # ------------------------------------------------------------------------------- one method
 def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
              bundle_dir: str | Path | None = None,
-             action_counts: dict[str, int] | None = None) -> ScenarioRollouts:
+             action_counts: dict[str, int] | None = None,
+             deterministic: bool = False) -> ScenarioRollouts:
     """Rollouts ``rollouts`` (indices) of one method on one scene, in this process.
 
     SUMO methods run one simulation after another here; callers batch them in fresh worker
-    processes (:func:`run_batches`).
+    processes (:func:`run_batches`). Rollout ``r`` builds its policy with
+    ``make_policy(method, rollout_seed(seed, r), deterministic)``.
 
     :param action_counts: a policy's fixed-up actions (the env's ``action_counts``: missing,
         unknown, non-finite, clipped) are added to it; they are also logged once.
@@ -452,8 +481,8 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         elif method == "sumo":
             x, y, yaw = _sumo_rollout(scene, Path(bundle_dir), s)
         else:
-            x, y, yaw = _policy_rollout(scene, Path(bundle_dir), make_policy(method, s), s,
-                                        counts)
+            x, y, yaw = _policy_rollout(scene, Path(bundle_dir),
+                                        make_policy(method, s, deterministic), s, counts)
         xs.append(x)
         ys.append(y)
         yaws.append(yaw)
@@ -474,6 +503,7 @@ class Batch:
     """Work for one worker process: some rollouts of one method on one scene.
 
     :param spec: method name or policy spec (see :func:`make_policy`).
+    :param deterministic: a checkpoint policy acts deterministically (see :func:`make_policy`).
     """
 
     scene_file: str
@@ -482,6 +512,7 @@ class Batch:
     spec: str
     rollouts: tuple[int, ...]
     seed: int
+    deterministic: bool = False
 
 
 def _load(scene_file: str, scenario_id: str) -> Scene:
@@ -498,7 +529,8 @@ def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
     fixed-up action counts."""
     scene = _load(batch.scene_file, batch.scenario_id)
     counts: dict[str, int] = {}
-    ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts)
+    ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts,
+                  batch.deterministic)
     return batch, ro, counts
 
 
@@ -537,8 +569,7 @@ def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DE
             yield b, None, (f"{what} rollout(s) {_span(b.rollouts)}: worker {res.reason} "
                             "(--timeout-s)"), {}
         elif len(b.rollouts) > 1:  # worker crash (libsumo) or bug: retry singly
-            retry += [Batch(b.scene_file, b.scenario_id, b.bundle_dir, b.spec, (r,), b.seed)
-                      for r in b.rollouts]
+            retry += [replace(b, rollouts=(r,)) for r in b.rollouts]
         else:
             yield b, None, f"{what} rollout {b.rollouts[0]} failed: {res.reason}", {}
     if retry:
@@ -788,7 +819,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
              baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
              networks: str | Path | None = None, submission: str | Path | None = None,
              timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0,
-             name: str | None = None) -> EvaluationResult:
+             name: str | None = None, deterministic: bool = False) -> EvaluationResult:
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
     ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``; with
     ``fcd_rollouts`` > 0 the first that many rollouts of every scene and method also as SUMO
@@ -804,6 +835,9 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
 
     :param name: the policy's method name (default :func:`method_name` of the spec); rollouts,
         the manifest and the report use it.
+    :param deterministic: a checkpoint policy acts with the tanh of its Gaussian mean (every
+        rollout alike) instead of sampling its actions with the rollout seed (the default);
+        recorded in the manifest.
     :raises EvaluationError: an unknown baseline, an unusable policy spec, bad counts or a
         name that is empty, not printable or another method's.
     """
@@ -819,7 +853,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     if bad:
         raise EvaluationError(f"unknown baseline {bad[0]} (known: {', '.join(BASELINES)})")
     if policy not in BASELINES:
-        make_policy(policy, seed)  # fail early on an unusable spec
+        make_policy(policy, seed, deterministic)  # fail early on an unusable spec
     specs = list(dict.fromkeys([policy, *baselines]))
     names = {s: method_name(s) for s in specs}
     if name is not None:
@@ -886,7 +920,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     for sid, (f, sc, bdir) in scenes.items():
         for s in specs:
             if needs_worker(s):
-                batches += [Batch(f, sid, str(bdir), s, c, seed) for c in chunks(n_rollouts, size)]
+                batches += [Batch(f, sid, str(bdir), s, c, seed, deterministic)
+                            for c in chunks(n_rollouts, size)]
             else:
                 try:
                     results[(sid, s)] = [(0, simulate(sc, s, range(n_rollouts), seed))]
@@ -932,7 +967,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                    for sid, (f, sc, b) in scenes.items()],
         "methods": [names[s] for s in specs], "policy": names[policy], "policy_spec": policy,
         "baselines": [names[b] for b in baselines], "rollouts": n_rollouts, "steps": N_STEPS,
-        "seed": seed, "versions": versions(),
+        "seed": seed, "deterministic": bool(deterministic), "versions": versions(),
         # actions the policy did not give (agents coasted), gave for unknown agents, or gave
         # non-finite / outside [-1, 1] (fixed up by the env), per scene and method
         "action_fixes": [{"scenario_id": sid, "method": names[s], **c}

@@ -2,7 +2,8 @@
 
 Maximises ``log pi(a_expert | s)`` of the actor (MLP + state-independent log-std; the critic is
 untouched), so the result is also a PPO initialisation. Expert actions are clipped to
-``±(1 − 1e-3)`` (tanh cannot reach ±1).
+``±(1 − 1e-3)`` (tanh cannot reach ±1). :func:`expert_nll` is also PPO's behavioural-cloning
+regulariser (``ppo.bc_coef``, :class:`~magail_sumo.training.ppo.MaskedPPO`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,21 @@ import torch
 
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.policies import TanhGaussianPolicy
+
+#: expert actions are clipped to ±this before the tanh is inverted (tanh cannot reach ±1)
+ACTION_BOUND = 0.999
+
+
+def expert_actions(action: np.ndarray, device) -> torch.Tensor:
+    """Expert actions (B, 2) in [-1, 1] as a tensor clipped to ±:data:`ACTION_BOUND`."""
+    return torch.as_tensor(np.clip(action, -ACTION_BOUND, ACTION_BOUND), device=device)
+
+
+def expert_nll(policy: TanhGaussianPolicy, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """``−mean log pi(a | s)`` of expert pairs under the tanh-Gaussian actor,
+    ``log pi(a|s) = Σ_k [log N(atanh a_k; mu_k(s), sigma_k) − log(1 − a_k²)]``
+    (``a`` clipped by :func:`expert_actions`)."""
+    return -policy.action_log_prob(s, a).mean()
 
 
 def behavioural_cloning(policy: TanhGaussianPolicy, expert: ExpertDataset, epochs: int,
@@ -27,7 +43,7 @@ def behavioural_cloning(policy: TanhGaussianPolicy, expert: ExpertDataset, epoch
     opt = torch.optim.Adam(params, lr=learning_rate)
     rng = np.random.default_rng(seed)
     s_all = torch.as_tensor(expert.s, device=policy.device)
-    a_all = torch.as_tensor(np.clip(expert.action, -0.999, 0.999), device=policy.device)
+    a_all = expert_actions(expert.action, policy.device)
     policy.set_training_mode(True)
     history = []
     for epoch in range(epochs):
@@ -35,7 +51,7 @@ def behavioural_cloning(policy: TanhGaussianPolicy, expert: ExpertDataset, epoch
         total, n = 0.0, 0
         for start in range(0, len(order), batch_size):
             idx = order[start:start + batch_size]
-            nll = -policy.action_log_prob(s_all[idx], a_all[idx]).mean()
+            nll = expert_nll(policy, s_all[idx], a_all[idx])
             opt.zero_grad(set_to_none=True)
             nll.backward()
             torch.nn.utils.clip_grad_norm_(params, 1.0)

@@ -77,6 +77,11 @@ class PPOConfig:
     :param batch_size: minibatch size in agent-steps.
     :param desired_kl: target approx KL of an update (None: fixed learning rate); the lr is
         halved above 2x, multiplied by 1.5 below half of it, within [lr_min, lr_max].
+    :param bc_coef: weight c of the behavioural-cloning regulariser added to every PPO
+        minibatch loss, ``c_u · (−mean log pi(a_E | s_E))`` over ``bc_batch_size`` expert
+        (s, a) pairs (:class:`~magail_sumo.training.ppo.MaskedPPO`); 0: off (plain PPO).
+    :param bc_decay: d in (0, 1], the weight of PPO update u (0-based) is ``c_u = c · d**u``.
+    :param bc_batch_size: expert pairs per minibatch.
     """
 
     n_steps: int = 128
@@ -93,12 +98,17 @@ class PPOConfig:
     desired_kl: float | None = 0.01
     lr_min: float = 1e-5
     lr_max: float = 1e-2
+    bc_coef: float = 0.0
+    bc_decay: float = 1.0
+    bc_batch_size: int = 256
 
     def __post_init__(self) -> None:
-        for name in ("n_steps", "batch_size", "n_epochs"):
+        for name in ("n_steps", "batch_size", "n_epochs", "bc_batch_size"):
             check(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
         check_positive(self, "learning_rate", "max_grad_norm", "desired_kl", "lr_min", "lr_max")
-        check_positive(self, "vf_coef", allow_zero=True)
+        check_positive(self, "vf_coef", "bc_coef", allow_zero=True)
+        check(0.0 < self.bc_decay <= 1.0, "bc_decay",
+              f"must be in (0, 1], got {show(self.bc_decay)}")
         for name in ("gamma", "gae_lambda"):
             v = getattr(self, name)
             check(0.0 <= v <= 1.0, name, f"must be in [0, 1], got {show(v)}")

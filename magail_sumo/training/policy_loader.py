@@ -2,9 +2,12 @@
 
 :func:`load_checkpoint_policy` is registered for ``.pt`` files in
 :data:`magail_sumo.evaluation.rollouts.POLICY_LOADERS`. The policy is the checkpoint's SB3 actor
-(with its observation normaliser, stored in the policy's state dict) acting deterministically:
-the tanh of the Gaussian mean, i.e. normalised ``[accel, steer]`` in [-1, 1]², each vehicle from
-its own observation. Any checkpoint ``magail-sumo train`` writes works (GAIL / MAGAIL updates and
+(with its observation normaliser, stored in the policy's state dict), each vehicle acting from its
+own observation with normalised ``[accel, steer]`` in [-1, 1]²: by default a sample of the
+policy, ``a = tanh(mu(o) + sigma ⊙ eps)`` with ``eps ~ N(0, I)`` drawn from the policy's own
+``torch.Generator`` seeded with the rollout seed (agents served in sorted-name order, so a
+rollout is reproducible whatever order the env lists them in); deterministically
+(``magail-sumo evaluate --deterministic``) the tanh of the Gaussian mean, ``a = tanh(mu(o))``. Any checkpoint ``magail-sumo train`` writes works (GAIL / MAGAIL updates and
 behavioural cloning, with an MLP or a transformer critic: the critic is loaded with the policy
 but never evaluated).
 
@@ -27,27 +30,43 @@ from .trainer import CheckpointError, load_policy
 
 
 class CheckpointPolicy:
-    """Deterministic actions of a trained :class:`~magail_sumo.models.policies.TanhGaussianPolicy`.
+    """Actions of a trained :class:`~magail_sumo.models.policies.TanhGaussianPolicy` (module doc).
 
     :param policy: the SB3 policy (eval mode). :param obs_dim: observation size it expects.
+    :param seed: seed of the sampling generator (the rollout seed).
+    :param deterministic: act with ``tanh(mu(o))`` instead of sampling.
     """
 
-    def __init__(self, policy, obs_dim: int, name: str = "") -> None:
+    def __init__(self, policy, obs_dim: int, name: str = "", seed: int = 0,
+                 deterministic: bool = False) -> None:
         self.policy = policy
         self.obs_dim = obs_dim
         self.name = name
+        self.deterministic = bool(deterministic)
+        self.generator = torch.Generator(device=policy.device).manual_seed(int(seed))
 
-    @torch.no_grad()
-    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        names = list(observations)
-        if not names:
-            return {}
+    def _observations(self, observations: dict[str, np.ndarray], names: list[str]
+                      ) -> torch.Tensor:
         x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
         if x.shape[1] != self.obs_dim:
             raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
                                   f"policy expects {self.obs_dim}")
-        a = self.policy._predict(torch.as_tensor(x, device=self.policy.device),
-                                 deterministic=True)
+        return torch.as_tensor(x, device=self.policy.device)
+
+    @torch.no_grad()
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if not observations:
+            return {}
+        if self.deterministic:
+            names = list(observations)
+            a = self.policy._predict(self._observations(observations, names), deterministic=True)
+        else:
+            names = sorted(observations)  # one draw order for a rollout, whatever the env's
+            gauss = self.policy.get_distribution(self._observations(observations, names))
+            mean, std = gauss.distribution.mean, gauss.distribution.stddev
+            eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype,
+                              device=mean.device)
+            a = torch.tanh(mean + std * eps)
         a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
         return dict(zip(names, a))
 
@@ -70,11 +89,13 @@ def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig
 
 
 def load_checkpoint_policy(path: str | Path, seed: int = 0,
-                           target: EnvConfig | None = None) -> CheckpointPolicy:
+                           target: EnvConfig | None = None,
+                           deterministic: bool = False) -> CheckpointPolicy:
     """The evaluation :class:`CheckpointPolicy` of a training checkpoint.
 
-    :param seed: unused (actions are deterministic); part of the loader signature.
+    :param seed: seed of the action samples (evaluation passes the rollout seed).
     :param target: the env config the policy will drive (default: evaluation's, the defaults).
+    :param deterministic: act with the tanh of the Gaussian mean (no sampling).
     """
     from magail_sumo.sensors.observation import observation_bounds
 
@@ -82,4 +103,5 @@ def load_checkpoint_policy(path: str | Path, seed: int = 0,
     policy, cfg = load_policy(path, device="cpu")
     check_env_compatible(path, cfg.env, target or EnvConfig())
     low, _ = observation_bounds(cfg.env.observation)
-    return CheckpointPolicy(policy, int(low.shape[0]), str(path))
+    return CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
+                            deterministic=deterministic)

@@ -18,6 +18,24 @@ attached to the observation tensor, from which the critic rebuilds padded
 running count of active slot-steps passes the next multiple of ``batch_size``, so minibatches
 hold ``batch_size`` agent-steps give or take one step's agents, and there are as many as with
 independent agent-steps. Free slot-steps still never reach the losses.
+
+The PPO update (:meth:`MaskedPPO.train`) is our own, the algorithm SB3's PPO runs (and bit for
+bit its result without the regulariser below): for ``n_epochs`` passes over the rollout in
+minibatches, with ratio ``rho = exp(log pi(a|s) − log pi_old(a|s))`` and advantages A
+(normalised per minibatch when ``normalize_advantage``: ``(A − mean) / (std + 1e-8)``),
+
+    L = −mean min(rho·A, clip(rho, 1 − eps, 1 + eps)·A)      (clipped surrogate)
+        + c_ent · (−mean H)                                  (entropy; H estimated as −log pi,
+                                                              the tanh-Gaussian has no closed form)
+        + c_vf · mean (R − V')²,  V' = V or V_old + clip(V − V_old, ±eps_vf)   (value)
+        + c_bc,u · (−mean log pi(a_E | s_E))                  (behavioural cloning)
+
+then one optimiser (Adam) step on L with the gradient norm clipped to ``max_grad_norm``. A pass
+stops early (no step on that minibatch, no further pass) when the approximate KL
+``mean((rho − 1) − log rho)`` of a minibatch exceeds ``1.5 · target_kl`` (if set). The
+behavioural-cloning term (``ppo.bc_coef`` c > 0) draws ``bc_batch_size`` expert (s, a) pairs per
+minibatch from the run's :class:`~magail_sumo.expert.ExpertDataset` with its own seeded numpy
+generator (saved in checkpoints), ``c_bc,u = c · bc_decay**u`` at PPO update u = 0, 1, ...
 """
 
 from __future__ import annotations
@@ -30,8 +48,11 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
+from stable_baselines3.common.utils import explained_variance
 
 from magail_sumo.models.policies import with_scene_groups
+
+from .bc import expert_actions, expert_nll
 
 
 class MaskedRolloutBuffer(RolloutBuffer):
@@ -118,15 +139,35 @@ class MaskedRolloutBuffer(RolloutBuffer):
 
 
 class MaskedPPO(PPO):
-    """SB3 PPO whose rollout buffer is a :class:`MaskedRolloutBuffer` reading the env's slot mask.
+    """SB3 PPO whose rollout buffer is a :class:`MaskedRolloutBuffer` reading the env's slot mask,
+    with our own update (:meth:`train`, module doc) and its behavioural-cloning regulariser.
 
     Same arguments as :class:`~stable_baselines3.PPO`; the env (possibly wrapped) must reach a
     :class:`~magail_sumo.env.vec_env.MultiSceneVecEnv` through ``.unwrapped``. With a
     transformer-critic policy it also wires the env's scene layout and slot mask into the
     policy and the buffer (module doc).
+
+    :param bc_expert: expert (s, a) pairs (an :class:`~magail_sumo.expert.ExpertDataset`;
+        needed when ``bc_coef`` > 0). :param bc_coef: weight c of the regulariser (0: off).
+    :param bc_decay: its factor per PPO update. :param bc_batch_size: expert pairs per minibatch.
+    :param bc_seed: seed of the generator drawing the expert pairs (:attr:`bc_rng`).
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, bc_expert: Any = None, bc_coef: float = 0.0,
+                 bc_decay: float = 1.0, bc_batch_size: int = 256, bc_seed: int = 0,
+                 **kwargs: Any) -> None:
+        if bc_coef < 0 or not 0 < bc_decay <= 1 or bc_batch_size < 1:
+            raise ValueError(f"bc_coef {bc_coef} must be >= 0, bc_decay {bc_decay} in (0, 1], "
+                             f"bc_batch_size {bc_batch_size} >= 1")
+        if bc_coef > 0 and bc_expert is None:
+            raise ValueError("bc_coef > 0 needs expert data (bc_expert)")
+        self.bc_expert = bc_expert
+        self.bc_coef, self.bc_decay = float(bc_coef), float(bc_decay)
+        self.bc_batch_size = int(bc_batch_size)
+        #: draws the expert pairs of the regulariser (state saved in checkpoints)
+        self.bc_rng = np.random.default_rng(bc_seed)
+        #: PPO updates done (:meth:`train` calls): the exponent of ``bc_decay``
+        self.bc_updates = 0
         kwargs["rollout_buffer_class"] = MaskedRolloutBuffer
         super().__init__(*args, **kwargs)
 
@@ -148,6 +189,102 @@ class MaskedPPO(PPO):
         """Constant learning rate ``lr`` from the next update on."""
         self.learning_rate = float(lr)
         self._setup_lr_schedule()
+
+    @property
+    def bc_weight(self) -> float:
+        """Weight of the behavioural-cloning term in the next update, ``c · d**u``."""
+        return self.bc_coef * self.bc_decay ** self.bc_updates
+
+    def _bc_loss(self) -> torch.Tensor:
+        """``−mean log pi(a_E | s_E)`` over ``bc_batch_size`` expert pairs drawn by
+        :attr:`bc_rng`."""
+        s, a = self.bc_expert.sample_pairs(self.bc_batch_size, self.bc_rng)
+        dev = self.policy.device
+        return expert_nll(self.policy, torch.as_tensor(s, device=dev), expert_actions(a, dev))
+
+    def train(self) -> None:
+        """One PPO update on the rollout buffer (module doc): ``n_epochs`` passes of clipped
+        surrogate + entropy + value (+ behavioural-cloning) minibatch steps, with approx-KL
+        early stopping and gradient-norm clipping. Logs SB3's ``train/*`` keys (explained
+        variance over the real slot-steps) plus ``train/bc_coef`` and, when on,
+        ``train/bc_loss``."""
+        policy = self.policy
+        policy.set_training_mode(True)
+        self._update_learning_rate(policy.optimizer)
+        eps = self.clip_range(self._current_progress_remaining)
+        eps_vf = (None if self.clip_range_vf is None
+                  else self.clip_range_vf(self._current_progress_remaining))
+        bc_on = self.bc_coef > 0
+        bc_weight = self.bc_weight
+        log: dict[str, list[float]] = {"pg": [], "value": [], "entropy": [], "clip": [],
+                                       "bc": []}
+        kls: list[np.ndarray] = []
+        loss = torch.zeros(())
+        stop = False
+        for _ in range(self.n_epochs):
+            kls = []
+            for batch in self.rollout_buffer.get(self.batch_size):
+                values, log_prob, entropy = policy.evaluate_actions(batch.observations,
+                                                                    batch.actions)
+                values = values.flatten()
+                adv = batch.advantages
+                if self.normalize_advantage and len(adv) > 1:  # one sample has no spread
+                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+                ratio = torch.exp(log_prob - batch.old_log_prob)
+                surrogate = torch.min(adv * ratio, adv * torch.clamp(ratio, 1 - eps, 1 + eps))
+                pg_loss = -surrogate.mean()
+                if eps_vf is not None:
+                    values = batch.old_values + torch.clamp(values - batch.old_values,
+                                                            -eps_vf, eps_vf)
+                value_loss = torch.nn.functional.mse_loss(batch.returns, values)
+                ent_loss = (-torch.mean(-log_prob) if entropy is None
+                            else -torch.mean(entropy))
+                loss = pg_loss + self.ent_coef * ent_loss + self.vf_coef * value_loss
+                if bc_on:
+                    bc_loss = self._bc_loss()
+                    loss = loss + bc_weight * bc_loss
+                    log["bc"].append(bc_loss.item())
+                log["pg"].append(pg_loss.item())
+                log["value"].append(value_loss.item())
+                log["entropy"].append(ent_loss.item())
+                log["clip"].append(torch.mean((torch.abs(ratio - 1) > eps).float()).item())
+                with torch.no_grad():  # float32, compared as such (as SB3 does)
+                    log_ratio = log_prob - batch.old_log_prob
+                    kl = torch.mean(torch.exp(log_ratio) - 1 - log_ratio).cpu().numpy()
+                kls.append(kl)
+                if self.target_kl is not None and kl > 1.5 * self.target_kl:
+                    stop = True
+                    break
+                policy.optimizer.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(policy.parameters(), self.max_grad_norm)
+                policy.optimizer.step()
+            self._n_updates += 1
+            if stop:
+                break
+        self.bc_updates += 1
+        buf = self.rollout_buffer
+        real = getattr(buf, "active_flat", None)
+        pred, ret = buf.values.flatten(), buf.returns.flatten()
+        if real is not None and real.shape == pred.shape and real.any():
+            pred, ret = pred[real], ret[real]
+        rec = self.logger.record
+        rec("train/entropy_loss", float(np.mean(log["entropy"])))
+        rec("train/policy_gradient_loss", float(np.mean(log["pg"])))
+        rec("train/value_loss", float(np.mean(log["value"])))
+        rec("train/approx_kl", float(np.mean(kls)))
+        rec("train/clip_fraction", float(np.mean(log["clip"])))
+        rec("train/loss", loss.item())
+        rec("train/explained_variance", float(explained_variance(pred, ret)))
+        if hasattr(policy, "log_std"):
+            rec("train/std", torch.exp(policy.log_std).mean().item())
+        rec("train/n_updates", self._n_updates, exclude="tensorboard")
+        rec("train/clip_range", eps)
+        if eps_vf is not None:
+            rec("train/clip_range_vf", eps_vf)
+        rec("train/bc_coef", bc_weight)
+        if bc_on:
+            rec("train/bc_loss", float(np.mean(log["bc"])))
 
 
 def adapt_learning_rate(lr: float, kl: float, desired_kl: float, lr_min: float, lr_max: float

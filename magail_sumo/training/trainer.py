@@ -3,7 +3,8 @@ updates with checkpoints; resume exactly.
 
 A checkpoint (``RUN/checkpoints/update_NNNNNN.pt`` and ``latest.pt``, written atomically) holds
 the policy (with its observation normaliser and its critic, MLP or transformer), the PPO optimiser and current learning rate, the
-discriminator (with its normaliser) and its optimiser, the discriminator sampler's RNG, the
+discriminator (with its normaliser) and its optimiser, the discriminator sampler's RNG, the PPO
+behavioural-cloning regulariser's expert sampler RNG and update count, the
 torch / numpy / python RNG states, SB3's counters and last observation, and the env state as
 per-scene (episode, actions since reset) — replayed in fresh workers on resume, so a resumed run
 continues exactly as if uninterrupted. (A transformer critic's slot→scene layout is not state:
@@ -49,6 +50,9 @@ OLD_CHECKPOINT_FORMATS = ("magail_sumo.checkpoint/1",)
 #: what ``train`` writes into a run directory (recorded in its marker: ``--overwrite`` removes
 #: only these)
 RUN_OUTPUTS = ("config.yaml", "environment.json", "checkpoints", "tb")
+#: second entropy word of the seed of the PPO behavioural-cloning regulariser's expert sampler
+#: (a stream apart from the discriminator sampler's, seeded with the run seed alone)
+BC_STREAM = 0xBC
 RESUMABLE_CHANGES = ("updates", "checkpoint_every", "scenes.worker_timeout_s",
                      "scenes.pin_workers")
 
@@ -513,7 +517,10 @@ class GailRun:
                 gae_lambda=p.gae_lambda, clip_range=p.clip_range,
                 normalize_advantage=p.normalize_advantage, ent_coef=p.ent_coef,
                 vf_coef=p.vf_coef, max_grad_norm=p.max_grad_norm,
-                policy_kwargs=policy_kwargs(cfg), seed=cfg.seed, device=cfg.device, verbose=0)
+                policy_kwargs=policy_kwargs(cfg), seed=cfg.seed, device=cfg.device, verbose=0,
+                bc_expert=expert if p.bc_coef > 0 else None, bc_coef=p.bc_coef,
+                bc_decay=p.bc_decay, bc_batch_size=p.bc_batch_size,
+                bc_seed=np.random.SeedSequence([cfg.seed, BC_STREAM]))
             self.disc_callback = DiscriminatorCallback(self.wrapper, self.disc_trainer)
             cbs = [TorchThreads(cfg.torch_threads, cfg.torch_threads_update or cfg.torch_threads),
                    self.disc_callback]
@@ -545,6 +552,8 @@ class GailRun:
             "last_episode_starts": m._last_episode_starts,
             "discriminator": self.discriminator.state_dict(),
             "disc_trainer": self.disc_trainer.state_dict(),
+            "bc_regulariser": {"updates": m.bc_updates,
+                               "rng": _plain(m.bc_rng.bit_generator.state)},
             "env_state": self.venv.get_state(),
             "env_counters": (self.venv.agent_steps, self.venv.episodes),
             "rng": _rng_state()})
@@ -563,6 +572,11 @@ class GailRun:
             n_updates, update = int(state["n_updates"]), int(state["update"])
             disc_state = state["disc_trainer"]
             optim_state = state["policy_optimizer"]
+            # older checkpoints (no regulariser then): its weight follows the update count
+            bc_state = state.get("bc_regulariser", {"updates": update, "rng": None})
+            if not isinstance(bc_state, dict) or type(bc_state.get("updates")) is not int \
+                    or bc_state["updates"] < 0:
+                raise ValueError("bc_regulariser does not hold an update count")
             if last_obs.shape != (self.venv.num_envs, self.venv.obs_dim):
                 raise ValueError(f"last_obs has shape {tuple(last_obs.shape)}, the env "
                                  f"{(self.venv.num_envs, self.venv.obs_dim)}")
@@ -579,6 +593,9 @@ class GailRun:
         _load_into(self.discriminator, state["discriminator"], "discriminator", where)
         try:
             self.disc_trainer.load_state_dict(disc_state)
+            m.bc_updates = bc_state["updates"]
+            if bc_state["rng"] is not None:
+                m.bc_rng.bit_generator.state = bc_state["rng"]
             m.set_learning_rate(lr)
             m.num_timesteps, m._n_updates = timesteps, n_updates
             obs = self.wrapper.set_state(env_state)

@@ -48,6 +48,18 @@ def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
         w.writerows(rows)
 
 
+def _action_mode(man: dict) -> str:
+    """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled), as
+    the manifest records it; empty for other policies and older manifests."""
+    from magail_sumo.evaluation.rollouts import POLICY_LOADERS
+
+    spec = man.get("policy_spec")
+    if "deterministic" not in man or not isinstance(spec, str) \
+            or Path(spec).suffix not in POLICY_LOADERS:
+        return ""
+    return " (deterministic actions)" if man["deterministic"] else " (sampled actions)"
+
+
 def build_report(folder: str | Path, out: str | Path | None = None,
                  submissions: dict[str, list[str]] | None = None,
                  workers: int | None = None) -> ReportFiles:
@@ -65,7 +77,7 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     doc.para(f"Scenes: {len(sc.scenes)} · methods: {', '.join(sc.methods) or 'none'} · "
              f"rollouts: {man.get('rollouts')} (WOSAC: 32) × {man.get('steps', 80)} steps "
              f"(8 s) after the current step · seed {man.get('seed')} · policy under test: "
-             f"{man.get('policy')}")
+             f"{man.get('policy')}{_action_mode(man)}")
     doc.heading("Metrics against the baselines (mean over scenes)")
     header = ["method", "metametric"] + MAIN
     doc.table(header, [[m, means[m]["metametric"], *(means[m][f] for f in MAIN)]
