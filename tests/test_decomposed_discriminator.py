@@ -422,11 +422,12 @@ def test_deferred_rewards_with_poses_equal_per_step_rewards(setup):
             if not deferred:
                 run.wrapper.deferred = False
                 run.model.rollout_buffer.reward_source = None
-            run.disc_callback.trainer.steps = 0  # keep the rollout for the checks below
+            fit, seen = run.disc_trainer.train, []  # keep what the discriminator trains on
+            run.disc_trainer.train = lambda data: (seen.append(data), fit(data))[1]
             run.run_update()
             buf = run.model.rollout_buffer
             got.append((buf.rewards.copy(), buf.active.copy()))
-            data = run.wrapper.pop_rollout()
+            data, = seen
             assert data.pos.shape == data.x.shape[:2] + (3,)
             assert np.all(data.pos[~data.mask] == 0) and np.all(data.pos[data.mask][:, :2] != 0)
         finally:
