@@ -79,7 +79,8 @@ def disc_throughput(cfg: TrainConfig, expert: ExpertDataset, device: str, repeat
         if device == "cuda":
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        out = discriminator_loss(disc, t(e.x), t(e.mask), t(p.x), t(p.mask), loss_cfg)
+        pos = {} if e.pos is None else {"expert_pos": t(e.pos), "policy_pos": t(p.pos)}
+        out = discriminator_loss(disc, t(e.x), t(e.mask), t(p.x), t(p.mask), loss_cfg, **pos)
         opt.zero_grad()
         out.total.backward()
         opt.step()

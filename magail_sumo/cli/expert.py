@@ -13,8 +13,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("expert", help="record expert demonstrations as Parquet",
                        description="Replay every scene's log through the env sensors with "
                                    "inverse-dynamics actions and write DIR/<id>.parquet "
-                                   "(s, s', action, done, ids) and DIR/metadata.json. DIR must be "
-                                   "new, empty or written by magail-sumo.")
+                                   "(s, s', action, done, ids, poses) and DIR/metadata.json. "
+                                   "DIR must be new, empty or written by magail-sumo.")
     p.add_argument("scenes", nargs="+", metavar="SCENES", help="WOMD TFRecord / ScenarioNet files")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--networks", type=Path, default=Path("networks"), metavar="DIR",

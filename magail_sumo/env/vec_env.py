@@ -17,7 +17,9 @@ not transitions. ``dones[i]`` is True when the slot's agent left (with
 ``infos[i]["terminal_observation"]``, ``"TimeLimit.truncated"`` when it was truncated, not
 terminated, and ``"reason"``) and also when a free slot is given to a new agent, so GAE never
 runs from one agent into another. When a scene has no agents left it is reset (next episode
-seed) inside the same step.
+seed) inside the same step. :attr:`MultiSceneVecEnv.slot_pos` is each slot's pose for the
+current observation (x, y in m, yaw in rad; scene frame; the agent's bicycle state, zeros for a
+free slot), sent by the workers as one small (slots, 3) float32 array per step.
 
 Determinism: episode ``e`` of scene ``k`` is reset with seed ``seed + 100_003·k + e``; with
 ``EnvConfig.start_window: random`` its start step is drawn from :func:`episode_rng` of that
@@ -168,9 +170,13 @@ class _SlotEnv:
         if slot_of:
             ks = np.fromiter(slot_of.values(), np.int64, len(slot_of))
             packet["obs"][ks] = np.stack([obs[n] for n in slot_of])
+            st = self.env.agent_states()  # the live agents = the agents in slots
+            ks = np.fromiter((slot_of[n] for n in st.names), np.int64, len(st.names))
+            packet["pos"][ks] = np.stack([st.state.x, st.state.y, st.state.yaw], axis=1)
 
     def _packet(self) -> dict:
         return {"obs": np.zeros((self.slots, self.dim), np.float32),
+                "pos": np.zeros((self.slots, 3), np.float32),
                 "dones": np.zeros(self.slots, bool), "infos": {}, "episodes": 0,
                 "agent_steps": 0}
 
@@ -351,6 +357,11 @@ class MultiSceneVecEnv(VecEnv):
         self.slot_active = np.zeros(n, bool)
         #: the mask of the observation before the last step (what the last actions acted on)
         self.prev_slot_active = np.zeros(n, bool)
+        #: (num_envs, 3) float32 pose of each slot's agent for the current observation: x, y (m)
+        #: and yaw (rad), scene frame (zeros for a free slot)
+        self.slot_pos = np.zeros((n, 3), np.float32)
+        #: the poses of the observation before the last step (those of s of the last transition)
+        self.prev_slot_pos = np.zeros((n, 3), np.float32)
         self.agent_steps = 0  #: agent-steps stepped so far (active slots only)
         self.episodes = 0  #: scene episodes finished so far
         self._actions: np.ndarray | None = None
@@ -439,6 +450,7 @@ class MultiSceneVecEnv(VecEnv):
         obs = np.concatenate([p["obs"] for p in packets])
         dones = np.concatenate([p["dones"] for p in packets])
         active = np.concatenate([p["active"] for p in packets])
+        pos = np.concatenate([p["pos"] for p in packets])
         infos: list[dict[str, Any]] = [{"slot_active": bool(a), "scene": int(s)}
                                        for a, s in zip(active, self.slot_scene)]
         for k, p in enumerate(packets):
@@ -450,12 +462,15 @@ class MultiSceneVecEnv(VecEnv):
                 self.episodes += p["episodes"]
         self.prev_slot_active = self.slot_active
         self.slot_active = active
+        self.prev_slot_pos = self.slot_pos
+        self.slot_pos = pos
         return obs, dones, infos
 
     def reset(self) -> np.ndarray:
         packets = self._broadcast("reset", [None] * len(self.specs))
         obs, _, infos = self._collect(packets, step=False)
         self.prev_slot_active = np.zeros(self.num_envs, bool)
+        self.prev_slot_pos = np.zeros((self.num_envs, 3), np.float32)
         self.reset_infos = infos
         self._reset_seeds()
         self._reset_options()
@@ -481,6 +496,7 @@ class MultiSceneVecEnv(VecEnv):
         packets = self._broadcast("restore", list(state))
         obs, _, infos = self._collect(packets, step=False)
         self.prev_slot_active = np.zeros(self.num_envs, bool)
+        self.prev_slot_pos = np.zeros((self.num_envs, 3), np.float32)
         self.reset_infos = infos
         return obs
 

@@ -22,22 +22,31 @@ class SceneSteps:
 
     :param x: (B, V, 2F) float32 tokens ``concat(s, s')`` (zeros where padded).
     :param mask: (B, V) bool, present tokens.
+    :param pos: (B, V, 3) float32 pose of each vehicle at the step of s: x, y (m) and yaw (rad,
+        counter-clockwise from +x), scene frame (zeros where padded); None when unknown
+        (expert data of format ``magail_sumo.expert/1``).
     """
 
     x: np.ndarray
     mask: np.ndarray
+    pos: np.ndarray | None = None
 
 
-def pad_groups(features: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> SceneSteps:
-    """Padded (B, V, F) batch of the row groups ``[starts[b], starts[b] + sizes[b])``."""
+def pad_groups(features: np.ndarray, starts: np.ndarray, sizes: np.ndarray,
+               poses: np.ndarray | None = None) -> SceneSteps:
+    """Padded (B, V, F) batch of the row groups ``[starts[b], starts[b] + sizes[b])``, with the
+    rows' (N, 3) ``poses`` padded alike when given."""
     b = len(starts)
     v = int(sizes.max()) if b else 0
     x = np.zeros((b, max(v, 1), features.shape[1]), np.float32)
     mask = np.zeros((b, max(v, 1)), bool)
+    pos = None if poses is None else np.zeros((b, max(v, 1), 3), np.float32)
     for i, (s, n) in enumerate(zip(starts, sizes)):
         x[i, :n] = features[s:s + n]
         mask[i, :n] = True
-    return SceneSteps(x, mask)
+        if pos is not None:
+            pos[i, :n] = poses[s:s + n]
+    return SceneSteps(x, mask, pos)
 
 
 class ExpertDataset:
@@ -46,13 +55,17 @@ class ExpertDataset:
     :param directory: what ``magail-sumo expert`` wrote.
     :param observation_names: the training observation layout; a different stored layout is
         refused with :class:`ExpertDataError` naming the first mismatch.
+
+    Reads formats ``magail_sumo.expert/2`` (with each vehicle's pose at the step of s:
+    :attr:`pos`) and ``/1`` (no poses: :attr:`pos` is None, and :meth:`require_poses` refuses
+    it).
     """
 
     def __init__(self, directory: str | Path, observation_names: Sequence[str] | None = None
                  ) -> None:
         import pyarrow.parquet as pq
 
-        from .record import EXPERT_FORMAT
+        from .record import EXPERT_FORMAT, READABLE_FORMATS
 
         d = Path(directory)
         meta_path = d / "metadata.json"
@@ -65,9 +78,10 @@ class ExpertDataset:
             meta = json.loads(meta_path.read_text())
         except ValueError as exc:
             raise ExpertDataError(f"{meta_path}: unreadable ({exc})") from None
-        if meta.get("format") != EXPERT_FORMAT:
+        if meta.get("format") not in READABLE_FORMATS:
             raise ExpertDataError(f"{meta_path}: format {meta.get('format')!r}, expected "
                                   f"{EXPERT_FORMAT!r}")
+        self.format = meta["format"]
         names = list(meta.get("observation_names", []))
         if observation_names is not None:
             want = list(observation_names)
@@ -116,6 +130,15 @@ class ExpertDataset:
         self.scene = scene_code[order]
         self.step = step[order]
         self.track = table.column("track_id").to_numpy()[order]
+        #: (N, 3) float32 x, y (m), yaw (rad) at the step of s, scene frame (None: format /1)
+        self.pos: np.ndarray | None = None
+        if self.format != "magail_sumo.expert/1":
+            missing = [c for c in ("x", "y", "yaw") if c not in table.column_names]
+            if missing:
+                raise ExpertDataError(f"{d}: {self.format} expert data lacks the column(s) "
+                                      f"{', '.join(missing)}")
+            self.pos = np.stack([table.column(c).to_numpy().astype(np.float64)
+                                 for c in ("x", "y", "yaw")], axis=1)[order].astype(np.float32)
         self.tokens = np.concatenate([self.s, self.s_next], axis=1)
         key = self.scene * (self.step.max() + 1) + self.step
         self.group_start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
@@ -124,6 +147,15 @@ class ExpertDataset:
     def __len__(self) -> int:
         return len(self.s)
 
+    def require_poses(self, who: str) -> None:
+        """:class:`ExpertDataError` (one line, naming the directory) unless the data holds the
+        vehicles' poses, which ``who`` needs."""
+        if self.pos is None:
+            raise ExpertDataError(
+                f"{self.directory}: expert data of format {self.format} has no vehicle poses, "
+                f"which {who} needs; re-record it with `magail-sumo expert SCENES... --out "
+                f"{self.directory}`")
+
     @property
     def num_scene_steps(self) -> int:
         return len(self.group_start)
@@ -131,7 +163,7 @@ class ExpertDataset:
     def sample_scene_steps(self, batch_size: int, rng: np.random.Generator) -> SceneSteps:
         """``batch_size`` scene steps drawn uniformly (with replacement), padded + mask."""
         g = rng.integers(0, self.num_scene_steps, batch_size)
-        return pad_groups(self.tokens, self.group_start[g], self.group_size[g])
+        return pad_groups(self.tokens, self.group_start[g], self.group_size[g], self.pos)
 
     def sample_pairs(self, batch_size: int, rng: np.random.Generator
                      ) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,10 @@ terminating events, log background. Per vehicle and step the Parquet file stores
 ``s_next`` (the observation before and after the step), ``action`` — the inverse-dynamics
 acceleration and steering normalised with the *training* limits and clipped to [-1, 1], i.e.
 the action a policy would have to output — the physical ``accel`` (m/s²) and ``steer`` (rad),
-``done`` (the vehicle left after this step), and ``scene_id`` / ``track_id`` / ``step``. The
+``done`` (the vehicle left after this step), ``scene_id`` / ``track_id`` / ``step``, and the
+vehicle's pose at the step of ``s``: ``x``, ``y`` (m) and ``yaw`` (rad, counter-clockwise from
++x), scene frame, float64 (its bicycle state, as the env reports it for policy vehicles;
+format ``/2``, which the decomposed discriminator needs — format ``/1`` files lack them). The
 previous-action entries of the observation (``prev_accel``, ``prev_steer``) are rewritten to
 those training-normalised actions, so expert and policy observations share one scale.
 
@@ -35,7 +38,9 @@ from magail_sumo.outputs import (NameRegistry, atomic_path, claim_output_dir, in
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 from magail_sumo.sim.dynamics import BicycleLimits
 
-EXPERT_FORMAT = "magail_sumo.expert/1"
+EXPERT_FORMAT = "magail_sumo.expert/2"
+#: formats :class:`~magail_sumo.expert.dataset.ExpertDataset` reads (``/1``: no poses)
+READABLE_FORMATS = ("magail_sumo.expert/1", EXPERT_FORMAT)
 
 
 def _fixed_list(values: np.ndarray):
@@ -63,10 +68,12 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
     names = observation_names(observation)
     prev = [names.index(n) for n in ("prev_accel", "prev_steer") if n in names]
     cols: dict[str, list] = {k: [] for k in ("track", "step", "done", "s", "s_next", "action",
-                                             "accel", "steer")}
+                                             "accel", "steer", "pose")}
     obs, _ = env.reset(seed=seed)
     while env.agents:
         acts = expert_actions(env)
+        st = env.agent_states()  # poses at the step of s, in the order of acts' keys
+        pose = np.stack([st.state.x, st.state.y, st.state.yaw], axis=1)
         t = env.t
         nobs, _, terms, truncs, _ = env.step(acts)
         names_now = list(acts)
@@ -86,11 +93,15 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
         cols["action"].append(a_train)
         cols["accel"].append(np.asarray(accel, np.float32))
         cols["steer"].append(np.asarray(steer, np.float32))
+        if st.names != names_now:
+            raise RuntimeError("expert actions and agent states disagree on the agents")
+        cols["pose"].append(pose.astype(np.float64))
         obs = nobs
     env.close()
+    width = {"action": 2, "pose": 3}
     cat = {k: (np.concatenate(v) if v else np.zeros((0,) if k in ("track", "step", "done",
                                                                   "accel", "steer")
-                                                     else (0, len(names) if k != "action" else 2),
+                                                     else (0, width.get(k, len(names))),
                                                      np.float32))
            for k, v in cols.items()}
     n = len(cat["track"])
@@ -104,6 +115,9 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
         "action": _fixed_list(cat["action"].reshape(n, 2)),
         "accel": pa.array(cat["accel"].astype(np.float32)),
         "steer": pa.array(cat["steer"].astype(np.float32)),
+        "x": pa.array(cat["pose"][:, 0].astype(np.float64)),
+        "y": pa.array(cat["pose"][:, 1].astype(np.float64)),
+        "yaw": pa.array(cat["pose"][:, 2].astype(np.float64)),
     })
     out = inside(out_dir, f"{safe_name(scene.scenario_id)}.parquet")
     with atomic_path(out) as tmp:

@@ -2,10 +2,11 @@
 normaliser."""
 
 from .critic import CriticTransformerConfig, TransformerCritic
+from .decomposed import DecomposedConfig, DecomposedDiscriminator
 from .discriminator import (
     MLPDiscriminator, TransformerConfig, TransformerDiscriminator, imitation_reward,
 )
 from .normalizer import RunningNormalizer
 
-__all__ = ["CriticTransformerConfig", "MLPDiscriminator", "RunningNormalizer", "TransformerConfig",
+__all__ = ["CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator", "MLPDiscriminator", "RunningNormalizer", "TransformerConfig",
            "TransformerCritic", "TransformerDiscriminator", "imitation_reward"]

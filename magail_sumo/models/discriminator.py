@@ -10,6 +10,9 @@ scene logit (B,). Convention: expert logits > 0, policy logits < 0.
   so the output is permutation-equivariant), a linear head per token, and mean pooling over
   present tokens or a learned CLS token for the scene logit.
 * :class:`MLPDiscriminator`: each vehicle judged alone (plain per-vehicle GAIL), the ablation.
+* :class:`~magail_sumo.models.decomposed.DecomposedDiscriminator` (own module): an ego–map
+  term per vehicle plus distance-weighted pairwise terms with its nearest neighbours; its
+  forwards also take the vehicles' poses (``uses_poses``).
 
 Both normalise inputs with a :class:`RunningNormalizer` stored in their state dict.
 """
@@ -77,6 +80,9 @@ class _TokenInput(nn.Module):
     logits nor the gradient penalty. Saved in the state dict (all ones when absent, for
     checkpoints written before it existed).
     """
+
+    #: whether the forwards also take the vehicles' poses (B, V, 3) (the decomposed kind)
+    uses_poses = False
 
     def __init__(self, feature_dim: int) -> None:
         super().__init__()

@@ -16,6 +16,7 @@ from typing import Literal
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
+from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import TransformerConfig
 
 
@@ -122,8 +123,13 @@ class PPOConfig:
 class DiscriminatorConfig:
     """GAIL discriminator and reward.
 
-    :param kind: ``"transformer"`` (MAGAIL: all vehicles of a scene step together) or ``"mlp"``
-        (plain per-vehicle GAIL).
+    :param kind: ``"transformer"`` (MAGAIL: all vehicles of a scene step together), ``"mlp"``
+        (plain per-vehicle GAIL) or ``"decomposed"`` (an ego–map term per vehicle plus
+        distance-weighted pairwise terms with its nearest neighbours; needs expert data with
+        poses, format ``magail_sumo.expert/2``).
+    :param decomposed: sizes, neighbourhood geometry (m) and social reward of the decomposed
+        discriminator (:class:`~magail_sumo.models.decomposed.DecomposedConfig`; used when
+        ``kind`` is ``"decomposed"``).
     :param epochs: gradient steps per PPO update, each on ``batch_size`` expert and
         ``batch_size`` policy scene steps.
     :param reward_t_coef, reward_i_coef: r = c_t·r_task + c_i·(−log(max(1 − sigmoid(D), floor))).
@@ -138,6 +144,7 @@ class DiscriminatorConfig:
 
     kind: str = "transformer"
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
+    decomposed: DecomposedConfig = field(default_factory=DecomposedConfig)
     mlp_hidden: tuple[int, ...] = (256, 256)
     learning_rate: float = 1e-3
     weight_decay: float = 1e-4
@@ -153,8 +160,8 @@ class DiscriminatorConfig:
     ignore_features: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        check(self.kind in ("transformer", "mlp"), "kind",
-              f"must be 'transformer' or 'mlp', got {show(self.kind)}")
+        check(self.kind in ("transformer", "mlp", "decomposed"), "kind",
+              f"must be 'transformer', 'mlp' or 'decomposed', got {show(self.kind)}")
         check_sizes(self, "mlp_hidden")
         check_positive(self, "learning_rate", "batch_size")
         check_positive(self, "weight_decay", "epochs", "gp_coef", "logit_reg",

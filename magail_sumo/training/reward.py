@@ -13,6 +13,14 @@ reward of slot ``i`` is ``c_t·r_task + c_i·(−log(max(1 − sigmoid(D_i), flo
 get 0. ``r_task`` is the env reward minus the configured penalty of the reason an agent left
 (collision, off-road) at that step.
 
+Each scene step also keeps the vehicles' poses at the step of ``s`` ((x, y, yaw), scene frame,
+m / rad; :attr:`~magail_sumo.env.vec_env.MultiSceneVecEnv.prev_slot_pos`), which the
+decomposed discriminator (``uses_poses``) takes with the tokens, for the rewards and for its
+training (the expert's poses come from the same env state); with ``social_coef`` λ > 0 the
+imitation reward becomes ``r_i + λ·Σ_j w_ij·r_j`` over the vehicle's neighbours
+(:meth:`~magail_sumo.models.decomposed.DecomposedDiscriminator.social_reward`). The other
+discriminators ignore the poses.
+
 The discriminator is frozen during a rollout, so with ``deferred=True`` (what training uses) the
 imitation part is not computed step by step: the wrapper returns ``c_t·r_task`` and keeps the
 scene tokens, and :meth:`DiscriminatorRewardWrapper.flush_rewards` computes the imitation reward
@@ -35,7 +43,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 from magail_sumo.expert import ExpertDataset, SceneSteps
 from magail_sumo.models.discriminator import imitation_reward
 
-from .discriminator_loss import DiscriminatorLossConfig, discriminator_loss
+from .discriminator_loss import DiscriminatorLossConfig, discriminator_loss, pose_args
 
 
 class DiscriminatorRewardWrapper(VecEnvWrapper):
@@ -46,12 +54,14 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
     :param reward_t_coef, reward_i_coef: weights of the env (task) and imitation rewards.
     :param floor: floor of ``1 − sigmoid(D)`` in the log.
     :param device: torch device of the discriminator.
+    :param social_coef: λ of the social reward (a discriminator with ``social_reward`` only;
+        0: off).
     """
 
     def __init__(self, venv, discriminator: torch.nn.Module, reward_t_coef: float = 0.0,
                  reward_i_coef: float = 1.0, floor: float = 1e-4, device: str = "cpu",
                  deferred: bool = False, chunk_tokens: int = 65536,
-                 penalties: dict[str, float] | None = None) -> None:
+                 penalties: dict[str, float] | None = None, social_coef: float = 0.0) -> None:
         super().__init__(venv)
         base = venv.unwrapped
         self.base = base
@@ -64,6 +74,12 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         self._last_obs: np.ndarray | None = None
         self.rollout_x: list[np.ndarray] = []
         self.rollout_mask: list[np.ndarray] = []
+        #: (scenes kept, S, 3) float32 poses at the step of s, with rollout_x
+        self.rollout_pos: list[np.ndarray] = []
+        if social_coef and not hasattr(discriminator, "social_reward"):
+            raise ValueError(f"social_coef needs a discriminator with neighbours, not "
+                             f"{type(discriminator).__name__}")
+        self.social_coef = float(social_coef)
         self.deferred = deferred
         #: task reward −penalty at the step an agent leaves for that reason (e.g. "collision")
         self.penalties = {k: float(v) for k, v in (penalties or {}).items() if v}
@@ -99,14 +115,26 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         mask[sc, pos] = acted
         return x, mask
 
+    def scene_poses(self, slot_pos: np.ndarray) -> np.ndarray:
+        """Slot poses (num_envs, 3) arranged per scene: (K, S, 3) float32 (0 where no slot)."""
+        out = np.zeros((self.num_scenes, self.max_slots, 3), np.float32)
+        out[self.base.slot_scene, self.pos_in_scene] = slot_pos
+        return out
+
     @torch.no_grad()
-    def rewards(self, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """(K, S) imitation rewards of scene tokens (0 where masked)."""
-        self.discriminator.eval()
+    def rewards(self, x: np.ndarray, mask: np.ndarray, pos: np.ndarray | None = None
+                ) -> np.ndarray:
+        """(K, S) imitation rewards of scene tokens (0 where masked); ``pos`` (K, S, 3): the
+        poses at the step of s (used by a discriminator that ``uses_poses``)."""
+        disc = self.discriminator
+        disc.eval()
         xt = torch.as_tensor(x, device=self.device)
         mt = torch.as_tensor(mask, device=self.device)
-        logits, _ = self.discriminator(xt, mt)
+        pt = None if pos is None else torch.as_tensor(pos, device=self.device)
+        logits, _ = disc(xt, mt, *pose_args(disc, pt))
         r = imitation_reward(logits, self.floor).masked_fill(~mt, 0.0)
+        if self.social_coef:
+            r = disc.social_reward(r, pt, mt, self.social_coef)
         return r.cpu().numpy()
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -122,18 +150,20 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
             for i in np.flatnonzero(dones):
                 task[i] -= self.penalties.get(infos[i].get("reason"), 0.0)
         x, mask = self.scene_tokens(self._last_obs, s_next, acted)
+        pos = self.scene_poses(self.base.prev_slot_pos)
         keep = mask.any(axis=1)
         if self.deferred:
             rew = (self.reward_t_coef * task).astype(np.float32)
             self._pending.append(np.flatnonzero(keep))
         else:
-            r_i = self.rewards(x, mask)[self.base.slot_scene, self.pos_in_scene]
+            r_i = self.rewards(x, mask, pos)[self.base.slot_scene, self.pos_in_scene]
             rew = (self.reward_t_coef * task + self.reward_i_coef * r_i).astype(np.float32)
             self._add_stats(r_i[acted])
         rew[~acted] = 0.0
         if keep.any():
             self.rollout_x.append(x[keep])
             self.rollout_mask.append(mask[keep])
+            self.rollout_pos.append(pos[keep])
         self._last_obs = obs
         return obs, rew, dones, infos
 
@@ -156,6 +186,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         used = sum(1 for k in steps if len(k))  # steps that appended to rollout_x
         x = np.concatenate(self.rollout_x[first:first + used])
         m = np.concatenate(self.rollout_mask[first:first + used])
+        p = np.concatenate(self.rollout_pos[first:first + used])
         present = np.zeros(out.shape, bool)
         for k in range(self.num_scenes):
             rows = np.flatnonzero(scenes == k)
@@ -163,7 +194,8 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
                 continue
             v = int(m[rows].any(axis=0).nonzero()[0].max()) + 1
             per = max(1, self.chunk_tokens // v)
-            r = np.concatenate([self.rewards(x[rows[i:i + per], :v], m[rows[i:i + per], :v])
+            r = np.concatenate([self.rewards(x[rows[i:i + per], :v], m[rows[i:i + per], :v],
+                                             p[rows[i:i + per], :v])
                                 for i in range(0, rows.size, per)])
             start = self.base.scene_slices[k].start
             out[step_of[rows], start:start + v] = r
@@ -172,13 +204,15 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         return self.reward_i_coef * out
 
     def pop_rollout(self) -> SceneSteps | None:
-        """The policy scene steps recorded since the last call (padded), cleared."""
+        """The policy scene steps recorded since the last call (padded, with the poses at the
+        step of s), cleared."""
         if not self.rollout_x:
             return None
         x, m = np.concatenate(self.rollout_x), np.concatenate(self.rollout_mask)
-        self.rollout_x, self.rollout_mask = [], []
+        p = np.concatenate(self.rollout_pos)
+        self.rollout_x, self.rollout_mask, self.rollout_pos = [], [], []
         self._pending_first = 0
-        return SceneSteps(x, m)
+        return SceneSteps(x, m, p)
 
     def pop_reward_stats(self) -> dict[str, float]:
         """Mean and std of the imitation reward per agent-step since the last call, cleared."""
@@ -217,6 +251,8 @@ class DiscriminatorTrainer:
                  device: str = "cpu") -> None:
         self.discriminator = discriminator
         self.expert = expert
+        if getattr(discriminator, "uses_poses", False):
+            expert.require_poses(f"the {type(discriminator).__name__}")
         self.steps, self.batch_size = steps, batch_size
         self.loss_config = loss or DiscriminatorLossConfig()
         self.optimizer = torch.optim.AdamW(discriminator.parameters(), lr=learning_rate,
@@ -237,6 +273,7 @@ class DiscriminatorTrainer:
     def train(self, policy: SceneSteps) -> DiscriminatorStats:
         """``steps`` gradient steps on expert batches vs batches of ``policy`` scene steps."""
         disc = self.discriminator
+        poses = getattr(disc, "uses_poses", False)
         present = policy.x[policy.mask]
         exp = self.expert.sample_scene_steps(max(1, len(policy.x)), self.rng)
         disc.normalizer.update(self._t(present))
@@ -248,8 +285,11 @@ class DiscriminatorTrainer:
             idx = self.rng.integers(0, len(policy.x), self.batch_size)
             px, pm = policy.x[idx], policy.mask[idx]
             v = int(pm.any(axis=0).nonzero()[0].max()) + 1
+            pos = {}
+            if poses:
+                pos = {"expert_pos": self._t(e.pos), "policy_pos": self._t(policy.pos[idx, :v])}
             out = discriminator_loss(disc, self._t(e.x), self._t(e.mask), self._t(px[:, :v]),
-                                     self._t(pm[:, :v]), self.loss_config)
+                                     self._t(pm[:, :v]), self.loss_config, **pos)
             self.optimizer.zero_grad(set_to_none=True)
             out.total.backward()
             self.optimizer.step()

@@ -36,6 +36,7 @@ from magail_sumo.config import ConfigError, from_dict, record_run, to_dict
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import atomic_path, claim_output_dir, one_line, printable, read_marker
 from magail_sumo.expert import ExpertDataset
+from magail_sumo.models.decomposed import DecomposedDiscriminator
 from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscriminator
 from magail_sumo.models.policies import TanhGaussianPolicy
 from magail_sumo.sensors.observation import observation_bounds, observation_names
@@ -102,6 +103,8 @@ def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:
     d = cfg.discriminator
     if d.kind == "transformer":
         disc = TransformerDiscriminator(feature_dim, d.transformer)
+    elif d.kind == "decomposed":
+        disc = DecomposedDiscriminator(feature_dim, d.decomposed)
     else:
         disc = MLPDiscriminator(feature_dim, d.mlp_hidden)
     if d.ignore_features:
@@ -489,6 +492,9 @@ class GailRun:
         TorchThreads = _torch_threads_callback()
 
         self.cfg = cfg
+        d = cfg.discriminator
+        if d.kind == "decomposed":  # before any worker starts
+            expert.require_poses("discriminator.kind 'decomposed'")
         specs = scene_specs(cfg.scenes.files, cfg.scenes.networks)
         self.venv = MultiSceneVecEnv(specs, cfg.env, seed=cfg.seed,
                                      timeout_s=cfg.scenes.worker_timeout_s,
@@ -500,13 +506,14 @@ class GailRun:
                 raise ConfigError(f"ppo.batch_size: {p.batch_size} is larger than a rollout "
                                   f"(ppo.n_steps {p.n_steps} x {self.venv.num_envs} agent slots "
                                   f"of the scenes = {rollout} agent-steps)")
-            d = cfg.discriminator
             self.discriminator = make_discriminator(cfg, 2 * self.venv.obs_dim)
             self.wrapper = DiscriminatorRewardWrapper(self.venv, self.discriminator,
                                                       d.reward_t_coef, d.reward_i_coef,
                                                       d.reward_floor, cfg.device, deferred=True,
                                                       penalties={"collision": d.collision_penalty,
-                                                                 "off_road": d.off_road_penalty})
+                                                                 "off_road": d.off_road_penalty},
+                                                      social_coef=d.decomposed.social_coef
+                                                      if d.kind == "decomposed" else 0.0)
             self.disc_trainer = DiscriminatorTrainer(
                 self.discriminator, expert, d.epochs, d.batch_size, d.learning_rate,
                 d.weight_decay, DiscriminatorLossConfig(d.gp_coef, d.logit_reg), cfg.seed,
