@@ -302,7 +302,12 @@ class DiscriminatorTrainer:
 class DiscriminatorCallback(BaseCallback):
     """Between PPO rollouts: train the discriminator on the rollout's scene steps and log
     ``discriminator/*`` (loss, BCE, gradient penalty, expert/policy accuracy), ``reward/*``
-    (imitation reward mean/std per agent-step) and ``env/*`` (agent-steps, scene episodes).
+    (imitation reward mean/std per agent-step), ``env/*`` (agent-steps, scene episodes) and,
+    when the observation has a ``speed`` entry, ``diag/speed_policy`` / ``diag/speed_expert``
+    (mean speed along the heading at s over the rollout's agent-steps / over every expert
+    transition, m/s) and ``diag/speed_gap`` (policy − expert): the speed bias as training sees
+    it (the populations differ — rollout windows vs whole logs — so it is a trend, not the
+    evaluation's ``speed_bias``).
 
     :param wrapper: the reward wrapper of the model's env. :param trainer: the fitter.
     """
@@ -312,6 +317,12 @@ class DiscriminatorCallback(BaseCallback):
         super().__init__(verbose)
         self.wrapper, self.trainer = wrapper, trainer
         self.last_stats: DiscriminatorStats | None = None
+        names = list(getattr(trainer.expert, "observation_names", []))
+        self._speed_col = names.index("speed") if "speed" in names else None
+        self.expert_speed = (float(np.mean(trainer.expert.s[:, self._speed_col]))
+                              if self._speed_col is not None and len(trainer.expert) else None)
+        #: the last rollout's mean policy speed (m/s), None before the first
+        self.last_speed: float | None = None
 
     def _on_step(self) -> bool:
         return True
@@ -323,6 +334,11 @@ class DiscriminatorCallback(BaseCallback):
         self.logger.record("env/agent_steps_total", base.agent_steps)
         self.logger.record("env/scene_episodes_total", base.episodes)
         data = self.wrapper.pop_rollout()
+        if data is not None and self._speed_col is not None and data.mask.any():
+            self.last_speed = float(data.x[..., self._speed_col][data.mask].mean())
+            self.logger.record("diag/speed_policy", self.last_speed)
+            self.logger.record("diag/speed_expert", self.expert_speed)
+            self.logger.record("diag/speed_gap", self.last_speed - self.expert_speed)
         if data is None or self.trainer.steps == 0:
             return
         stats = self.trainer.train(data)

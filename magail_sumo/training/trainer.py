@@ -699,7 +699,9 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
             log(f"update {run.update}/{cfg.updates}: {run.venv.agent_steps - steps0} agent-steps "
                 f"in {dt:.1f} s, lr {run.model.learning_rate:.2e}, kl {kl:.4f}"
                 + (f", D loss {st.loss:.3f} acc expert {st.expert_accuracy:.2f} policy "
-                   f"{st.policy_accuracy:.2f}" if st else ""))
+                   f"{st.policy_accuracy:.2f}" if st else "")
+                + (f", speed {sp:.2f} m/s (expert {run.disc_callback.expert_speed:.2f})"
+                   if (sp := run.disc_callback.last_speed) is not None else ""))
             run.model.logger.dump(run.model.num_timesteps)
             progress("updates", run.update, cfg.updates)
             if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
