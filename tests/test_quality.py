@@ -68,12 +68,39 @@ def test_registry_errors_name_the_spec_and_the_available(tmp_path, monkeypatch):
 def test_shipped_registry_and_package_data():
     folder = Path(pt.__file__).parent
     default = pt.default_name(folder)
-    assert default is None or default in pt.available(folder)
+    assert default is not None and default in pt.available(folder)
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())
     patterns = data["tool"]["setuptools"]["package-data"]["magail_sumo.pretrained"]
     for name in ("x.pt", "x.json", "index.json", "README.md"):
         assert any(fnmatch.fnmatch(name, p) for p in patterns), name
     assert (folder / "__init__.py").is_file()  # a package: setuptools' find includes it
+
+
+def test_shipped_default_policy_loads_and_acts(monkeypatch):
+    """`--policy pretrained` from a plain install: the shipped default's card matches its
+    checkpoint, it was trained on the split's train scenes only, and it acts (sampled and
+    seeded, or deterministic) on observations of the evaluation layout."""
+    from magail_sumo.env.config import EnvConfig
+    from magail_sumo.evaluation.split import load_split, scene_stem
+    from magail_sumo.sensors.observation import observation_bounds
+
+    monkeypatch.delenv(pt.ENV_VAR, raising=False)
+    entry = pt.resolve("pretrained")
+    card = json.loads(entry.checkpoint.with_suffix(".json").read_text())
+    assert card["checkpoint"]["sha256"] == pt.sha256(entry.checkpoint)
+    trained = {scene_stem(f) for f in card["config"]["scenes"]["files"]}
+    split = load_split(SPLIT)
+    assert trained and trained <= {scene_stem(f) for f in split.train}
+    assert not trained & {scene_stem(f) for f in split.test}
+    low, high = observation_bounds(EnvConfig().observation)
+    obs = {str(k): np.clip(np.zeros_like(low), low, high) for k in range(5)}
+    a1 = rl.make_policy("pretrained", 7).act(obs)
+    a2 = rl.make_policy("pretrained", 7).act(dict(reversed(list(obs.items()))))
+    for k in obs:
+        assert a1[k].shape == (2,) and np.all(np.abs(a1[k]) <= 1.0)
+        np.testing.assert_array_equal(a1[k], a2[k])
+    d = rl.make_policy("pretrained", 7, deterministic=True).act(obs)
+    assert all(np.array_equal(d["0"], d[k]) for k in obs)  # same observation, same mean action
 
 
 # --------------------------------------------------------------- with a trained checkpoint
