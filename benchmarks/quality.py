@@ -120,6 +120,7 @@ def cut_windows(files: list[tuple[Path, str]], starts: list[int], out: Path
     from magail_sumo.evaluation.submission import sim_agent_ids
     from magail_sumo.outputs import NameRegistry, atomic_path, inside
     from magail_sumo.scene import WindowError, window
+    from magail_sumo.scene.window import WINDOW_STEPS
 
     out.mkdir(parents=True, exist_ok=True)
     names = NameRegistry()
@@ -139,7 +140,8 @@ def cut_windows(files: list[tuple[Path, str]], starts: list[int], out: Path
                     "scenario_id": w.scenario_id, "source_scenario_id": scene.scenario_id,
                     "source_file": os.path.relpath(path, ROOT) if path.is_relative_to(ROOT)
                     else str(path),
-                    "split": part, "window_start": start, "source_steps": [start, start + 90],
+                    "split": part, "window_start": start,
+                    "source_steps": [start, start + WINDOW_STEPS - 1],
                     "scored_agents": int(len(evaluated_ids(w))),
                     "simulated_agents": int(len(sim_agent_ids(w))), "file": str(dest)})
     return records, notes

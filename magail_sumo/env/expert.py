@@ -60,11 +60,14 @@ def training_actions(actions: np.ndarray, limits: dynamics.BicycleLimits,
     return act.astype(np.float32), accel, steer
 
 
-def expert_actions(env: SumoDrivingEnv) -> dict[str, np.ndarray]:
+def expert_actions(env: SumoDrivingEnv, states=None) -> dict[str, np.ndarray]:
     """Per live agent, the (2,) float32 action in [-1, 1]² (accel, steer) that moves it from its
     current bicycle state to its recorded position at the next log step
-    (:func:`magail_sumo.sim.dynamics.inverse`, then clipped to the env's limits)."""
-    st = env.agent_states()
+    (:func:`magail_sumo.sim.dynamics.inverse`, then clipped to the env's limits).
+
+    :param states: ``env.agent_states()`` when the caller already has them (keys follow
+        their ``names``)."""
+    st = env.agent_states() if states is None else states
     if not st.names:
         return {}
     act = replay_actions(env, st.rows, st.state, st.wheelbase, env.t, env.config.limits,
