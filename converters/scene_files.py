@@ -95,3 +95,59 @@ def load_scene(path: str | PathLike, index: int = 0) -> Scene:
         if i == index:
             return scene
     raise SceneFormatError(path, index, "no such record")
+
+
+@dataclass(frozen=True)
+class RecordRef:
+    """Where one scene lives: a scene file (TFRecord / ScenarioNet pickle) and its record index
+    in it (0 for a pickle). Cheap to list (:func:`list_records`) and to pass between processes;
+    :func:`read_record` parses just that record."""
+
+    path: str
+    index: int = 0
+
+    def __str__(self) -> str:
+        return self.path if Path(self.path).suffix == ".pkl" else f"{self.path}#{self.index}"
+
+
+def list_records(path: str | PathLike) -> list[RecordRef]:
+    """The scene records of a file or ScenarioNet dataset folder, without parsing any scene
+    (a TFRecord's framing is walked, a dataset's summary read; a pickle is one record). A
+    record whose framing is bad is still listed (reading it gives its error); a file that
+    cannot be opened raises :class:`SceneFormatError`."""
+    from converters.scenarionet.reader import dataset_files
+    from converters.tfrecord import iter_records
+
+    p = Path(path)
+    fmt = detect_format(p)
+    if fmt == "scenarionet":
+        return [RecordRef(str(p), 0)]
+    if fmt == "scenarionet-dataset":
+        return [RecordRef(str(f), 0) for f in dataset_files(p)]
+    out = []
+    for index, data in iter_records(p):
+        out.append(RecordRef(str(p), index))
+        if isinstance(data, SceneFormatError) and data.fatal_for_file:
+            break
+    return out
+
+
+def read_record(ref: RecordRef) -> Scene:
+    """The scene of one record (:class:`SceneFormatError` naming file and record when it
+    cannot be read); only that record is parsed."""
+    from converters.scenarionet.reader import load_scenarionet
+    from converters.tfrecord import iter_records
+    from converters.womd.reader import parse_record
+
+    p = Path(ref.path)
+    if detect_format(p) == "scenarionet":
+        return load_scenarionet(p)
+    for index, data in iter_records(p):
+        if index < ref.index:
+            if isinstance(data, SceneFormatError) and data.fatal_for_file:
+                raise data
+            continue
+        if isinstance(data, SceneFormatError):
+            raise data
+        return parse_record(p, index, data)
+    raise SceneFormatError(p, ref.index, "no such record")

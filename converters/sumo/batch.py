@@ -79,7 +79,7 @@ def converted_before(out: Path, scenario_id: str, options: ConvertOptions) -> di
 
 def _convert(job: tuple[str, int | None, Scene, str, ConvertOptions]) -> BatchRow:
     path, index, scene, out, opts = job
-    rep = convert_scene(scene, Path(out), opts)
+    rep = convert_scene(scene, Path(out), opts, source=(path, index))
     return BatchRow(path, index, rep.scenario_id, rep.status, rep.reason, rep.quality,
                     rep.timings.get("total", 0.0))
 

@@ -106,12 +106,16 @@ class ConversionReport:
     data_quality: dict[str, Any] = field(default_factory=dict)
     converter_version: str = ""  #: :func:`converter_version` of the converter that wrote it
     options_key: str = ""  #: :func:`options_key` of the options it was written with
+    #: where the scene was read from, when the caller knows: ``{"file": path, "record": index}``
+    #: (a folder of bundles is a training scene pool through it, see
+    #: :mod:`magail_sumo.env.scene_pool`)
+    source: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
                                               "unconverted", "synthesized", "timings", "quality",
                                               "data_quality",
-                                              "converter_version", "options_key")}
+                                              "converter_version", "options_key", "source")}
 
 
 def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
@@ -214,14 +218,16 @@ def write_sumocfg(path: Path, sid: str, additional: list[str], end: float) -> No
         "  </processing>\n</configuration>\n")
 
 
-def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None = None) -> ConversionReport:
+def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None = None,
+                  source: tuple[str, int | None] | None = None) -> ConversionReport:
     """Convert ``scene`` into ``out_root/<safe name>/`` (see the module doc); never raises on
     a bad scene.
 
     A failing stage gives ``status="failed"`` with ``reason`` naming the stage and problem (the
     id printed through :func:`~magail_sumo.outputs.printable`). A failed write (a full disk, a
     folder in the way that is not this scene's bundle) also gives ``status="failed"`` and leaves
-    ``out_root`` as it was.
+    ``out_root`` as it was. ``source`` (file, record index) is recorded in
+    ``conversion.json``.
     """
     import sumolib
 
@@ -230,7 +236,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
     name = safe_name(sid)  # file names; sid stays the id in conversion.json and messages
     rep = ConversionReport(sid, data_quality=scene.data_quality.to_dict(),
                            converter_version=converter_version(),
-                           options_key=options_key(opts))
+                           options_key=options_key(opts),
+                           source={} if source is None else
+                           {"file": str(source[0]), "record": source[1]})
     try:
         final = bundle_folder(out_root, sid)
         _check_replaceable(final, sid)

@@ -53,15 +53,21 @@ def iter_womd(path: str | PathLike) -> Iterator[tuple[int, Scene | SceneFormatEr
             yield index, data
             continue
         try:
-            scene = parse_scenario(data)
-        except SceneValidationError as exc:
-            yield index, SceneFormatError(path, index, str(exc))
-            continue
-        except (ValueError, OverflowError, RecursionError, MemoryError) as exc:  # unforeseen
-            yield index, SceneFormatError(path, index, f"unexpected record structure "
-                                                       f"({type(exc).__name__}: {exc})")
-            continue
-        yield index, scene
+            yield index, parse_record(path, index, data)
+        except SceneFormatError as exc:
+            yield index, exc
+
+
+def parse_record(path: str | PathLike, index: int, data: bytes) -> Scene:
+    """:func:`parse_scenario` of record ``index`` of ``path``; any problem is a
+    :class:`SceneFormatError` naming the file and record."""
+    try:
+        return parse_scenario(data)
+    except SceneValidationError as exc:
+        raise SceneFormatError(path, index, str(exc)) from None
+    except (ValueError, OverflowError, RecursionError, MemoryError) as exc:  # unforeseen
+        raise SceneFormatError(path, index, f"unexpected record structure "
+                                            f"({type(exc).__name__}: {exc})") from None
 
 
 # ------------------------------------------------------------------ wrong-typed fields

@@ -31,11 +31,7 @@ replaying them (used for exact training resume).
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
-import threading
-import traceback
-from multiprocessing.reduction import ForkingPickler
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -54,8 +50,6 @@ SEED_STRIDE = 100_003
 #: set-up: about 1 ms of fixed work per step against about 0.1 ms per agent, measured on the
 #: bundled scenes); used to balance workers over cores
 WORKER_FIXED_COST = 10.0
-#: messages up to this size go into an empty pipe without blocking (Linux pipes hold 64 KiB)
-_PIPE_SAFE_BYTES = 16 * 1024
 
 
 def place_workers(loads: Sequence[float], cores: Sequence[int]) -> list[set[int]]:
@@ -78,6 +72,14 @@ def place_workers(loads: Sequence[float], cores: Sequence[int]) -> list[set[int]
 
 class VecEnvWorkerError(MagailSumoError):
     """A scene worker process died, failed, or did not answer in time."""
+
+
+class WorkerStartError(VecEnvWorkerError):
+    """A scene worker could not start (:attr:`worker`: its index)."""
+
+    def __init__(self, message: str, worker: int) -> None:
+        super().__init__(message)
+        self.worker = worker
 
 
 @dataclass(frozen=True)
@@ -138,21 +140,92 @@ def max_concurrent_agents(env) -> int:
 
 
 # ---------------------------------------------------------------------------------- worker side
-class _SlotEnv:
-    """The env of one scene with its slot bookkeeping (runs in the worker process)."""
+@dataclass(frozen=True)
+class PoolSpec:
+    """A worker's shard of a scene pool (:mod:`magail_sumo.env.scene_pool`): its records, the
+    bundles folder (missing bundles are converted there on demand), how many scene envs it
+    keeps, and the time budget of one conversion."""
 
-    def __init__(self, spec: SceneSpec, config: EnvConfig, seed: int, slots: int | None) -> None:
+    refs: tuple
+    networks: str
+    cache: int = 2
+    convert_budget_s: float | None = 600.0
+
+    @property
+    def name(self) -> str:
+        first = str(self.refs[0]) if self.refs else "(empty)"
+        return first if len(self.refs) == 1 else f"{first} +{len(self.refs) - 1} scenes"
+
+
+class _FixedScene:
+    """The :class:`~magail_sumo.env.scene_pool.PoolCursor` interface over one
+    :class:`SceneSpec` (an explicit bundle folder)."""
+
+    def __init__(self, spec: SceneSpec, make_env) -> None:
+        self._env = make_env(load_spec_scene(spec), spec.bundle)
+        self.new_failures: list = []
+
+    def env_for(self, episode: int):
+        return 0, self._env
+
+    def scan(self) -> int:
+        return max_concurrent_agents(self._env)
+
+    def close(self) -> None:
+        self._env.close()
+
+
+class SlotWorker:
+    """The env of a worker's scene(s) with its slot bookkeeping (runs in the worker).
+
+    :param source: a :class:`SceneSpec` (one scene) or a :class:`PoolSpec` (a shard).
+    :param slots: slot count (None: from the scene(s), see the module docs).
+    """
+
+    def __init__(self, source: SceneSpec | PoolSpec, config: EnvConfig, seed: int,
+                 slots: int | None) -> None:
         from .driving_env import SumoDrivingEnv
 
-        self.env = SumoDrivingEnv(load_spec_scene(spec), spec.bundle, config)
-        self.slots = slots or max_concurrent_agents(self.env)
-        self.dim = int(self.env.observation_space(self.env.possible_agents[0]).shape[0]) \
-            if self.env.possible_agents else 0
+        def make_env(scene, bundle):
+            return SumoDrivingEnv(scene, bundle, config)
+
+        if isinstance(source, PoolSpec):
+            from .scene_pool import PoolCursor
+
+            self.cursor = PoolCursor(source.refs, source.networks, seed, make_env, config,
+                                     source.cache, source.convert_budget_s)
+        else:
+            self.cursor = _FixedScene(source, make_env)
+        self.config = config
+        self.slots = slots or self.cursor.scan()
+        from magail_sumo.sensors.observation import observation_bounds
+
+        self.dim = int(observation_bounds(config.observation)[0].shape[0])
         self.base_seed = seed
         self.episode = -1
-        self.actions: list[np.ndarray] = []
+        self.env = self.cursor.env_for(0)[1]
         self.names: list[str | None] = [None] * self.slots
         self.slot_of: dict[str, int] = {}  #: agent name -> its slot (the agents in slots)
+
+    def hello(self) -> dict:
+        import socket
+
+        return {"slots": self.slots, "dim": self.dim, "host": socket.gethostname(),
+                "pid": os.getpid(), "possible_agents": list(self.env.possible_agents)}
+
+    def handle(self, cmd: str, arg: Any) -> Any:
+        if cmd == "step":
+            return self.step(arg)
+        if cmd == "reset":
+            return self.reset()
+        if cmd == "restore":
+            return self.restore(*arg)
+        if cmd == "call":
+            name, args, kwargs = arg
+            return getattr(self.env, name)(*args, **kwargs)
+        if cmd == "getattr":
+            return getattr(self.env, arg)
+        raise ValueError(f"unknown command {cmd!r}")
 
     def _assign(self, obs: dict[str, np.ndarray], packet: dict) -> None:
         slot_of, names = self.slot_of, self.names
@@ -178,7 +251,7 @@ class _SlotEnv:
         return {"obs": np.zeros((self.slots, self.dim), np.float32),
                 "pos": np.zeros((self.slots, 3), np.float32),
                 "dones": np.zeros(self.slots, bool), "infos": {}, "episodes": 0,
-                "agent_steps": 0}
+                "agent_steps": 0, "skipped": []}
 
     def _active(self) -> np.ndarray:
         active = np.zeros(self.slots, bool)
@@ -187,10 +260,13 @@ class _SlotEnv:
 
     def _reset(self, packet: dict) -> None:
         self.episode += 1
-        self.actions = []
         self.names = [None] * self.slots
         self.slot_of = {}
-        cfg = self.env.config
+        _, env = self.cursor.env_for(self.episode)
+        if env is not self.env:
+            self.env.close()
+            self.env = env
+        cfg = self.config
         options = None
         if cfg.start_window == "random":
             options = {"start_step": draw_start(cfg, self.env.scene.num_steps,
@@ -198,17 +274,23 @@ class _SlotEnv:
         obs, _ = self.env.reset(seed=self.base_seed + self.episode, options=options)
         self._assign(obs, packet)
 
+    def _finish(self, packet: dict) -> dict:
+        packet["active"] = self._active()
+        packet["episode"] = self.episode
+        packet["scenario_id"] = self.env.scene.scenario_id
+        packet["skipped"] = [(s.what, s.reason) for s in self.cursor.new_failures]
+        self.cursor.new_failures.clear()
+        return packet
+
     def reset(self) -> dict:
         self.episode = -1
         packet = self._packet()
         self._reset(packet)
         packet["dones"][:] = False
-        packet["active"] = self._active()
-        return packet
+        return self._finish(packet)
 
     def step(self, actions: np.ndarray) -> dict:
         actions = np.asarray(actions, np.float32).reshape(self.slots, 2)
-        self.actions.append(actions.copy())
         packet = self._packet()
         acts = {n: actions[k] for n, k in self.slot_of.items()}
         packet["agent_steps"] = len(acts)
@@ -229,129 +311,113 @@ class _SlotEnv:
             packet["episodes"] = 1
         else:
             self._assign(obs, packet)
-        packet["active"] = self._active()
-        return packet
+        return self._finish(packet)
 
     def restore(self, episode: int, actions: Sequence[np.ndarray]) -> dict:
-        """Reset to ``episode`` and replay ``actions``: the state :meth:`state` described."""
+        """Reset to ``episode`` and replay ``actions`` (the actions since that episode's reset):
+        the state the vector env logged (:meth:`MultiSceneVecEnv.get_state`)."""
         self.episode = episode - 1
         packet = self._packet()
         self._reset(packet)
+        skipped = list(self.cursor.new_failures)
         for a in actions:
             packet = self.step(a)
-        packet["active"] = self._active()
-        return packet
+        self.cursor.new_failures[:0] = skipped
+        return self._finish(packet)
 
-    def state(self) -> tuple[int, list[np.ndarray]]:
-        return self.episode, [a.copy() for a in self.actions]
+    def close(self) -> None:
+        self.env.close()
+        self.cursor.close()
 
 
-def _worker(conn, spec: SceneSpec, config: EnvConfig, seed: int, slots: int | None) -> None:
-    try:
-        senv = _SlotEnv(spec, config, seed, slots)
-        conn.send(("ok", {"slots": senv.slots, "dim": senv.dim,
-                          "possible_agents": list(senv.env.possible_agents)}))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent
-        conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
-        return
-    while True:
-        try:
-            cmd, arg = conn.recv()
-        except (EOFError, KeyboardInterrupt):
-            break
-        try:
-            if cmd == "step":
-                out = senv.step(arg)
-            elif cmd == "reset":
-                out = senv.reset()
-            elif cmd == "state":
-                out = senv.state()
-            elif cmd == "restore":
-                out = senv.restore(*arg)
-            elif cmd == "call":
-                name, args, kwargs = arg
-                out = getattr(senv.env, name)(*args, **kwargs)
-            elif cmd == "getattr":
-                out = getattr(senv.env, arg)
-            elif cmd == "close":
-                senv.env.close()
-                conn.send(("ok", None))
-                break
-            else:
-                raise ValueError(f"unknown command {cmd!r}")
-            conn.send(("ok", out))
-        except BaseException as exc:  # noqa: BLE001 - reported to the parent
-            conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
-    conn.close()
+def _make_worker(source, config: EnvConfig, seed: int, slots: int | None) -> SlotWorker:
+    return SlotWorker(source, config, seed, slots)
 
 
 # ---------------------------------------------------------------------------------- parent side
 class MultiSceneVecEnv(VecEnv):
-    """Agents of several scenes as SB3 vector slots, one worker process per scene (module doc).
+    """Agents of several scene workers as SB3 vector slots (module doc).
 
-    :param scenes: the scenes (scene file + bundle folder each).
+    :param scenes: one source per worker: a :class:`SceneSpec` (one scene, explicit bundle) or
+        a :class:`PoolSpec` (a shard of a scene pool).
     :param config: env configuration shared by all scenes.
     :param seed: base seed of the episode seeds.
-    :param slots: slots per scene (None: each scene's max concurrent agents).
+    :param slots: slots per worker (None: from its scene(s)).
     :param timeout_s: seconds to wait for any worker answer before giving up on it.
-    :param start_method: ``"spawn"`` or ``"forkserver"``.
-    :param pin_workers: pin each worker process to one core, balancing the scenes' per-step cost
-        (:func:`place_workers`, cost = fixed + slots); the trainer process stays unpinned. Helps
-        when there are more scenes than cores (a big scene keeps a core to itself instead of
-        being time-shared). Meant for a machine dedicated to one run: concurrent runs pinning
-        their workers would stack them on the same cores. Linux only, ignored elsewhere.
+    :param start_method: ``"spawn"`` or ``"forkserver"`` (process backend).
+    :param pin_workers: pin each worker process to one core, balancing the workers' per-step
+        cost (:func:`place_workers`, cost = fixed + slots); the trainer process stays unpinned.
+        Meant for a machine dedicated to one run: concurrent runs pinning their workers would
+        stack them on the same cores. Linux and the process backend only, ignored elsewhere.
+    :param backend: worker backend (:data:`magail_sumo.env.transport.BACKENDS`).
+    :param backend_options: its options (Ray: ``address``, ``num_cpus``).
+    :param max_restarts: how many times in a row a worker that dies or stops answering is
+        replaced (its episode replayed from its seed and logged actions, so the rollout goes on
+        exactly as it would have) before the env gives up with :class:`VecEnvWorkerError`;
+        0: give up at once.
+    :param log: where replacements and skipped scenes are reported (one line each).
     """
 
-    def __init__(self, scenes: Sequence[SceneSpec], config: EnvConfig | None = None,
+    def __init__(self, scenes: Sequence[SceneSpec | PoolSpec], config: EnvConfig | None = None,
                  seed: int = 0, slots: Sequence[int] | None = None, timeout_s: float = 120.0,
-                 start_method: str = "spawn", pin_workers: bool = False) -> None:
+                 start_method: str = "spawn", pin_workers: bool = False,
+                 backend: str = "process", backend_options: dict | None = None,
+                 max_restarts: int = 0, log=None) -> None:
         if not scenes:
             raise ValueError("MultiSceneVecEnv needs at least one scene")
         from magail_sumo.sensors.observation import observation_bounds
+
+        from .transport import backend_class
 
         self.specs = list(scenes)
         self.config = config or EnvConfig()
         self.seed_base = seed
         self.timeout_s = timeout_s
-        ctx = mp.get_context(start_method)
-        self._conns, self._procs = [], []
+        self.backend = backend
+        self.max_restarts = max_restarts
+        self.log = log or (lambda msg: None)
+        self._handle_cls = backend_class(backend)
+        self._options = dict(backend_options or {}, start_method=start_method)
+        if hasattr(self._handle_cls, "prepare"):
+            self._handle_cls.prepare(self._options, len(self.specs))
         self.closed = False
+        self.restarts = 0  #: workers replaced so far
+        #: scenes skipped so far, (scene, reason) each, and those not yet taken by the trainer
+        self.skipped: list[tuple[str, str]] = []
+        self.new_skipped: list[tuple[str, str]] = []
+        self._handles = []
+        self._slots_asked = None if slots is None else list(slots)
         try:
-            for k, spec in enumerate(self.specs):
-                parent, child = ctx.Pipe()
-                proc = ctx.Process(target=_worker, daemon=True, name=f"scene-{spec.name}",
-                                   args=(child, spec, self.config, seed + SEED_STRIDE * k,
-                                         None if slots is None else slots[k]))
-                proc.start()
-                child.close()
-                self._conns.append(parent)
-                self._procs.append(proc)
-            hello = [self._recv(k) for k in range(len(self.specs))]
+            for k in range(len(self.specs)):
+                self._handles.append(self._new_handle(k))
+            hello = []
+            for k in range(len(self.specs)):
+                try:
+                    hello.append(self._recv(k))
+                except VecEnvWorkerError as exc:
+                    raise WorkerStartError(str(exc), k) from None
         except BaseException:
             self._kill_all()
             raise
         self.slots = [h["slots"] for h in hello]
+        #: where each worker runs: (host, pid)
+        self.worker_hosts = [(h["host"], h["pid"]) for h in hello]
         #: CPU set of each worker (empty: not pinned)
         self.worker_cpus: list[set[int]] = [set() for _ in self.specs]
-        if pin_workers and hasattr(os, "sched_setaffinity"):
+        self.pin_workers = pin_workers and backend == "process" and \
+            hasattr(os, "sched_setaffinity")
+        if self.pin_workers:
             self.worker_cpus = place_workers([WORKER_FIXED_COST + n for n in self.slots],
                                              os.sched_getaffinity(0))
-            for proc, cpus in zip(self._procs, self.worker_cpus):
-                try:
-                    os.sched_setaffinity(proc.pid, cpus)
-                except OSError:  # the process is gone (reported by the next answer) or denied
-                    pass
+            for k in range(len(self.specs)):
+                self._pin(k)
         self.possible_agents = [h["possible_agents"] for h in hello]
-        dims = {h["dim"] for h in hello if h["dim"]}
         low, high = observation_bounds(self.config.observation)
-        if dims - {low.shape[0]}:
-            raise VecEnvWorkerError(f"observation sizes {sorted(dims)} differ from the config's "
-                                    f"{low.shape[0]}")
         self.obs_dim = int(low.shape[0])
         offsets = np.concatenate([[0], np.cumsum(self.slots)])
         self.scene_slices = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
         n = int(offsets[-1])
-        #: (num_envs,) scene index of each slot
+        #: (num_envs,) worker ("scene group") index of each slot
         self.slot_scene = np.repeat(np.arange(len(self.specs)), self.slots)
         #: (num_envs,) slot holds an agent (for the current observation)
         self.slot_active = np.zeros(n, bool)
@@ -364,86 +430,125 @@ class MultiSceneVecEnv(VecEnv):
         self.prev_slot_pos = np.zeros((n, 3), np.float32)
         self.agent_steps = 0  #: agent-steps stepped so far (active slots only)
         self.episodes = 0  #: scene episodes finished so far
+        #: scenario id each worker plays now
+        self.worker_scene: list[str] = ["" for _ in self.specs]
+        # per worker: its episode index and the actions since that episode's reset (the state
+        # get_state gives and a replaced worker replays)
+        self._episode = [0] * len(self.specs)
+        self._ep_actions: list[list[np.ndarray]] = [[] for _ in self.specs]
         self._actions: np.ndarray | None = None
         super().__init__(n, spaces.Box(low, high, dtype=np.float32),
                          spaces.Box(-1.0, 1.0, (2,), np.float32))
 
-    # ------------------------------------------------------------------ pipes
+    # ------------------------------------------------------------------ workers
+    def _new_handle(self, k: int):
+        spec = self.specs[k]
+        slots = None if self._slots_asked is None else self._slots_asked[k]
+        if hasattr(self, "slots"):  # a replacement keeps the layout
+            slots = self.slots[k]
+        h = self._handle_cls(f"scene {spec.name}", _make_worker,
+                             (spec, self.config, self.seed_base + SEED_STRIDE * k, slots),
+                             self._options)
+        h.start()
+        return h
+
+    def _pin(self, k: int) -> None:
+        try:
+            os.sched_setaffinity(self._handles[k].pid, self.worker_cpus[k])
+        except (OSError, TypeError):  # gone (reported by the next answer) or denied
+            pass
+
+    @property
+    def _procs(self) -> list:
+        """The worker processes (process backend)."""
+        return [getattr(h, "proc", None) for h in self._handles]
+
     def _recv(self, k: int) -> Any:
-        conn, proc, name = self._conns[k], self._procs[k], self.specs[k].name
+        from .transport import WorkerFailed, WorkerLost
+
         try:
-            ready = conn.poll(self.timeout_s)
-        except (OSError, EOFError):
-            ready = True
-        if not ready:
+            return self._handles[k].recv(self.timeout_s)
+        except (WorkerLost, WorkerFailed) as exc:
             self._kill_all()
-            raise VecEnvWorkerError(f"scene {name}: worker did not answer within "
-                                    f"{self.timeout_s:g} s (killed)")
-        try:
-            status, payload = conn.recv()
-        except (EOFError, OSError, ConnectionError):
-            proc.join(1.0)
-            code = proc.exitcode
-            self._kill_all()
-            raise VecEnvWorkerError(f"scene {name}: worker process died (exit code {code})") \
-                from None
-        if status != "ok":
-            self._kill_all()
-            raise VecEnvWorkerError(f"scene {name}: worker failed: {payload}")
-        return payload
+            raise VecEnvWorkerError(str(exc)) from None
 
-    def _send(self, k: int, msg: tuple) -> None:
-        """Send ``msg`` to worker ``k``. Requests and answers alternate, so the pipe is empty
-        here and a small message never blocks; a large one (a ``restore`` replay) is written
-        from a thread and waited for at most ``timeout_s`` (a stopped worker reads nothing)."""
-        conn = self._conns[k]
-        try:
-            buf = ForkingPickler.dumps(msg)
-            if len(buf) <= _PIPE_SAFE_BYTES:
-                conn.send_bytes(buf)
-            else:
-                failed: list[BaseException] = []
+    def _replace(self, k: int, reason: str) -> None:
+        """Start a fresh worker ``k`` in the state of the lost one (same seed; the current
+        episode replayed)."""
+        self._handles[k].kill()
+        self._handles[k] = self._new_handle(k)
+        self._handles[k].recv(self.timeout_s)  # hello
+        if self.pin_workers:
+            self._pin(k)
+        acts = self._ep_actions[k]
+        self._handles[k].send("restore", (self._episode[k], acts), self.timeout_s)
+        self._handles[k].recv(self.timeout_s)
+        self.restarts += 1
+        self.log(f"worker {k} ({self.specs[k].name}) lost: {reason.splitlines()[0]}; replaced "
+                 f"on {self._handles[k].node or 'local'}, episode {self._episode[k]} replayed "
+                 f"({len(acts)} steps)")
 
-                def write() -> None:
-                    try:
-                        conn.send_bytes(buf)
-                    except BaseException as exc:  # noqa: BLE001 - re-raised below
-                        failed.append(exc)
+    def _exchange(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None = None
+                  ) -> list[Any]:
+        """Send ``(cmd, args[i])`` to each worker and collect the answers; a lost worker is
+        replaced (up to :attr:`max_restarts` times in a row) and asked again."""
+        from .transport import WorkerFailed, WorkerLost
 
-                writer = threading.Thread(target=write, daemon=True)
-                writer.start()
-                writer.join(self.timeout_s)
-                if writer.is_alive():
-                    self._kill_all()  # closes the pipe: the writer thread ends
-                    raise VecEnvWorkerError(f"scene {self.specs[k].name}: worker did not read "
-                                            f"its request within {self.timeout_s:g} s (killed)")
-                if failed:
-                    raise failed[0]
-        except (BrokenPipeError, OSError, ConnectionError):
-            code = self._procs[k].exitcode
-            self._kill_all()
-            raise VecEnvWorkerError(f"scene {self.specs[k].name}: worker process died "
-                                    f"(exit code {code})") from None
-
-    def _kill_all(self) -> None:
-        for proc in self._procs:
-            if proc.is_alive():
-                proc.terminate()
-        for proc in self._procs:
-            proc.join(2.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(1.0)
-        for conn in self._conns:
-            conn.close()
-        self.closed = True
-
-    def _broadcast(self, cmd: str, args: Sequence[Any]) -> list[Any]:
         if self.closed:
             raise VecEnvWorkerError("the vector env is closed")
-        for k, arg in enumerate(args):
-            self._send(k, (cmd, arg))
-        return [self._recv(k) for k in range(len(self.specs))]
+        ks = list(range(len(self.specs))) if workers is None else list(workers)
+        lost: dict[int, str] = {}
+        for k, arg in zip(ks, args):
+            try:
+                self._handles[k].send(cmd, arg, self.timeout_s)
+            except WorkerLost as exc:
+                lost[k] = str(exc)
+        out = []
+        for k, arg in zip(ks, args):
+            tries = 0
+            while True:
+                try:
+                    if k not in lost:
+                        out.append(self._handles[k].recv(self.timeout_s))
+                        break
+                    reason = lost.pop(k)
+                except WorkerLost as exc:
+                    reason = str(exc)
+                except WorkerFailed as exc:
+                    self._kill_all()
+                    raise VecEnvWorkerError(str(exc)) from None
+                tries += 1
+                if tries > self.max_restarts:
+                    self._kill_all()
+                    raise VecEnvWorkerError(reason + (f" ({self.max_restarts} replacement(s) "
+                                                      "failed too)" if self.max_restarts else ""))
+                try:
+                    if cmd in ("reset", "restore"):  # the request itself sets the state
+                        self._handles[k].kill()
+                        self._handles[k] = self._new_handle(k)
+                        self._handles[k].recv(self.timeout_s)
+                        if self.pin_workers:
+                            self._pin(k)
+                        self.restarts += 1
+                        self.log(f"worker {k} ({self.specs[k].name}) lost: "
+                                 f"{reason.splitlines()[0]}; replaced")
+                    else:
+                        self._replace(k, reason)
+                    self._handles[k].send(cmd, arg, self.timeout_s)
+                except WorkerLost as exc:
+                    lost[k] = str(exc)
+                except WorkerFailed as exc:
+                    self._kill_all()
+                    raise VecEnvWorkerError(str(exc)) from None
+        return out
+
+    def _kill_all(self) -> None:
+        for h in self._handles:
+            try:
+                h.kill()
+            except Exception:  # noqa: BLE001 - best effort
+                pass
+        self.closed = True
 
     # ------------------------------------------------------------------ VecEnv API
     def _collect(self, packets: list[dict], step: bool) -> tuple:
@@ -460,6 +565,12 @@ class MultiSceneVecEnv(VecEnv):
             if step:
                 self.agent_steps += p["agent_steps"]
                 self.episodes += p["episodes"]
+            self._episode[k] = p["episode"]
+            self.worker_scene[k] = p["scenario_id"]
+            for what, reason in p["skipped"]:
+                self.skipped.append((what, reason))
+                self.new_skipped.append((what, reason))
+                self.log(f"scene skipped: {what}: {reason}")
         self.prev_slot_active = self.slot_active
         self.slot_active = active
         self.prev_slot_pos = self.slot_pos
@@ -467,7 +578,8 @@ class MultiSceneVecEnv(VecEnv):
         return obs, dones, infos
 
     def reset(self) -> np.ndarray:
-        packets = self._broadcast("reset", [None] * len(self.specs))
+        packets = self._exchange("reset", [None] * len(self.specs))
+        self._ep_actions = [[] for _ in self.specs]
         obs, _, infos = self._collect(packets, step=False)
         self.prev_slot_active = np.zeros(self.num_envs, bool)
         self.prev_slot_pos = np.zeros((self.num_envs, 3), np.float32)
@@ -480,20 +592,30 @@ class MultiSceneVecEnv(VecEnv):
         self._actions = np.asarray(actions, np.float32).reshape(self.num_envs, 2)
 
     def step_wait(self) -> VecEnvStepReturn:
-        acts = self._actions
-        packets = self._broadcast("step", [acts[s] for s in self.scene_slices])
+        acts = [self._actions[s] for s in self.scene_slices]
+        packets = self._exchange("step", acts)
+        for k, p in enumerate(packets):
+            if p["episodes"]:
+                self._ep_actions[k] = []
+            else:
+                self._ep_actions[k].append(acts[k].copy())
         obs, dones, infos = self._collect(packets, step=True)
         return obs, np.zeros(self.num_envs, np.float32), dones, infos
 
     def get_state(self) -> list[tuple[int, list[np.ndarray]]]:
-        """Per scene (episode index, actions since its reset): enough to rebuild the state."""
-        return self._broadcast("state", [None] * len(self.specs))
+        """Per worker (episode index, actions since its reset): enough to rebuild the state."""
+        if self.closed:
+            raise VecEnvWorkerError("the vector env is closed")
+        return [(int(e), [a.copy() for a in acts])
+                for e, acts in zip(self._episode, self._ep_actions)]
 
     def set_state(self, state: Sequence[tuple[int, list[np.ndarray]]]) -> np.ndarray:
         """Rebuild the state :meth:`get_state` gave (replaying actions); the observation."""
         if len(state) != len(self.specs):
             raise ValueError(f"state has {len(state)} scenes, the env {len(self.specs)}")
-        packets = self._broadcast("restore", list(state))
+        packets = self._exchange("restore", list(state))
+        self._ep_actions = [[np.asarray(a, np.float32).reshape(self.slots[k], 2)
+                             for a in acts] for k, (_, acts) in enumerate(state)]
         obs, _, infos = self._collect(packets, step=False)
         self.prev_slot_active = np.zeros(self.num_envs, bool)
         self.prev_slot_pos = np.zeros((self.num_envs, 3), np.float32)
@@ -503,18 +625,11 @@ class MultiSceneVecEnv(VecEnv):
     def close(self) -> None:
         if self.closed:
             return
-        for k in range(len(self.specs)):
+        for h in self._handles:
             try:
-                self._conns[k].send(("close", None))
-            except (BrokenPipeError, OSError):
+                h.close()
+            except Exception:  # noqa: BLE001 - best effort
                 pass
-        for k, proc in enumerate(self._procs):
-            try:
-                if self._conns[k].poll(5.0):
-                    self._conns[k].recv()
-            except (EOFError, OSError):
-                pass
-            proc.join(5.0)
         self._kill_all()
 
     def _scenes_of(self, indices: VecEnvIndices) -> list[int]:
@@ -523,9 +638,7 @@ class MultiSceneVecEnv(VecEnv):
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         """Attribute of the scene env of each slot of ``indices``."""
         scenes = self._scenes_of(indices)
-        for k in scenes:
-            self._send(k, ("getattr", attr_name))
-        got = {k: self._recv(k) for k in scenes}
+        got = dict(zip(scenes, self._exchange("getattr", [attr_name] * len(scenes), scenes)))
         return [got[int(self.slot_scene[i])] for i in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
@@ -534,9 +647,8 @@ class MultiSceneVecEnv(VecEnv):
     def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None,
                    **method_kwargs) -> list[Any]:
         scenes = self._scenes_of(indices)
-        for k in scenes:
-            self._send(k, ("call", (method_name, method_args, method_kwargs)))
-        got = {k: self._recv(k) for k in scenes}
+        got = dict(zip(scenes, self._exchange(
+            "call", [(method_name, method_args, method_kwargs)] * len(scenes), scenes)))
         return [got[int(self.slot_scene[i])] for i in self._get_indices(indices)]
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None
@@ -604,3 +716,42 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
             errors.append(printable(f"{f}: " + (str(exc) if isinstance(exc, MagailSumoError)
                                                  else f"{type(exc).__name__}: {exc}"), 400))
     return out
+
+
+def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
+                 config: EnvConfig | None = None, seed: int = 0, *, cache: int = 2,
+                 convert_budget_s: float | None = 90.0, log=None, **kwargs
+                 ) -> MultiSceneVecEnv:
+    """A :class:`MultiSceneVecEnv` over a scene pool: ``refs``
+    (:func:`~magail_sumo.env.scene_pool.resolve_pool`) sharded over ``workers`` workers
+    (:func:`~magail_sumo.env.scene_pool.shard_pool`), bundles converted on demand into
+    ``networks``. A worker none of whose scenes can be used at start-up has its scenes
+    reported as skipped (``venv.skipped``) and the pool is sharded again without them.
+    ``kwargs`` go to :class:`MultiSceneVecEnv` (timeout, backend, restarts, ...)."""
+    from .scene_pool import ScenePoolError, shard_pool
+
+    refs = list(refs)
+    skipped: list[tuple[str, str]] = []
+    log = log or (lambda msg: None)
+    while True:
+        if not refs:
+            raise ScenePoolError("no scene of the pool can be used" + (
+                f"; first: {skipped[0][0]}: {skipped[0][1]}" if skipped else ""))
+        shards = shard_pool(refs, workers)
+        specs = [PoolSpec(tuple(sh), str(networks), cache, convert_budget_s) for sh in shards]
+        try:
+            venv = MultiSceneVecEnv(specs, config, seed, log=log, **kwargs)
+        except WorkerStartError as exc:
+            if "ScenePoolError" not in str(exc):
+                raise
+            bad = set(shards[exc.worker])
+            reason = str(exc).splitlines()[0]
+            reason = reason[reason.find("ScenePoolError"):]
+            for r in shards[exc.worker]:
+                skipped.append((str(r), reason))
+                log(f"scene skipped: {r}: {reason}")
+            refs = [r for r in refs if r not in bad]
+            continue
+        venv.skipped[:0] = skipped
+        venv.new_skipped[:0] = skipped
+        return venv

@@ -22,12 +22,17 @@ from magail_sumo.models.discriminator import TransformerConfig
 
 @dataclass(frozen=True)
 class ScenesConfig:
-    """Training scenes.
+    """Training scenes: a scene pool (:mod:`magail_sumo.env.scene_pool`).
 
-    :param files: scene files (WOMD / ScenarioNet); every scene of each is used.
-    :param networks: converted bundles ``networks/<id>/`` (missing ones are converted there).
+    :param files: pool entries, any number: scene files (WOMD TFRecord files or shards,
+        ScenarioNet pickles; every scene of each), globs, ScenarioNet dataset folders, folders of
+        scene files, or folders of converted bundles.
+    :param networks: converted bundles ``networks/<id>/`` (missing ones are converted there on
+        demand, by the worker that first plays the scene, and reused).
     :param worker_timeout_s: seconds before a silent scene worker is declared hung.
-    :param pin_workers: pin each scene worker to one core, balancing the scenes' per-step cost
+    :param convert_budget_s: time budget of one on-demand conversion (a scene over it is
+        skipped); at most 3/4 of ``worker_timeout_s`` is used.
+    :param pin_workers: pin each scene worker to one core, balancing the workers' per-step cost
         (:func:`~magail_sumo.env.vec_env.place_workers`); for a machine dedicated to one run —
         concurrent pinned runs would stack their workers on the same cores.
     """
@@ -35,11 +40,75 @@ class ScenesConfig:
     files: tuple[str, ...] = ("data/womd/637f20cafde22ff8.tfrecord",)
     networks: str = "networks"
     worker_timeout_s: float = 120.0
+    convert_budget_s: float = 90.0
     pin_workers: bool = False
 
     def __post_init__(self) -> None:
         check(len(self.files) > 0, "files", "needs at least one scene file")
-        check_positive(self, "worker_timeout_s")
+        check_positive(self, "worker_timeout_s", "convert_budget_s")
+
+    @property
+    def effective_convert_budget_s(self) -> float:
+        """The budget a worker converts with: at most 3/4 of ``worker_timeout_s``, so that a
+        worker converting a scene still answers in time."""
+        return min(self.convert_budget_s, 0.75 * self.worker_timeout_s)
+
+
+@dataclass(frozen=True)
+class RayConfig:
+    """Ray backend of the scene workers (:mod:`magail_sumo.env.ray_workers`).
+
+    :param address: None: start a local Ray in the trainer; else a running cluster's
+        ``HOST:PORT`` (or ``auto``).
+    :param num_cpus: CPUs each scene-worker actor reserves.
+    """
+
+    address: str | None = None
+    num_cpus: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_positive(self, "num_cpus")
+        check(self.address is None or bool(str(self.address).strip()), "address",
+              "must be HOST:PORT, 'auto' or null")
+
+
+@dataclass(frozen=True)
+class WorkersConfig:
+    """The scene workers (one SUMO each) that step the pool.
+
+    :param count: number of workers, each owning a shard of the pool (None: the usable cores,
+        at most one per scene). The resolved number is what the run records and resumes with.
+    :param backend: ``process`` (local processes, the default) or ``ray`` (Ray actors on a
+        cluster; ``pip install -e ".[ray]"``).
+    :param ray: Ray options.
+    :param max_restarts: times in a row a worker that dies or hangs is replaced (its episode
+        replayed) before the run stops with its last checkpoint.
+    :param scene_cache: scene envs each worker keeps built (the most recent).
+    """
+
+    count: int | None = None
+    backend: Literal["process", "ray"] = "process"
+    ray: RayConfig = field(default_factory=RayConfig)
+    max_restarts: int = 3
+    scene_cache: int = 2
+
+    def __post_init__(self) -> None:
+        check(self.count is None or self.count >= 1, "count",
+              f"must be >= 1 or null, got {self.count}")
+        check(self.backend in ("process", "ray"), "backend",
+              f"must be 'process' or 'ray', got {show(self.backend)}")
+        check(self.max_restarts >= 0, "max_restarts", f"must be >= 0, got {self.max_restarts}")
+        check(self.scene_cache >= 1, "scene_cache", f"must be >= 1, got {self.scene_cache}")
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)
@@ -212,6 +281,7 @@ class TrainConfig:
     torch_threads_update: int | None = None
     env: EnvConfig = field(default_factory=EnvConfig)
     scenes: ScenesConfig = field(default_factory=ScenesConfig)
+    workers: WorkersConfig = field(default_factory=WorkersConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
@@ -282,23 +352,32 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
         raise ConfigError(f"{where}{exc.key}: {exc.problem}") from None
     if cfg.algorithm == "bc":
         return
-    from converters import iter_scenes
+    from converters.scene_files import read_record
+    from magail_sumo.env.scene_pool import resolve_pool, start_problem
 
+    checked = []
     for i, f in enumerate(cfg.scenes.files):
         key = f"scenes.files[{i}]"
-        if not Path(f).is_file():
+        if not set("*?[") & set(str(f)) and not Path(f).exists():
             raise ConfigError(f"{where}{key}: {show(f, 200)}: no such file")
+        skipped: list = []
+        refs = resolve_pool([f], skipped)
+        if not refs:
+            why = skipped[0].reason if skipped else "no scene"
+            raise ConfigError(f"{where}{key}: cannot read the scenes ({show(why, 200)[1:-1]})")
+        checked.extend(refs[:max(0, 32 - len(checked))])
+    # a small pool is read now: a start past every scene is a config mistake (in a larger
+    # pool, or next to usable scenes, such a scene is skipped at run time)
+    problems = []
+    for ref in checked:
         try:
-            for scene in iter_scenes(f):
-                key_start = "min_history" if cfg.env.start_window == "random" else "start_step"
-                first = getattr(cfg.env, key_start)  # the earliest start of an episode
-                if first > scene.num_steps - 2:
-                    raise ConfigError(
-                        f"{where}env.{key_start}: {first} leaves no step to take in "
-                        f"scene {show(scene.scenario_id)} of {f} ({scene.num_steps} steps)")
-        except ConfigError:
-            raise
-        except (MagailSumoError, OSError, ValueError) as exc:
-            msg = " ".join(str(exc).split())
-            raise ConfigError(f"{where}{key}: cannot read the scenes ({show(msg, 200)[1:-1]})"
-                              ) from None
+            scene = read_record(ref)
+        except (MagailSumoError, OSError, ValueError):
+            continue  # skipped at run time, with its reason
+        problem = start_problem(scene, cfg.env)
+        if problem is None:
+            return
+        problems.append(f"{problem} of {ref}")
+    if problems:
+        key_start = "min_history" if cfg.env.start_window == "random" else "start_step"
+        raise ConfigError(f"{where}env.{key_start}: {problems[0]}")

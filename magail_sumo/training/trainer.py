@@ -50,12 +50,15 @@ OLD_CHECKPOINT_FORMATS = ("magail_sumo.checkpoint/1",)
 #: they change neither the results nor the state
 #: what ``train`` writes into a run directory (recorded in its marker: ``--overwrite`` removes
 #: only these)
-RUN_OUTPUTS = ("config.yaml", "environment.json", "checkpoints", "tb")
+RUN_OUTPUTS = ("config.yaml", "environment.json", "checkpoints", "tb", "skipped_scenes.tsv")
 #: second entropy word of the seed of the PPO behavioural-cloning regulariser's expert sampler
 #: (a stream apart from the discriminator sampler's, seeded with the run seed alone)
 BC_STREAM = 0xBC
 RESUMABLE_CHANGES = ("updates", "checkpoint_every", "scenes.worker_timeout_s",
-                     "scenes.pin_workers")
+                     "scenes.pin_workers", "workers.backend", "workers.ray.address",
+                     "workers.ray.num_cpus", "workers.max_restarts")
+#: the run's list of scenes left out of the pool (tab-separated: scene, reason)
+SKIPPED_FILE = "skipped_scenes.tsv"
 
 
 def _flat(d: dict, prefix: str = "") -> dict:
@@ -409,7 +412,9 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
         rd = Path(resume)
         where = rd / "checkpoints" / "latest.pt"
         ckpt = load_checkpoint(where)
-        checkpoint_config(ckpt, where)  # a valid config, or an error naming the file
+        saved_cfg = checkpoint_config(ckpt, where)  # valid, or an error naming the file
+        if cfg.workers.count is None:  # the run resumes with the number it resolved
+            cfg = replace(cfg, workers=replace(cfg.workers, count=saved_cfg.workers.count))
         _check_resume_config(cfg, ckpt["config"], where)
         run_dir = rd
     else:
@@ -477,13 +482,20 @@ def _torch_threads_callback():
 class GailRun:
     """The objects of a GAIL / MAGAIL run (env, reward wrapper, discriminator, PPO, callbacks).
 
-    :param cfg: the run config. :param expert: expert demonstrations.
+    :param cfg: the run config (``workers.count`` None is resolved: :attr:`cfg` holds the
+        number used). :param expert: expert demonstrations. :param log: one-line messages
+        (scene pool, skipped scenes, replaced workers).
     """
 
-    def __init__(self, cfg: TrainConfig, expert: ExpertDataset) -> None:
+    def __init__(self, cfg: TrainConfig, expert: ExpertDataset,
+                 log: Callable[[str], None] | None = None) -> None:
         from stable_baselines3.common.callbacks import CallbackList
 
-        from magail_sumo.env.vec_env import MultiSceneVecEnv, scene_specs
+        from converters.sumo.scenario import claim_networks_dir
+        from magail_sumo.env.scene_pool import resolve_pool
+        from magail_sumo.env.vec_env import pool_vec_env
+
+        from .config import usable_cores
 
         from .discriminator_loss import DiscriminatorLossConfig
         from .ppo import KLAdaptiveLR, MaskedPPO
@@ -495,10 +507,26 @@ class GailRun:
         d = cfg.discriminator
         if d.kind == "decomposed":  # before any worker starts
             expert.require_poses("discriminator.kind 'decomposed'")
-        specs = scene_specs(cfg.scenes.files, cfg.scenes.networks)
-        self.venv = MultiSceneVecEnv(specs, cfg.env, seed=cfg.seed,
-                                     timeout_s=cfg.scenes.worker_timeout_s,
-                                     pin_workers=cfg.scenes.pin_workers)
+        self.log = log or (lambda msg: None)
+        skipped: list = []
+        refs = resolve_pool(cfg.scenes.files, skipped)
+        for s in skipped:
+            self.log(f"scene skipped: {s.what}: {s.reason}")
+        count = cfg.workers.count or min(len(refs), usable_cores())
+        self.cfg = cfg = replace(cfg, workers=replace(cfg.workers, count=count))
+        w = cfg.workers
+        claim_networks_dir(cfg.scenes.networks)
+        self.venv = pool_vec_env(
+            refs, cfg.scenes.networks, count, cfg.env, cfg.seed, cache=w.scene_cache,
+            convert_budget_s=cfg.scenes.effective_convert_budget_s, log=self.log,
+            timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
+            backend=w.backend, backend_options={"address": w.ray.address,
+                                                "num_cpus": w.ray.num_cpus},
+            max_restarts=w.max_restarts)
+        self.venv.skipped[:0] = [(s.what, s.reason) for s in skipped]
+        self.venv.new_skipped[:0] = [(s.what, s.reason) for s in skipped]
+        self.log(f"scene pool: {len(refs)} scene(s) over {len(self.venv.specs)} "
+                 f"{w.backend} worker(s), {self.venv.num_envs} agent slots")
         try:
             p = cfg.ppo
             rollout = p.n_steps * self.venv.num_envs
@@ -673,7 +701,15 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                 log: Callable[[str], None], progress: Callable[[str, int, int], None]) -> Path:
     from stable_baselines3.common.logger import configure
 
-    run = GailRun(cfg, expert)
+    run = GailRun(cfg, expert, log=log)
+    cfg = run.cfg  # workers.count resolved
+
+    def note_skipped() -> None:
+        from magail_sumo.env.scene_pool import PoolSkip, write_skipped
+
+        new, run.venv.new_skipped = run.venv.new_skipped, []
+        write_skipped(run_dir / SKIPPED_FILE, [PoolSkip(w, r) for w, r in new])
+
     try:
         if ckpt is not None:
             run.load_state_dict(ckpt, run_dir / "checkpoints" / "latest.pt")
@@ -688,6 +724,7 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                                     log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))
         claim_run_dir(run_dir, resumed=ckpt is not None)
         record_run(run_dir, cfg)
+        note_skipped()
         run.model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
         while run.update < cfg.updates:
             t0 = time.perf_counter()
@@ -702,7 +739,10 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                    f"{st.policy_accuracy:.2f}" if st else "")
                 + (f", speed {sp:.2f} m/s (expert {run.disc_callback.expert_speed:.2f})"
                    if (sp := run.disc_callback.last_speed) is not None else ""))
+            if run.venv.restarts:
+                run.model.logger.record("workers/restarts", run.venv.restarts)
             run.model.logger.dump(run.model.num_timesteps)
+            note_skipped()
             progress("updates", run.update, cfg.updates)
             if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
                 run.save(run_dir)

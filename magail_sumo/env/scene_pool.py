@@ -1,0 +1,349 @@
+"""Training scene pools: any number of recorded scenes, shared out over a fixed set of workers.
+
+A pool is listed once, cheaply, in the trainer (:func:`resolve_pool`: no scene is parsed) from
+``scenes.files`` entries, each of which may be
+
+* a scene file: a WOMD TFRecord file or shard (every record), a ScenarioNet pickle;
+* a glob (``data/scenarionet/*.pkl``, ``shards/training.tfrecord-*``), expanded in sorted order;
+* a ScenarioNet dataset folder (``dataset_summary.pkl``: every scenario it maps);
+* a folder of converted bundles (``networks/<name>/conversion.json``): every bundle whose
+  ``conversion.json`` records the scene file it came from (``source``);
+* any other folder: the scene files in it (``*.pkl``, ``*.tfrecord*``; sorted, not recursive).
+
+Entries that match nothing or cannot be listed are *skipped* with a one-line reason (the run
+goes on with the rest); an empty pool is an error.
+
+Sharding (:func:`shard_pool`): worker ``w`` of ``W`` owns records ``w, w + W, w + 2W, …``. Each
+worker (:class:`PoolCursor`) plays its records in a seeded order: episode ``e`` of worker seed
+``s`` plays record ``order[e mod n]`` of the permutation drawn from
+``SeedSequence([s, e div n, POOL_STREAM])`` for each pass ``e div n`` over its ``n`` records (a
+worker of one record always plays it). A record that cannot be read or converted is skipped —
+the next one of the order plays instead — and reported once; which records fail is a property
+of the data, so the order stays a pure function of (seed, episode), and exact resume holds.
+
+Bundles are converted on demand, the first time a worker plays a scene, into ``networks/`` and
+reused from then on (:func:`ensure_bundle`; a lock file per bundle keeps two workers from
+converting one scene at once). A worker keeps only its most recent scenes' envs
+(``cache`` of them), so memory does not grow with the pool.
+
+Slots: a worker holding one scene sizes its slots exactly (the scene's most concurrent agents,
+:func:`~magail_sumo.env.vec_env.max_concurrent_agents`); a worker holding several sizes them to
+the largest :func:`agent_bound` of its scenes, computed from each scene alone when the worker
+starts (no conversion needed): the vehicles and cyclists alive at once that the controlled
+setting can pick.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from converters.scene_files import RecordRef, list_records, read_record
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import one_line, printable, safe_name
+
+from .config import EnvConfig
+
+#: SeedSequence stream of the per-pass scene order (apart from the start-window stream)
+POOL_STREAM = 0x5CE4E
+_SCENE_SUFFIXES = (".pkl",)
+_GLOB_CHARS = set("*?[")
+
+
+class ScenePoolError(MagailSumoError):
+    """A scene pool has no usable scene."""
+
+
+@dataclass(frozen=True)
+class PoolSkip:
+    """A pool entry or record left out, and why (one line)."""
+
+    what: str
+    reason: str
+
+    def line(self) -> str:
+        return f"{self.what}\t{self.reason}"
+
+
+def _is_scene_file(p: Path) -> bool:
+    return p.is_file() and (p.suffix in _SCENE_SUFFIXES or "tfrecord" in p.name)
+
+
+def _bundle_sources(folder: Path, skipped: list[PoolSkip]) -> list[RecordRef]:
+    refs = []
+    for conv in sorted(folder.glob("*/conversion.json")):
+        try:
+            rep = json.loads(conv.read_text())
+            src = rep.get("source") or {}
+            if rep.get("status") != "ok":
+                raise ValueError(f"conversion failed: {rep.get('reason', '')}")
+            if not isinstance(src, dict) or not isinstance(src.get("file"), str):
+                raise ValueError("no source scene file recorded (converted before sources were "
+                                 "recorded: convert it again, or list its scene file)")
+            record = src.get("record") or 0
+            if type(record) is not int or record < 0:
+                raise ValueError(f"bad source record {record!r}")
+            path = Path(src["file"])
+            if not path.is_absolute() and not path.exists():
+                path = folder / path  # relative to the bundles' folder
+            if not path.exists():
+                raise ValueError(f"source scene file {src['file']} not found")
+            refs.append(RecordRef(str(path), record))
+        except (OSError, ValueError, AttributeError, UnicodeDecodeError) as exc:
+            skipped.append(PoolSkip(str(conv.parent), printable(one_line(exc), 300)))
+    return refs
+
+
+def resolve_pool(entries: Iterable[str], skipped: list[PoolSkip] | None = None
+                 ) -> list[RecordRef]:
+    """The records of the pool ``entries`` name (module doc), in entry order; what cannot be
+    used is appended to ``skipped`` (raised as :class:`ScenePoolError` when None)."""
+    out: list[RecordRef] = []
+    local: list[PoolSkip] = []
+    for entry in entries:
+        entry = str(entry)
+        if _GLOB_CHARS & set(entry) and not Path(entry).exists():
+            paths = [Path(p) for p in sorted(glob.glob(entry))]
+            if not paths:
+                local.append(PoolSkip(entry, "the pattern matches no file"))
+        else:
+            paths = [Path(entry)]
+        for p in paths:
+            try:
+                if p.is_dir() and not (p / "dataset_summary.pkl").exists():
+                    if any(p.glob("*/conversion.json")):
+                        out.extend(_bundle_sources(p, local))
+                        continue
+                    files = sorted(f for f in p.iterdir() if _is_scene_file(f))
+                    if not files:
+                        local.append(PoolSkip(str(p), "folder holds no scene file, ScenarioNet "
+                                                      "dataset or converted bundle"))
+                    for f in files:
+                        out.extend(list_records(f))
+                    continue
+                out.extend(list_records(p))
+            except (MagailSumoError, OSError) as exc:
+                local.append(PoolSkip(str(p), printable(one_line(exc), 300)))
+    if skipped is None and local:
+        raise ScenePoolError(f"{local[0].what}: {local[0].reason}")
+    if skipped is not None:
+        skipped.extend(local)
+    return out
+
+
+def shard_pool(refs: Sequence[RecordRef], workers: int) -> list[tuple[RecordRef, ...]]:
+    """Worker ``w``'s records: ``refs[w::workers]`` (module doc); no empty shard."""
+    workers = max(1, min(workers, len(refs)))
+    return [tuple(refs[w::workers]) for w in range(workers)]
+
+
+def agent_bound(scene, config: EnvConfig) -> int:
+    """Upper bound (>= 1) of the agents of ``scene`` alive at one step under ``config``,
+    from the scene alone: the vehicles and cyclists (the only objects SUMO routes) between their
+    first and last valid step at one step, restricted to the SDC / tracks to predict for those ``controlled`` settings and capped
+    at K for ``controlled: K``."""
+    from magail_sumo.scene import ObjectType
+
+    tr = scene.tracks
+    rows = np.isin(tr.type, [ObjectType.VEHICLE, ObjectType.CYCLIST])
+    c = config.controlled
+    if isinstance(c, str) and c != "all":
+        want = np.zeros(len(tr.id), bool)
+        if c in ("sdc", "scored"):
+            want[scene.sdc_track_index] = True
+        if c in ("tracks_to_predict", "scored"):
+            want[[p.track_index for p in scene.tracks_to_predict]] = True
+        rows &= want
+    valid = tr.valid[rows]
+    if not valid.any():
+        return 1
+    t_steps = valid.shape[1]
+    has = valid.any(axis=1)
+    first = np.argmax(valid, axis=1)[has]
+    last = (t_steps - 1 - np.argmax(valid[:, ::-1], axis=1))[has]
+    steps = np.arange(t_steps)  # a track holds its slot from its first to its last valid step
+    most = int(((steps[None] >= first[:, None]) & (steps[None] <= last[:, None])).sum(0).max())
+    if not isinstance(c, str):
+        most = min(most, int(c))
+    return max(1, most)
+
+
+def start_problem(scene, config: EnvConfig) -> str | None:
+    """Why no episode of ``config`` can start in ``scene`` (None: it can): the earliest start
+    (``start_step``, or ``min_history`` with random windows) must leave a step to take."""
+    key = "min_history" if config.start_window == "random" else "start_step"
+    first = getattr(config, key)
+    if first > scene.num_steps - 2:
+        return (f"{first} leaves no step to take in scene {printable(scene.scenario_id)!r} "
+                f"({scene.num_steps} steps)")
+    return None
+
+
+def ensure_bundle(scene, networks: str | Path, source: RecordRef | None = None,
+                  time_budget_s: float | None = 600.0) -> Path:
+    """The converted bundle folder of ``scene`` under ``networks`` (``networks/<name>/``),
+    converting the scene first when it has none (SUMO baseline run skipped, ``time_budget_s``
+    at most). Safe across processes: a lock file per bundle (``networks/.locks/<name>``) lets
+    one converter at a time in; the others then find the bundle. :class:`MagailSumoError`
+    (one line) when the conversion fails."""
+    import fcntl
+
+    from converters.sumo.scenario import ConvertOptions, convert_scene
+
+    networks = Path(networks)
+    name = safe_name(scene.scenario_id)
+    folder = networks / name
+    if (folder / f"{name}.sumocfg").is_file():
+        return folder
+    locks = networks / ".locks"
+    locks.mkdir(parents=True, exist_ok=True)
+    with open(locks / name, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            if (folder / f"{name}.sumocfg").is_file():  # converted by another worker meanwhile
+                return folder
+            rep = convert_scene(scene, networks, ConvertOptions(
+                baseline=False, time_budget_s=time_budget_s),
+                source=None if source is None else (source.path, source.index))
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    if rep.status != "ok":
+        raise MagailSumoError(f"scene {printable(scene.scenario_id)} could not be converted: "
+                              f"{rep.reason}")
+    return folder
+
+
+class PoolCursor:
+    """A worker's view of its shard: which record each episode plays (module doc), the env of
+    each (built on demand, ``cache`` most recent kept) and the records that failed.
+
+    :param refs: the worker's records. :param networks: the bundles folder.
+    :param seed: the worker's seed. :param make_env: ``(scene, bundle folder) -> env``.
+    :param config: the env config (a scene too short for its episode start is skipped).
+    :param convert_budget_s: time budget of one on-demand conversion.
+    """
+
+    def __init__(self, refs: Sequence[RecordRef], networks: str | Path, seed: int,
+                 make_env: Callable, config: EnvConfig, cache: int = 2,
+                 convert_budget_s: float | None = 600.0) -> None:
+        if not refs:
+            raise ScenePoolError("a worker needs at least one scene")
+        self.refs = tuple(refs)
+        self.networks = Path(networks)
+        self.seed = seed
+        self.make_env = make_env
+        self.config = config
+        self.cache = max(1, cache)
+        self.convert_budget_s = convert_budget_s
+        self.failed: dict[int, str] = {}  #: record position -> reason (skipped from then on)
+        self.new_failures: list[PoolSkip] = []  #: failures not yet reported to the trainer
+        self._envs: OrderedDict[int, object] = OrderedDict()
+
+    def order(self, epoch: int) -> np.ndarray:
+        n = len(self.refs)
+        if n == 1:
+            return np.zeros(1, np.int64)
+        rng = np.random.default_rng(np.random.SeedSequence(
+            [self.seed % (1 << 64), epoch, POOL_STREAM]))
+        return rng.permutation(n)
+
+    def _fail(self, k: int, exc: BaseException) -> None:
+        reason = printable(one_line(exc), 300)
+        path = self.refs[k].path
+        if reason.startswith(path + ": "):  # the file is named in the skip line already
+            reason = reason[len(path) + 2:]
+        self.failed[k] = reason
+        self.new_failures.append(PoolSkip(str(self.refs[k]), reason))
+
+    def env(self, k: int):
+        """The env of record ``k`` (built, and its bundle converted, on first use); raises."""
+        if k in self._envs:
+            self._envs.move_to_end(k)
+            return self._envs[k]
+        ref = self.refs[k]
+        scene = read_record(ref)
+        if (problem := start_problem(scene, self.config)) is not None:
+            raise MagailSumoError(f"env start: {problem}")
+        bundle = ensure_bundle(scene, self.networks, ref, self.convert_budget_s)
+        env = self.make_env(scene, bundle)
+        self._envs[k] = env
+        while len(self._envs) > self.cache:
+            _, old = self._envs.popitem(last=False)
+            old.close()
+        return env
+
+    def env_for(self, episode: int):
+        """``(record position, env)`` of episode ``episode``: the order's record, or the next
+        usable one after records that fail (reported in :attr:`new_failures`)."""
+        n = len(self.refs)
+        order = self.order(episode // n)
+        for j in range(n):
+            k = int(order[(episode % n + j) % n])
+            if k in self.failed:
+                continue
+            try:
+                return k, self.env(k)
+            except MagailSumoError as exc:
+                self._fail(k, exc)
+            except (OSError, ValueError) as exc:
+                self._fail(k, exc)
+        raise ScenePoolError(f"every scene of this worker failed; first: "
+                             f"{self.refs[min(self.failed)]}: {self.failed[min(self.failed)]}")
+
+    def scan(self) -> int:
+        """The worker's slot count: exact for one record, else the largest :func:`agent_bound`
+        (records that cannot be read are failed here)."""
+        if len(self.refs) == 1:
+            from .vec_env import max_concurrent_agents
+
+            _, env = self.env_for(0)
+            return max_concurrent_agents(env)
+        most = 0
+        seen: dict[RecordRef, int | BaseException] = {}  # a pool may repeat a record
+        for k, ref in enumerate(self.refs):
+            if ref not in seen:
+                try:
+                    scene = read_record(ref)
+                    if (problem := start_problem(scene, self.config)) is not None:
+                        raise MagailSumoError(f"env start: {problem}")
+                    seen[ref] = agent_bound(scene, self.config)
+                except (MagailSumoError, OSError, ValueError) as exc:
+                    seen[ref] = exc
+            got = seen[ref]
+            if isinstance(got, BaseException):
+                self._fail(k, got)
+            else:
+                most = max(most, got)
+        if len(self.failed) == len(self.refs):
+            raise ScenePoolError(f"every scene of this worker failed; first: "
+                                 f"{self.refs[0]}: {self.failed[0]}")
+        return max(1, most)
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()
+
+
+def write_skipped(path: str | Path, skips: Iterable[PoolSkip]) -> None:
+    """Append ``skips`` to the run's ``skipped_scenes`` file (tab-separated: scene, reason;
+    a line already there is not repeated, e.g. after a resume)."""
+    new = not Path(path).exists()
+    have = set() if new else set(Path(path).read_text(encoding="utf-8").splitlines())
+    skips = [s for s in skips if s.line().replace("\n", " ") not in have]
+    if not skips:
+        return
+    with open(path, "a", encoding="utf-8") as fh:
+        if new:
+            fh.write("scene\treason\n")
+        for s in skips:
+            fh.write(s.line().replace("\n", " ") + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
