@@ -377,9 +377,9 @@ class MultiSceneVecEnv(VecEnv):
         self.max_restarts = max_restarts
         self.log = log or (lambda msg: None)
         self._handle_cls = backend_class(backend)
-        self._options = dict(backend_options or {}, start_method=start_method)
+        self._backend_opts = dict(backend_options or {}, start_method=start_method)
         if hasattr(self._handle_cls, "prepare"):
-            self._handle_cls.prepare(self._options, len(self.specs))
+            self._handle_cls.prepare(self._backend_opts, len(self.specs))
         self.closed = False
         self.restarts = 0  #: workers replaced so far
         #: scenes skipped so far, (scene, reason) each, and those not yet taken by the trainer
@@ -448,7 +448,7 @@ class MultiSceneVecEnv(VecEnv):
             slots = self.slots[k]
         h = self._handle_cls(f"scene {spec.name}", _make_worker,
                              (spec, self.config, self.seed_base + SEED_STRIDE * k, slots),
-                             self._options)
+                             self._backend_opts)
         h.start()
         return h
 

@@ -1,0 +1,205 @@
+"""Scene pools: listing, sharding, seeded order, on-demand conversion, skipped scenes, exact
+resume, and lost workers replaced with their episode replayed (real scenes, real SUMO)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import WOMD_DIR
+from converters.scene_files import RecordRef, list_records, read_record
+from magail_sumo.env.config import EnvConfig
+from magail_sumo.env.scene_pool import (PoolCursor, agent_bound, resolve_pool, shard_pool,
+                                        write_skipped)
+from magail_sumo.env.vec_env import VecEnvWorkerError, pool_vec_env
+
+ROOT = Path(__file__).resolve().parents[1]
+SN = ROOT / "data" / "scenarionet"
+SMALL = [WOMD_DIR / "850c48d8bbfa008f.tfrecord", SN / "250011f460de6135.pkl",
+         SN / "53e9adfdac0eb822.pkl"]
+CFG = EnvConfig(start_window="random", max_steps=15, controlled=6)
+
+
+@pytest.fixture(scope="module")
+def pool_dir(tmp_path_factory):
+    """Three real scenes, one file that is not a scene, in one folder."""
+    d = tmp_path_factory.mktemp("pool")
+    for f in SMALL:
+        shutil.copy(f, d / f.name)
+    (d / "broken.pkl").write_bytes(b"\x80\x04not a pickle at all")
+    return d
+
+
+def _roll(venv, steps: int, seed: int = 0, hook=None) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    out = [venv.reset()]
+    for t in range(steps):
+        if hook is not None:
+            hook(t, venv)
+        out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32))[0])
+    return out
+
+
+# ------------------------------------------------------------------ listing (no SUMO)
+def test_resolve_pool_entries(pool_dir, tmp_path):
+    skipped = []
+    refs = resolve_pool([str(pool_dir), str(SN / "2a1e*.pkl"), str(tmp_path / "none*.pkl")],
+                        skipped)
+    names = [Path(r.path).name for r in refs]
+    assert names == ["250011f460de6135.pkl", "53e9adfdac0eb822.pkl",
+                     "850c48d8bbfa008f.tfrecord", "broken.pkl", "2a1e44d405a6833f.pkl"]
+    assert [s.what for s in skipped] == [str(tmp_path / "none*.pkl")]
+    assert "matches no file" in skipped[0].reason
+    assert list_records(WOMD_DIR / "850c48d8bbfa008f.tfrecord") == [
+        RecordRef(str(WOMD_DIR / "850c48d8bbfa008f.tfrecord"), 0)]
+    assert read_record(refs[0]).scenario_id == "250011f460de6135"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    skipped = []
+    assert resolve_pool([str(empty)], skipped) == [] and "no scene file" in skipped[0].reason
+
+
+def test_shards_and_seeded_order():
+    refs = [RecordRef(f"s{i}.pkl") for i in range(7)]
+    shards = shard_pool(refs, 3)
+    assert [len(s) for s in shards] == [3, 2, 2] and shards[1] == (refs[1], refs[4])
+    assert shard_pool(refs[:2], 5) == [(refs[0],), (refs[1],)]  # never an empty worker
+    cur = PoolCursor(refs, "nets", seed=5, make_env=None, config=CFG)
+    again = PoolCursor(refs, "nets", seed=5, make_env=None, config=CFG)
+    orders = [cur.order(e) for e in range(4)]
+    assert all(sorted(o.tolist()) == list(range(7)) for o in orders)  # a pass plays each once
+    assert all(np.array_equal(a, again.order(e)) for e, a in enumerate(orders))
+    assert not all(np.array_equal(orders[0], o) for o in orders[1:])  # passes differ
+    other = PoolCursor(refs, "nets", seed=6, make_env=None, config=CFG)
+    assert not np.array_equal(other.order(0), orders[0])
+
+
+def test_skipped_file_is_not_repeated(tmp_path):
+    from magail_sumo.env.scene_pool import PoolSkip
+
+    f = tmp_path / "skipped_scenes.tsv"
+    write_skipped(f, [PoolSkip("a.pkl", "bad")])
+    write_skipped(f, [PoolSkip("a.pkl", "bad"), PoolSkip("b.pkl", "worse\nline")])
+    assert f.read_text().splitlines() == ["scene\treason", "a.pkl\tbad", "b.pkl\tworse line"]
+
+
+# ------------------------------------------------------------------ real SUMO
+@pytest.mark.sumo
+def test_agent_bound_covers_every_window(tmp_path):
+    from magail_sumo.env.driving_env import SumoDrivingEnv
+    from magail_sumo.env.scene_pool import ensure_bundle
+    from magail_sumo.env.vec_env import max_concurrent_agents
+
+    for f in SMALL + [SN / "2a1e44d405a6833f.pkl"]:
+        scene = read_record(list_records(f)[0])
+        bundle = ensure_bundle(scene, tmp_path / "nets", RecordRef(str(f)))
+        assert json.loads((bundle / "conversion.json").read_text())["source"] == {
+            "file": str(f), "record": 0}
+        for cfg in (EnvConfig(start_window="random", max_steps=20), CFG,
+                    EnvConfig(controlled="scored")):
+            env = SumoDrivingEnv(scene, bundle, cfg)
+            assert agent_bound(scene, cfg) >= max_concurrent_agents(env), (f, cfg.controlled)
+    # the bundles folder is a pool too: each bundle names its scene
+    assert {Path(r.path).name for r in resolve_pool([str(tmp_path / "nets")])} == \
+        {f.name for f in SMALL} | {"2a1e44d405a6833f.pkl"}
+
+
+@pytest.mark.sumo
+def test_pool_plays_every_scene_skips_the_bad_one_and_resumes_exactly(pool_dir, tmp_path):
+    refs = resolve_pool([str(pool_dir)])
+    logs: list[str] = []
+    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=4, log=logs.append)
+    seen: set[str] = set()
+    try:
+        assert venv.slots == [6, 6]  # sized to the largest bound of each shard, capped at K
+        assert len(venv.specs) == 2 and venv.num_envs == 12
+        obs = _roll(venv, 60, hook=lambda t, v: seen.update(v.worker_scene))
+        state_at = None
+
+        def grab(t, v):
+            nonlocal state_at
+            if t == 37:
+                state_at = v.get_state()
+        obs2 = _roll(venv, 45, hook=grab)  # the same rollout again from a reset
+    finally:
+        venv.close()
+    for a, b in zip(obs, obs2):
+        np.testing.assert_array_equal(a, b)
+    assert seen == {"850c48d8bbfa008f", "250011f460de6135", "53e9adfdac0eb822"}
+    assert venv.skipped == [(str(pool_dir / "broken.pkl"), venv.skipped[0][1])]
+    assert "record 0: unreadable pickle" in venv.skipped[0][1]
+    assert any(line.startswith(f"scene skipped: {pool_dir / 'broken.pkl'}: ") for line in logs)
+    # each scene converted once, on demand, into the pool's networks folder
+    assert sorted(p.name for p in (tmp_path / "nets").iterdir() if not p.name.startswith(".")) \
+        == sorted(["850c48d8bbfa008f", "250011f460de6135", "53e9adfdac0eb822"])
+    # exact resume: a fresh env set to the state after 37 steps continues identically
+    fresh = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=4)
+    try:
+        got = [fresh.set_state(state_at)]
+        rng = np.random.default_rng(0)
+        acts = [rng.uniform(-1, 1, (fresh.num_envs, 2)).astype(np.float32) for _ in range(45)]
+        got += [fresh.step(a)[0] for a in acts[37:]]
+    finally:
+        fresh.close()
+    assert len(got) == len(obs2[37:]) == 9
+    for a, b in zip(got, obs2[37:]):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.sumo
+def test_worker_with_only_bad_scenes_is_dropped_at_start(pool_dir, tmp_path):
+    refs = [RecordRef(str(pool_dir / "broken.pkl")), RecordRef(str(SMALL[0]))]
+    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=0)
+    try:
+        assert len(venv.specs) == 1 and venv.skipped[0][0] == str(pool_dir / "broken.pkl")
+        venv.reset()
+    finally:
+        venv.close()
+    with pytest.raises(Exception, match="no scene of the pool can be used"):
+        pool_vec_env(refs[:1], tmp_path / "nets", 1, CFG)
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("how", ["kill", "hang"])
+def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path):
+    refs = [RecordRef(str(f)) for f in SMALL]
+    base = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9)
+    try:
+        want = _roll(base, 40)
+    finally:
+        base.close()
+
+    def fault(t, v):
+        if t == 23:  # mid-episode, mid-rollout
+            os.kill(v._handles[1].pid, signal.SIGKILL if how == "kill" else signal.SIGSTOP)
+            v.timeout_s = 4.0
+
+    logs: list[str] = []
+    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9, max_restarts=2,
+                        log=logs.append)
+    try:
+        pid = venv._handles[1].pid
+        got = _roll(venv, 40, hook=fault)
+        assert venv.restarts == 1 and venv._handles[1].pid != pid
+    finally:
+        venv.close()
+    for a, b in zip(want, got):
+        np.testing.assert_array_equal(a, b)
+    (line,) = [m for m in logs if m.startswith("worker 1 ")]
+    assert ("died" if how == "kill" else "did not answer within 4 s") in line
+    assert "replaced" in line and "replayed" in line
+    # no replacement allowed: the env gives up with one line
+    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9, max_restarts=0)
+    try:
+        venv.reset()
+        os.kill(venv._handles[0].pid, signal.SIGKILL)
+        with pytest.raises(VecEnvWorkerError, match="died"):
+            venv.step(np.zeros((venv.num_envs, 2), np.float32))
+    finally:
+        venv.close()
