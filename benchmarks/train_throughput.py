@@ -9,12 +9,20 @@
   backward (GAIL BCE + gradient penalty), expert and policy tokens counted, at the config's
   transformer size and batch.
 
-CPU always, GPU too when ``torch.cuda.is_available()``. ``--config`` may be repeated (one row
-per config and device, with a ``config`` key); ``--pin-workers`` pins the scene workers to cores
-(``scenes.pin_workers``). Run it on an otherwise idle machine: the scene workers, the trainer
-and torch's update threads all need the cores.
+CPU always, GPU too when ``torch.cuda.is_available()``. ``--config`` may be repeated;
+``--workers 1,2`` measures each number of scene workers (``workers.count``; default: the
+config's), ``--backend process,ray`` each worker backend — Ray on a local cluster of
+``--ray-nodes`` nodes started by the script (``ray.cluster_utils.Cluster``, the machine's cores
+shared out over the nodes; actors spread over them) — and ``--repeats R`` repeats every
+measurement and reports the median (``agent_steps_per_s_runs`` lists the runs). Every row has
+``device``, ``config``, ``backend``, ``workers``, ``nodes``, ``agent_steps_per_s``,
+``disc_tokens_per_s`` and, when the same config/backend/device was measured with one worker,
+``efficiency`` = rate / (workers × one-worker rate). ``--pin-workers`` pins process workers to
+cores (``scenes.pin_workers``). Run it on an otherwise idle machine: the scene workers, the
+trainer and torch's update threads all need the cores.
 
-    python benchmarks/train_throughput.py [--json] [--updates N] [--config YAML ...] [--pin-workers]
+    python benchmarks/train_throughput.py [--json] [--updates N] [--config YAML ...]
+        [--workers 1,2] [--backend process,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
 """
 
 from __future__ import annotations
@@ -58,7 +66,8 @@ def loop_throughput(cfg: TrainConfig, expert: ExpertDataset, updates: int) -> di
             run.run_update()
         dt = time.perf_counter() - t0
         return {"agent_steps": run.venv.agent_steps - s0, "seconds": dt,
-                "agent_steps_per_s": (run.venv.agent_steps - s0) / dt}
+                "agent_steps_per_s": (run.venv.agent_steps - s0) / dt,
+                "workers": len(run.venv.specs)}
     finally:
         run.close()
 
@@ -94,50 +103,111 @@ def disc_throughput(cfg: TrainConfig, expert: ExpertDataset, device: str, repeat
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json", action="store_true", help="one JSON object per device")
-    ap.add_argument("--updates", type=int, default=3, help="timed PPO updates per device")
+    ap.add_argument("--json", action="store_true", help="one JSON object per row")
+    ap.add_argument("--updates", type=int, default=3, help="timed PPO updates per measurement")
     ap.add_argument("--config", type=Path, action="append",
                     help="training config (repeatable; default configs/magail.yaml)")
+    ap.add_argument("--workers", default=None,
+                    help="comma-separated scene-worker counts (default: the config's)")
+    ap.add_argument("--backend", default="process", help="comma-separated: process, ray")
+    ap.add_argument("--ray-nodes", default="1",
+                    help="comma-separated node counts of the local Ray cluster")
+    ap.add_argument("--repeats", type=int, default=1, help="runs per row (median reported)")
     ap.add_argument("--pin-workers", action="store_true", help="pin scene workers to cores")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     configs = args.config or [ROOT / "configs" / "magail.yaml"]
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    workers = [None] if args.workers is None else [int(w) for w in args.workers.split(",")]
+    setups = []
+    for backend in args.backend.split(","):
+        nodes = [int(n) for n in args.ray_nodes.split(",")] if backend == "ray" else [1]
+        setups += [(backend, n) for n in nodes]
     with tempfile.TemporaryDirectory() as tmp:
         for path in configs:
-            _measure(path, load_config(path, TrainConfig), devices, args, Path(tmp),
-                     len(configs) > 1)
+            base = load_config(path, TrainConfig)
+            one: dict = {}
+            for backend, nodes in setups:
+                cluster = _start_cluster(nodes) if backend == "ray" else None
+                try:
+                    for w in workers:
+                        for row in _measure(path, base, devices, args, Path(tmp), backend,
+                                            nodes, w, cluster):
+                            key = (row["config"], row["backend"], row["nodes"], row["device"])
+                            if row["workers"] == 1:
+                                one[key] = row["agent_steps_per_s"]
+                            if key in one:
+                                row["efficiency"] = round(
+                                    row["agent_steps_per_s"] / (row["workers"] * one[key]), 3)
+                            _print(row, args)
+                finally:
+                    if cluster is not None:
+                        import ray
+
+                        ray.shutdown()
+                        cluster.shutdown()
     return 0
 
 
+def _start_cluster(nodes: int):
+    """A local Ray cluster of ``nodes`` nodes sharing this machine's cores."""
+    import os
+
+    import ray
+    from ray.cluster_utils import Cluster
+
+    cores = len(os.sched_getaffinity(0))
+    per = max(1, cores // nodes)
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": per})
+    for _ in range(nodes - 1):
+        c.add_node(num_cpus=per)
+    c.wait_for_nodes()
+    ray.init(address=c.address, include_dashboard=False, log_to_driver=False,
+             logging_level="ERROR")
+    return c
+
+
+def _print(row: dict, args) -> None:
+    if args.json:
+        print(json.dumps(row), flush=True)
+        return
+    eff = f", efficiency {row['efficiency']:.2f}" if "efficiency" in row else ""
+    print(f"{row['config']} {row['device']} {row['backend']} x{row['workers']} workers "
+          f"({row['nodes']} node(s)): whole loop {row['agent_steps_per_s']:.0f} agent-steps/s "
+          f"(runs {row['agent_steps_per_s_runs']}){eff}; discriminator fwd+bwd "
+          f"{row['disc_tokens_per_s']:.0f} tokens/s", flush=True)
+
+
 def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
-             name_rows: bool) -> None:
-    """Print the rows of one config (expert data recorded once per observation layout)."""
+             backend: str, nodes: int, workers: int | None, cluster) -> list[dict]:
+    """The rows of one config and worker setup (expert data recorded once per layout)."""
     nets = tmp / "networks"
     files = [str(ROOT / f) if not Path(f).is_absolute() else f for f in base.scenes.files]
-    specs = scene_specs(files, nets)
     expert_dir = tmp / f"expert-{base.env.observation.layout}-{abs(hash(tuple(files)))}"
     if not expert_dir.exists():
+        specs = scene_specs(files, nets)
         record_expert(specs, expert_dir, base.env.observation, base.env.limits, workers=2)
     expert = ExpertDataset(expert_dir, observation_names(base.env.observation))
+    rows = []
     for device in devices:
+        w = base.workers
         cfg = replace(base, device=device, expert_dir=str(expert_dir),
                       scenes=replace(base.scenes, files=tuple(files), networks=str(nets),
-                                     pin_workers=args.pin_workers or base.scenes.pin_workers))
+                                     pin_workers=args.pin_workers or base.scenes.pin_workers),
+                      workers=replace(w, backend=backend, count=workers or w.count,
+                                      ray=replace(w.ray, address=None if cluster is None
+                                                  else cluster.address)))
         torch.set_num_threads(max(1, cfg.torch_threads))
-        loop = loop_throughput(cfg, expert, args.updates)
+        runs = []
+        for _ in range(max(1, args.repeats)):
+            loop = loop_throughput(cfg, expert, args.updates)
+            runs.append(round(loop["agent_steps_per_s"], 1))
         tok = disc_throughput(cfg, expert, device)
-        row = {"device": device, "agent_steps_per_s": round(loop["agent_steps_per_s"], 1),
-               "disc_tokens_per_s": round(tok, 1)}
-        if name_rows:
-            row["config"] = path.name
-        if args.json:
-            print(json.dumps(row), flush=True)
-        else:
-            print(f"{path.name} {device}: whole loop {row['agent_steps_per_s']:.0f} "
-                  f"agent-steps/s ({loop['agent_steps']} agent-steps in {loop['seconds']:.1f} s, "
-                  f"{args.updates} updates); discriminator fwd+bwd "
-                  f"{row['disc_tokens_per_s']:.0f} tokens/s", flush=True)
+        rows.append({"device": device, "config": path.name, "backend": backend,
+                     "workers": loop["workers"], "nodes": nodes,
+                     "agent_steps_per_s": float(np.median(runs)),
+                     "agent_steps_per_s_runs": runs, "disc_tokens_per_s": round(tok, 1)})
+    return rows
 
 
 if __name__ == "__main__":

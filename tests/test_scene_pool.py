@@ -203,3 +203,36 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path
             venv.step(np.zeros((venv.num_envs, 2), np.float32))
     finally:
         venv.close()
+
+
+@pytest.mark.sumo
+def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_path):
+    import yaml
+
+    from magail_sumo.config import from_dict
+    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.expert import record_expert
+    from magail_sumo.training.config import TrainConfig, usable_cores
+    from magail_sumo.training.trainer import train
+
+    record_expert(scene_specs([SMALL[0]], tmp_path / "nets"), tmp_path / "expert")
+    raw = {"seed": 1, "expert_dir": str(tmp_path / "expert"), "updates": 2, "checkpoint_every": 1,
+           "env": {"max_steps": 15, "start_window": "random", "controlled": 6},
+           "scenes": {"files": [str(pool_dir)], "networks": str(tmp_path / "nets")},
+           "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},
+           "ppo": {"n_steps": 16, "batch_size": 32, "n_epochs": 1},
+           "discriminator": {"kind": "mlp", "epochs": 1, "batch_size": 16}}
+    logs: list[str] = []
+    run = train(from_dict(TrainConfig, raw), tmp_path / "run", log=logs.append)
+    want = min(4, usable_cores())
+    # (a worker left with only the broken file is dropped at start: one fewer on > 3 cores)
+    assert any(m.startswith("scene pool: 4 scene(s) over ") and " process worker(s)" in m
+               for m in logs), logs
+    assert yaml.safe_load((run / "config.yaml").read_text())["workers"]["count"] == want
+    lines = (run / "skipped_scenes.tsv").read_text().splitlines()
+    assert lines[0] == "scene\treason" and len(lines) == 2
+    assert lines[1].startswith(f"{pool_dir / 'broken.pkl'}\trecord 0: unreadable pickle")
+    raw["updates"] = 3  # count stays null: the run's resolved number is used
+    train(from_dict(TrainConfig, raw), resume=run, log=logs.append)
+    assert any(m.startswith("update 3/3") for m in logs)
+    assert len((run / "skipped_scenes.tsv").read_text().splitlines()) == 2
