@@ -107,7 +107,7 @@ class RecordRef:
     index: int = 0
 
     def __str__(self) -> str:
-        return self.path if Path(self.path).suffix == ".pkl" else f"{self.path}#{self.index}"
+        return f"{self.path}#{self.index}" if "tfrecord" in Path(self.path).name else self.path
 
 
 def list_records(path: str | PathLike) -> list[RecordRef]:
@@ -140,8 +140,16 @@ def read_record(ref: RecordRef) -> Scene:
     from converters.womd.reader import parse_record
 
     p = Path(ref.path)
-    if detect_format(p) == "scenarionet":
+    fmt = detect_format(p)
+    if fmt == "scenarionet":
         return load_scenarionet(p)
+    if fmt == "scenarionet-dataset":
+        from converters.scenarionet.reader import dataset_files
+
+        files = dataset_files(p)
+        if not 0 <= ref.index < len(files):
+            raise SceneFormatError(p, ref.index, "no such record")
+        return load_scenarionet(files[ref.index])
     for index, data in iter_records(p):
         if index < ref.index:
             if isinstance(data, SceneFormatError) and data.fatal_for_file:

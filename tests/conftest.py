@@ -64,3 +64,17 @@ def real_scene_file(request) -> Path:
 @pytest.fixture(scope="session")
 def real_scene(real_scene_file):
     return load_scene(real_scene_file)
+
+
+def roll_random(venv, steps: int, seed: int = 0, hook=None) -> list:
+    """Observations of a vector env over a reset and ``steps`` steps of uniform random actions
+    (seeded); ``hook(t, venv)`` runs before step ``t`` (to inject a fault, grab the state)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out = [venv.reset()]
+    for t in range(steps):
+        if hook is not None:
+            hook(t, venv)
+        out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32))[0])
+    return out

@@ -4,13 +4,12 @@ mid-rollout, and an unreachable cluster refused in one line."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import WOMD_DIR
+from conftest import WOMD_DIR, roll_random
 
 ray = pytest.importorskip("ray")
 
@@ -26,16 +25,6 @@ SCENES = [WOMD_DIR / "850c48d8bbfa008f.tfrecord",
 CFG = EnvConfig(start_window="random", max_steps=15, controlled=6)
 
 pytestmark = pytest.mark.sumo
-
-
-def _roll(venv, steps: int, hook=None) -> list[np.ndarray]:
-    rng = np.random.default_rng(1)
-    out = [venv.reset()]
-    for t in range(steps):
-        if hook is not None:
-            hook(t, venv)
-        out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32))[0])
-    return out
 
 
 def test_unreachable_cluster_is_one_line(tmp_path, capsys):
@@ -81,13 +70,13 @@ def test_ray_actors_on_both_nodes_give_the_process_rollouts(cluster, tmp_path):
     refs = [RecordRef(str(f)) for f in SCENES]
     want_env = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=5)
     try:
-        want = _roll(want_env, 40)
+        want = roll_random(want_env, 40, seed=1)
     finally:
         want_env.close()
     venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=5, backend="ray",
                         backend_options={"address": cluster.address})
     try:
-        got = _roll(venv, 40)
+        got = roll_random(venv, 40, seed=1)
         nodes = {h.node for h in venv._handles}
     finally:
         venv.close()

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import WOMD_DIR
+from conftest import WOMD_DIR, roll_random
 from converters.scene_files import RecordRef, list_records, read_record
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.scene_pool import (PoolCursor, agent_bound, resolve_pool, shard_pool,
@@ -34,16 +34,6 @@ def pool_dir(tmp_path_factory):
         shutil.copy(f, d / f.name)
     (d / "broken.pkl").write_bytes(b"\x80\x04not a pickle at all")
     return d
-
-
-def _roll(venv, steps: int, seed: int = 0, hook=None) -> list[np.ndarray]:
-    rng = np.random.default_rng(seed)
-    out = [venv.reset()]
-    for t in range(steps):
-        if hook is not None:
-            hook(t, venv)
-        out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32))[0])
-    return out
 
 
 # ------------------------------------------------------------------ listing (no SUMO)
@@ -119,14 +109,14 @@ def test_pool_plays_every_scene_skips_the_bad_one_and_resumes_exactly(pool_dir, 
     try:
         assert venv.slots == [6, 6]  # sized to the largest bound of each shard, capped at K
         assert len(venv.specs) == 2 and venv.num_envs == 12
-        obs = _roll(venv, 60, hook=lambda t, v: seen.update(v.worker_scene))
+        obs = roll_random(venv, 60, hook=lambda t, v: seen.update(v.worker_scene))
         state_at = None
 
         def grab(t, v):
             nonlocal state_at
             if t == 37:
                 state_at = v.get_state()
-        obs2 = _roll(venv, 45, hook=grab)  # the same rollout again from a reset
+        obs2 = roll_random(venv, 45, hook=grab)  # the same rollout again from a reset
     finally:
         venv.close()
     for a, b in zip(obs, obs2):
@@ -171,7 +161,7 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path
     refs = [RecordRef(str(f)) for f in SMALL]
     base = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9)
     try:
-        want = _roll(base, 40)
+        want = roll_random(base, 40)
     finally:
         base.close()
 
@@ -185,7 +175,7 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path
                         log=logs.append)
     try:
         pid = venv._handles[1].pid
-        got = _roll(venv, 40, hook=fault)
+        got = roll_random(venv, 40, hook=fault)
         assert venv.restarts == 1 and venv._handles[1].pid != pid
     finally:
         venv.close()

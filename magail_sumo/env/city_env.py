@@ -66,6 +66,10 @@ class CityEnvConfig:
     :param lane_width, off_road_margin, destination_radius: event rules (m).
     :param sumo_seed: added to the reset seed to seed SUMO.
     :param action_layout: ``"accel_steer"`` or the seed's ``"steer_throttle"``.
+    :param max_agents: at most this many agents alive at once (None: no cap; a fixed number of
+        slots for training); a vehicle chosen to be an agent while the cap is reached is
+        SUMO-driven until a place frees, then joins mid-trip (first come, first served), so
+        the city keeps ``max_agents`` agents while its demand allows.
     """
 
     control_fraction: float = 1.0
@@ -79,8 +83,11 @@ class CityEnvConfig:
     destination_radius: float = 5.0
     sumo_seed: int = 0
     action_layout: str = "accel_steer"
+    max_agents: int | None = None
 
     def __post_init__(self) -> None:
+        if self.max_agents is not None and self.max_agents < 1:
+            raise ValueError(f"max_agents must be >= 1 or None, got {self.max_agents}")
         if self.action_layout not in dynamics.ACTION_LAYOUTS:
             raise ValueError(f"action_layout must be one of {dynamics.ACTION_LAYOUTS}, "
                              f"got {self.action_layout!r}")
@@ -120,12 +127,19 @@ class SumoCityEnv(ParallelEnv):
     """Many policy-driven vehicles in a SUMO city scenario (module doc).
 
     :param sumocfg: the scenario's ``.sumocfg`` (net and route files are read from it).
+    :param sumo_args: extra SUMO options for every episode (e.g. ``--tripinfo-output FILE``
+        for SUMO's own traffic outputs of a run).
     """
 
     metadata = {"name": "magail_sumo_city_v0", "render_modes": [], "render_fps": 10}
+    render_mode = None
 
-    def __init__(self, sumocfg: str | Path, config: CityEnvConfig | None = None) -> None:
+    def __init__(self, sumocfg: str | Path, config: CityEnvConfig | None = None,
+                 sumo_args: tuple[str, ...] = ()) -> None:
         self.sumocfg = Path(sumocfg)
+        #: the scenario's name (its ``.sumocfg`` stem)
+        self.scenario_id = self.sumocfg.stem
+        self.sumo_args = tuple(sumo_args)
         self.config = cfg = config or CityEnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         net_file, vehicle_ids = _scenario_files(self.sumocfg)
@@ -179,7 +193,7 @@ class SumoCityEnv(ParallelEnv):
         cfg = self.config
         self.close()
         state = self._warm_state()
-        extra = ("--load-state", str(state)) if state is not None else ()
+        extra = (("--load-state", str(state)) if state is not None else ()) + self.sumo_args
         self._seed = 0 if seed is None else int(seed)
         self._session = SumoSession(self.sumocfg, config=SessionConfig(
             seed=cfg.sumo_seed + self._seed, extra_args=extra)).start()
@@ -199,6 +213,7 @@ class SumoCityEnv(ParallelEnv):
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()
+        self._waiting: dict[str, None] = {}  # chosen vehicles waiting for an agent place
         self.sensor_time = 0.0
         self.t = 0
         self._session.step()
@@ -240,18 +255,33 @@ class SumoCityEnv(ParallelEnv):
             setattr(self, name, arr)
 
     def _join(self, candidates) -> np.ndarray:
-        """Vehicles seen for the first time become agents when chosen; their indices."""
+        """Vehicles seen for the first time become agents when chosen; their indices. With
+        ``max_agents`` reached, a chosen vehicle is driven by SUMO and waits: it becomes an
+        agent, mid-trip, when an agent place frees (first come, first served)."""
         import libsumo
 
         v = self._sumo
         pos = {vid: i for i, vid in enumerate(v.ids)}
+        cap = self.config.max_agents
+        n_active = int(self._active.sum())
         new = []
-        for vid in candidates:  # only vehicles appearing this step
-            if vid in self._decided or vid not in pos:
+        waiting = self._waiting
+        # vehicles that waited for a free agent place come first, in the order they appeared
+        for vid in list(waiting) + [c for c in candidates if c not in waiting]:
+            if vid not in pos:  # left SUMO
+                waiting.pop(vid, None)
                 continue
-            self._decided.add(vid)
+            if vid in self._decided:
+                continue
             if not self._controlled(vid):
+                self._decided.add(vid)
                 continue
+            if cap is not None and n_active >= cap:  # SUMO drives it until a place frees
+                waiting[vid] = None
+                continue
+            waiting.pop(vid, None)
+            self._decided.add(vid)
+            n_active += 1
             k = len(self._names)
             self._grow(k + 1)
             i = pos[vid]
@@ -384,6 +414,17 @@ class SumoCityEnv(ParallelEnv):
         self.agents = [self._names[k] for k in np.flatnonzero(self._active)]
         self._record_fcd()
         return obs, rewards, terms, truncs, infos
+
+    def agent_states(self):
+        """Bicycle state of the live agents, in :attr:`agents` order
+        (:class:`~magail_sumo.env.driving_env.AgentStates`; ``rows`` are agent indices)."""
+        from .driving_env import AgentStates
+
+        k = np.array([self._index[a] for a in self.agents], np.int64)
+        return AgentStates(list(self.agents), k,
+                           dynamics.VehicleState(self._x[k].copy(), self._y[k].copy(),
+                                                 self._yaw[k].copy(), self._speed[k].copy()),
+                           dynamics.WHEELBASE_RATIO * self._length[k])
 
     # ------------------------------------------------------------------ FCD
     def record_fcd(self, recorder=None):

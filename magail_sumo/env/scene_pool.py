@@ -8,6 +8,9 @@ A pool is listed once, cheaply, in the trainer (:func:`resolve_pool`: no scene i
 * a ScenarioNet dataset folder (``dataset_summary.pkl``: every scenario it maps);
 * a folder of converted bundles (``networks/<name>/conversion.json``): every bundle whose
   ``conversion.json`` records the scene file it came from (``source``);
+* a plain SUMO scenario (a city: its ``.sumocfg``, or a folder holding one ``.sumocfg``, e.g.
+  ``data/sumo/ingolstadt21``), played by :class:`~magail_sumo.env.city_env.SumoCityEnv` with
+  at most ``max_agents`` policy-driven vehicles alive at once and SUMO's drivers for the rest;
 * any other folder: the scene files in it (``*.pkl``, ``*.tfrecord*``; sorted, not recursive).
 
 Entries that match nothing or cannot be listed are *skipped* with a one-line reason (the run
@@ -26,7 +29,8 @@ reused from then on (:func:`ensure_bundle`; a lock file per bundle keeps two wor
 converting one scene at once). A worker keeps only its most recent scenes' envs
 (``cache`` of them), so memory does not grow with the pool.
 
-Slots: a worker holding one scene sizes its slots exactly (the scene's most concurrent agents,
+Slots: a city scenario needs ``max_agents`` slots; a worker holding one recorded scene sizes
+its slots exactly (the scene's most concurrent agents,
 :func:`~magail_sumo.env.vec_env.max_concurrent_agents`); a worker holding several sizes them to
 the largest :func:`agent_bound` of its scenes, computed from each scene alone when the worker
 starts (no conversion needed): the vehicles and cyclists alive at once that the controlled
@@ -117,6 +121,13 @@ def resolve_pool(entries: Iterable[str], skipped: list[PoolSkip] | None = None
             paths = [Path(entry)]
         for p in paths:
             try:
+                if p.suffix == ".sumocfg" and p.is_file():  # a plain SUMO (city) scenario
+                    out.append(RecordRef(str(p)))
+                    continue
+                if p.is_dir() and not (p / "conversion.json").exists() \
+                        and len(cfgs := sorted(p.glob("*.sumocfg"))) == 1:
+                    out.append(RecordRef(str(cfgs[0])))  # a city scenario folder
+                    continue
                 if p.is_dir() and not (p / "dataset_summary.pkl").exists():
                     if any(p.glob("*/conversion.json")):
                         out.extend(_bundle_sources(p, local))
@@ -175,6 +186,20 @@ def agent_bound(scene, config: EnvConfig) -> int:
     return max(1, most)
 
 
+def is_city(ref: RecordRef) -> bool:
+    """Whether ``ref`` is a plain SUMO (city) scenario rather than a recorded scene."""
+    return ref.path.endswith(".sumocfg")
+
+
+def city_slots(city, ref: RecordRef) -> int:
+    """Slots of a city scenario: its config's ``max_agents`` (required)."""
+    cap = None if city is None else city.max_agents
+    if cap is None:
+        raise ScenePoolError(f"{ref.path}: a city scenario needs a cap on its agents "
+                             "(city.max_agents) to size its training slots")
+    return int(cap)
+
+
 def start_problem(scene, config: EnvConfig) -> str | None:
     """Why no episode of ``config`` can start in ``scene`` (None: it can): the earliest start
     (``start_step``, or ``min_history`` with random windows) must leave a step to take."""
@@ -227,12 +252,13 @@ class PoolCursor:
     :param refs: the worker's records. :param networks: the bundles folder.
     :param seed: the worker's seed. :param make_env: ``(scene, bundle folder) -> env``.
     :param config: the env config (a scene too short for its episode start is skipped).
+    :param city: :class:`~magail_sumo.env.city_env.CityEnvConfig` of the city scenarios.
     :param convert_budget_s: time budget of one on-demand conversion.
     """
 
     def __init__(self, refs: Sequence[RecordRef], networks: str | Path, seed: int,
                  make_env: Callable, config: EnvConfig, cache: int = 2,
-                 convert_budget_s: float | None = 600.0) -> None:
+                 convert_budget_s: float | None = 600.0, city=None) -> None:
         if not refs:
             raise ScenePoolError("a worker needs at least one scene")
         self.refs = tuple(refs)
@@ -240,6 +266,7 @@ class PoolCursor:
         self.seed = seed
         self.make_env = make_env
         self.config = config
+        self.city = city
         self.cache = max(1, cache)
         self.convert_budget_s = convert_budget_s
         self.failed: dict[int, str] = {}  #: record position -> reason (skipped from then on)
@@ -268,11 +295,16 @@ class PoolCursor:
             self._envs.move_to_end(k)
             return self._envs[k]
         ref = self.refs[k]
-        scene = read_record(ref)
-        if (problem := start_problem(scene, self.config)) is not None:
-            raise MagailSumoError(f"env start: {problem}")
-        bundle = ensure_bundle(scene, self.networks, ref, self.convert_budget_s)
-        env = self.make_env(scene, bundle)
+        if is_city(ref):
+            from .city_env import CityEnvConfig, SumoCityEnv
+
+            env = SumoCityEnv(ref.path, self.city or CityEnvConfig())
+        else:
+            scene = read_record(ref)
+            if (problem := start_problem(scene, self.config)) is not None:
+                raise MagailSumoError(f"env start: {problem}")
+            bundle = ensure_bundle(scene, self.networks, ref, self.convert_budget_s)
+            env = self.make_env(scene, bundle)
         self._envs[k] = env
         while len(self._envs) > self.cache:
             _, old = self._envs.popitem(last=False)
@@ -300,7 +332,7 @@ class PoolCursor:
     def scan(self) -> int:
         """The worker's slot count: exact for one record, else the largest :func:`agent_bound`
         (records that cannot be read are failed here)."""
-        if len(self.refs) == 1:
+        if len(self.refs) == 1 and not is_city(self.refs[0]):
             from .vec_env import max_concurrent_agents
 
             _, env = self.env_for(0)
@@ -308,6 +340,8 @@ class PoolCursor:
         most = 0
         seen: dict[RecordRef, int | BaseException] = {}  # a pool may repeat a record
         for k, ref in enumerate(self.refs):
+            if ref not in seen and is_city(ref):
+                seen[ref] = city_slots(self.city, ref)
             if ref not in seen:
                 try:
                     scene = read_record(ref)

@@ -150,11 +150,19 @@ class PoolSpec:
     networks: str
     cache: int = 2
     convert_budget_s: float | None = 600.0
+    #: :class:`~magail_sumo.env.city_env.CityEnvConfig` of the pool's city scenarios
+    city: Any = None
 
     @property
     def name(self) -> str:
         first = str(self.refs[0]) if self.refs else "(empty)"
         return first if len(self.refs) == 1 else f"{first} +{len(self.refs) - 1} scenes"
+
+
+def _scenario_id(env) -> str:
+    """The id of a scene env's scene, or a city env's scenario name."""
+    sid = getattr(env, "scenario_id", None)
+    return sid if sid is not None else env.scene.scenario_id
 
 
 class _FixedScene:
@@ -193,7 +201,7 @@ class SlotWorker:
             from .scene_pool import PoolCursor
 
             self.cursor = PoolCursor(source.refs, source.networks, seed, make_env, config,
-                                     source.cache, source.convert_budget_s)
+                                     source.cache, source.convert_budget_s, source.city)
         else:
             self.cursor = _FixedScene(source, make_env)
         self.config = config
@@ -210,8 +218,9 @@ class SlotWorker:
     def hello(self) -> dict:
         import socket
 
+        agents = list(self.env.possible_agents)
         return {"slots": self.slots, "dim": self.dim, "host": socket.gethostname(),
-                "pid": os.getpid(), "possible_agents": list(self.env.possible_agents)}
+                "pid": os.getpid(), "possible_agents": agents if len(agents) <= 4096 else []}
 
     def handle(self, cmd: str, arg: Any) -> Any:
         if cmd == "step":
@@ -235,7 +244,7 @@ class SlotWorker:
             try:
                 k = names.index(None)
             except ValueError:
-                raise VecEnvWorkerError(f"{self.env.scene.scenario_id}: more than {self.slots} "
+                raise VecEnvWorkerError(f"{_scenario_id(self.env)}: more than {self.slots} "
                                         "agents alive at once") from None
             names[k] = name
             slot_of[name] = k
@@ -268,7 +277,7 @@ class SlotWorker:
             self.env = env
         cfg = self.config
         options = None
-        if cfg.start_window == "random":
+        if cfg.start_window == "random" and hasattr(self.env, "scene"):  # not a city
             options = {"start_step": draw_start(cfg, self.env.scene.num_steps,
                                                 episode_rng(self.base_seed, self.episode))}
         obs, _ = self.env.reset(seed=self.base_seed + self.episode, options=options)
@@ -277,7 +286,7 @@ class SlotWorker:
     def _finish(self, packet: dict) -> dict:
         packet["active"] = self._active()
         packet["episode"] = self.episode
-        packet["scenario_id"] = self.env.scene.scenario_id
+        packet["scenario_id"] = _scenario_id(self.env)
         packet["skipped"] = [(s.what, s.reason) for s in self.cursor.new_failures]
         self.cursor.new_failures.clear()
         return packet
@@ -693,21 +702,23 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
 
     for f in scene_files:
         try:
-            for scene in iter_scenes(f):
+            for index, scene in enumerate(iter_scenes(f)):
                 sid = scene.scenario_id
                 folder = inside(networks, names.name(sid))
                 if not (folder / f"{folder.name}.sumocfg").is_file():
                     if not convert_missing:
                         fail(f"{folder}: no converted bundle for scene {printable(sid)}")
                         continue
-                    from converters.sumo.scenario import (ConvertOptions, claim_networks_dir,
-                                                          convert_scene)
+                    from converters.scene_files import RecordRef
+                    from converters.sumo.scenario import claim_networks_dir
+
+                    from .scene_pool import ensure_bundle
 
                     claim_networks_dir(networks)
-                    rep = convert_scene(scene, networks, ConvertOptions(
-                        baseline=False, time_budget_s=time_budget_s))
-                    if rep.status != "ok":
-                        fail(f"{f}: scene {printable(sid)} could not be converted: {rep.reason}")
+                    try:
+                        ensure_bundle(scene, networks, RecordRef(str(f), index), time_budget_s)
+                    except MagailSumoError as exc:
+                        fail(f"{f}: {exc}")
                         continue
                 out.append(SceneSpec(str(f), str(folder), sid))
         except Exception as exc:  # noqa: BLE001 - an unreadable file
@@ -720,12 +731,13 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
 
 def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
                  config: EnvConfig | None = None, seed: int = 0, *, cache: int = 2,
-                 convert_budget_s: float | None = 90.0, log=None, **kwargs
+                 convert_budget_s: float | None = 90.0, city=None, log=None, **kwargs
                  ) -> MultiSceneVecEnv:
     """A :class:`MultiSceneVecEnv` over a scene pool: ``refs``
     (:func:`~magail_sumo.env.scene_pool.resolve_pool`) sharded over ``workers`` workers
     (:func:`~magail_sumo.env.scene_pool.shard_pool`), bundles converted on demand into
-    ``networks``. A worker none of whose scenes can be used at start-up has its scenes
+    ``networks``; ``city`` configures the pool's city scenarios
+    (:class:`~magail_sumo.env.city_env.CityEnvConfig`). A worker none of whose scenes can be used at start-up has its scenes
     reported as skipped (``venv.skipped``) and the pool is sharded again without them.
     ``kwargs`` go to :class:`MultiSceneVecEnv` (timeout, backend, restarts, ...)."""
     from .scene_pool import ScenePoolError, shard_pool
@@ -738,7 +750,8 @@ def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
             raise ScenePoolError("no scene of the pool can be used" + (
                 f"; first: {skipped[0][0]}: {skipped[0][1]}" if skipped else ""))
         shards = shard_pool(refs, workers)
-        specs = [PoolSpec(tuple(sh), str(networks), cache, convert_budget_s) for sh in shards]
+        specs = [PoolSpec(tuple(sh), str(networks), cache, convert_budget_s, city)
+                 for sh in shards]
         try:
             venv = MultiSceneVecEnv(specs, config, seed, log=log, **kwargs)
         except WorkerStartError as exc:

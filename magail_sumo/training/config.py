@@ -55,6 +55,45 @@ class ScenesConfig:
 
 
 @dataclass(frozen=True)
+class CityConfig:
+    """City scenarios of the pool (plain SUMO scenarios played by
+    :class:`~magail_sumo.env.city_env.SumoCityEnv`; observation, limits, event rules, action
+    layout and SUMO seed come from ``env``).
+
+    :param max_agents: policy-driven vehicles alive at once per city worker (its slots); the
+        rest of the demand is SUMO-driven background traffic.
+    :param control_fraction: share of the departing vehicles that may become agents (seeded).
+    :param warmup_s: seconds SUMO runs alone before each episode (traffic already flowing).
+    :param max_steps: 0.1-s steps per city episode.
+    """
+
+    max_agents: int = 256
+    control_fraction: float = 1.0
+    warmup_s: float = 600.0
+    max_steps: int = 200
+
+    def __post_init__(self) -> None:
+        check(self.max_agents >= 1, "max_agents", f"must be >= 1, got {self.max_agents}")
+        check(0.0 < self.control_fraction <= 1.0, "control_fraction",
+              f"must be in (0, 1], got {self.control_fraction}")
+        check(self.warmup_s >= 0, "warmup_s", f"must be >= 0, got {self.warmup_s}")
+        check(self.max_steps >= 1, "max_steps", f"must be >= 1, got {self.max_steps}")
+
+    def env_config(self, env: EnvConfig):
+        """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
+        from magail_sumo.env.city_env import CITY_EVENTS, CityEnvConfig
+
+        return CityEnvConfig(
+            control_fraction=self.control_fraction, warmup_s=self.warmup_s,
+            max_steps=self.max_steps,
+            terminate_on=tuple(e for e in env.terminate_on if e in CITY_EVENTS),
+            observation=env.observation, limits=env.limits, lane_width=env.lane_width,
+            off_road_margin=env.off_road_margin, destination_radius=env.destination_radius,
+            sumo_seed=env.sumo_seed, action_layout=env.action_layout,
+            max_agents=self.max_agents)
+
+
+@dataclass(frozen=True)
 class RayConfig:
     """Ray backend of the scene workers (:mod:`magail_sumo.env.ray_workers`).
 
@@ -282,6 +321,7 @@ class TrainConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     scenes: ScenesConfig = field(default_factory=ScenesConfig)
     workers: WorkersConfig = field(default_factory=WorkersConfig)
+    city: CityConfig = field(default_factory=CityConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
@@ -353,7 +393,7 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
     if cfg.algorithm == "bc":
         return
     from converters.scene_files import read_record
-    from magail_sumo.env.scene_pool import resolve_pool, start_problem
+    from magail_sumo.env.scene_pool import is_city, resolve_pool, start_problem
 
     checked = []
     for i, f in enumerate(cfg.scenes.files):
@@ -365,7 +405,12 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
         if not refs:
             why = skipped[0].reason if skipped else "no scene"
             raise ConfigError(f"{where}{key}: cannot read the scenes ({show(why, 200)[1:-1]})")
-        checked.extend(refs[:max(0, 32 - len(checked))])
+        if cfg.discriminator.kind == "transformer" and any(is_city(r) for r in refs):
+            raise ConfigError(f"{where}discriminator.kind: 'transformer' judges all vehicles of "
+                              f"a worker step as one set, not a city's local neighbourhoods "
+                              f"({key} is a city scenario); use 'decomposed' (each vehicle "
+                              "with its K nearest within R m) or 'mlp'")
+        checked.extend(r for r in refs[:max(0, 32 - len(checked))] if not is_city(r))
     # a small pool is read now: a start past every scene is a config mistake (in a larger
     # pool, or next to usable scenes, such a scene is skipped at run time)
     problems = []

@@ -518,6 +518,7 @@ class GailRun:
         claim_networks_dir(cfg.scenes.networks)
         self.venv = pool_vec_env(
             refs, cfg.scenes.networks, count, cfg.env, cfg.seed, cache=w.scene_cache,
+            city=cfg.city.env_config(cfg.env),
             convert_budget_s=cfg.scenes.effective_convert_budget_s, log=self.log,
             timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
             backend=w.backend, backend_options={"address": w.ray.address,
