@@ -23,6 +23,11 @@ trainer and torch's update threads all need the cores.
 
     python benchmarks/train_throughput.py [--json] [--updates N] [--config YAML ...]
         [--workers 1,2] [--backend process,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
+        [--scenes ENTRY ...]
+
+``--scenes`` trains on other pool entries than the config's, e.g. a city scenario alone
+(``--config configs/city_ingolstadt21.yaml --scenes data/sumo/ingolstadt21``); the expert data
+are recorded from the config's recorded scenes.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from magail_sumo.config import load_config  # noqa: E402
+from magail_sumo.env.scene_pool import is_city, resolve_pool  # noqa: E402
 from magail_sumo.env.vec_env import scene_specs  # noqa: E402
 from magail_sumo.expert import ExpertDataset, record_expert  # noqa: E402
 from magail_sumo.sensors.observation import observation_names  # noqa: E402
@@ -113,6 +119,10 @@ def main() -> int:
     ap.add_argument("--ray-nodes", default="1",
                     help="comma-separated node counts of the local Ray cluster")
     ap.add_argument("--repeats", type=int, default=1, help="runs per row (median reported)")
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="train on these pool entries instead of the config's (e.g. a city "
+                         "scenario alone); the expert data still come from the config's "
+                         "recorded scenes")
     ap.add_argument("--pin-workers", action="store_true", help="pin scene workers to cores")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
@@ -183,10 +193,13 @@ def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
     """The rows of one config and worker setup (expert data recorded once per layout)."""
     nets = tmp / "networks"
     files = [str(ROOT / f) if not Path(f).is_absolute() else f for f in base.scenes.files]
-    expert_dir = tmp / f"expert-{base.env.observation.layout}-{abs(hash(tuple(files)))}"
+    recorded = [f for f in resolve_pool(files) if not is_city(f)]
+    expert_dir = tmp / f"expert-{base.env.observation.layout}-{abs(hash(tuple(recorded)))}"
     if not expert_dir.exists():
-        specs = scene_specs(files, nets)
+        specs = scene_specs(sorted({r.path for r in recorded}), nets)
         record_expert(specs, expert_dir, base.env.observation, base.env.limits, workers=2)
+    if args.scenes:
+        files = [str(Path(f).resolve()) for f in args.scenes]
     expert = ExpertDataset(expert_dir, observation_names(base.env.observation))
     rows = []
     for device in devices:
@@ -203,7 +216,9 @@ def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
             loop = loop_throughput(cfg, expert, args.updates)
             runs.append(round(loop["agent_steps_per_s"], 1))
         tok = disc_throughput(cfg, expert, device)
-        rows.append({"device": device, "config": path.name, "backend": backend,
+        name = path.name if not args.scenes else \
+            f"{path.name}[{','.join(Path(f).name for f in args.scenes)}]"
+        rows.append({"device": device, "config": name, "backend": backend,
                      "workers": loop["workers"], "nodes": nodes,
                      "agent_steps_per_s": float(np.median(runs)),
                      "agent_steps_per_s_runs": runs, "disc_tokens_per_s": round(tok, 1)})

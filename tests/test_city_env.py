@@ -85,3 +85,25 @@ def test_bad_scenario_files(tmp_path):
     bad.write_text("<configuration><input><net-file value='missing.net.xml'/></input></configuration>")
     with pytest.raises(MagailSumoError, match="missing.net.xml: SUMO network file not found"):
         SumoCityEnv(bad)
+
+
+@pytest.mark.sumo
+def test_agent_cap_refills_from_waiting_vehicles():
+    env = SumoCityEnv(CFG, CityEnvConfig(warmup_s=300, max_steps=40, max_agents=25))
+    env.reset(seed=3)
+    assert len(env.agents) == 25  # more vehicles than places: the first 25 are agents
+    ended, counts = 0, []
+    for _ in range(40):
+        if not env.agents:
+            break
+        # full brake and steer hard: agents leave the lanes quickly
+        obs, _, term, trunc, info = env.step({a: np.array([-1.0, 1.0], np.float32)
+                                              for a in env.agents})
+        ended += sum(bool(term[a] or trunc[a]) for a in term)
+        counts.append(len(env.agents))
+        st = env.agent_states()
+        assert st.names == env.agents and st.state.x.shape == (len(env.agents),)
+        assert len(env.agents) <= 25
+    env.close()
+    # agents ended, yet the city kept (nearly) 25: waiting vehicles joined mid-trip
+    assert ended > 25 and max(counts[:-1]) == 25

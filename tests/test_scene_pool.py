@@ -226,3 +226,42 @@ def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_p
     train(from_dict(TrainConfig, raw), resume=run, log=logs.append)
     assert any(m.startswith("update 3/3") for m in logs)
     assert len((run / "skipped_scenes.tsv").read_text().splitlines()) == 2
+
+
+@pytest.mark.sumo
+def test_city_scenario_trains_beside_a_recorded_scene(tmp_path):
+    from magail_sumo.config import ConfigError, from_dict
+    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.expert import ExpertDataset, record_expert
+    from magail_sumo.sensors.observation import observation_names
+    from magail_sumo.training.config import TrainConfig, check_train_config
+    from magail_sumo.training.trainer import GailRun
+
+    city = ROOT / "data" / "sumo" / "ingolstadt21"
+    record_expert(scene_specs([SMALL[0]], tmp_path / "nets"), tmp_path / "expert")
+    raw = {"seed": 0, "expert_dir": str(tmp_path / "expert"),
+           "env": {"max_steps": 15, "start_window": "random"},
+           "scenes": {"files": [str(city), str(SMALL[0])], "networks": str(tmp_path / "nets")},
+           "workers": {"count": 2},
+           "city": {"max_agents": 40, "warmup_s": 300, "max_steps": 30},
+           "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},
+           "ppo": {"n_steps": 16, "batch_size": 86, "n_epochs": 1},
+           "discriminator": {"kind": "decomposed", "epochs": 1, "batch_size": 16}}
+    with pytest.raises(ConfigError, match=r"discriminator\.kind: 'transformer' judges all "
+                                          r"vehicles of a worker step as one set"):
+        check_train_config(from_dict(TrainConfig, {**raw, "discriminator": {}}))
+    cfg = from_dict(TrainConfig, raw)
+    check_train_config(cfg)
+    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
+    run = GailRun(cfg, expert)
+    try:
+        venv = run.venv
+        assert venv.slots[0] == 40  # the city worker: max_agents slots
+        run.run_update()
+        assert venv.worker_scene[0] == "ingolstadt21"
+        city_steps = venv.agent_steps
+        assert city_steps > 16 * 30  # the city kept tens of agents driving every step
+        run.run_update()
+        assert run.update == 2
+    finally:
+        run.close()
