@@ -1,32 +1,37 @@
-"""Stable-Baselines3 ``VecEnv`` over one or more scenes: agents as vector slots.
+"""Stable-Baselines3 ``VecEnv`` over scene workers: agents as vector slots.
 
-Each scene's :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` lives in its own worker
-process (libsumo runs one simulation per process, and a second SUMO run in a process after one
-that removed vehicles can crash libsumo). Workers are started with the ``spawn`` method and
-talk over pipes; every answer (and the write of every large request) is awaited with a timeout,
-so a worker that dies, hangs or is stopped raises :class:`VecEnvWorkerError` naming the scene
-instead of hanging the trainer.
+A scene worker (:class:`SlotWorker`) runs one SUMO at a time (libsumo runs one simulation per
+process) and plays either one scene (:class:`SceneSpec`) or a shard of a scene pool
+(:class:`PoolSpec`, :mod:`magail_sumo.env.scene_pool`: a new scene, recorded or a city, at
+each episode). Workers run on a backend (:mod:`magail_sumo.env.transport`: local processes
+started with ``spawn`` over pipes, or Ray actors); every answer (and the write of every large
+request) is awaited with a timeout, so a worker that dies, hangs or is stopped never hangs the
+trainer: it is replaced (``max_restarts``; its episode replayed, see Determinism) or the env
+raises :class:`VecEnvWorkerError` naming the scene.
 
-Slots: scene ``k`` owns ``slots[k]`` consecutive slots, as many as its agents can ever be alive
-at once (from the recorded track lifetimes). An agent joining takes the lowest free slot of its
-scene and keeps it until it leaves; then the slot is free until another agent joins.
+Slots: worker ``k`` owns ``slots[k]`` consecutive slots, as many as its agents can ever be
+alive at once (from the recorded track lifetimes; a city's ``max_agents``). An agent joining
+takes the lowest free slot of its worker and keeps it until it leaves; then the slot is free
+until another agent joins.
 ``infos[i]["slot_active"]`` (and :attr:`MultiSceneVecEnv.slot_active`) says whether slot ``i``
 holds an agent; the observation of a free slot is zeros and its action is ignored. Learning
 must drop free slot-steps (see :class:`magail_sumo.training.ppo.MaskedRolloutBuffer`): they are
 not transitions. ``dones[i]`` is True when the slot's agent left (with
 ``infos[i]["terminal_observation"]``, ``"TimeLimit.truncated"`` when it was truncated, not
 terminated, and ``"reason"``) and also when a free slot is given to a new agent, so GAE never
-runs from one agent into another. When a scene has no agents left it is reset (next episode
-seed) inside the same step. :attr:`MultiSceneVecEnv.slot_pos` is each slot's pose for the
-current observation (x, y in m, yaw in rad; scene frame; the agent's bicycle state, zeros for a
-free slot), sent by the workers as one small (slots, 3) float32 array per step.
+runs from one agent into another. When a worker's scene has no agents left it is reset (next
+episode, next scene of its shard) inside the same step. :attr:`MultiSceneVecEnv.slot_pos` is
+each slot's pose for the current observation (x, y in m, yaw in rad; scene frame; the agent's
+bicycle state, zeros for a free slot), sent by the workers as one small (slots, 3) float32
+array per step.
 
-Determinism: episode ``e`` of scene ``k`` is reset with seed ``seed + 100_003·k + e``; with
-``EnvConfig.start_window: random`` its start step is drawn from :func:`episode_rng` of that
-worker's seed ``seed + 100_003·k`` and ``e`` (a pure function of the two); every
-worker logs the actions of its current episode, so :meth:`MultiSceneVecEnv.get_state` /
-:meth:`~MultiSceneVecEnv.set_state` restore the exact simulation state in fresh workers by
-replaying them (used for exact training resume).
+Determinism: episode ``e`` of worker ``k`` is reset with seed ``seed + 100_003·k + e``; its
+scene is a pure function of the worker seed and ``e`` (:class:`~magail_sumo.env.scene_pool.
+PoolCursor`), and with ``EnvConfig.start_window: random`` so is its start step
+(:func:`episode_rng`). The env logs each worker's episode index and the actions since that
+episode's reset, so :meth:`MultiSceneVecEnv.get_state` / :meth:`~MultiSceneVecEnv.set_state`
+restore the exact simulation state in fresh workers by replaying them (exact training resume),
+and a replaced worker continues exactly where the lost one was.
 """
 
 from __future__ import annotations
