@@ -119,7 +119,7 @@ def run_city(args) -> dict:
                 agent_steps += len(acts)
                 peak = max(peak, len(acts))
                 steps += 1
-    state = str(env._warm_state())
+    state = str(env.warm_state())
     ctx = multiprocessing.get_context("spawn")
     with ctx.Pool(1, maxtasksperchild=1) as pool:
         raw_secs, raw_steps, raw_peak = pool.apply(run_city_raw, (cfg, state, args.city_steps))

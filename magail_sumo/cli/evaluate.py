@@ -1,13 +1,15 @@
-"""``magail-sumo evaluate``: WOSAC-protocol rollouts of a policy and the baselines, as Parquet."""
+"""``magail-sumo evaluate``: WOSAC-protocol rollouts of a policy and the baselines, as Parquet;
+with ``--city``, the policy on whole SUMO cities against SUMO's default drivers."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
 
-from magail_sumo.cli.argtypes import timeout_s
+from magail_sumo.cli.argtypes import bounded, timeout_s
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -16,7 +18,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "for 80 steps (WOSAC protocol) with the policy under test "
                                    "and the baselines; write DIR/rollouts/<method>/<scenario>"
                                    ".parquet and DIR/manifest.json (DIR: new, empty or written "
-                                   "by magail-sumo).")
+                                   "by magail-sumo). With --city, the policy also drives "
+                                   "whole SUMO city scenarios against SUMO's default drivers "
+                                   "(DIR/city.json, DIR/city/<scenario>/<method>/).")
     p.add_argument("--policy", required=True, metavar="POLICY",
                    help="logreplay | constvel | sumo | random | pretrained[:NAME] (a shipped "
                         "policy; $MAGAIL_SUMO_PRETRAINED_DIR: another registry folder) | "
@@ -25,8 +29,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="method name of the policy in the rollouts, manifest and report "
                         "(default: the built-in's name; pretrained:NAME: NAME; a checkpoint "
                         "RUN/checkpoints/latest.pt: RUN's folder name; a factory's name)")
-    p.add_argument("--scenes", nargs="+", required=True, metavar="FILE",
-                   help="scene files (WOMD TFRecords, ScenarioNet pickles or folders)")
+    p.add_argument("--scenes", nargs="+", metavar="FILE",
+                   help="scene files (WOMD TFRecords, ScenarioNet pickles or folders); "
+                        "--scenes, --city or both")
+    p.add_argument("--city", nargs="+", action="extend", metavar="SUMOCFG",
+                   help="plain SUMO city scenarios (.sumocfg, e.g. data/sumo/ingolstadt21/"
+                        "ingolstadt21.sumocfg; repeatable): the policy drives up to "
+                        "--city-max-agents vehicles, the rest SUMO traffic, and SUMO's default "
+                        "drivers run over the same window; SUMO's tripinfo / edgeData / "
+                        "statistics outputs of both go into DIR/city.json")
+    p.add_argument("--city-steps", type=bounded(int, 1), default=3000, metavar="N",
+                   help="0.1-s steps of each city run (default 3000: 5 min)")
+    p.add_argument("--city-warmup-s", type=bounded(float, 0.0), default=600.0, metavar="S",
+                   help="seconds SUMO drives a city alone before the window (default 600)")
+    p.add_argument("--city-max-agents", type=bounded(int, 1), default=64, metavar="K",
+                   help="policy-driven vehicles alive at once in a city (default 64)")
+    p.add_argument("--city-control-fraction", type=bounded(float, 0.0, 1.0), default=1.0,
+                   metavar="F", help="share of a city's vehicles that may become agents "
+                                     "(seeded; default 1)")
     p.add_argument("--rollouts", type=int, default=32, metavar="R", help="rollouts per scene")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--baselines", default="logreplay,constvel,sumo", metavar="LIST",
@@ -50,28 +70,65 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="worker processes for SUMO rollouts")
     p.add_argument("--timeout-s", type=timeout_s, default=1800.0, metavar="S",
                    help="seconds one worker job (a batch of up to 8 rollouts of one method on "
-                        "one scene, or a scene's conversion) may take before it is killed and "
-                        "reported failed (default 1800; 'none': no limit)")
+                        "one scene, a scene's conversion, or one city run) may take before it "
+                        "is killed and reported failed (default 1800; 'none': no limit)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from magail_sumo.evaluation.city import CitySettings, check_policy, check_sumocfg
+    from magail_sumo.evaluation.rollouts import EvaluationError
+
+    if not args.scenes and not args.city:
+        raise EvaluationError("nothing to evaluate: give --scenes FILE..., --city SUMOCFG... "
+                              "or both")
+    city = None
+    if args.city:  # every city input checked before any scene runs
+        city = CitySettings(steps=args.city_steps, warmup_s=args.city_warmup_s,
+                            max_agents=args.city_max_agents,
+                            control_fraction=args.city_control_fraction, seed=args.seed,
+                            deterministic=args.deterministic, timeout_s=args.timeout_s)
+        for f in args.city:
+            check_sumocfg(f)
+        check_policy(args.policy, args.deterministic)
+    clock = time.perf_counter()
+    done, errors = 0, 0
+    with _one_line_os_errors(args.out):
+        if args.scenes:
+            done, errors = _scenes(args)
+        if city is not None:
+            from magail_sumo.evaluation.city import evaluate_city
+
+            res = evaluate_city(args.policy, args.city, args.out, city, name=args.name)
+            done += len(res.rows)
+            errors += len(res.errors)
+    print(f"evaluated {done} scene/method pair(s) in {time.perf_counter() - clock:.1f} s"
+          f" -> {args.out}" + (f"; {errors} problem(s) reported above" if errors else ""),
+          file=sys.stderr)
+    return 1 if errors or not done else 0
+
+
+def _scenes(args: argparse.Namespace) -> tuple[int, int]:
+    """Rollouts of the recorded scenes: (scene/method pairs done, problems)."""
     from magail_sumo.evaluation.rollouts import evaluate
-    from magail_sumo.outputs import OutputError
 
     base = [] if args.baselines.strip().lower() == "none" else \
         [b.strip() for b in args.baselines.split(",") if b.strip()]
-    clock = time.perf_counter()
+    res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
+                   baselines=base, seed=args.seed, workers=args.workers,
+                   networks=args.networks, submission=args.export_submission,
+                   timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
+                   name=args.name, deterministic=args.deterministic)
+    return len(res.done), len(res.errors)
+
+
+@contextlib.contextmanager
+def _one_line_os_errors(out: Path):
+    """A full disk, a read-only folder: one line naming the file, no traceback."""
+    from magail_sumo.outputs import OutputError
+
     try:
-        res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
-                       baselines=base, seed=args.seed, workers=args.workers,
-                       networks=args.networks, submission=args.export_submission,
-                       timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
-                       name=args.name, deterministic=args.deterministic)
-    except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
-        raise OutputError(f"{exc.filename or args.out}: cannot write "
+        yield
+    except OSError as exc:
+        raise OutputError(f"{exc.filename or out}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None
-    print(f"evaluated {len(res.done)} scene/method pair(s) in {time.perf_counter() - clock:.1f} s"
-          f" -> {args.out}" + (f"; {len(res.errors)} problem(s) reported above"
-                               if res.errors else ""), file=sys.stderr)
-    return 1 if res.errors or not res.done else 0

@@ -11,8 +11,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="report of a magail-sumo evaluate folder",
                        description="Score DIR (traffic metrics and WOSAC realism per scene and "
                                    "method) and write DIR/report/report.html (self-contained), "
-                                   "report.md, metrics.csv and summary.csv. Bad rollouts are "
-                                   "reported on stderr and the rest is still scored.")
+                                   "report.md, metrics.csv and summary.csv; city results of "
+                                   "evaluate --city (DIR/city.json) add a table and city.csv. "
+                                   "Bad rollouts are reported on stderr and the rest is still "
+                                   "scored.")
     p.add_argument("folder", type=Path, metavar="DIR", help="folder written by evaluate")
     p.add_argument("--out", type=Path, metavar="OUT", help="report folder (default DIR/report; "
                    "new, empty or written by magail-sumo)")
@@ -40,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
                           f"({exc.strerror or type(exc).__name__})") from None
     for e in res.errors:
         print(f"error: {e if e.isprintable() else printable(e, 2000)}", file=sys.stderr)
+    city = f", {res.city_csv.name}" if res.city_csv is not None else ""
     print(f"report: {res.html} ({res.markdown.name}, {res.metrics_csv.name}, "
-          f"{res.summary_csv.name})", file=sys.stderr)
+          f"{res.summary_csv.name}{city})", file=sys.stderr)
     return 1 if res.errors else 0

@@ -169,8 +169,10 @@ class SumoCityEnv(ParallelEnv):
         return self._act_space
 
     # ------------------------------------------------------------------ lifecycle
-    def _warm_state(self) -> Path | None:
-        """Run SUMO alone for ``warmup_s`` (1 s steps) once and save its state."""
+    def warm_state(self) -> Path | None:
+        """The saved warm-up state every episode loads (``--load-state``): SUMO run alone for
+        ``warmup_s`` (1 s steps, seed ``sumo_seed``) on the first call; None when ``warmup_s``
+        is 0. The file lives as long as the env."""
         cfg = self.config
         if cfg.warmup_s <= 0:
             return None
@@ -192,7 +194,7 @@ class SumoCityEnv(ParallelEnv):
               ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
         cfg = self.config
         self.close()
-        state = self._warm_state()
+        state = self.warm_state()
         extra = (("--load-state", str(state)) if state is not None else ()) + self.sumo_args
         self._seed = 0 if seed is None else int(seed)
         self._session = SumoSession(self.sumocfg, config=SessionConfig(
@@ -223,6 +225,11 @@ class SumoCityEnv(ParallelEnv):
         obs, _ = self._observe(joiners)
         self._record_fcd()
         return obs, {a: self._info(self._index[a], {}, None) for a in self.agents}
+
+    @property
+    def sumo_time(self) -> float | None:
+        """SUMO's clock now (s, the scenario's time of day); None outside an episode."""
+        return None if self._session is None else self._session.time
 
     def close(self) -> None:
         if self._session is not None:

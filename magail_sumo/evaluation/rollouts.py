@@ -743,7 +743,8 @@ def write_manifest(out: Path, manifest: dict) -> None:
     if not isinstance(old, dict):
         old = {}
     if old and (old.get("rollouts"), old.get("seed")) != (manifest["rollouts"], manifest["seed"]):
-        old = {}  # another run setting: start afresh
+        # another run setting: start afresh (city results, evaluation.city, do not depend on it)
+        old = {"city": old["city"]} if "city" in old else {}
     scenes = {s["scenario_id"]: s for s in old.get("scenes", [])}
     scenes.update({s["scenario_id"]: s for s in manifest["scenes"]})
     methods = list(dict.fromkeys(list(old.get("methods", [])) + list(manifest["methods"])))

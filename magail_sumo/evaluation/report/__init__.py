@@ -8,14 +8,20 @@ realism likelihoods, ADE / minADE, collision and off-road rates) and ``summary.c
 over scenes per method). The report folder must be new, empty or written
 by magail_sumo (:func:`~magail_sumo.outputs.claim_output_dir`); every file is written
 atomically and image names from scenario ids go through :func:`~magail_sumo.outputs.safe_name`.
+
+A folder with city results (``DIR/city.json``, :mod:`magail_sumo.evaluation.city`) also gets a
+"City scenarios (SUMO outputs)" table and ``city.csv``; a folder with only city results (no
+recorded scenes) gets only those.
 """
 
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
 
@@ -39,6 +45,7 @@ class ReportFiles:
     agents_csv: Path
     errors: tuple[str, ...]
     scores: Scores
+    city_csv: Path | None = None
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
@@ -68,12 +75,45 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     folder = Path(folder)
     out = Path(out) if out else folder / "report"
     claim_output_dir(out, "report", ["report.html", "report.md", "metrics.csv", "summary.csv",
-                                     "agents.csv", "img"])
+                                     "agents.csv", "city.csv", "img"])
     sc = collect(folder, submissions, workers)
+    city_rows = _city_rows(folder, sc.errors)
     units = {n: METRICS[n].unit for n in METRICS}
     means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
     man = sc.manifest
     doc = Document("magail_sumo evaluation report", out / "img")
+    if sc.scenes or sc.methods or not city_rows:
+        _scene_sections(doc, sc, means, units, man)
+    if city_rows:
+        _city_section(doc, city_rows, man)
+    if sc.errors:
+        doc.heading("Problems")
+        doc.errors(sc.errors)
+    html_path, md_path = out / "report.html", out / "report.md"
+    doc.write(html_path, md_path)
+    all_fields = ["scenario_id", "method", "rollouts"] + list(METRICS) + \
+        [f for f in sc.rows[0] if f not in METRICS and f not in ("scenario_id", "method",
+                                                                  "rollouts")] if sc.rows else []
+    metrics_csv, summary_csv = out / "metrics.csv", out / "summary.csv"
+    agents_csv = out / "agents.csv"
+    afields = ["scenario_id", "method", "object_id", "type", "sdc", *AGENT_FIELDS]
+    _write_csv(agents_csv, afields, [[r[f] for f in afields] for r in sc.agent_rows])
+    _write_csv(metrics_csv, all_fields, [[r.get(f) for f in all_fields] for r in sc.rows])
+    sfields = ["metametric", *MAIN, *REALISM_FIELDS]
+    _write_csv(summary_csv, ["method", *sfields],
+               [[m, *(means[m][f] for f in sfields)] for m in sc.methods])
+    city_csv = None
+    if city_rows:
+        city_csv = out / "city.csv"
+        _write_csv(city_csv, [*CITY_COLUMNS, *(f"terminations_{e}" for e in CITY_EVENTS)],
+                   [[r[c] for c in CITY_COLUMNS]
+                    + [r["terminations"].get(e, 0) for e in CITY_EVENTS] for r in city_rows])
+    return ReportFiles(html_path, md_path, metrics_csv, summary_csv, agents_csv,
+                       tuple(sc.errors), sc, city_csv)
+
+
+def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: dict) -> None:
+    """The recorded scenes' sections: metrics, realism, figures, per-agent rows, fixes."""
     doc.para(f"Scenes: {len(sc.scenes)} · methods: {', '.join(sc.methods) or 'none'} · "
              f"rollouts: {man.get('rollouts')} (WOSAC: 32) × {man.get('steps', 80)} steps "
              f"(8 s) after the current step · seed {man.get('seed')} · policy under test: "
@@ -146,21 +186,62 @@ def build_report(folder: str | Path, out: str | Path | None = None,
                     max(0, int(f.get("nonfinite", 0)) - int(f.get("missing", 0))),
                     int(f.get("clipped", 0))]
                    for f in fixes], "action-fixes")
-    if sc.errors:
-        doc.heading("Problems")
-        doc.errors(sc.errors)
-    html_path, md_path = out / "report.html", out / "report.md"
-    doc.write(html_path, md_path)
-    all_fields = ["scenario_id", "method", "rollouts"] + list(METRICS) + \
-        [f for f in sc.rows[0] if f not in METRICS and f not in ("scenario_id", "method",
-                                                                  "rollouts")] if sc.rows else []
-    metrics_csv, summary_csv = out / "metrics.csv", out / "summary.csv"
-    agents_csv = out / "agents.csv"
-    afields = ["scenario_id", "method", "object_id", "type", "sdc", *AGENT_FIELDS]
-    _write_csv(agents_csv, afields, [[r[f] for f in afields] for r in sc.agent_rows])
-    _write_csv(metrics_csv, all_fields, [[r.get(f) for f in all_fields] for r in sc.rows])
-    sfields = ["metametric", *MAIN, *REALISM_FIELDS]
-    _write_csv(summary_csv, ["method", *sfields],
-               [[m, *(means[m][f] for f in sfields)] for m in sc.methods])
-    return ReportFiles(html_path, md_path, metrics_csv, summary_csv, agents_csv,
-                       tuple(sc.errors), sc)
+
+
+#: ``city.json`` fields in the city table and ``city.csv`` (then the terminations per event)
+CITY_COLUMNS = ["scenario", "method", "begin_s", "end_s", "arrived", "travel_time_s",
+                "waiting_time_s", "time_loss_s", "throughput_veh_h", "mean_edge_speed_mps",
+                "teleports", "collisions", "agents", "agent_steps", "removed"]
+
+
+def _city_rows(folder: Path, errors: list[str]) -> list[dict]:
+    """The folder's city rows (:func:`~magail_sumo.evaluation.city.read_rows`); a bad
+    ``city.json`` is one error line and no rows."""
+    from magail_sumo.errors import MagailSumoError
+    from magail_sumo.evaluation.city import read_rows
+
+    try:
+        return read_rows(folder)[0]
+    except MagailSumoError as exc:
+        errors.append(" ".join(str(exc).split()))
+        return []
+
+
+def _count(v: float | int) -> int | float:
+    """A count for a table cell (NaN stays NaN: shown as n/a)."""
+    return int(v) if math.isfinite(v) else float("nan")
+
+
+def _city_section(doc: Document, rows: list[dict], man: dict) -> None:
+    """The "City scenarios (SUMO outputs)" table: per scenario, each method's SUMO figures."""
+    city = man.get("city") if isinstance(man.get("city"), dict) else {}
+    policies = ", ".join(dict.fromkeys(printable(r["method"], 40) for r in rows
+                                       if r["method"] != "sumo"))
+    doc.heading("City scenarios (SUMO outputs)")
+    doc.para(f"The policy ({policies}) drives up to {city.get('max_agents', '?')} vehicles "
+             "of a whole SUMO city at once (the rest is SUMO traffic); sumo: SUMO's default "
+             "drivers only. Both runs start from the "
+             f"same state after a {city.get('warmup_s', '?')} s warm-up and cover the same "
+             "window (SUMO time of day), with the same seed and SUMO settings (0.1 s steps, "
+             "teleporting off). Trip figures are means over the trips that ended in the "
+             "window (from tripinfo; agents taken out by a collision, off-road or red-light "
+             "event count as removed, not arrived); mean speed from edgeData; teleports and "
+             "collisions from SUMO's statistics; agent collisions, off-road, red light and "
+             "destination are the env's events ending agents.")
+    header = ["scenario", "method", "window (s)", "arrived", "travel time (s)",
+              "waiting time (s)", "time loss (s)", "throughput (veh/h)", "mean speed (m/s)",
+              "teleports", "collisions", "agents", "agent-steps", "removed",
+              *(f"agent {e.replace('_', ' ')}" for e in CITY_EVENTS)]
+    body = []
+    for r in sorted(rows, key=lambda r: (r["scenario"], r["method"] == "sumo", r["method"])):
+        mine = r["method"] != "sumo"  # the policy's own counts
+        own = [_count(r[f]) for f in ("agents", "agent_steps", "removed")] + \
+            [_count(r["terminations"].get(e, 0)) for e in CITY_EVENTS]
+        body.append([printable(r["scenario"], 40), printable(r["method"], 40),
+                     "-".join(f"{r[f]:.1f}" if math.isfinite(r[f]) else "n/a"
+                              for f in ("begin_s", "end_s")),
+                     _count(r["arrived"]), r["travel_time_s"], r["waiting_time_s"],
+                     r["time_loss_s"], r["throughput_veh_h"], r["mean_edge_speed_mps"],
+                     _count(r["teleports"]), _count(r["collisions"]),
+                     *(own if mine else [""] * len(own))])
+    doc.table(header, body, "city")

@@ -4,15 +4,23 @@
 libsumo in a fresh process with a controller callback for a controlled run) writing
 ``tripinfo.xml``, ``edgedata.xml`` and ``statistics.xml``, and :func:`summarise` reads them
 (sumolib) into a :class:`SumoRunSummary`. :func:`compare_runs` puts runs side by side (pandas).
+:func:`output_args` gives the three output options alone, for a run started elsewhere (the
+city env's ``sumo_args``).
+
+A vehicle taken out of SUMO before its trip's end (``vaporized`` in its tripinfo: removed
+through TraCI / libsumo, or by a collision action) has not arrived and is left out of the trip
+figures, unless the caller names it as completed (a controller that removes vehicles at their
+destination).
 """
 
 from __future__ import annotations
 
 import importlib
 import subprocess
+import xml.etree.ElementTree as ET
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Collection, Sequence
 
 import numpy as np
 
@@ -35,6 +43,8 @@ class SumoRunSummary:
     :param mean_edge_speed_mps: mean speed over edges, weighted by sampled seconds (m/s).
     :param teleports: vehicles teleported (jams, collisions, wrong lanes).
     :param duration_s: simulated time (s).
+    :param collisions: collisions SUMO detected (``statistics.xml`` ``<safety collisions>``;
+        0 where the statistics do not say).
     """
 
     arrived: int
@@ -45,6 +55,7 @@ class SumoRunSummary:
     mean_edge_speed_mps: float
     teleports: int
     duration_s: float
+    collisions: int = 0
 
 
 def _outputs(out: Path) -> dict[str, Path]:
@@ -52,12 +63,17 @@ def _outputs(out: Path) -> dict[str, Path]:
             "statistics": out / "statistics.xml"}
 
 
+def output_args(out: str | Path) -> list[str]:
+    """SUMO options writing the three outputs into the folder ``out``."""
+    o = _outputs(Path(out))
+    return ["--tripinfo-output", str(o["tripinfo"]), "--edgedata-output", str(o["edgedata"]),
+            "--statistic-output", str(o["statistics"])]
+
+
 def sumo_command(sumocfg: Path, out: Path, begin: float | None, end: float | None, seed: int,
                  extra_args: Sequence[str] = ()) -> list[str]:
     """``sumo`` command line writing the three outputs into ``out``."""
-    o = _outputs(out)
-    cmd = ["sumo", "-c", str(sumocfg), "--tripinfo-output", str(o["tripinfo"]),
-           "--edgedata-output", str(o["edgedata"]), "--statistic-output", str(o["statistics"]),
+    cmd = ["sumo", "-c", str(sumocfg), *output_args(out),
            "--seed", str(seed), "--no-step-log", "true", "--no-warnings", "true",
            "--duration-log.disable", "true"]
     if begin is not None:
@@ -123,8 +139,34 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
     return summarise(out)
 
 
-def summarise(out_dir: str | Path) -> SumoRunSummary:
-    """Read the outputs of :func:`run_sumo_outputs` in ``out_dir``."""
+def _trips(path: Path, completed: Collection[str]) -> list[tuple[float, float, float]]:
+    """(duration, waitingTime, timeLoss) (s) of the trips of a tripinfo file that arrived: not
+    ``vaporized``, or in ``completed``."""
+    out = []
+    try:
+        for _, el in ET.iterparse(path):
+            if el.tag == "tripinfo":
+                a = el.attrib
+                if not a.get("vaporized") or a.get("id") in completed:
+                    try:
+                        out.append((float(a["duration"]), float(a["waitingTime"]),
+                                    float(a["timeLoss"])))
+                    except (KeyError, ValueError):
+                        raise SumoRunError(f"{path}: tripinfo {a.get('id')!r} lacks a numeric "
+                                           "duration, waitingTime or timeLoss") from None
+                el.clear()
+    except ET.ParseError as exc:
+        raise SumoRunError(f"{path}: not valid XML ({exc})") from None
+    return out
+
+
+def summarise(out_dir: str | Path, completed: Collection[str] = ()) -> SumoRunSummary:
+    """Read the outputs of :func:`run_sumo_outputs` in ``out_dir``.
+
+    :param completed: ids of vehicles a controller removed at the end of their trip (their
+        tripinfo, marked ``vaporized``, counts as an arrival); other removed vehicles are left
+        out (module doc).
+    """
     import pandas as pd
     from sumolib.output import parse_fast, parse_fast_nested
 
@@ -132,10 +174,8 @@ def summarise(out_dir: str | Path) -> SumoRunSummary:
     for path in o.values():
         if not path.is_file():
             raise SumoRunError(f"{path}: SUMO output missing")
-    trips = pd.DataFrame(
-        [(float(t.duration), float(t.waitingTime), float(t.timeLoss)) for t in
-         parse_fast(str(o["tripinfo"]), "tripinfo", ["duration", "waitingTime", "timeLoss"])],
-        columns=["duration", "waiting", "loss"])
+    trips = pd.DataFrame(_trips(o["tripinfo"], set(completed)),
+                         columns=["duration", "waiting", "loss"])
     speeds, weights = [], []
     duration = 0.0
     for interval, edge in parse_fast_nested(str(o["edgedata"]), "interval", ["begin", "end"],
@@ -145,14 +185,16 @@ def summarise(out_dir: str | Path) -> SumoRunSummary:
         weights.append(float(edge.sampledSeconds))
     w = np.asarray(weights)
     mean_speed = float(np.average(speeds, weights=w)) if w.sum() > 0 else float("nan")
-    teleports = 0
+    teleports = collisions = 0
     for tel in parse_fast(str(o["statistics"]), "teleports", ["total"]):
         teleports = int(tel.total)
+    for safety in parse_fast(str(o["statistics"]), "safety", ["collisions"]):
+        collisions = int(safety.collisions)
     n = len(trips)
     mean = lambda c: float(trips[c].mean()) if n else float("nan")  # noqa: E731
     return SumoRunSummary(n, mean("duration"), mean("waiting"), mean("loss"),
                           n * 3600.0 / duration if duration > 0 else float("nan"), mean_speed,
-                          teleports, duration)
+                          teleports, duration, collisions)
 
 
 def compare_runs(runs: dict[str, SumoRunSummary]):

@@ -1,0 +1,401 @@
+"""A driving policy on a whole SUMO city against SUMO's default drivers, from SUMO's own outputs.
+
+:func:`evaluate_city` runs two simulations of one plain SUMO scenario (a ``.sumocfg``, e.g.
+``data/sumo/ingolstadt21``) over the same time window and summarises both with
+:func:`~magail_sumo.evaluation.traffic.sumo_outputs.summarise` (travel, waiting and lost time
+of the trips that arrived, throughput, mean edge speed, teleports, SUMO's collision count):
+
+* the policy (method: its name): :class:`~magail_sumo.env.city_env.SumoCityEnv` as training
+  plays a city with the default env settings (those the checkpoint loader checks a policy
+  against), closed loop, the policy acting for every agent each 0.1-s step; at most
+  ``max_agents`` agents at once (a chosen vehicle waits, SUMO-driven, for a free place), the
+  rest of the demand SUMO background traffic. It runs in a fresh worker process (libsumo
+  allows one simulation per process) with a timeout, SUMO writing the outputs through the
+  env's ``sumo_args``;
+* ``sumo``: the ``sumo`` binary, every vehicle driven by SUMO's default model.
+
+Fair comparison: both runs start from the same SUMO state — the scenario's begin time plus
+``warmup_s`` seconds simulated by SUMO alone (the env's warm-up, 1-s steps, saved once and
+loaded with ``--load-state`` by both runs; none when ``warmup_s`` is 0: both start at the
+scenario's begin) — and end at the same time, ``steps + 1`` steps of 0.1 s later (the env's
+reset makes one step). Both use the env's SUMO settings (0.1-s steps, teleporting disabled, so
+jams show as waiting time, collisions only reported) and the same SUMO seed (the warm-up, as in
+training, runs with the env's own ``sumo_seed``, 0). SUMO's outputs
+cover that window: a trip counts when it ends inside it (its travel time may include time
+before it, spent in the warm-up, the same way in both runs); edge speeds and throughput are
+over the window.
+
+An agent that an event ends (collision, off-road, red light) is taken out of SUMO: it never
+arrives and its trip is left out (``removed``); an agent ending within the destination radius
+of its route's end is taken out too and its trip counts as arrived. Agents still driving at
+the window's end are taken out like the vehicles SUMO has not finished: neither counts.
+``collisions`` is SUMO's own count in both runs; the env's events are the policy row's
+``terminations``.
+
+Outputs: ``OUT/city/<scenario>/<method>/{tripinfo,edgedata,statistics}.xml``, the warm state
+``OUT/city/<scenario>/warm.xml.gz``, ``OUT/city.json`` (rows of :data:`ROW_FIELDS` per scenario
+and method; rows of other scenarios or the same window are kept) and a ``city`` entry in
+``OUT/manifest.json`` (created when the folder has none, so ``magail-sumo report`` works on a
+city-only folder).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.evaluation.rollouts import (BASELINES, DEFAULT_TIMEOUT_S, EvaluationError,
+                                             log, make_policy, method_name, rollout_seed,
+                                             versions)
+from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSummary,
+                                                         output_args, run_sumo_outputs,
+                                                         summarise)
+from magail_sumo.outputs import (claim_output_dir, inside, one_line, printable, safe_name,
+                                 write_text)
+
+#: method name of SUMO's default drivers
+SUMO_METHOD = "sumo"
+#: env events counted in a policy row's ``terminations`` (those that end an agent)
+EVENTS = ("collision", "off_road", "red_light", "destination")
+#: events that take an agent out of SUMO before its trip's end (``removed``)
+REMOVING = ("collision", "off_road", "red_light")
+#: fields of a :data:`SumoRunSummary`, in order
+SUMMARY_FIELDS = tuple(f.name for f in fields(SumoRunSummary))
+#: columns of a ``city.json`` row: the scenario, method and window (SUMO time of day, s), every
+#: :class:`SumoRunSummary` field, then the policy's own counts (0 / {} for ``sumo``)
+ROW_FIELDS = ("scenario", "method", "begin_s", "end_s", "seed", *SUMMARY_FIELDS, "agents",
+              "agent_steps", "terminations", "removed")
+CITY_FILE = "city.json"
+
+
+@dataclass(frozen=True)
+class CitySettings:
+    """How a city is evaluated.
+
+    :param steps: 0.1-s steps of the policy run after its first (reset) step.
+    :param warmup_s: seconds SUMO drives alone before the window (s; 0: none).
+    :param max_agents: policy-driven vehicles alive at once.
+    :param control_fraction: share of the vehicles that may become agents (seeded).
+    :param seed: SUMO's seed in both runs and the agent choice; the policy gets
+        ``rollout_seed(seed, 0)``.
+    :param deterministic: a checkpoint policy acts with its mean action.
+    :param timeout_s: seconds each run may take (None: no limit).
+    """
+
+    steps: int = 3000
+    warmup_s: float = 600.0
+    max_agents: int = 64
+    control_fraction: float = 1.0
+    seed: int = 0
+    deterministic: bool = False
+    timeout_s: float | None = DEFAULT_TIMEOUT_S
+
+    def __post_init__(self) -> None:
+        for ok, what in ((self.steps >= 1, f"--city-steps must be >= 1, got {self.steps}"),
+                         (self.warmup_s >= 0, f"--city-warmup-s must be >= 0, got "
+                                              f"{self.warmup_s}"),
+                         (self.max_agents >= 1, f"--city-max-agents must be >= 1, got "
+                                                f"{self.max_agents}"),
+                         (0.0 < self.control_fraction <= 1.0,
+                          f"--city-control-fraction must be in (0, 1], got "
+                          f"{self.control_fraction}")):
+            if not ok:
+                raise EvaluationError(what)
+
+
+@dataclass(frozen=True)
+class PolicyJob:
+    """Work of the policy run's worker process (paths as strings: picklable)."""
+
+    sumocfg: str
+    out_dir: str
+    state_copy: str
+    spec: str
+    settings: CitySettings
+
+
+@dataclass
+class PolicyRun:
+    """What the policy run reports besides SUMO's outputs.
+
+    :param begin_s, end_s: the window (SUMO time of day, s).
+    :param agents: vehicles that were agents at some point.
+    :param agent_steps: agent actions applied (agents × steps).
+    :param terminations: per :data:`EVENTS` event, agents it ended.
+    :param completed: agents ended at their destination (their trips count as arrived).
+    :param action_counts: the env's fixed-up actions (missing, unknown, non-finite, clipped).
+    :param state: the saved warm state (None: no warm-up).
+    """
+
+    begin_s: float
+    end_s: float
+    agents: int
+    agent_steps: int
+    terminations: dict[str, int]
+    completed: list[str]
+    action_counts: dict[str, int] = field(default_factory=dict)
+    state: str | None = None
+
+
+def check_sumocfg(path: str | Path) -> Path:
+    """``path`` as a usable city scenario (an existing ``.sumocfg`` naming its net and route
+    files); :class:`~magail_sumo.errors.MagailSumoError` naming the file otherwise."""
+    from magail_sumo.env.city_env import _scenario_files
+
+    path = Path(path)
+    if path.suffix != ".sumocfg":
+        raise EvaluationError(f"{path}: --city needs a SUMO scenario's .sumocfg file")
+    net, _ = _scenario_files(path)
+    if not net.is_file():
+        raise EvaluationError(f"{path}: its net-file {net.name} is not found")
+    return path
+
+
+def check_policy(spec: str, deterministic: bool = False) -> None:
+    """Refuse a spec that cannot drive a city (a baseline, an unusable policy) up front."""
+    if spec in BASELINES:
+        raise EvaluationError(f"--policy {spec}: a city needs a driving policy (random, "
+                              "pretrained[:NAME], a checkpoint or module:factory); SUMO's "
+                              "default drivers run alongside as method 'sumo'")
+    make_policy(spec, 0, deterministic)
+
+
+def run_policy(job: PolicyJob) -> PolicyRun:
+    """Worker entry point (module level, picklable): the policy drives the city for the
+    window (module doc); SUMO writes its outputs into ``job.out_dir``."""
+    from magail_sumo.env.city_env import SumoCityEnv
+    from magail_sumo.env.config import EnvConfig
+    from magail_sumo.training.config import CityConfig
+
+    st = job.settings
+    cfg = CityConfig(max_agents=st.max_agents, control_fraction=st.control_fraction,
+                     warmup_s=st.warmup_s, max_steps=st.steps).env_config(EnvConfig())
+    env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
+    policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic)
+    state = env.warm_state()
+    if state is not None:
+        shutil.copyfile(state, job.state_copy)
+    seen: set[str] = set()
+    agent_steps = 0
+    ends = dict.fromkeys(EVENTS, 0)
+    completed: list[str] = []
+    try:
+        obs, _ = env.reset(seed=st.seed)
+        begin = round(float(env.sumo_time) - env.dt, 3)  # the reset made one step
+        while env.t < st.steps:
+            live = list(env.agents)
+            seen.update(live)
+            agent_steps += len(live)
+            actions = policy.act({a: obs[a] for a in live}) if live else {}
+            obs, _, terms, _, infos = env.step(actions)
+            for a, done in terms.items():
+                reason = infos[a].get("reason")
+                if done and reason in ends:
+                    ends[reason] += 1
+                    if reason == "destination":
+                        completed.append(a)
+        end = round(float(env.sumo_time), 3)
+        counts = dict(env.action_counts)
+    finally:
+        env.close()  # SUMO writes its outputs here
+    return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
+                     job.state_copy if state is not None else None)
+
+
+def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
+                  ) -> SumoRunSummary:
+    """SUMO's default drivers over the policy run's window, from the same state and with the
+    env's SUMO settings (module doc)."""
+    from magail_sumo.sim.session import SessionConfig
+
+    sess = SessionConfig()
+    extra = ["--step-length", str(sess.step_length), "--time-to-teleport",
+             str(sess.time_to_teleport), "--collision.action", sess.collision_action]
+    if run.state is not None:
+        extra += ["--load-state", run.state]  # the begin time is the state's
+    begin = None if run.state is not None else run.begin_s
+    return run_sumo_outputs(sumocfg, out_dir, begin=begin, end=run.end_s,
+                            seed=st.seed, extra_args=extra, timeout_s=st.timeout_s)
+
+
+def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRunSummary,
+         policy: bool) -> dict:
+    ends = run.terminations if policy else {}
+    return {"scenario": scenario, "method": method, "begin_s": run.begin_s,
+            "end_s": run.end_s, "seed": st.seed, **asdict(s),
+            "agents": run.agents if policy else 0,
+            "agent_steps": run.agent_steps if policy else 0,
+            "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING)}
+
+
+@dataclass
+class CityResult:
+    """What :func:`evaluate_city` wrote: its ``city.json`` rows and one-line errors."""
+
+    rows: list[dict]
+    errors: list[str]
+
+
+def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
+                  settings: CitySettings | None = None, name: str | None = None) -> CityResult:
+    """Evaluate ``policy`` on every city scenario against SUMO's default drivers (module doc).
+
+    A scenario whose run fails (an exception, a worker that dies or runs past the timeout:
+    killed) is reported on one line (stderr and ``errors``) and the others go on.
+
+    :param name: the policy's method name (default :func:`method_name` of the spec).
+    :raises EvaluationError: an unusable spec or setting, a scenario file that is no SUMO
+        scenario, a name that is ``sumo``.
+    """
+    from magail_sumo.workers import run_one
+
+    st = settings or CitySettings()
+    out = Path(out)
+    check_policy(policy, st.deterministic)
+    method = name if name is not None else method_name(policy)
+    if not method.strip() or not method.isprintable() or len(method) > 100:
+        raise EvaluationError(f"--name {printable(method)!r}: must be a non-empty printable "
+                              "name of at most 100 characters")
+    if method == SUMO_METHOD:
+        raise EvaluationError(f"--name {method}: is the name of SUMO's default drivers")
+    cfgs: dict[str, Path] = {}
+    for f in sumocfgs:
+        path = check_sumocfg(f)
+        if path.stem in cfgs:
+            raise EvaluationError(f"{path}: scenario {path.stem} given twice "
+                                  f"({cfgs[path.stem]})")
+        cfgs[path.stem] = path
+    claim_output_dir(out, "evaluate", ["manifest.json", "city", CITY_FILE])
+    rows: list[dict] = []
+    errors: list[str] = []
+    windows: dict[str, dict] = {}
+    for sid, cfg in cfgs.items():
+        base = inside(out, "city", safe_name(sid))
+        mine = inside(base, safe_name(method))
+        for d in (mine, base / SUMO_METHOD):
+            shutil.rmtree(d, ignore_errors=True)  # a failed run leaves no stale outputs
+        mine.mkdir(parents=True, exist_ok=True)
+        state = base / "warm.xml.gz"
+        state.unlink(missing_ok=True)
+        log(f"city {printable(sid)}: {method} driving up to {st.max_agents} agents for "
+            f"{st.steps} steps after a {st.warmup_s:g} s warm-up")
+        res = run_one(run_policy, PolicyJob(str(cfg.resolve()), str(mine.resolve()),
+                                            str(state.resolve()), policy, st),
+                      timeout_s=st.timeout_s)
+        if not res.ok:
+            what = "timed out" if res.kind == "timeout" else "failed"
+            errors.append(f"{cfg}: method {method}: city run {what}: {res.reason}")
+            log(f"error: {errors[-1]}")
+            continue
+        run: PolicyRun = res.value
+        try:
+            mine_sum = summarise(mine, run.completed)
+            log(f"city {printable(sid)}: {SUMO_METHOD} over the same window "
+                f"({run.begin_s:.1f}-{run.end_s:.1f} s)")
+            sumo_sum = _sumo_default(cfg, base / SUMO_METHOD, run, st)
+        except (SumoRunError, MagailSumoError) as exc:
+            errors.append(one_line(exc, 600))
+            log(f"error: {errors[-1]}")
+            continue
+        rows += [_row(sid, method, run, st, mine_sum, True),
+                 _row(sid, SUMO_METHOD, run, st, sumo_sum, False)]
+        windows[sid] = {"scenario": sid, "sumocfg": str(cfg.resolve()), "begin_s": run.begin_s,
+                        "end_s": run.end_s, "action_fixes": run.action_counts}
+    if rows:
+        write_rows(out, rows)
+        _record(out, policy, method, st, windows)
+    return CityResult(rows, errors)
+
+
+# ------------------------------------------------------------------------------ city.json
+def _json_value(v):
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def write_rows(out: Path, rows: list[dict]) -> Path:
+    """Merge ``rows`` into ``out/city.json``: an old row is kept unless the new rows have its
+    scenario and method, or its scenario with another window or seed."""
+    path = out / CITY_FILE
+    old: list[dict] = []
+    if path.is_file():
+        try:
+            old, _ = read_rows(out)
+        except MagailSumoError:
+            old = []  # unreadable: replaced
+    new = {(r["scenario"], r["method"]) for r in rows}
+    window = {r["scenario"]: (r["begin_s"], r["end_s"], r["seed"]) for r in rows}
+    kept = [r for r in old if (r["scenario"], r["method"]) not in new
+            and window.get(r["scenario"], (r["begin_s"], r["end_s"], r["seed"]))
+            == (r["begin_s"], r["end_s"], r["seed"])]
+    merged = [{k: _json_value(v) for k, v in r.items()} for r in kept + rows]
+    write_text(path, json.dumps(merged, indent=1, allow_nan=False) + "\n")
+    return path
+
+
+def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
+    """The rows of ``folder/city.json`` ([] when there is none) and its path; null figures
+    read as NaN. :class:`EvaluationError` naming the file and field for a bad file."""
+    path = Path(folder) / CITY_FILE
+    if not path.is_file():
+        return [], path
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise EvaluationError(f"{path}: unreadable ({one_line(exc, 200)})") from None
+    if not isinstance(data, list):
+        raise EvaluationError(f"{path}: expected a list of rows, got {type(data).__name__}")
+    rows = []
+    for k, r in enumerate(data):
+        if not isinstance(r, dict):
+            raise EvaluationError(f"{path}: row {k}: expected an object")
+        missing = [f for f in ROW_FIELDS if f not in r]
+        if missing:
+            raise EvaluationError(f"{path}: row {k}: missing field {missing[0]}")
+        for f in ("scenario", "method"):
+            if not isinstance(r[f], str):
+                raise EvaluationError(f"{path}: row {k}: {f} must be a string")
+        row = {f: r[f] for f in ("scenario", "method")}
+        for f in ROW_FIELDS[2:]:
+            v = r[f]
+            if f == "terminations":
+                if not isinstance(v, dict) or not all(
+                        isinstance(n, int) and not isinstance(n, bool) for n in v.values()):
+                    raise EvaluationError(f"{path}: row {k}: terminations must map events "
+                                          "to counts")
+                row[f] = {str(e): int(n) for e, n in v.items()}
+            elif v is None:
+                row[f] = float("nan")
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                row[f] = v
+            else:
+                raise EvaluationError(f"{path}: row {k}: {f} must be a number, got "
+                                      f"{printable(repr(v), 40)}")
+        rows.append(row)
+    return rows, path
+
+
+def _record(out: Path, policy: str, method: str, st: CitySettings, windows: dict) -> None:
+    """Record the city run in ``out/manifest.json`` (created minimal when absent)."""
+    path = out / "manifest.json"
+    try:
+        man = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        man = {}
+    if not isinstance(man, dict):
+        man = {}
+    if not man:
+        man = {"scenes": [], "methods": [], "policy": method, "policy_spec": policy,
+               "seed": st.seed, "deterministic": bool(st.deterministic),
+               "versions": versions()}
+    old = man.get("city") if isinstance(man.get("city"), dict) else {}
+    scenarios = {s.get("scenario"): s for s in old.get("scenarios", []) if isinstance(s, dict)}
+    scenarios.update(windows)
+    methods = [m for m in old.get("methods", []) if isinstance(m, str)]
+    methods = list(dict.fromkeys(methods + [method, SUMO_METHOD]))
+    man["city"] = {"file": CITY_FILE, "policy": method, "policy_spec": policy,
+                   "methods": methods, **asdict(st), "scenarios": list(scenarios.values())}
+    write_text(path, json.dumps(man, indent=2) + "\n")

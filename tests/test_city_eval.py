@@ -1,0 +1,163 @@
+"""evaluate --city: a policy on a real SUMO city (Cologne cut-out) against SUMO's default
+drivers over the same window, from SUMO's outputs; the report's city table."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, WOMD_DIR
+from magail_sumo.cli.main import main
+from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation.city import ROW_FIELDS
+from magail_sumo.evaluation.traffic import summarise
+
+CFG = ROOT / "data" / "sumo" / "cologne8" / "cologne8.sumocfg"
+STEPS, WARMUP, SEED = 200, 60, 3
+
+
+class _Coast:
+    """A pluggable policy: hold speed, no steering (agents on curves leave the road)."""
+
+    def act(self, observations):
+        return {a: np.zeros(2, np.float32) for a in observations}
+
+
+def coast(seed: int) -> _Coast:
+    return _Coast()
+
+
+@pytest.fixture(scope="module")
+def city(tmp_path_factory):
+    out = tmp_path_factory.mktemp("city")
+    rc = main(["evaluate", "--policy", f"{__name__}:coast", "--city", str(CFG),
+               "--city-steps", str(STEPS), "--city-warmup-s", str(WARMUP),
+               "--city-max-agents", "6", "--seed", str(SEED), "--out", str(out)])
+    assert rc == 0
+    assert main(["report", str(out), "--workers", "1"]) == 0
+    return out
+
+
+@pytest.mark.sumo
+def test_city_rows_for_both_methods(city):
+    rows = json.loads((city / "city.json").read_text())
+    assert [r["method"] for r in rows] == ["coast", "sumo"]
+    pol, sumo = rows
+    for r in rows:
+        assert tuple(r) == ROW_FIELDS and r["scenario"] == "cologne8" and r["seed"] == SEED
+        # the same window: the scenario's begin + the warm-up, then 1 + STEPS steps of 0.1 s
+        assert r["begin_s"] == pytest.approx(25200 + WARMUP)
+        assert r["end_s"] == pytest.approx(25200 + WARMUP + (STEPS + 1) * 0.1)
+        assert r["duration_s"] == pytest.approx((STEPS + 1) * 0.1, abs=1e-6)
+        assert r["arrived"] > 0 and r["teleports"] == 0  # teleporting is off in both
+        for f in ("travel_time_s", "waiting_time_s", "time_loss_s", "throughput_veh_h",
+                  "mean_edge_speed_mps"):
+            assert math.isfinite(r[f]) and r[f] >= 0, f
+        assert 0 < r["mean_edge_speed_mps"] < 20 and r["travel_time_s"] > r["time_loss_s"]
+        assert r["throughput_veh_h"] == pytest.approx(r["arrived"] * 3600 / r["duration_s"])
+    assert sumo["collisions"] == 0 and sumo["agents"] == 0 and sumo["terminations"] == {}
+    assert pol["agents"] > 6  # agents ended by an event were replaced by waiting vehicles
+    assert pol["agent_steps"] >= pol["agents"]
+    ends = pol["terminations"]
+    assert set(ends) == {"collision", "off_road", "red_light", "destination"}
+    assert pol["removed"] == ends["collision"] + ends["off_road"] + ends["red_light"] > 0
+    assert sum(ends.values()) <= pol["agents"]
+
+
+@pytest.mark.sumo
+def test_both_runs_cover_the_window_and_removed_agents_never_arrive(city):
+    rows = {r["method"]: r for r in json.loads((city / "city.json").read_text())}
+    base = city / "city" / "cologne8"
+    assert (base / "warm.xml.gz").stat().st_size > 1000  # the state both runs load
+    for m, r in rows.items():
+        iv = ET.parse(base / m / "edgedata.xml").getroot().find("interval")
+        assert float(iv.get("begin")) == pytest.approx(r["begin_s"])
+        assert float(iv.get("end")) == pytest.approx(r["end_s"])
+        trips = ET.parse(base / m / "tripinfo.xml").getroot().findall("tripinfo")
+        assert all(r["begin_s"] <= float(t.get("arrival")) <= r["end_s"] + 1e-6 for t in trips)
+    # the policy run: agents taken out by the env are in tripinfo as vaporized, not arrived
+    trips = ET.parse(base / "coast" / "tripinfo.xml").getroot().findall("tripinfo")
+    gone = [t.get("id") for t in trips if t.get("vaporized")]
+    assert len(gone) >= rows["coast"]["removed"]
+    again = summarise(base / "coast")
+    assert again.arrived + rows["coast"]["terminations"]["destination"] \
+        == rows["coast"]["arrived"]
+    assert summarise(base / "coast", completed=gone).arrived == again.arrived + len(gone)
+    # statistics of the SUMO runs give the collisions
+    assert summarise(base / "sumo").collisions == 0
+
+
+@pytest.mark.sumo
+def test_report_city_table(city):
+    rep = city / "report"
+    html = (rep / "report.html").read_text()
+    assert "City scenarios (SUMO outputs)" in html and '<table class="city">' in html
+    table = html[html.index('<table class="city">'):]
+    table = table[:table.index("</table>")]
+    assert "<td>coast</td>" in table and "<td>sumo</td>" in table
+    assert "travel time (s)" in table and "agent off road" in table
+    assert "Metrics against the baselines" not in html  # no recorded scenes here
+    assert "<img" not in html or "data:image/png;base64" in html  # still self-contained
+    csv = (rep / "city.csv").read_text().splitlines()
+    assert len(csv) == 3 and csv[0].startswith("scenario,method,begin_s,end_s,arrived")
+    man = json.loads((city / "manifest.json").read_text())
+    assert man["scenes"] == [] and man["city"]["file"] == "city.json"
+    assert man["city"]["methods"] == ["coast", "sumo"] and man["city"]["steps"] == STEPS
+
+
+@pytest.mark.sumo
+def test_scenes_added_later_keep_the_city_results(city, tmp_path, capsys):
+    out = tmp_path / "both"
+    shutil.copytree(city, out)
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "logreplay", "--scenes",
+                 str(WOMD_DIR / "850c48d8bbfa008f.tfrecord"), "--rollouts", "1", "--out",
+                 str(out)]) == 0
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["methods"] == ["constvel", "logreplay"] and man["city"]["methods"][0] == "coast"
+    assert main(["report", str(out), "--workers", "1"]) == 0
+    html = (out / "report" / "report.html").read_text()
+    assert "Metrics against the baselines" in html and '<table class="city">' in html
+    # a bad city.json is one error line naming the file and field; the scenes still report
+    rows = json.loads((out / "city.json").read_text())
+    rows[1]["travel_time_s"] = "fast"
+    (out / "city.json").write_text(json.dumps(rows))
+    capsys.readouterr()
+    assert main(["report", str(out), "--workers", "1"]) == 1
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "city.json: row 1: travel_time_s must be a number" in err[0]
+    assert "Metrics against the baselines" in (out / "report" / "report.html").read_text()
+
+
+def test_manifest_of_another_run_setting_keeps_the_city_entry(tmp_path):
+    (tmp_path / "manifest.json").write_text(json.dumps(
+        {"scenes": [], "methods": [], "seed": 0, "city": {"file": "city.json"}}))
+    rl.write_manifest(tmp_path, {"scenes": [], "methods": ["constvel"], "rollouts": 2,
+                                 "seed": 1})
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    assert man["city"] == {"file": "city.json"} and man["methods"] == ["constvel"]
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "nothing to evaluate: give --scenes FILE..., --city SUMOCFG... or both"),
+    (["--city", "missing.sumocfg"], "missing.sumocfg: SUMO config file not found"),
+    (["--city", "bad.sumocfg"], "bad.sumocfg: not valid XML"),
+    (["--city", "nonet.sumocfg"], "nonet.sumocfg: no input/net-file"),
+    (["--city", str(CFG.with_suffix(".net.xml"))], "needs a SUMO scenario's .sumocfg file"),
+    (["--city", str(CFG), "--policy", "constvel"], "--policy constvel: a city needs a "
+                                                    "driving policy"),
+])
+def test_bad_city_input_is_one_line(tmp_path, monkeypatch, capsys, args, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.sumocfg").write_text("<configuration><input>")
+    (tmp_path / "nonet.sumocfg").write_text("<configuration><input/></configuration>")
+    policy = [] if "--policy" in args else ["--policy", "random"]
+    rc = main(["evaluate", *policy, *args, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(err) == 1, err
+    assert err[0].startswith("error: magail-sumo evaluate: ") and message in err[0]
+    assert not (tmp_path / "out").exists()  # refused before anything ran
