@@ -4,6 +4,8 @@ mid-rollout, and an unreachable cluster refused in one line."""
 
 from __future__ import annotations
 
+import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +86,25 @@ def test_ray_actors_on_both_nodes_give_the_process_rollouts(cluster, tmp_path):
     assert {n["NodeID"] for n in ray.nodes() if n["Alive"]} == nodes
     for a, b in zip(want, got):
         np.testing.assert_array_equal(a, b)
+
+    # a hung actor (its SUMO stopped) times out, is replaced, and the rollout is unchanged
+    def hang(t, v):
+        if t == 17:
+            os.kill(v._handles[1].pid, signal.SIGSTOP)
+            v.timeout_s = 4.0
+
+    logs: list[str] = []
+    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=5, backend="ray",
+                        backend_options={"address": cluster.address}, max_restarts=1,
+                        log=logs.append)
+    try:
+        got = roll_random(venv, 40, seed=1, hook=hang)
+        assert venv.restarts == 1
+    finally:
+        venv.close()
+    for a, b in zip(want, got):
+        np.testing.assert_array_equal(a, b)
+    assert any("Ray actor did not answer within 4 s" in m and "replaced" in m for m in logs)
 
 
 def test_ray_training_goes_on_past_a_killed_actor(cluster, tmp_path):

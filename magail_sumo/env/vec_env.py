@@ -387,6 +387,9 @@ class MultiSceneVecEnv(VecEnv):
         self.config = config or EnvConfig()
         self.seed_base = seed
         self.timeout_s = timeout_s
+        #: seconds a (re)started worker gets to start and replay its episode: at least a minute,
+        #: as starting a process or actor, importing and building the scene take a while
+        self.start_timeout_s = max(timeout_s, 60.0)
         self.backend = backend
         self.max_restarts = max_restarts
         self.log = log or (lambda msg: None)
@@ -491,12 +494,12 @@ class MultiSceneVecEnv(VecEnv):
         episode replayed)."""
         self._handles[k].kill()
         self._handles[k] = self._new_handle(k)
-        self._handles[k].recv(self.timeout_s)  # hello
+        self._handles[k].recv(self.start_timeout_s)  # hello
         if self.pin_workers:
             self._pin(k)
         acts = self._ep_actions[k]
-        self._handles[k].send("restore", (self._episode[k], acts), self.timeout_s)
-        self._handles[k].recv(self.timeout_s)
+        self._handles[k].send("restore", (self._episode[k], acts), self.start_timeout_s)
+        self._handles[k].recv(self.start_timeout_s)
         self.restarts += 1
         self.log(f"worker {k} ({self.specs[k].name}) lost: {reason.splitlines()[0]}; replaced "
                  f"on {self._handles[k].node or 'local'}, episode {self._episode[k]} replayed "
@@ -540,7 +543,7 @@ class MultiSceneVecEnv(VecEnv):
                     if cmd in ("reset", "restore"):  # the request itself sets the state
                         self._handles[k].kill()
                         self._handles[k] = self._new_handle(k)
-                        self._handles[k].recv(self.timeout_s)
+                        self._handles[k].recv(self.start_timeout_s)
                         if self.pin_workers:
                             self._pin(k)
                         self.restarts += 1
