@@ -265,3 +265,23 @@ def test_city_scenario_trains_beside_a_recorded_scene(tmp_path):
         assert run.update == 2
     finally:
         run.close()
+
+
+def test_resume_keeps_the_runs_worker_count():
+    from magail_sumo.config import from_dict, to_dict
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import resume_worker_count
+
+    now = from_dict(TrainConfig, {"scenes": {"files": [str(f) for f in SMALL]}})
+    # a run that resolved 2 workers resumes with 2 when the config leaves the count null
+    saved = to_dict(from_dict(TrainConfig, {"workers": {"count": 2}}))
+    cfg, cmp = resume_worker_count(now, {"config": saved, "env_state": [0, 0]})
+    assert cfg.workers.count == 2 and cmp["workers"]["count"] == 2
+    # a checkpoint from before worker pools: one worker per scene of its env state
+    old = {k: v for k, v in to_dict(now).items() if k != "workers"}
+    cfg, cmp = resume_worker_count(now, {"config": old, "env_state": [0, 0, 0]})
+    assert cfg.workers.count == 3 and cmp["workers"] == {"count": 3}
+    # an explicit count in the config is kept (a differing one is refused by the config check)
+    pinned = from_dict(TrainConfig, {"workers": {"count": 3}})
+    cfg, cmp = resume_worker_count(pinned, {"config": old, "env_state": [0, 0, 0]})
+    assert cfg.workers.count == 3 and cmp["workers"]["count"] == 3

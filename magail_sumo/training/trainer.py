@@ -264,6 +264,22 @@ def checkpoint_config(state: dict, path: str | Path) -> TrainConfig:
         raise CheckpointError(f"{path}: the checkpoint's config is invalid ({exc})") from None
 
 
+def resume_worker_count(cfg: TrainConfig, ckpt: dict) -> tuple[TrainConfig, dict]:
+    """``cfg`` and the checkpoint's config dict with the run's worker count filled in: a
+    checkpoint records the count it resolved (``workers.count``); one written before worker
+    pools had one worker per scene, as many as its env state has entries. ``cfg`` with
+    ``workers.count`` null takes the run's count."""
+    saved = dict(ckpt["config"])
+    workers = dict(saved.get("workers") or {})
+    if workers.get("count") is None:
+        workers["count"] = max(1, len(ckpt.get("env_state") or ())) \
+            if "workers" not in saved else None
+    saved["workers"] = workers
+    if cfg.workers.count is None and workers["count"] is not None:
+        cfg = replace(cfg, workers=replace(cfg.workers, count=int(workers["count"])))
+    return cfg, saved
+
+
 def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
     now = to_dict(cfg)
     try:  # keys added since the run was saved compare as their defaults
@@ -412,10 +428,9 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
         rd = Path(resume)
         where = rd / "checkpoints" / "latest.pt"
         ckpt = load_checkpoint(where)
-        saved_cfg = checkpoint_config(ckpt, where)  # valid, or an error naming the file
-        if cfg.workers.count is None:  # the run resumes with the number it resolved
-            cfg = replace(cfg, workers=replace(cfg.workers, count=saved_cfg.workers.count))
-        _check_resume_config(cfg, ckpt["config"], where)
+        checkpoint_config(ckpt, where)  # a valid config, or an error naming the file
+        cfg, saved = resume_worker_count(cfg, ckpt)
+        _check_resume_config(cfg, saved, where)
         run_dir = rd
     else:
         run_dir = check_run_dir(Path(run_dir) if run_dir is not None else _run_dir(cfg, None))
