@@ -147,3 +147,13 @@ def test_ray_training_goes_on_past_a_killed_actor(cluster, tmp_path):
     assert any(m.startswith("worker 0 ") and "Ray actor died" in m and "replaced" in m
                for m in logs), logs
     assert any(m.startswith("scene pool: 3 scene(s) over 2 ray worker(s)") for m in logs)
+
+
+def test_too_few_cluster_cpus_is_one_line(cluster, tmp_path):
+    from magail_sumo.env.ray_workers import RayUnavailable
+
+    refs = [RecordRef(str(f)) for f in SCENES]
+    with pytest.raises(RayUnavailable, match=r"the Ray cluster has 2 CPUs; 3 scene workers of "
+                                             r"1 CPU each need 3"):
+        pool_vec_env(refs, tmp_path / "nets", 3, CFG, backend="ray",
+                     backend_options={"address": cluster.address})

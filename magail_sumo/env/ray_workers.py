@@ -55,9 +55,13 @@ def _reachable(address: str, timeout_s: float = 5.0) -> str | None:
         return exc.strerror or str(exc) or type(exc).__name__
 
 
-def init_ray(address: str | None = None) -> None:
-    """Start a local Ray (``address`` None) or connect to the cluster at ``address``, once per
-    process; :class:`RayUnavailable` (one line) when it cannot be reached."""
+def init_ray(address: str | None = None, cpus: float | None = None) -> None:
+    """Start a local Ray (``address`` None; with at least ``cpus`` logical CPUs, so that every
+    worker actor can be placed on this machine) or connect to the cluster at ``address``, once
+    per process; :class:`RayUnavailable` (one line) when it cannot be reached."""
+    import math
+    import os
+
     ray = _ray()
     if ray.is_initialized():
         return
@@ -66,9 +70,11 @@ def init_ray(address: str | None = None) -> None:
         if why is not None:
             raise RayUnavailable(f"workers.ray.address {address}: no Ray cluster answers there "
                                  f"({why}); start one with `ray start --head` or fix the address")
+    local = {} if address not in (None, "local") else \
+        {"num_cpus": max(os.cpu_count() or 1, math.ceil(cpus or 0))}
     try:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                 logging_level="ERROR", configure_logging=False)
+        ray.init(address=None if address == "local" else address, include_dashboard=False,
+                 log_to_driver=False, logging_level="ERROR", configure_logging=False, **local)
     except Exception as exc:  # noqa: BLE001 - Ray raises many types here
         text = " ".join(str(exc).split())[:300]
         raise RayUnavailable(f"workers.ray.address {address or '(local)'}: cannot start or "
@@ -107,7 +113,16 @@ class RayWorker(WorkerHandle):
 
     @classmethod
     def prepare(cls, options: dict, workers: int) -> None:
-        init_ray(options.get("address"))
+        """Start or join Ray; :class:`RayUnavailable` when the cluster has too few CPUs for
+        the workers' actors (they would wait forever to be placed)."""
+        need = workers * float(options.get("num_cpus", 1.0))
+        init_ray(options.get("address"), need)
+        have = float(_ray().cluster_resources().get("CPU", 0.0))
+        if have < need:
+            raise RayUnavailable(
+                f"the Ray cluster has {have:g} CPUs; {workers} scene workers of "
+                f"{float(options.get('num_cpus', 1.0)):g} CPU each need {need:g} "
+                "(lower workers.count or workers.ray.num_cpus, or add nodes)")
 
     def start(self) -> None:
         ray = _ray()
