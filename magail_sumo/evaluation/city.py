@@ -49,8 +49,8 @@ from pathlib import Path
 
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.rollouts import (BASELINES, DEFAULT_TIMEOUT_S, EvaluationError,
-                                             log, make_policy, method_name, rollout_seed,
-                                             versions)
+                                             log, make_policy, method_name, previous_manifest,
+                                             rollout_seed, versions)
 from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSummary,
                                                          output_args, run_sumo_outputs,
                                                          summarise)
@@ -381,12 +381,7 @@ def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
 def _record(out: Path, policy: str, method: str, st: CitySettings, windows: dict) -> None:
     """Record the city run in ``out/manifest.json`` (created minimal when absent)."""
     path = out / "manifest.json"
-    try:
-        man = json.loads(path.read_text()) if path.is_file() else {}
-    except (OSError, ValueError):
-        man = {}
-    if not isinstance(man, dict):
-        man = {}
+    man = previous_manifest(out)
     if not man:
         man = {"scenes": [], "methods": [], "policy": method, "policy_spec": policy,
                "seed": st.seed, "deterministic": bool(st.deterministic),

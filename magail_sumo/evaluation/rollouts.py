@@ -732,16 +732,22 @@ def versions() -> dict[str, str]:
     return out
 
 
+def previous_manifest(out: Path) -> dict:
+    """``out/manifest.json`` as a dict to merge into ({} when absent, unreadable or not an
+    object; :func:`read_manifest` is the strict reader)."""
+    path = out / "manifest.json"
+    try:
+        man = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        man = {}
+    return man if isinstance(man, dict) else {}
+
+
 def write_manifest(out: Path, manifest: dict) -> None:
     """Merge ``manifest`` into ``out/manifest.json`` (methods and scenes accumulate; an
     unreadable old manifest is replaced); written atomically."""
     path = out / "manifest.json"
-    try:
-        old = json.loads(path.read_text()) if path.is_file() else {}
-    except (OSError, ValueError):
-        old = {}
-    if not isinstance(old, dict):
-        old = {}
+    old = previous_manifest(out)
     if old and (old.get("rollouts"), old.get("seed")) != (manifest["rollouts"], manifest["seed"]):
         # another run setting: start afresh (city results, evaluation.city, do not depend on it)
         old = {"city": old["city"]} if "city" in old else {}
