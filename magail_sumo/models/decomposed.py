@@ -209,11 +209,16 @@ class DecomposedDiscriminator(_TokenInput):
             raise ValueError("the decomposed discriminator needs the vehicles' poses")
         nb = self.neighbours(pos, mask)
         xm = x * self.feature_mask
-        ego = self.ego(xm).squeeze(-1)
-        pre = (self.pair_i(xm).unsqueeze(2) + _gather_slots(self.pair_j(xm), nb.index)
-               + self.pair_geometry(nb.geometry.to(x.dtype)))  # (B, V, K, H)
-        pair = self.pair_rest(pre).squeeze(-1)
-        pair = torch.where(nb.valid, pair, 0.0)
+        # the heads run on present vehicles and valid pairs only (a padded batch of a large
+        # scene is mostly absent slots and missing neighbours); the rest stays 0
+        bi, vi = mask.nonzero(as_tuple=True)
+        ego = x.new_zeros(mask.shape).index_put((bi, vi), self.ego(xm[bi, vi]).squeeze(-1))
+        pb, pv, pk = nb.valid.nonzero(as_tuple=True)
+        pj = nb.index[pb, pv, pk]
+        pre = (self.pair_i(xm[pb, pv]) + self.pair_j(xm[pb, pj])
+               + self.pair_geometry(nb.geometry[pb, pv, pk].to(x.dtype)))  # (P, H)
+        pair = x.new_zeros(nb.valid.shape).index_put((pb, pv, pk),
+                                                     self.pair_rest(pre).squeeze(-1))
         tokens = (ego + (nb.weight.to(x.dtype) * pair).sum(-1)).masked_fill(~mask, 0.0)
         m = mask.to(tokens.dtype)
         return tokens, (tokens * m).sum(1) / m.sum(1).clamp(min=1.0)
