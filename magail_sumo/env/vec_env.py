@@ -489,14 +489,18 @@ class MultiSceneVecEnv(VecEnv):
             self._kill_all()
             raise VecEnvWorkerError(str(exc)) from None
 
-    def _replace(self, k: int, reason: str) -> None:
-        """Start a fresh worker ``k`` in the state of the lost one (same seed; the current
-        episode replayed)."""
+    def _restart(self, k: int) -> None:
+        """Kill worker ``k`` and start a fresh one with the same source, seed and slots."""
         self._handles[k].kill()
         self._handles[k] = self._new_handle(k)
         self._handles[k].recv(self.start_timeout_s)  # hello
         if self.pin_workers:
             self._pin(k)
+
+    def _replace(self, k: int, reason: str) -> None:
+        """Start a fresh worker ``k`` in the state of the lost one (same seed; the current
+        episode replayed)."""
+        self._restart(k)
         acts = self._ep_actions[k]
         self._handles[k].send("restore", (self._episode[k], acts), self.start_timeout_s)
         self._handles[k].recv(self.start_timeout_s)
@@ -541,11 +545,7 @@ class MultiSceneVecEnv(VecEnv):
                                                       "failed too)" if self.max_restarts else ""))
                 try:
                     if cmd in ("reset", "restore"):  # the request itself sets the state
-                        self._handles[k].kill()
-                        self._handles[k] = self._new_handle(k)
-                        self._handles[k].recv(self.start_timeout_s)
-                        if self.pin_workers:
-                            self._pin(k)
+                        self._restart(k)
                         self.restarts += 1
                         self.log(f"worker {k} ({self.specs[k].name}) lost: "
                                  f"{reason.splitlines()[0]}; replaced")
