@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import WOMD_DIR
+from conftest import ROOT, WOMD_DIR
 from converters import load_scene
 from converters.sumo.scenario import ConvertOptions, convert_scene
 from magail_sumo.evaluation import rollouts as rl
@@ -112,3 +112,46 @@ def test_put_off_insertion_starts_at_the_current_step(tmp_path):
     assert np.hypot(ro.x[0, a, -1] - cx[a, -1], ro.y[0, a, -1] - cy[a, -1]) > 5.0  # SUMO drives it
     sim = scenario_metrics(scene, ro, validate=False)
     assert sim["simulated_collision_rate"] == 0.0
+
+
+@pytest.mark.sumo
+def test_route_vehicles_drive_on_past_their_route_end(bundle):
+    """A route vehicle reaching the last edge of its route (its log ends there) keeps driving in
+    SUMO on the straightest connection instead of leaving SUMO and moving at constant velocity
+    through the traffic (on 637f20cafde22ff8 several do within 9 s)."""
+    import libsumo as ls
+
+    scene, folder = bundle
+    ends: dict[str, str] = {}
+    extended: dict[str, str] = {}
+    reached: set[str] = set()
+    with SumoSession(folder / f"{scene.scenario_id}.sumocfg") as sim:
+        for _ in range(91):
+            sim.step()
+            v = sim.vehicles()
+            reached |= {vid for vid, e in zip(v.ids, v.edge) if extended.get(vid) == e}
+            before = dict(ends)
+            rl._continue_routes(ls, v, ends)
+            for vid, e in ends.items():
+                if e and before.get(vid, e) != e:
+                    extended[vid] = e
+                    assert ls.vehicle.getRoute(vid)[-1] == e
+                    assert e in {ls.lane.getEdgeID(ln[0])
+                                 for ln in ls.lane.getLinks(ls.vehicle.getLaneID(vid))}
+    assert extended and reached  # some were continued, and drove onto the added edge
+
+
+@pytest.mark.sumo
+def test_current_step_zero_starts_at_the_recorded_pose(tmp_path):
+    """6f85f27e0243fc10 starts at step 0: vehicles due then were inserted by SUMO at their
+    route's depart position (the SDC 3.4 m behind its recorded pose, then it drove into the
+    junction); they now start at their recorded pose like every other route vehicle."""
+    scene = load_scene(ROOT / "data" / "scenarionet" / "6f85f27e0243fc10.pkl")
+    assert scene.current_time_index == 0
+    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
+    assert rep.status == "ok", rep.reason
+    ro = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    sdc = int(scene.tracks.id[scene.sdc_track_index])
+    a = int(np.flatnonzero(ro.object_id == sdc)[0])
+    cx, cy, _ = rl.constant_velocity(scene, ro.object_id)
+    assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0

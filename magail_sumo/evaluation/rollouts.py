@@ -14,10 +14,14 @@ sim-agent set). Methods:
   (pedestrians, objects SUMO does not carry, parked vehicles, route vehicles that depart later
   or whose insertion SUMO refused) moves at constant velocity and is an obstacle in SUMO
   (:class:`~magail_sumo.sim.session.Obstacles`) that SUMO's drivers brake for; a route vehicle
-  departing later leaves its obstacle when SUMO inserts it; one that leaves SUMO early (its route
-  ends) goes on at constant velocity as an obstacle. A route vehicle whose insertion SUMO
-  put off (no room at its departure) is inserted at its recorded pose at the current step when
-  its route passes within :data:`QUEUED_MATCH` m, else it is taken out of SUMO and an obstacle.
+  departing later leaves its obstacle when SUMO inserts it. A route vehicle that reaches the
+  last edge of its route (its log ended there, or SUMO drove it faster than the human) keeps
+  driving: its route is extended, edge by edge, by the straightest connection from its lane
+  (:func:`_continue_routes`); only one that reaches the end of the network leaves SUMO, and goes
+  on at constant velocity as an obstacle. A route vehicle due at the current step or whose
+  insertion SUMO put off (no room at its departure) is inserted at its recorded pose at the
+  current step when its route passes within :data:`QUEUED_MATCH` m, else it is taken out of
+  SUMO and an obstacle.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
   drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
   (bicycle model, SUMO co-simulation, no event terminates an agent). Each rollout builds its
@@ -43,7 +47,7 @@ import math
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Protocol
+from typing import Callable, Collection, Iterable, Iterator, Protocol
 
 import numpy as np
 
@@ -284,6 +288,38 @@ def _departures(folder: Path, sumocfg: Path) -> dict[str, int]:
             for v in root.iter("vehicle")}
 
 
+#: link directions (SUMO ``lane.getLinks``) in the order a continued route prefers them;
+#: turnarounds ("t") are never taken
+_CONTINUE_ORDER = {"s": 0, "R": 1, "L": 1, "r": 2, "l": 2}
+
+
+def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] = ()) -> None:
+    """Extend the route of every vehicle now on the last edge of its route by one edge: the
+    successor reached from its lane by the straightest link (:data:`_CONTINUE_ORDER`, then
+    the shorter link). ``ends`` maps a vehicle to the last edge of its route (filled on first
+    sight, updated when extended, "" when its lane has no successor: it arrives there);
+    vehicles in ``keep`` (parked ones, held at their parking stop) keep their routes."""
+    for vid, edge in zip(vehicles.ids, vehicles.edge):
+        if vid in keep:
+            continue
+        last = ends.get(vid)
+        if last is None:
+            last = ends[vid] = ls.vehicle.getRoute(vid)[-1]
+        if edge != last or not last:
+            continue
+        links = [ln for ln in ls.lane.getLinks(ls.vehicle.getLaneID(vid))
+                 if ln[6] in _CONTINUE_ORDER]
+        if not links:
+            ends[vid] = ""
+            continue
+        nxt = ls.lane.getEdgeID(min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]], ln[7]))[0])
+        try:
+            ls.vehicle.setRoute(vid, [edge, nxt])
+            ends[vid] = nxt
+        except Exception:  # SUMO refused the route (e.g. the class may not use it)
+            ends[vid] = ""
+
+
 def _drop(ls, ids, routed: set[str]) -> None:
     """Take route vehicles that have not departed out of SUMO's insertion queue."""
     for i in ids:
@@ -317,6 +353,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
     due: set[str] = set()
     later: set[str] = set()
     gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO
+    ends: dict[str, str] = {}  # driven vehicle -> last edge of its (continued) route
     obstacles: Obstacles | None = None
     obs = np.zeros(0, np.int64)
     ox, oy, oyaw = constant_velocity(scene, ids)  # the future of every agent SUMO does not drive
@@ -327,7 +364,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                 # route vehicles whose insertion SUMO has put off (no room at their departure)
                 # are inserted at their recorded pose on their route, when it is that close
                 queued = {vid for vid in col if vid in routed and vid not in present
-                          and vid not in bundle.parked and departs.get(vid, cur) < cur}
+                          and vid not in bundle.parked and departs.get(vid, cur) <= cur}
                 for vid in sorted(present | queued):
                     a = col.get(vid)
                     if a is None or vid in bundle.parked:
@@ -397,6 +434,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                     ls.vehicle.setSpeedFactor(vid, f)
             if k > cur:
                 v = sess.vehicles()
+                _continue_routes(ls, v, ends, bundle.parked)
                 t = k - cur - 1
                 sel = [(i, col[vid]) for i, vid in enumerate(v.ids)
                        if vid in col and vid not in bundle.parked]
