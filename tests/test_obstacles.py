@@ -155,3 +155,41 @@ def test_current_step_zero_starts_at_the_recorded_pose(tmp_path):
     a = int(np.flatnonzero(ro.object_id == sdc)[0])
     cx, cy, _ = rl.constant_velocity(scene, ro.object_id)
     assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0
+
+
+def test_mapped_ahead_of_a_dead_end():
+    shape = np.array([[0.0, 0.0], [10.0, 0.0]])  # a lane ending at x = 10 m, heading +x
+    assert rl._mapped_ahead(shape, np.array([[20.0, 3.0]]))  # road 10 m ahead, 3 m aside
+    assert not rl._mapped_ahead(shape, np.array([[11.0, 0.0]]))  # closer than 2 m
+    assert not rl._mapped_ahead(shape, np.array([[50.0, 0.0]]))  # beyond 30 m
+    assert not rl._mapped_ahead(shape, np.array([[20.0, 9.0]]))  # more than 8 m aside
+    assert not rl._mapped_ahead(shape, np.array([[0.0, 0.0], [-10.0, 0.0]]))  # behind
+    assert not rl._mapped_ahead(shape, np.zeros((0, 2)))
+
+
+@pytest.mark.sumo
+def test_dead_end_inside_the_map_holds_the_vehicle(bundle):
+    """On 637f20cafde22ff8 some route vehicles reach lanes without successor (but a U-turn)
+    while the map goes on ahead (driveways, lots): SUMO holds them at the lane's end instead of letting them leave
+    and move on at constant velocity through whatever is mapped there."""
+    import libsumo as ls
+
+    from magail_sumo.env.bundle import SceneBundle
+
+    scene, folder = bundle
+    parked = SceneBundle.load(scene, folder).parked  # held at their own parking stops
+    points = rl.map_points(scene)
+    ends: dict[str, str] = {}
+    held: set[str] = set()
+    with SumoSession(folder / f"{scene.scenario_id}.sumocfg") as sim:
+        for _ in range(150):
+            sim.step()
+            v = sim.vehicles()
+            rl._continue_routes(ls, v, ends, parked, points)
+            held |= {vid for vid in v.ids if vid not in parked and ls.vehicle.getStops(vid)}
+        present = set(sim.vehicles().ids)
+        assert held and held <= present  # stopped there, never arrived
+        for vid in held:  # at (or queued just before) the end of a lane going nowhere else
+            lane = ls.vehicle.getLaneID(vid)
+            assert not [ln for ln in ls.lane.getLinks(lane) if ln[6] in rl._CONTINUE_ORDER]
+            assert ls.lane.getLength(lane) - ls.vehicle.getLanePosition(vid) < 10.0

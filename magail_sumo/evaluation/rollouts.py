@@ -17,8 +17,9 @@ sim-agent set). Methods:
   departing later leaves its obstacle when SUMO inserts it. A route vehicle that reaches the
   last edge of its route (its log ended there, or SUMO drove it faster than the human) keeps
   driving: its route is extended, edge by edge, by the straightest connection from its lane
-  (:func:`_continue_routes`); only one that reaches the end of the network leaves SUMO, and goes
-  on at constant velocity as an obstacle. A route vehicle due at the current step or whose
+  (:func:`_continue_routes`); at a dead end inside the mapped area (a driveway or parking aisle
+  without a lane) it stops at the lane's end, and only one that reaches the edge of the map
+  leaves SUMO and goes on at constant velocity as an obstacle. A route vehicle due at the current step or whose
   insertion SUMO put off (no room at its departure) is inserted at its recorded pose at the
   current step when its route passes within :data:`QUEUED_MATCH` m, else it is taken out of
   SUMO and an obstacle.
@@ -293,12 +294,47 @@ def _departures(folder: Path, sumocfg: Path) -> dict[str, int]:
 _CONTINUE_ORDER = {"s": 0, "R": 1, "L": 1, "r": 2, "l": 2}
 
 
-def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] = ()) -> None:
+#: m, a dead end (a lane without successor) has mapped road ahead when lane, road-line or
+#: road-edge points lie between these distances ahead of the lane's end...
+DEAD_END_AHEAD = (2.0, 30.0)
+#: m, ...and within this distance to either side of its direction
+DEAD_END_HALF_WIDTH = 8.0
+
+
+def map_points(scene: Scene) -> np.ndarray:
+    """(P, 2) points of every lane, road line and road edge of the scene's map (scene frame)."""
+    m = scene.roadmap
+    parts = [f.polyline[:, :2] for feats in (m.lanes, m.road_lines, m.road_edges) for f in feats]
+    return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 2))
+
+
+def _mapped_ahead(shape: np.ndarray, points: np.ndarray) -> bool:
+    """Whether ``points`` (P, 2) hold mapped road ahead of the end of a lane of centre line
+    ``shape`` (K, 2): :data:`DEAD_END_AHEAD` along its last segment, within
+    :data:`DEAD_END_HALF_WIDTH` to the side."""
+    d = shape[-1] - shape[-2]
+    n = float(np.hypot(*d))
+    if n < 1e-6 or not len(points):
+        return False
+    ux, uy = d / n
+    rx, ry = (points - shape[-1]).T
+    ahead, side = rx * ux + ry * uy, np.abs(ry * ux - rx * uy)
+    lo, hi = DEAD_END_AHEAD
+    return bool(np.any((ahead > lo) & (ahead < hi) & (side < DEAD_END_HALF_WIDTH)))
+
+
+def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] = (),
+                     points: np.ndarray | None = None) -> None:
     """Extend the route of every vehicle now on the last edge of its route by one edge: the
     successor reached from its lane by the straightest link (:data:`_CONTINUE_ORDER`, then
     the shorter link). ``ends`` maps a vehicle to the last edge of its route (filled on first
-    sight, updated when extended, "" when its lane has no successor: it arrives there);
-    vehicles in ``keep`` (parked ones, held at their parking stop) keep their routes."""
+    sight, updated when extended, "" when it is not extended further); vehicles in ``keep``
+    (parked ones, held at their parking stop) keep their routes.
+
+    A lane without a successor (a turnaround aside) is a dead end: where the scene's map goes on ahead of it
+    (``points``, :func:`map_points`; :func:`_mapped_ahead`) — the end of a driveway or parking
+    aisle the map has no lane for — the vehicle stops at the lane's end and stays there (as the
+    humans who drive there park); at the edge of the map it leaves SUMO at the lane's end."""
     for vid, edge in zip(vehicles.ids, vehicles.edge):
         if vid in keep:
             continue
@@ -307,17 +343,21 @@ def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] =
             last = ends[vid] = ls.vehicle.getRoute(vid)[-1]
         if edge != last or not last:
             continue
-        links = [ln for ln in ls.lane.getLinks(ls.vehicle.getLaneID(vid))
-                 if ln[6] in _CONTINUE_ORDER]
-        if not links:
-            ends[vid] = ""
-            continue
-        nxt = ls.lane.getEdgeID(min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]], ln[7]))[0])
+        lane = ls.vehicle.getLaneID(vid)
+        links = [ln for ln in ls.lane.getLinks(lane) if ln[6] in _CONTINUE_ORDER]
+        ends[vid] = ""
         try:
-            ls.vehicle.setRoute(vid, [edge, nxt])
-            ends[vid] = nxt
-        except Exception:  # SUMO refused the route (e.g. the class may not use it)
-            ends[vid] = ""
+            if links:
+                nxt = ls.lane.getEdgeID(min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]],
+                                                                   ln[7]))[0])
+                ls.vehicle.setRoute(vid, [edge, nxt])
+                ends[vid] = nxt
+            elif points is not None and _mapped_ahead(np.asarray(ls.lane.getShape(lane)),
+                                                      points):
+                ls.vehicle.setStop(vid, edge, max(0.0, ls.lane.getLength(lane) - 0.1),
+                                   ls.vehicle.getLaneIndex(vid), duration=1e6)
+        except Exception:  # SUMO refused (the class may not use the edge; too close to brake)
+            pass
 
 
 def _drop(ls, ids, routed: set[str]) -> None:
@@ -354,6 +394,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
     later: set[str] = set()
     gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO
     ends: dict[str, str] = {}  # driven vehicle -> last edge of its (continued) route
+    points = map_points(scene)
     obstacles: Obstacles | None = None
     obs = np.zeros(0, np.int64)
     ox, oy, oyaw = constant_velocity(scene, ids)  # the future of every agent SUMO does not drive
@@ -434,7 +475,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                     ls.vehicle.setSpeedFactor(vid, f)
             if k > cur:
                 v = sess.vehicles()
-                _continue_routes(ls, v, ends, bundle.parked)
+                _continue_routes(ls, v, ends, bundle.parked, points)
                 t = k - cur - 1
                 sel = [(i, col[vid]) for i, vid in enumerate(v.ids)
                        if vid in col and vid not in bundle.parked]
