@@ -30,6 +30,7 @@ from typing import Any
 from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, one_line,
                                  printable, read_marker, safe_name, write_text)
 from magail_sumo.scene import LaneType, Scene
+from magail_sumo.scene.types import STEP_LENGTH
 
 from .matching import build_index
 from .network import build_network
@@ -39,7 +40,6 @@ from .signals import build_programs, write_programs
 from .synthesis import carried_states, synthesize_lanes
 from .topology import TimeBudgetExceeded, plan_network
 
-STEP_LENGTH = 0.1  #: s
 
 #: Version of the converter's outputs, recorded in ``conversion.json`` (``converter_version``,
 #: with a digest of this package's sources appended: see :func:`converter_version`). ``convert``

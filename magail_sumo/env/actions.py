@@ -6,6 +6,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from magail_sumo.sim.dynamics import ACTION_SIZE
+
 _ABSENT = object()
 #: keys of the envs' ``action_counts`` (per episode)
 ACTION_COUNTS = ("missing", "unknown", "departed", "nonfinite", "clipped")
@@ -30,7 +32,7 @@ def checked_actions(actions: Mapping[str, Any], names: Sequence[str]
 
     :raises ValueError: an action that is not two numbers (naming the agent).
     """
-    raw = np.full((len(names), 2), np.nan)
+    raw = np.full((len(names), ACTION_SIZE), np.nan)
     missing = np.zeros(len(names), bool)
     present = 0
     for i, name in enumerate(names):  # dict → array: the PettingZoo interface is per agent
@@ -41,7 +43,7 @@ def checked_actions(actions: Mapping[str, Any], names: Sequence[str]
             missing[i] = True
             continue
         try:
-            raw[i] = np.asarray(v, np.float64).reshape(2)
+            raw[i] = np.asarray(v, np.float64).reshape(ACTION_SIZE)
         except (TypeError, ValueError):
             raise ValueError(f"action of agent {name}: expected 2 numbers [accel, steer], got "
                              f"{np.shape(v) if hasattr(v, '__len__') else type(v).__name__}"

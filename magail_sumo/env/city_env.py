@@ -154,7 +154,7 @@ class SumoCityEnv(ParallelEnv):
         self.possible_agents = vehicle_ids
         low, high = observation_bounds(cfg.observation)
         self._obs_space = spaces.Box(low, high, dtype=np.float32)
-        self._act_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self._act_space = spaces.Box(-1.0, 1.0, (dynamics.ACTION_SIZE,), np.float32)
         self._session: SumoSession | None = None
         self._state_dir = tempfile.TemporaryDirectory(prefix="magail_city_")
         self._state_file: Path | None = None
@@ -206,7 +206,7 @@ class SumoCityEnv(ParallelEnv):
         self._length, self._width = np.zeros(n_max), np.zeros(n_max)
         self._dest = np.zeros((n_max, 2))
         self._dest_yaw = np.zeros(n_max)
-        self._prev_action = np.zeros((n_max, 2))
+        self._prev_action = np.zeros((n_max, dynamics.ACTION_SIZE))
         self._active = np.zeros(n_max, bool)
         self._nan = np.zeros(n_max, np.int64)
         self._clipped = np.zeros(n_max, np.int64)

@@ -127,7 +127,8 @@ class SumoDrivingEnv(ParallelEnv):
         self.stop_lines = StopLines.build(scene)
         low, high = observation_bounds(cfg.observation)
         self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
-        self._act_spaces = {a: spaces.Box(-1.0, 1.0, (2,), np.float32) for a in self.possible_agents}
+        act = (dynamics.ACTION_SIZE,)
+        self._act_spaces = {a: spaces.Box(-1.0, 1.0, act, np.float32) for a in self.possible_agents}
         self._session: SumoSession | None = None
         self._obstacles: Obstacles | None = None
         self._renderer: TopDownRenderer | None = None
@@ -223,7 +224,7 @@ class SumoDrivingEnv(ParallelEnv):
                 low, high = observation_bounds(cfg.observation)
                 for a in new:
                     self._obs_spaces[a] = spaces.Box(low, high, dtype=np.float32)
-                    self._act_spaces[a] = spaces.Box(-1.0, 1.0, (2,), np.float32)
+                    self._act_spaces[a] = spaces.Box(-1.0, 1.0, (dynamics.ACTION_SIZE,), np.float32)
                 self.possible_agents = self.possible_agents + new
         self.start = start
         if seed is not None:
@@ -244,7 +245,7 @@ class SumoDrivingEnv(ParallelEnv):
             if self._obstacle_rows.size else None
         c = len(self._ctrl)
         self._x, self._y, self._yaw, self._speed = (np.zeros(c) for _ in range(4))
-        self._prev_action = np.zeros((c, 2))
+        self._prev_action = np.zeros((c, dynamics.ACTION_SIZE))
         self._active = np.zeros(c, bool)
         self._joined = np.zeros(c, bool)
         self._nan = np.zeros(c, np.int64)

@@ -47,6 +47,7 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sim.dynamics import ACTION_SIZE
 
 from .config import EnvConfig, draw_start
 
@@ -455,7 +456,7 @@ class MultiSceneVecEnv(VecEnv):
         self._ep_actions: list[list[np.ndarray]] = [[] for _ in self.specs]
         self._actions: np.ndarray | None = None
         super().__init__(n, spaces.Box(low, high, dtype=np.float32),
-                         spaces.Box(-1.0, 1.0, (2,), np.float32))
+                         spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32))
 
     # ------------------------------------------------------------------ workers
     def _new_handle(self, k: int):

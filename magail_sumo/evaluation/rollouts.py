@@ -19,10 +19,10 @@ sim-agent set). Methods:
   driving: its route is extended, edge by edge, by the straightest connection from its lane
   (:func:`_continue_routes`); at a dead end inside the mapped area (a driveway or parking aisle
   without a lane) it stops at the lane's end, and only one that reaches the edge of the map
-  leaves SUMO and goes on at constant velocity as an obstacle. A route vehicle due at the current step or whose
-  insertion SUMO put off (no room at its departure) is inserted at its recorded pose at the
-  current step when its route passes within :data:`QUEUED_MATCH` m, else it is taken out of
-  SUMO and an obstacle.
+  leaves SUMO and goes on at constant velocity as an obstacle. A route vehicle due at the
+  current step or whose insertion SUMO put off (no room at its departure) is inserted at its
+  recorded pose at the current step when its route passes within :data:`QUEUED_MATCH` m, else
+  it is taken out of SUMO and an obstacle.
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
   drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
   (bicycle model, SUMO co-simulation, no event terminates an agent). Each rollout builds its
@@ -53,14 +53,15 @@ from typing import Callable, Collection, Iterable, Iterator, Protocol
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.realism.kinematic import wrap_angle
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
 from magail_sumo.outputs import (NameRegistry, OutputError, atomic_path, claim_output_dir, inside,
                                  one_line, printable, safe_name, write_text)
 from magail_sumo.scene import Scene
+from magail_sumo.scene.types import STEP_LENGTH
+from magail_sumo.sim.dynamics import ACTION_SIZE, wrap_angle
 
 N_STEPS = 80  #: simulated steps per rollout (8 s)
-DT = 0.1  #: s per step
+DT = STEP_LENGTH  #: s per step
 BASELINES = ("logreplay", "constvel", "sumo")
 BUILTIN_POLICIES = ("random",)
 SUMO_METHODS = ("sumo",)  #: baselines that need SUMO (worker processes)
@@ -92,7 +93,7 @@ class RandomPolicy:
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         names = sorted(observations)
-        a = self.rng.uniform(-1.0, 1.0, (len(names), 2)).astype(np.float32)
+        a = self.rng.uniform(-1.0, 1.0, (len(names), ACTION_SIZE)).astype(np.float32)
         return dict(zip(names, a))
 
 
@@ -331,10 +332,11 @@ def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] =
     sight, updated when extended, "" when it is not extended further); vehicles in ``keep``
     (parked ones, held at their parking stop) keep their routes.
 
-    A lane without a successor (a turnaround aside) is a dead end: where the scene's map goes on ahead of it
-    (``points``, :func:`map_points`; :func:`_mapped_ahead`) — the end of a driveway or parking
-    aisle the map has no lane for — the vehicle stops at the lane's end and stays there (as the
-    humans who drive there park); at the edge of the map it leaves SUMO at the lane's end."""
+    A lane without a successor (a turnaround aside) is a dead end: where the scene's map goes on
+    ahead of it (``points``, :func:`map_points`; :func:`_mapped_ahead`) — the end of a driveway
+    or parking aisle the map has no lane for — the vehicle stops at the lane's end and stays
+    there (as the humans who drive there park); at the edge of the map it leaves SUMO at the
+    lane's end."""
     for vid, edge in zip(vehicles.ids, vehicles.edge):
         if vid in keep:
             continue
@@ -506,7 +508,8 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
         while env.agents and env.t < cur + N_STEPS:
             st = env.agent_states()
             actions = policy.act(obs)
-            raw = np.stack([np.asarray(actions.get(n, (np.nan, np.nan)), np.float64).reshape(2)
+            none = (np.nan,) * ACTION_SIZE
+            raw = np.stack([np.asarray(actions.get(n, none), np.float64).reshape(ACTION_SIZE)
                             for n in st.names])
             clean = np.clip(np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
             accel, steer = dynamics.denormalise(clean, env.config.limits)

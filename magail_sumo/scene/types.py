@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from enum import IntEnum
 
+#: s between the steps of a recorded scene (WOMD's 10 Hz) and of every simulation of one:
+#: the one definition of the step length (SUMO's ``step-length``, the env's and the metrics' dt)
+STEP_LENGTH = 0.1
+
 
 class ObjectType(IntEnum):
     """Kind of a tracked road user."""

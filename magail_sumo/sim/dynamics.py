@@ -54,7 +54,7 @@ class VehicleState:
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
+    """Angles wrapped to [-pi, pi) (floor modulo; a float32 array stays float32)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -71,6 +71,8 @@ def clip_action(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits
 
 #: Orders of the two entries of a normalised action: ours, and the seed's (steering first).
 ACTION_LAYOUTS: tuple[str, ...] = ("accel_steer", "steer_throttle")
+#: components of one agent's normalised action in every layout (the two controls)
+ACTION_SIZE = 2
 
 
 def denormalise(action: np.ndarray, limits: BicycleLimits, layout: str = "accel_steer"

@@ -39,11 +39,12 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from magail_sumo.scene.types import STEP_LENGTH
+
 #: who moved an object in the run (its colour in the replay, R,G,B)
 KIND_COLORS: dict[str, str] = {"agent": "60,200,90", "sumo": "70,130,230", "log": "170,170,170"}
 #: sumo-gui shapes by scene object type (:class:`~magail_sumo.scene.ObjectType` values)
 SHAPES: dict[int, str] = {1: "passenger", 2: "pedestrian", 3: "bicycle"}
-STEP_LENGTH = 0.1  #: s between recorded steps (the env's step)
 _CHUNK = 2_000_000  #: records x lane segments per block of the nearest-lane search
 
 

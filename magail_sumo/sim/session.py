@@ -15,10 +15,10 @@ from typing import Sequence
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.scene.types import STEP_LENGTH
 from magail_sumo.sim.frames import centre_to_front, front_to_centre, sumo_angle_to_yaw, yaw_to_sumo_angle
 
 
-STEP_LENGTH = 0.1  #: s, the WOMD log rate
 
 
 class SimulationError(MagailSumoError):

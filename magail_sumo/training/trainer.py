@@ -40,6 +40,7 @@ from magail_sumo.models.decomposed import DecomposedDiscriminator
 from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscriminator
 from magail_sumo.models.policies import TanhGaussianPolicy
 from magail_sumo.sensors.observation import observation_bounds, observation_names
+from magail_sumo.sim.dynamics import ACTION_SIZE
 
 from .config import TrainConfig, check_train_config
 
@@ -77,7 +78,8 @@ class CheckpointError(MagailSumoError):
 
 def spaces_of(cfg: TrainConfig) -> tuple[spaces.Box, spaces.Box]:
     low, high = observation_bounds(cfg.env.observation)
-    return spaces.Box(low, high, dtype=np.float32), spaces.Box(-1.0, 1.0, (2,), np.float32)
+    return (spaces.Box(low, high, dtype=np.float32),
+            spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32))
 
 
 def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:

@@ -8,18 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from magail_sumo.sim.dynamics import wrap_angle
+
 
 def central_diff(a: np.ndarray) -> np.ndarray:
     """``(a[t+1] - a[t-1]) / 2`` along the last axis, NaN at both ends."""
     out = np.full(a.shape, np.nan, a.dtype)
     out[..., 1:-1] = (a[..., 2:] - a[..., :-2]) / a.dtype.type(2)
     return out
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angle wrapped to [-pi, pi) (floor modulo)."""
-    pi = a.dtype.type(np.pi)
-    return np.mod(a + pi, 2 * pi) - pi
 
 
 def central_valid(valid: np.ndarray) -> np.ndarray:

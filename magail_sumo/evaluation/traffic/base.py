@@ -22,8 +22,9 @@ from magail_sumo.evaluation.realism.metrics import Features
 from magail_sumo.evaluation.realism.trajectories import JointTrajectories
 from magail_sumo.evaluation.submission import ScenarioRollouts
 from magail_sumo.scene import ObjectType, Scene
+from magail_sumo.scene.types import STEP_LENGTH
 
-DT = 0.1  #: s per step
+DT = STEP_LENGTH  #: s per step
 
 
 @dataclass(frozen=True, eq=False)
