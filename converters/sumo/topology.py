@@ -289,8 +289,17 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
                 if j in arc:
                     uf.union((i, snap(i, nb.self_start_index)), (j, snap(j, nb.neighbor_start_index)))
                     uf.union((i, snap(i, nb.self_end_index)), (j, snap(j, nb.neighbor_end_index)))
+        # a carried cut joins its source's node unless that node then holds two cuts of one
+        # lane (the piece between them would leave the node and re-enter it)
+        cut_lanes: dict = {}
+        for i in road:
+            for c in cuts[i]:
+                cut_lanes.setdefault(uf.find((i, c)), []).append(i)
         for (i, a), (j, b) in pairs:
-            uf.union((i, snap(i, a)), (j, snap(j, b)))
+            ra, rb = uf.find((i, snap(i, a))), uf.find((j, snap(j, b)))
+            if ra != rb and not set(cut_lanes[ra]) & set(cut_lanes[rb]):
+                uf.union(ra, rb)
+                cut_lanes[uf.find(ra)] = cut_lanes.pop(ra, []) + cut_lanes.pop(rb, [])
         # a stub shorter than MIN_PIECE next to junction lanes whose two ends fall into one node
         # is part of that junction (as a road edge it would leave the junction and re-enter it)
         new_stubs = {i for i in road if arc[i][-1] < MIN_PIECE and entries[i] and exits[i]
