@@ -1,0 +1,82 @@
+"""Junctions stay the size of one real junction (issue 14, item 4): no chaining of lane ends
+into SUMO junctions 100-300 m across, whose internal lanes routes cannot follow."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from converters import load_scene
+from converters.sumo.scenario import ConvertOptions, convert_scene
+from converters.sumo.topology import MAX_JUNCTION_SPAN, NetworkPlan, plan_network
+
+PKL = ROOT / "data" / "scenarionet"
+
+
+def junction_diameters(plan: NetworkPlan) -> dict[str, float]:
+    """Per node: the largest distance (m) between two planned lane ends that meet there."""
+    ends: dict[str, list] = {}
+    for e in plan.edges:
+        for shape in e.shapes:
+            ends.setdefault(e.from_node, []).append(shape[0, :2])
+            ends.setdefault(e.to_node, []).append(shape[-1, :2])
+    out = {}
+    for node, pts in ends.items():
+        p = np.asarray(pts)
+        out[node] = float(np.sqrt(((p[:, None] - p[None]) ** 2).sum(-1)).max())
+    return out
+
+
+@pytest.mark.parametrize("scene, bound", [
+    # 7b24: node n5 was 190 m across (a 108 m lane crossed by lane-change lanes taken for a
+    # junction lane chained two junctions); 83 m now (a wide signalled junction with 50 m turns)
+    ("7b24d74b506c94ce", 90.0),
+    # b36a: node n19 was 307 m across (a 237 m lane taken for a junction lane); 48 m now
+    ("b36a6d0bc9e525bc", 60.0),
+])
+def test_no_giant_junctions(scene, bound):
+    """Every planned node is below ``bound`` m across, and no junction path spans more than
+    MAX_JUNCTION_SPAN m unless all its lanes are signalled."""
+    s = load_scene(PKL / f"{scene}.pkl")
+    plan = plan_network(s)
+    assert max(junction_diameters(plan).values()) < bound
+    ends = {e.id: e for e in plan.edges}
+    signalled = set(s.signals.lanes.tolist())
+    for c in plan.connections:
+        if c.via and not set(c.via) <= signalled:
+            a = ends[c.from_edge].shapes[c.from_lane][-1, :2]
+            b = ends[c.to_edge].shapes[c.to_lane][0, :2]
+            assert np.hypot(*(a - b)) <= MAX_JUNCTION_SPAN + 1.0, c
+    # the lane taken for a junction lane is a road lane now, with edges of its own
+    long_lane = 698 if scene.startswith("7b24") else 303
+    assert long_lane not in plan.junction_lanes and long_lane in plan.lane_edges
+
+
+@pytest.mark.parametrize("scene, group", [
+    # 6f85: 249 is cut at 78 m where its neighbour 246 ends; 244 beside it was not, so a vehicle
+    # changing from 249 to 244 left its route's edge (vehicle 1218, unconnected route)
+    ("6f85f27e0243fc10", (249, 244)),
+    # b36a: 302 is cut where 303 (a road lane now) parts from it; 301 and 441 run beside it
+    ("b36a6d0bc9e525bc", (301, 302, 441)),
+])
+def test_parallel_lanes_cut_alike_form_one_edge(scene, group):
+    """A cut of a lane inside a stretch beside a neighbour is carried to the neighbour, so the
+    pieces beside one another form one multi-lane edge (a lane change stays on the route)."""
+    plan = plan_network(load_scene(PKL / f"{scene}.pkl"))
+    first = {lane: plan.lane_edges[lane][0][0] for lane in group}
+    assert len(set(first.values())) == 1, first
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("scene, before, after", [
+    ("7b24d74b506c94ce", 0.714, 0.82),  # giant junction split
+    ("2a1e44d405a6833f", 0.927, 0.95),  # lane changes between parallel pieces
+    ("4d320edc9cb801a3", 0.889, 0.94),
+])
+def test_route_rate_rises(tmp_path, scene, before, after):
+    """Route rate on the real scenes that failed through giant junctions or lane changes
+    between pieces of parallel lanes cut apart (figures before the fix in ``before``)."""
+    rep = convert_scene(load_scene(PKL / f"{scene}.pkl"), tmp_path, ConvertOptions(baseline=False))
+    assert rep.status == "ok", rep.reason
+    assert rep.quality["route_rate"] >= after > before
