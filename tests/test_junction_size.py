@@ -68,11 +68,23 @@ def test_parallel_lanes_cut_alike_form_one_edge(scene, group):
     assert len(set(first.values())) == 1, first
 
 
+def test_neighbour_relation_far_off_the_geometry_joins_no_nodes():
+    """nuScenes 0757: the inferred neighbour relation of lane 96 (4 m) spans the whole of lane
+    109 (37 m); joining their snapped ends (35 m apart) put both ends of 109 and 152 into one
+    node, so these lanes left the junction and re-entered it (slow vehicles 4 and 9 failed)."""
+    plan = plan_network(load_scene(PKL / "sd_nuscenes_v1.0-mini_scene-0757.pkl"))
+    edges = {e.id: e for e in plan.edges}
+    for lane in (109, 152):
+        first, last = edges[plan.lane_edges[lane][0][0]], edges[plan.lane_edges[lane][-1][0]]
+        assert first.from_node != last.to_node, lane
+
+
 @pytest.mark.sumo
 @pytest.mark.parametrize("scene, before, after", [
     ("7b24d74b506c94ce", 0.714, 0.82),  # giant junction split
     ("2a1e44d405a6833f", 0.927, 0.95),  # lane changes between parallel pieces
     ("4d320edc9cb801a3", 0.889, 0.94),
+    ("sd_nuscenes_v1.0-mini_scene-0757", 0.882, 1.0),  # inferred neighbour relation ignored
 ])
 def test_route_rate_rises(tmp_path, scene, before, after):
     """Route rate on the real scenes that failed through giant junctions or lane changes

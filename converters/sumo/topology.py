@@ -30,6 +30,10 @@ MIN_PIECE = 4.0  #: m, shortest edge piece cut out of a lane at a neighbour boun
 #: longest unsignalled junction lane becomes a road lane, so that the junction is not chained to
 #: a far one into one giant SUMO junction (routes cannot follow its internal lanes).
 MAX_JUNCTION_SPAN = 70.0
+#: m, farthest apart the two ends of a neighbour relation (snapped to kept cuts) that are made
+#: one node; farther ones come from a neighbour relation that does not match the geometry
+#: (e.g. inferred for a short lane along the whole of a long one) and would chain nodes
+MAX_NEIGHBOUR_GAP = 15.0
 #: search steps (lanes looked at) of the exhaustive junction path search from one road lane
 #: before it falls back to shortest paths (the bundled recorded scenes need under 50)
 MAX_PATH_EXPANSIONS = 20_000
@@ -287,8 +291,12 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
             for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
                 j = nb.feature_id
                 if j in arc:
-                    uf.union((i, snap(i, nb.self_start_index)), (j, snap(j, nb.neighbor_start_index)))
-                    uf.union((i, snap(i, nb.self_end_index)), (j, snap(j, nb.neighbor_end_index)))
+                    for a, b in ((nb.self_start_index, nb.neighbor_start_index),
+                                 (nb.self_end_index, nb.neighbor_end_index)):
+                        a, b = snap(i, a), snap(j, b)
+                        if np.hypot(*(lanes[i].polyline[a, :2] - lanes[j].polyline[b, :2])) \
+                                <= MAX_NEIGHBOUR_GAP:
+                            uf.union((i, a), (j, b))
         # a carried cut joins its source's node unless that node then holds two cuts of one
         # lane (the piece between them would leave the node and re-enter it)
         cut_lanes: dict = {}
