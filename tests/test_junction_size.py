@@ -3,6 +3,9 @@ into SUMO junctions 100-300 m across, whose internal lanes routes cannot follow.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -12,6 +15,9 @@ from converters.sumo.scenario import ConvertOptions, convert_scene
 from converters.sumo.topology import MAX_JUNCTION_SPAN, NetworkPlan, plan_network
 
 PKL = ROOT / "data" / "scenarionet"
+NUSCENES = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data")) \
+    / "scenarionet" / "nuscenes"
+NUSCENES_0553 = NUSCENES / "sd_nuscenes_v1.0-mini_scene-0553.pkl"
 
 
 def junction_diameters(plan: NetworkPlan) -> dict[str, float]:
@@ -79,16 +85,30 @@ def test_neighbour_relation_far_off_the_geometry_joins_no_nodes():
         assert first.from_node != last.to_node, lane
 
 
+@pytest.mark.skipif(not NUSCENES_0553.is_file(), reason="../shared/data/scenarionet/nuscenes absent")
+def test_end_of_a_neighbour_too_far_off_to_join_is_carried_as_a_cut():
+    """nuScenes 0553: lane 325 (27 m) is an inferred neighbour of 334 (44 m) over the whole of
+    both; their ends lie 16 m apart (not joined). 325's end cuts 334 at the nearest point, so
+    325 and the first piece of 334 form one edge and a vehicle changing from 334 to 325 just
+    after the junction keeps a connected route (vehicle 22)."""
+    plan = plan_network(load_scene(NUSCENES_0553))
+    first = plan.lane_edges[334][0]
+    assert first[0] == plan.lane_edges[325][0][0] and first[3] < 30.0 < plan.lane_edges[334][-1][3]
+
+
 @pytest.mark.sumo
 @pytest.mark.parametrize("scene, before, after", [
     ("7b24d74b506c94ce", 0.714, 0.82),  # giant junction split
     ("2a1e44d405a6833f", 0.927, 0.95),  # lane changes between parallel pieces
     ("4d320edc9cb801a3", 0.889, 0.94),
     ("sd_nuscenes_v1.0-mini_scene-0757", 0.882, 1.0),  # inferred neighbour relation ignored
+    pytest.param(NUSCENES_0553, 0.846, 1.0, marks=pytest.mark.skipif(
+        not NUSCENES_0553.is_file(), reason="../shared/data/scenarionet/nuscenes absent")),
 ])
 def test_route_rate_rises(tmp_path, scene, before, after):
     """Route rate on the real scenes that failed through giant junctions or lane changes
     between pieces of parallel lanes cut apart (figures before the fix in ``before``)."""
-    rep = convert_scene(load_scene(PKL / f"{scene}.pkl"), tmp_path, ConvertOptions(baseline=False))
+    path = scene if isinstance(scene, Path) else PKL / f"{scene}.pkl"
+    rep = convert_scene(load_scene(path), tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok", rep.reason
     assert rep.quality["route_rate"] >= after > before

@@ -481,14 +481,24 @@ def _breakpoints(lanes: dict[int, Lane], road: list[int], junction: set[int],
         i, c = todo.pop()
         for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
             j = nb.feature_id
-            if j not in arc or not nb.self_start_index < c < nb.self_end_index:
+            if j not in arc or not nb.self_start_index <= c <= nb.self_end_index:
                 continue
+            if c in (nb.self_start_index, nb.self_end_index):
+                # an end of the relation is carried only where the relation's own end on the
+                # neighbour lies too far off to be joined (see MAX_NEIGHBOUR_GAP)
+                other = nb.neighbor_start_index if c == nb.self_start_index else nb.neighbor_end_index
+                other = min(max(other, 0), len(arc[j]) - 1)
+                if np.hypot(*(lanes[i].polyline[c, :2] - lanes[j].polyline[other, :2])) \
+                        <= MAX_NEIGHBOUR_GAP:
+                    continue
             lo = max(min(nb.neighbor_start_index, nb.neighbor_end_index), 0)
             hi = min(max(nb.neighbor_start_index, nb.neighbor_end_index), len(arc[j]) - 1)
             if hi <= lo:
                 continue
             pts = lanes[j].polyline[lo:hi + 1, :2]
             k = lo + int(np.argmin(np.linalg.norm(pts - lanes[i].polyline[c, :2], axis=1)))
+            if c in (nb.self_start_index, nb.self_end_index) and k in (lo, hi):
+                continue  # the end of the longer lane of the two: carried from the shorter one
             pairs.append(((i, c), (j, k)))
             if (j, k) not in done:
                 done.add((j, k))
