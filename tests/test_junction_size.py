@@ -102,7 +102,7 @@ def test_end_of_a_neighbour_too_far_off_to_join_is_carried_as_a_cut():
     ("2a1e44d405a6833f", 0.927, 0.95),  # lane changes between parallel pieces
     ("4d320edc9cb801a3", 0.889, 0.94),
     ("sd_nuscenes_v1.0-mini_scene-0757", 0.882, 1.0),  # inferred neighbour relation ignored
-    pytest.param(NUSCENES_0553, 0.846, 1.0, marks=pytest.mark.skipif(
+    pytest.param(NUSCENES_0553, 0.846, 1.0, id="scene-0553", marks=pytest.mark.skipif(
         not NUSCENES_0553.is_file(), reason="../shared/data/scenarionet/nuscenes absent")),
 ])
 def test_route_rate_rises(tmp_path, scene, before, after):
