@@ -12,7 +12,10 @@ import pytest
 from conftest import ROOT
 from converters import load_scene
 from converters.sumo.scenario import ConvertOptions, convert_scene
+from converters.sumo.matching import build_index
+from converters.sumo.synthesis import synthesize_lanes
 from converters.sumo.topology import MAX_JUNCTION_SPAN, NetworkPlan, plan_network
+from magail_sumo.scene import LaneType
 
 PKL = ROOT / "data" / "scenarionet"
 NUSCENES = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data")) \
@@ -96,9 +99,36 @@ def test_end_of_a_neighbour_too_far_off_to_join_is_carried_as_a_cut():
     assert first[0] == plan.lane_edges[325][0][0] and first[3] < 30.0 < plan.lane_edges[334][-1][3]
 
 
+def test_synthesised_lane_starts_where_the_joined_lane_ends():
+    """6f85: a synthesised lane joined at a node of a wide junction starts (ends) at the end
+    (start) of the lane it joins, not at the node's position (the mean of the junction's lane
+    ends, up to 30 m off the recorded path, which cut the path's first states away)."""
+    scene = load_scene(PKL / "6f85f27e0243fc10.pkl")
+    plan = plan_network(scene)
+    lanes = {l.id: l for l in scene.roadmap.lanes
+             if l.id in plan.lane_edges or l.id in plan.junction_lanes}
+    car = build_index({i: l for i, l in lanes.items() if l.type != LaneType.BIKE_LANE})
+    syn = synthesize_lanes(scene, plan, car, build_index(lanes))
+    edges = {e.id: e for e in plan.edges}
+    far = 0
+    for lane in syn:
+        first, last = edges[lane.edges[0][0]], edges[lane.edges[-1][0]]
+        for c in plan.connections:
+            if c.to_edge == first.id and c.from_edge in edges:  # joined where the track leaves
+                end = edges[c.from_edge].shapes[c.from_lane][-1, :2]
+                assert np.allclose(first.shapes[0][0, :2], end)
+                far += np.hypot(*(plan.nodes[first.from_node] - end)) > 10.0
+            if c.from_edge == last.id and c.to_edge in edges:  # joined where it re-enters
+                start = edges[c.to_edge].shapes[c.to_lane][0, :2]
+                assert np.allclose(last.shapes[0][-1, :2], start)
+                far += np.hypot(*(plan.nodes[last.to_node] - start)) > 10.0
+    assert far >= 3  # the joins in the wide junction n6
+
+
 @pytest.mark.sumo
 @pytest.mark.parametrize("scene, before, after", [
-    ("7b24d74b506c94ce", 0.714, 0.82),  # giant junction split
+    ("7b24d74b506c94ce", 0.714, 0.89),  # giant junction split; synthesised lanes' ends
+    ("6f85f27e0243fc10", 0.816, 0.89),  # synthesised lanes' ends in a 76 m junction
     ("2a1e44d405a6833f", 0.927, 0.95),  # lane changes between parallel pieces
     ("4d320edc9cb801a3", 0.889, 0.94),
     ("sd_nuscenes_v1.0-mini_scene-0757", 0.882, 1.0),  # inferred neighbour relation ignored
