@@ -127,7 +127,6 @@ def test_synthesised_lane_starts_where_the_joined_lane_ends():
 
 @pytest.mark.sumo
 @pytest.mark.parametrize("scene, before, after", [
-    ("7b24d74b506c94ce", 0.714, 0.89),  # giant junction split; synthesised lanes' ends
     ("6f85f27e0243fc10", 0.816, 0.89),  # synthesised lanes' ends in a 76 m junction
     ("2a1e44d405a6833f", 0.927, 0.95),  # lane changes between parallel pieces
     ("4d320edc9cb801a3", 0.889, 0.94),
@@ -142,3 +141,45 @@ def test_route_rate_rises(tmp_path, scene, before, after):
     rep = convert_scene(load_scene(path), tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok", rep.reason
     assert rep.quality["route_rate"] >= after > before
+
+
+@pytest.fixture(scope="module")
+def converted_7b24(tmp_path_factory):
+    out = tmp_path_factory.mktemp("b24")
+    scene = load_scene(PKL / "7b24d74b506c94ce.pkl")
+    rep = convert_scene(scene, out, ConvertOptions(baseline=False))
+    assert rep.status == "ok", rep.reason
+    return scene, out / scene.scenario_id, rep
+
+
+@pytest.mark.sumo
+def test_7b24_route_rate(converted_7b24):
+    """7b24 (route rate 0.714 before, node n5 190 m across): the giant junction is split, the
+    synthesised lanes start at the lane ends they join, and a track that leaves a junction lane
+    for a moment keeps its map route."""
+    assert converted_7b24[2].quality["route_rate"] >= 0.92
+
+
+@pytest.mark.sumo
+def test_route_without_a_short_synthesised_stretch_when_it_covers_more(converted_7b24):
+    """7b24 vehicle 1324 drives lane 699, junction lane 815, leaves it for 1.2 s (a synthesised
+    lane from a dead end: the lane end before is over 22 m back) and comes back onto 815: its
+    route through 815 on the map's lanes covers over 90 % of its states, the route through the
+    synthesised lane (which dropped everything before it) 53 %."""
+    import sumolib
+    import xml.etree.ElementTree as ET
+
+    from converters.sumo.quality import COVERAGE, lane_segments, route_covers
+    from converters.sumo.routes import VehicleRoute
+
+    scene, folder, rep = converted_7b24
+    assert any(s["track_id"] == 1324 for s in rep.synthesized)
+    sid = scene.scenario_id
+    net = sumolib.net.readNet(str(folder / f"{sid}.net.xml"), withInternal=True)
+    v = next(v for v in ET.parse(folder / f"{sid}.rou.xml").getroot().iter("vehicle")
+             if v.get("id") == "1324")
+    edges = v.find("route").get("edges").split()
+    assert not any(e.startswith("syn") for e in edges)
+    n = int(np.flatnonzero(scene.tracks.id == 1324)[0])
+    route = VehicleRoute(n, "1324", "passenger", 4.0, 2.0, edges, 0, 0, 0.0, 0.0, True, False)
+    assert route_covers(scene, lane_segments(net), route, net) >= COVERAGE
