@@ -4,6 +4,12 @@ In-junction lanes (interpolating, signalled, or crossing another lane at > 20°)
 path between two road lanes become connections with their own shapes; every other lane is
 part of an edge. Road lanes that share start and end nodes and are neighbours form one
 multi-lane edge (lane 0 = rightmost). Coordinates stay in the scene frame (m).
+
+Junctions stay the size of one real junction: a junction path spanning more than
+:data:`MAX_JUNCTION_SPAN` m has its longest unsignalled lane made a road lane, a stub shorter than
+:data:`MIN_PIECE` inside a junction joins it, a neighbour relation joins nodes only where its
+ends lie within :data:`MAX_NEIGHBOUR_GAP` m, and a cut of a lane is carried to the lanes beside
+it (so their pieces form one edge) unless that would put two cuts of one lane into one node.
 """
 
 from __future__ import annotations
