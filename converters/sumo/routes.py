@@ -177,12 +177,106 @@ def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges:
     return edges, added
 
 
+def _route_score(scene: Scene, seg, route: VehicleRoute, net) -> tuple[bool, float]:
+    """(connected, share of the track's valid states the route covers): larger is better."""
+    from .quality import route_covers  # quality imports this module
+
+    return route.connected, route_covers(scene, seg, route, net)
+
+
+def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: ObjectType,
+                 steps: np.ndarray, xy: np.ndarray, heading: np.ndarray, parked: bool,
+                 lane_of: np.ndarray, pieces: list) -> "VehicleRoute | str":
+    """The route of track ``n`` from its matched lanes ``lane_of`` (per valid state; -1
+    unmatched, :data:`SYNTHESIZED`) and their edge ``pieces``, or why there is none.
+
+    :param seg: callable giving the built network's lane segments.
+    """
+    tr = scene.tracks
+    tid = int(tr.id[n])
+    matched = np.flatnonzero(lane_of != -1)
+    if not len(matched):
+        return "parked off the lane network" if parked else \
+            "no state matches a lane (distance and heading)"
+    seq: list[str] = []
+    for p in pieces:
+        if p is not None and (not seq or seq[-1] != p[0]):
+            seq.append(p[0])
+    first = int(matched[0])
+    head = tail = None
+    if int(lane_of[first]) in plan.junction_lanes:  # starts inside a junction
+        head = _junction_connection(plan, int(lane_of[first]), to_edge=seq[0] if seq else None)
+    last_lane = int(lane_of[matched[-1]])
+    if last_lane in plan.junction_lanes and not parked:
+        tail = _junction_connection(plan, last_lane, from_edge=seq[-1] if seq else None)
+    head_added = tail_added = False
+    if head is not None and (not seq or seq[0] != head.from_edge):
+        seq.insert(0, head.from_edge)
+        head_added = True
+    if not seq and tail is not None:
+        seq.append(tail.from_edge)
+    if tail is not None and seq[-1] != tail.to_edge:
+        seq.append(tail.to_edge)
+        tail_added = True
+    if not seq:
+        return "matched junction lanes belong to no connection"
+    if parked:
+        seq = seq[:1]
+    edges, connected = _connect_trimmed(net, seq, head_added, tail_added)
+    if not connected:
+        edges = _longest_connected(net, edges)
+    depart_edge = 0
+    first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[0]), None)
+    if first is None and head is not None and edges[0] == head.from_edge and len(edges) > 1:
+        # starts inside a junction: keep the incoming edge in the route, depart on the next
+        # edge when the vehicle reaches it
+        depart_edge = 1
+        first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[1]),
+                     None)
+    length = float(np.median(tr.length[n, steps]))
+    width = float(np.median(tr.width[n, steps]))
+    if first is not None:
+        edge0, lane0 = pieces[first][:2]
+        st = steps[first]
+        front = xy[first] + length / 2 * np.array([np.cos(heading[first]), np.sin(heading[first])])
+        shape = net.getLane(f"{edge0}_{lane0}").getShape()
+        pos0 = polygonOffsetWithMinimumDistanceToPoint(tuple(front), shape)
+    elif head is not None and edges[0] == head.from_edge:  # whole track inside the junction
+        edge0, lane0 = head.from_edge, head.from_lane
+        depart_edge = 0  # departs at the end of the incoming edge, not on the next one
+        st = steps[matched[0]]
+        pos0 = net.getLane(f"{edge0}_{lane0}").getLength()
+    else:
+        return "no connected route through the matched lanes"
+    if not parked and connected:
+        edges, added = _extend_into_junctions(net, seg(), xy, heading, edges)
+        depart_edge += added
+    lane_len = net.getLane(f"{edge0}_{lane0}").getLength()
+    speed = float(np.hypot(tr.vx[n, st], tr.vy[n, st]))
+    speeds = np.hypot(tr.vx[n, steps], tr.vy[n, steps])
+    limit = net.getEdge(edge0).getSpeed()
+    factor = float(np.clip(np.quantile(speeds, 0.95) / max(limit, 0.1), 1.0, 2.0))
+    return VehicleRoute(
+        track=n, id=str(tid), vclass="bicycle" if kind == ObjectType.CYCLIST else "passenger",
+        length=max(length, 0.5), width=max(width, 0.3), edges=edges, depart_step=int(st),
+        depart_lane=lane0, depart_pos=float(np.clip(pos0, 0.1, lane_len)), depart_edge=depart_edge,
+        depart_speed=0.0 if parked else speed, connected=connected, parked=parked,
+        speed_factor=factor, matched=lane_of)
+
+
 def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bike: LaneIndex,
                  net) -> tuple[list[VehicleRoute], list[dict]]:
     """Routes for every vehicle and cyclist track; the rest listed as unconverted."""
     from .quality import lane_segments  # quality imports this module
 
-    seg = None
+    cache: list = []
+
+    def seg():
+        """The built network's lane segments (computed once, when first needed)."""
+        if not cache:
+            cache.append(lane_segments(net))
+        return cache[0]
+
     tr = scene.tracks
     moved = moved_distance(scene)
     routes: list[VehicleRoute] = []
@@ -205,8 +299,9 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
         xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
         heading = tr.heading[n, steps].astype(np.float64)
         m = match_track(index_bike if kind == ObjectType.CYCLIST else index_car, xy, heading, steps)
-        pieces = [_piece(plan, int(lane), float(pos)) if lane >= 0 else None
-                  for lane, pos in zip(m.lane, m.pos)]
+        map_pieces = [_piece(plan, int(lane), float(pos)) if lane >= 0 else None
+                      for lane, pos in zip(m.lane, m.pos)]
+        pieces = list(map_pieces)
         lane_of = m.lane.copy()
         for syn in plan.synthesized:  # off-map stretches drive on their synthesised edges
             if syn.track == n:
@@ -215,83 +310,21 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
                     lane_of[on] = SYNTHESIZED
                     for k in on.tolist():
                         pieces[k] = (eid, 0, 0.0)
-        matched = np.flatnonzero(lane_of != -1)
-        if not len(matched):
-            why = "parked off the lane network" if moved[n] < PARKED_MOVE else \
-                "no state matches a lane (distance and heading)"
-            unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": why})
-            continue
-        parked = moved[n] < PARKED_MOVE
-        seq: list[str] = []
-        for p in pieces:
-            if p is not None and (not seq or seq[-1] != p[0]):
-                seq.append(p[0])
-        first = int(matched[0])
-        head = tail = None
-        if int(lane_of[first]) in plan.junction_lanes:  # starts inside a junction
-            head = _junction_connection(plan, int(lane_of[first]), to_edge=seq[0] if seq else None)
-        last_lane = int(lane_of[matched[-1]])
-        if last_lane in plan.junction_lanes and not parked:
-            tail = _junction_connection(plan, last_lane, from_edge=seq[-1] if seq else None)
-        head_added = tail_added = False
-        if head is not None and (not seq or seq[0] != head.from_edge):
-            seq.insert(0, head.from_edge)
-            head_added = True
-        if not seq and tail is not None:
-            seq.append(tail.from_edge)
-        if tail is not None and seq[-1] != tail.to_edge:
-            seq.append(tail.to_edge)
-            tail_added = True
-        if not seq:
-            unconverted.append({"kind": kind.name.lower(), "id": tid,
-                                "reason": "matched junction lanes belong to no connection"})
-            continue
-        if parked:
-            seq = seq[:1]
-        edges, connected = _connect_trimmed(net, seq, head_added, tail_added)
-        if not connected:
-            edges = _longest_connected(net, edges)
-        depart_edge = 0
-        first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[0]), None)
-        if first is None and head is not None and edges[0] == head.from_edge and len(edges) > 1:
-            # starts inside a junction: keep the incoming edge in the route, depart on the next
-            # edge when the vehicle reaches it
-            depart_edge = 1
-            first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[1]),
-                         None)
-        length = float(np.median(tr.length[n, steps]))
-        width = float(np.median(tr.width[n, steps]))
-        if first is not None:
-            edge0, lane0 = pieces[first][:2]
-            st = steps[first]
-            front = xy[first] + length / 2 * np.array([np.cos(heading[first]), np.sin(heading[first])])
-            shape = net.getLane(f"{edge0}_{lane0}").getShape()
-            pos0 = polygonOffsetWithMinimumDistanceToPoint(tuple(front), shape)
-        elif head is not None and edges[0] == head.from_edge:  # whole track inside the junction
-            edge0, lane0 = head.from_edge, head.from_lane
-            depart_edge = 0  # departs at the end of the incoming edge, not on the next one
-            st = steps[matched[0]]
-            pos0 = net.getLane(f"{edge0}_{lane0}").getLength()
+        parked = bool(moved[n] < PARKED_MOVE)
+        args = (plan, net, seg, scene, n, kind, steps, xy, heading, parked)
+        res = _track_route(*args, lane_of, pieces)
+        if isinstance(res, VehicleRoute) and not parked and (lane_of == SYNTHESIZED).any():
+            # a short synthesised stretch may break a route that the map's lanes carry (the
+            # track leaves a junction lane for a moment and comes back): the route without the
+            # synthesised lanes is taken where it covers more of the track
+            plain = _track_route(*args, m.lane.copy(), map_pieces)
+            if isinstance(plain, VehicleRoute) and _route_score(scene, seg(), plain, net) > \
+                    _route_score(scene, seg(), res, net):
+                res = plain
+        if isinstance(res, str):
+            unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": res})
         else:
-            unconverted.append({"kind": kind.name.lower(), "id": tid,
-                                "reason": "no connected route through the matched lanes"})
-            continue
-        if not parked and connected:
-            if seg is None:
-                seg = lane_segments(net)
-            edges, added = _extend_into_junctions(net, seg, xy, heading, edges)
-            depart_edge += added
-        lane_len = net.getLane(f"{edge0}_{lane0}").getLength()
-        speed = float(np.hypot(tr.vx[n, st], tr.vy[n, st]))
-        speeds = np.hypot(tr.vx[n, steps], tr.vy[n, steps])
-        limit = net.getEdge(edge0).getSpeed()
-        factor = float(np.clip(np.quantile(speeds, 0.95) / max(limit, 0.1), 1.0, 2.0))
-        routes.append(VehicleRoute(
-            track=n, id=str(tid), vclass="bicycle" if kind == ObjectType.CYCLIST else "passenger",
-            length=max(length, 0.5), width=max(width, 0.3), edges=edges, depart_step=int(st),
-            depart_lane=lane0, depart_pos=float(np.clip(pos0, 0.1, lane_len)), depart_edge=depart_edge,
-            depart_speed=0.0 if parked else speed, connected=connected, parked=parked,
-            speed_factor=factor, matched=lane_of))
+            routes.append(res)
     return routes, unconverted
 
 

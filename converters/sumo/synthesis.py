@@ -15,7 +15,9 @@ the end node of the edge of the last matched state when that node is within :dat
 (or the track passed a junction lane since, or the state lies within :data:`MIN_SPLIT` +
 :data:`SPLIT_SHIFT` m of the end of its edge piece), otherwise at a new node splitting that edge
 at the matched position; where it re-enters, likewise at the start node of the next matched edge
-or a split. Without a matched state within :data:`MAX_JOIN` - :data:`SNAP` m of the stretch it starts
+or a split. The lane's shape starts (ends) at the end (start) of the lane of the edge it joins, not
+at the node's position (the mean of its lane ends, far off the path in a wide junction). Without a
+matched state within :data:`MAX_JOIN` - :data:`SNAP` m of the stretch it starts
 /ends at a new dead-end node (where the track starts/ends, or at the map border)."""
 
 from __future__ import annotations
@@ -244,12 +246,16 @@ def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.n
     path = np.column_stack([_smooth(xy[s:e + 1]), z[s:e + 1]])
     h = heading[s:e + 1]
     fwd = np.stack([np.cos(h), np.sin(h)], axis=1)
-    if start is not None:  # drop recorded points behind or on top of the join node
-        rel = path[:, :2] - plan.nodes[start[0]]
+    # the lane starts (ends) where the lane it joins ends (starts): a node's position is the
+    # mean of its lane ends, which in a wide junction lies far off the recorded path
+    a_pt = _edge(plan, start[1][0]).shapes[start[1][1]][-1, :2] if start else None
+    b_pt = _edge(plan, end[1][0]).shapes[end[1][1]][0, :2] if end else None
+    if start is not None:  # drop recorded points behind or on top of the join point
+        rel = path[:, :2] - a_pt
         keep = ((rel * fwd).sum(1) > 0) & (np.linalg.norm(rel, axis=1) > 1.0)
         path = path[np.argmax(keep):] if keep.any() else path[-1:]
     if end is not None:
-        rel = plan.nodes[end[0]] - path[:, :2]
+        rel = b_pt - path[:, :2]
         keep = ((rel * fwd[-len(path):]).sum(1) > 0) & (np.linalg.norm(rel, axis=1) > 1.0)
         path = path[:len(keep) - np.argmax(keep[::-1])] if keep.any() else path[:1]
     a_node = start[0] if start else f"d{tag}a"
@@ -258,8 +264,8 @@ def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.n
         plan.nodes[a_node] = path[0, :2]
     if end is None:
         plan.nodes[b_node] = path[-1, :2]
-    head = [np.array([[*plan.nodes[a_node], path[0, 2]]])] if start else []
-    tail = [np.array([[*plan.nodes[b_node], path[-1, 2]]])] if end else []
+    head = [np.array([[*a_pt, path[0, 2]]])] if start else []
+    tail = [np.array([[*b_pt, path[-1, 2]]])] if end else []
     shape = np.vstack(head + [path] + tail)
     shape = simplify(shape, 1.0)
     if len(shape) < 3:

@@ -4,6 +4,12 @@ In-junction lanes (interpolating, signalled, or crossing another lane at > 20°)
 path between two road lanes become connections with their own shapes; every other lane is
 part of an edge. Road lanes that share start and end nodes and are neighbours form one
 multi-lane edge (lane 0 = rightmost). Coordinates stay in the scene frame (m).
+
+Junctions stay the size of one real junction: a junction path spanning more than
+:data:`MAX_JUNCTION_SPAN` m has its longest unsignalled lane made a road lane, a stub shorter than
+:data:`MIN_PIECE` inside a junction joins it, a neighbour relation joins nodes only where its
+ends lie within :data:`MAX_NEIGHBOUR_GAP` m, and a cut of a lane is carried to the lanes beside
+it (so their pieces form one edge) unless that would put two cuts of one lane into one node.
 """
 
 from __future__ import annotations
@@ -24,6 +30,16 @@ BIKE_WIDTH = 1.8  #: m
 CROSS_ANGLE = np.radians(20.0)
 MAX_VIA = 4  #: longest chain of junction lanes folded into one connection
 MIN_PIECE = 4.0  #: m, shortest edge piece cut out of a lane at a neighbour boundary
+#: m, farthest a junction path may carry a vehicle in a straight line (road lane end to road lane
+#: start); the longest turning lanes of the recorded junctions span about 65 m. A longer path is
+#: a road lane taken for a junction lane (e.g. a long lane that a lane-change lane crosses): its
+#: longest unsignalled junction lane becomes a road lane, so that the junction is not chained to
+#: a far one into one giant SUMO junction (routes cannot follow its internal lanes).
+MAX_JUNCTION_SPAN = 70.0
+#: m, farthest apart the two ends of a neighbour relation (snapped to kept cuts) that are made
+#: one node; farther ones come from a neighbour relation that does not match the geometry
+#: (e.g. inferred for a short lane along the whole of a long one) and would chain nodes
+MAX_NEIGHBOUR_GAP = 15.0
 #: search steps (lanes looked at) of the exhaustive junction path search from one road lane
 #: before it falls back to shortest paths (the bundled recorded scenes need under 50)
 MAX_PATH_EXPANSIONS = 20_000
@@ -249,35 +265,64 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
                     stack.append((nxt, via + (nxt,)))
         return out, {v for _, via in out for v in via}
 
-    # junction lanes on no road-to-road path become road lanes, until stable
+    stubs: set[int] = set()  # short road lanes taken into a junction (see below)
     while True:
-        used: set[int] = set()
-        for i in lanes:
-            if i not in junction:
-                used |= search(i)[1]
-        if used == junction:
+        # junction lanes on no road-to-road path become road lanes, until stable
+        while True:
+            used: set[int] = set()
+            for i in lanes:
+                if i not in junction:
+                    used |= search(i)[1]
+            if used == junction:
+                break
+            junction = used
+        road = [i for i in lanes if i not in junction]
+        jpaths = {i: sorted(paths_from(i), key=lambda p: len(p[1])) for i in road}
+        demote = _overlong_junction_lanes(lanes, jpaths, signalled) - stubs
+        if demote:
+            junction -= demote
+            continue
+        arc = {i: _arc(lanes[i].polyline) for i in road}
+        cuts, snap, pairs = _breakpoints(lanes, road, junction, arc)
+        uf = _UnionFind()
+        for i in road:
+            last = len(lanes[i].polyline) - 1
+            for c in cuts[i]:
+                uf.find((i, c))
+            for e in exits[i]:
+                if e not in junction:
+                    uf.union((i, last), (e, 0))
+            for target, _ in jpaths[i]:
+                uf.union((i, last), (target, 0))
+            for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
+                j = nb.feature_id
+                if j in arc:
+                    for a, b in ((nb.self_start_index, nb.neighbor_start_index),
+                                 (nb.self_end_index, nb.neighbor_end_index)):
+                        a, b = snap(i, a), snap(j, b)
+                        if np.hypot(*(lanes[i].polyline[a, :2] - lanes[j].polyline[b, :2])) \
+                                <= MAX_NEIGHBOUR_GAP:
+                            uf.union((i, a), (j, b))
+        # a carried cut joins its source's node unless that node then holds two cuts of one
+        # lane (the piece between them would leave the node and re-enter it)
+        cut_lanes: dict = {}
+        for i in road:
+            for c in cuts[i]:
+                cut_lanes.setdefault(uf.find((i, c)), []).append(i)
+        for (i, a), (j, b) in pairs:
+            ra, rb = uf.find((i, snap(i, a))), uf.find((j, snap(j, b)))
+            if ra != rb and not set(cut_lanes[ra]) & set(cut_lanes[rb]):
+                uf.union(ra, rb)
+                cut_lanes[uf.find(ra)] = cut_lanes.pop(ra, []) + cut_lanes.pop(rb, [])
+        # a stub shorter than MIN_PIECE next to junction lanes whose two ends fall into one node
+        # is part of that junction (as a road edge it would leave the junction and re-enter it)
+        new_stubs = {i for i in road if arc[i][-1] < MIN_PIECE and entries[i] and exits[i]
+                     and any(e in junction for e in entries[i] + exits[i])
+                     and uf.find((i, 0)) == uf.find((i, len(arc[i]) - 1))}
+        if not new_stubs:
             break
-        junction = used
-    road = [i for i in lanes if i not in junction]
-    jpaths = {i: sorted(paths_from(i), key=lambda p: len(p[1])) for i in road}
-    arc = {i: _arc(lanes[i].polyline) for i in road}
-    cuts, snap = _breakpoints(lanes, road, junction, arc)
-
-    uf = _UnionFind()
-    for i in road:
-        last = len(lanes[i].polyline) - 1
-        for c in cuts[i]:
-            uf.find((i, c))
-        for e in exits[i]:
-            if e not in junction:
-                uf.union((i, last), (e, 0))
-        for target, _ in jpaths[i]:
-            uf.union((i, last), (target, 0))
-        for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
-            j = nb.feature_id
-            if j in arc:
-                uf.union((i, snap(i, nb.self_start_index)), (j, snap(j, nb.neighbor_start_index)))
-                uf.union((i, snap(i, nb.self_end_index)), (j, snap(j, nb.neighbor_end_index)))
+        stubs |= new_stubs
+        junction |= new_stubs
     members: dict = {}
     for i in road:
         for c in cuts[i]:
@@ -388,6 +433,25 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     return NetworkPlan(nodes, edges, connections, lane_edges, junction, node_of_lane, unconverted)
 
 
+def _overlong_junction_lanes(lanes: dict[int, Lane], jpaths: dict[int, list[tuple[int, tuple[int, ...]]]],
+                             signalled: set[int]) -> set[int]:
+    """Junction lanes to make road lanes: of every junction path spanning more than
+    :data:`MAX_JUNCTION_SPAN` m (straight line from the end of its road lane to the start of the
+    road lane it reaches), its longest junction lane without a signal (signalled lanes keep
+    their traffic-light links); none where all of its lanes are signalled."""
+    out: set[int] = set()
+    for i, paths in jpaths.items():
+        end = lanes[i].polyline[-1, :2]
+        for target, via in paths:
+            if out & set(via) or \
+                    np.hypot(*(lanes[target].polyline[0, :2] - end)) <= MAX_JUNCTION_SPAN:
+                continue
+            free = [v for v in via if v not in signalled]
+            if free:
+                out.add(max(free, key=lambda v: length(lanes[v].polyline)))
+    return out
+
+
 def _arc(points: np.ndarray) -> np.ndarray:
     """Cumulative arc length (m) at each polyline point."""
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1))])
@@ -395,8 +459,9 @@ def _arc(points: np.ndarray) -> np.ndarray:
 
 def _breakpoints(lanes: dict[int, Lane], road: list[int], junction: set[int],
                  arc: dict[int, np.ndarray]):
-    """Cut indices per road lane (ends + where neighbours start/end, >= MIN_PIECE m apart)
-    and ``snap(lane, index)`` giving the kept cut nearest to an index."""
+    """Cut indices per road lane (ends + where neighbours start/end, carried across
+    neighbours, >= MIN_PIECE m apart), ``snap(lane, index)`` giving the kept cut nearest to an
+    index, and the pairs of (lane, index) cuts carried from one lane to its neighbour."""
     cuts: dict[int, list[int]] = {}
     for i in road:
         last = len(lanes[i].polyline) - 1
@@ -412,6 +477,39 @@ def _breakpoints(lanes: dict[int, Lane], road: list[int], junction: set[int],
                 last = len(lanes[j].polyline) - 1
                 cuts[j] = sorted(set(cuts[j]) | {min(max(nb.neighbor_start_index, 0), last),
                                                  min(max(nb.neighbor_end_index, 0), last)})
+    # a cut inside a stretch where a lane runs beside a neighbour cuts the neighbour too, at
+    # the nearest point (repeated across neighbours of neighbours): both pieces then end in one
+    # node and form one multi-lane edge, so that a lane change between them stays on the edge
+    pairs: list[tuple[tuple[int, int], tuple[int, int]]] = []
+    todo = [(i, c) for i in road for c in cuts[i]]
+    done = {(i, c) for i, c in todo}
+    while todo:
+        i, c = todo.pop()
+        for nb in lanes[i].left_neighbors + lanes[i].right_neighbors:
+            j = nb.feature_id
+            if j not in arc or not nb.self_start_index <= c <= nb.self_end_index:
+                continue
+            if c in (nb.self_start_index, nb.self_end_index):
+                # an end of the relation is carried only where the relation's own end on the
+                # neighbour lies too far off to be joined (see MAX_NEIGHBOUR_GAP)
+                other = nb.neighbor_start_index if c == nb.self_start_index else nb.neighbor_end_index
+                other = min(max(other, 0), len(arc[j]) - 1)
+                if np.hypot(*(lanes[i].polyline[c, :2] - lanes[j].polyline[other, :2])) \
+                        <= MAX_NEIGHBOUR_GAP:
+                    continue
+            lo = max(min(nb.neighbor_start_index, nb.neighbor_end_index), 0)
+            hi = min(max(nb.neighbor_start_index, nb.neighbor_end_index), len(arc[j]) - 1)
+            if hi <= lo:
+                continue
+            pts = lanes[j].polyline[lo:hi + 1, :2]
+            k = lo + int(np.argmin(np.linalg.norm(pts - lanes[i].polyline[c, :2], axis=1)))
+            if c in (nb.self_start_index, nb.self_end_index) and k in (lo, hi):
+                continue  # the end of the longer lane of the two: carried from the shorter one
+            pairs.append(((i, c), (j, k)))
+            if (j, k) not in done:
+                done.add((j, k))
+                cuts[j] = sorted(set(cuts[j]) | {k})
+                todo.append((j, k))
     kept: dict[int, np.ndarray] = {}
     for i in road:
         s, last = arc[i], len(lanes[i].polyline) - 1
@@ -428,4 +526,4 @@ def _breakpoints(lanes: dict[int, Lane], road: list[int], junction: set[int],
         index = min(max(index, 0), len(s) - 1)
         k = kept[i]
         return int(k[np.argmin(np.abs(s[k] - s[index]))])
-    return cuts, snap
+    return cuts, snap, pairs
