@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magail_sumo.scene import ObjectType, Scene
+from magail_sumo.scene.types import STEP_LENGTH
 
 from .geometry import length, point_segment, resample, simplify
 from .matching import LaneIndex, Match, match_track
@@ -34,7 +35,7 @@ from .quality import MARGIN, LaneSegments, on_lanes
 from .routes import PARKED_MOVE, _piece, moved_distance
 from .topology import ConnectionPlan, EdgePlan, NetworkPlan
 
-DT = 0.1  #: s, WOMD step (10 Hz)
+DT = STEP_LENGTH  #: s, WOMD step (10 Hz)
 MIN_DURATION = 1.0  #: s, shortest off-map stretch that gets a lane
 MIN_LENGTH = 3.0  #: m, shortest recorded path of a stretch that gets a lane
 SMOOTH = 5  #: states in the moving average of the recorded path
