@@ -123,22 +123,27 @@ def test_route_vehicles_drive_on_past_their_route_end(bundle):
 
     scene, folder = bundle
     ends: dict[str, str] = {}
-    extended: dict[str, str] = {}
+    extended: dict[str, set[str]] = {}  # vehicle -> edges added to its route
     reached: set[str] = set()
     with SumoSession(folder / f"{scene.scenario_id}.sumocfg") as sim:
         for _ in range(91):
             sim.step()
             v = sim.vehicles()
-            reached |= {vid for vid, e in zip(v.ids, v.edge) if extended.get(vid) == e}
+            reached |= {vid for vid, e in zip(v.ids, v.edge) if e in extended.get(vid, ())}
             before = dict(ends)
             rl._continue_routes(ls, v, ends)
             for vid, e in ends.items():
                 if e and before.get(vid, e) != e:
-                    extended[vid] = e
-                    assert ls.vehicle.getRoute(vid)[-1] == e
-                    assert e in {ls.lane.getEdgeID(ln[0])
-                                 for ln in ls.lane.getLinks(ls.vehicle.getLaneID(vid))}
-    assert extended and reached  # some were continued, and drove onto the added edge
+                    # the route from the vehicle's edge on (getRoute lists the driven part too)
+                    route = ls.vehicle.getRoute(vid)[ls.vehicle.getRouteIndex(vid):]
+                    assert route[-1] == e and route[0] == before[vid]
+                    lane = ls.vehicle.getLaneID(vid)
+                    for nxt in route[1:]:  # a chain of connected edges, at least 50 m long
+                        lane = next(ln[0] for ln in ls.lane.getLinks(lane)
+                                    if ls.lane.getEdgeID(ln[0]) == nxt)
+                    assert sum(ls.lane.getLength(f"{x}_0") for x in route[1:]) >= 50.0
+                    extended.setdefault(vid, set()).update(route[1:])
+    assert extended and reached  # some were continued, and drove onto the added edges
 
 
 @pytest.mark.sumo
@@ -189,7 +194,7 @@ def test_dead_end_inside_the_map_holds_the_vehicle(bundle):
             held |= {vid for vid in v.ids if vid not in parked and ls.vehicle.getStops(vid)}
         present = set(sim.vehicles().ids)
         assert held and held <= present  # stopped there, never arrived
-        for vid in held:  # at (or queued just before) the end of a lane going nowhere else
-            lane = ls.vehicle.getLaneID(vid)
-            assert not [ln for ln in ls.lane.getLinks(lane) if ln[6] in rl._CONTINUE_ORDER]
-            assert ls.lane.getLength(lane) - ls.vehicle.getLanePosition(vid) < 10.0
+        for vid in held:  # held at the end of a lane going nowhere else
+            stop = ls.vehicle.getStops(vid)[0]
+            assert not [ln for ln in ls.lane.getLinks(stop.lane) if ln[6] in rl._CONTINUE_ORDER]
+            assert ls.lane.getLength(stop.lane) - stop.endPos < 0.5

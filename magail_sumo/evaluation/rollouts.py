@@ -324,13 +324,19 @@ def _mapped_ahead(shape: np.ndarray, points: np.ndarray) -> bool:
     return bool(np.any((ahead > lo) & (ahead < hi) & (side < DEAD_END_HALF_WIDTH)))
 
 
+#: m of lanes a continued route is extended by at a time (more than one step's drive: SUMO
+#: would otherwise cross a short added edge and arrive within one step)
+CONTINUE_AHEAD = 50.0
+
+
 def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] = (),
                      points: np.ndarray | None = None) -> None:
-    """Extend the route of every vehicle now on the last edge of its route by one edge: the
-    successor reached from its lane by the straightest link (:data:`_CONTINUE_ORDER`, then
-    the shorter link). ``ends`` maps a vehicle to the last edge of its route (filled on first
-    sight, updated when extended, "" when it is not extended further); vehicles in ``keep``
-    (parked ones, held at their parking stop) keep their routes.
+    """Extend the route of every vehicle now on the last edge of its route: edge after edge,
+    the successor reached from the lane by the straightest link (:data:`_CONTINUE_ORDER`, then
+    the shorter link), until :data:`CONTINUE_AHEAD` m are added or a dead end is reached.
+    ``ends`` maps a vehicle to the last edge of its route (filled on first sight, updated when
+    extended, "" once it ends for good); vehicles in ``keep`` (parked ones, held at their
+    parking stop) keep their routes.
 
     A lane without a successor (a turnaround aside) is a dead end: where the scene's map goes on
     ahead of it (``points``, :func:`map_points`; :func:`_mapped_ahead`) — the end of a driveway
@@ -345,21 +351,26 @@ def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] =
             last = ends[vid] = ls.vehicle.getRoute(vid)[-1]
         if edge != last or not last:
             continue
-        lane = ls.vehicle.getLaneID(vid)
-        links = [ln for ln in ls.lane.getLinks(lane) if ln[6] in _CONTINUE_ORDER]
-        ends[vid] = ""
+        lane, added, chain = ls.vehicle.getLaneID(vid), 0.0, [edge]
+        while added < CONTINUE_AHEAD:
+            links = [ln for ln in ls.lane.getLinks(lane) if ln[6] in _CONTINUE_ORDER]
+            if not links:
+                break
+            lane = min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]], ln[7]))[0]
+            if ls.lane.getEdgeID(lane) in chain:  # a loop
+                break
+            chain.append(ls.lane.getEdgeID(lane))
+            added += ls.lane.getLength(lane)
+        ends[vid] = chain[-1] if added >= CONTINUE_AHEAD else ""
         try:
-            if links:
-                nxt = ls.lane.getEdgeID(min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]],
-                                                                   ln[7]))[0])
-                ls.vehicle.setRoute(vid, [edge, nxt])
-                ends[vid] = nxt
-            elif points is not None and _mapped_ahead(np.asarray(ls.lane.getShape(lane)),
-                                                      points):
-                ls.vehicle.setStop(vid, edge, max(0.0, ls.lane.getLength(lane) - 0.1),
-                                   ls.vehicle.getLaneIndex(vid), duration=1e6)
+            if len(chain) > 1:
+                ls.vehicle.setRoute(vid, chain)
+            if not ends[vid] and points is not None and _mapped_ahead(
+                    np.asarray(ls.lane.getShape(lane)), points):
+                ls.vehicle.setStop(vid, chain[-1], max(0.0, ls.lane.getLength(lane) - 0.1),
+                                   int(lane.rsplit("_", 1)[1]), duration=1e6)
         except Exception:  # SUMO refused (the class may not use the edge; too close to brake)
-            pass
+            ends[vid] = ""
 
 
 def _drop(ls, ids, routed: set[str]) -> None:
