@@ -605,7 +605,7 @@ def train_sac(cfg: TrainConfig, run_dir: Path, expert, ckpt: dict | None,
                 + (f", D loss {ds.loss:.3f} acc expert {ds.expert_accuracy:.2f} policy "
                    f"{ds.policy_accuracy:.2f}" if ds else ""))
             note_skipped(run.venv, run_dir)
-            progress("updates", run.update, cfg.updates)
+            progress("sac_updates", run.update, cfg.updates)
             if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
                 run.save(run_dir)
     finally:

@@ -423,7 +423,8 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
     :param run_dir: where to write (default ``out_dir/<algorithm>-seed<seed>-<time>``).
     :param resume: a run directory to continue from its ``checkpoints/latest.pt``.
     :param progress: called as ``progress(phase, done, total)`` after every behavioural-cloning
-        epoch (phase ``"bc"``) and PPO update (phase ``"updates"``), e.g. for a progress bar.
+        epoch (phase ``"bc"``), PPO update (phase ``"updates"``) and SAC update (phase
+        ``"sac_updates"``), e.g. for a progress bar.
     """
     check_train_config(cfg)
     ckpt = None
