@@ -451,13 +451,15 @@ class SacRun:
         self.collisions.add(**col)
         self.transitions += len(tr.slots)
         self.last_obs = obs
+        speed = float(tr.obs[:, self.names.index("speed")].sum()) if "speed" in self.names \
+            else 0.0
         return {"reward": float(reward.sum()), "task": float(task.sum()), "n": len(tr.slots),
-                "collisions": int(tr.events["collision"].sum())}
+                "collisions": int(tr.events["collision"].sum()), "speed": speed}
 
     def run_update(self) -> dict[str, float]:
         """One update (module doc); totals of the update's env steps."""
         c = self.cfg.sac
-        tot = {"reward": 0.0, "task": 0.0, "n": 0, "collisions": 0}
+        tot = {"reward": 0.0, "task": 0.0, "n": 0, "collisions": 0, "speed": 0.0}
         for _ in range(c.train_freq):
             for k, v in self.env_step().items():
                 tot[k] += v
@@ -587,7 +589,9 @@ def train_sac(cfg: TrainConfig, run_dir: Path, expert, ckpt: dict | None,
             logger.record("sac/collisions", tot["collisions"])
             logger.record("sac/buffer", len(run.buffer))
             logger.record("sac/collision_buffer", len(run.collisions))
-            logger.record("sac/agent_steps", run.venv.agent_steps)
+            logger.record("env/agent_steps_total", run.venv.agent_steps)
+            if "speed" in run.names:  # as PPO's DiscriminatorCallback logs it
+                logger.record("diag/speed_policy", tot["speed"] / n)
             if st is not None:
                 for k, v in vars(st).items():
                     logger.record(f"sac/{k}", v)
