@@ -275,3 +275,18 @@ def test_evaluate_sac_checkpoint(sac_setup, tmp_path):
                    workers=1, networks=root / "nets", name="sac")
     files = list((tmp_path / "eval" / "rollouts" / "sac").glob("*.parquet"))
     assert len(files) == 1, res
+
+
+@pytest.mark.sumo
+def test_resume_without_buffers_is_approximate(sac_setup, tmp_path):
+    from magail_sumo.training.trainer import load_checkpoint, train
+
+    root, cfg = sac_setup
+    cfg = replace(cfg, sac=replace(cfg.sac, save_buffers=False))
+    half = train(replace(cfg, updates=2), run_dir=tmp_path / "half", log=lambda s: None)
+    assert load_checkpoint(half / "checkpoints" / "latest.pt")["buffers"] is None
+    lines: list[str] = []
+    train(replace(cfg, updates=3), resume=half, log=lines.append)
+    assert any("approximate resume" in s for s in lines)
+    b = load_checkpoint(half / "checkpoints" / "latest.pt")
+    assert b["update"] == 3 and b["transitions"] < b["env_counters"][0]
