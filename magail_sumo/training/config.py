@@ -515,7 +515,8 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
         if not refs:
             why = skipped[0].reason if skipped else "no scene"
             raise ConfigError(f"{where}{key}: cannot read the scenes ({show(why, 200)[1:-1]})")
-        if cfg.discriminator.kind == "transformer" and any(is_city(r) for r in refs):
+        if cfg.discriminator.kind == "transformer" and cfg.algorithm != "sac" \
+                and any(is_city(r) for r in refs):
             raise ConfigError(f"{where}discriminator.kind: 'transformer' judges all vehicles of "
                               f"a worker step as one set, not a city's local neighbourhoods "
                               f"({key} is a city scenario); use 'decomposed' (each vehicle "
