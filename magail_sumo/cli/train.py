@@ -66,7 +66,8 @@ class _Bars:
 
         bar = self.bars.get(phase)
         if bar is None:
-            desc = {"bc": "behavioural cloning", "updates": "PPO updates"}.get(phase, phase)
+            desc = {"bc": "behavioural cloning", "updates": "PPO updates",
+                    "sac_updates": "SAC updates"}.get(phase, phase)
             unit = "epoch" if phase == "bc" else "update"
             bar = self.bars[phase] = tqdm(total=total, initial=done - 1, desc=desc, unit=unit,
                                           file=sys.stderr, leave=False)

@@ -42,6 +42,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from magail_sumo.scene import Scene
+from magail_sumo.sensors.command import RouteCommands
 from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
@@ -124,6 +125,9 @@ class SumoDrivingEnv(ParallelEnv):
         self._prev_table: tuple[int, np.ndarray] | None = None  # (last step, log_prev_actions)
         self._row_of_sumo = dict(zip(self.bundle.sumo_ids, self.bundle.sumo_rows.tolist()))
         self.suite = SensorSuite(scene, cfg.observation)
+        #: recorded routes for the route-command feature (``observation.command``)
+        self._commands = RouteCommands.build(tr, cfg.observation.command_lookahead) \
+            if cfg.observation.command else None
         self.stop_lines = StopLines.build(scene)
         low, high = observation_bounds(cfg.observation)
         self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
@@ -398,8 +402,10 @@ class SumoDrivingEnv(ParallelEnv):
         world = self._world(agents)
         pos = np.searchsorted(agents, observed) if agents.size else np.zeros(0, np.int64)
         rows = self._ctrl[observed]
+        cmd = None if self._commands is None else \
+            self._commands.commands(rows, self._x[observed], self._y[observed])
         ego = EgoState(pos, self._speed[observed], self._prev_action[observed], self._dest[rows],
-                       self._dest_yaw[rows])
+                       self._dest_yaw[rows], cmd)
         obs = self.suite.observe(world[0], ego, self.t, lanes)
         self.sensor_time += time.perf_counter() - clock
         return {self._ctrl_names[k]: obs[i] for i, k in enumerate(observed)}, world

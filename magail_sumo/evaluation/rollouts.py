@@ -501,7 +501,8 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
 
 def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
                     counts: dict[str, int] | None = None) -> tuple[np.ndarray, ...]:
-    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv.
+    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv (with the
+    policy's ``observation`` config when it has one, e.g. a SAC policy's route command).
 
     :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
         actions) are added to it."""
@@ -511,8 +512,9 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     cur = scene.current_time_index
+    extra = {"observation": policy.observation} if hasattr(policy, "observation") else {}
     env = SumoDrivingEnv(scene, bundle_dir, EnvConfig(
-        controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=()))
+        controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=(), **extra))
     track = _Track.empty(len(ids))
     try:
         obs, _ = env.reset(seed=seed)

@@ -24,12 +24,14 @@ index (defaults)      quantity
 108, 109              destination in the ego frame (m)
 110                   distance to the destination (m)
 111, 112              route direction: cos, sin of the destination heading in the ego frame
+113 .. 115            (``command: true`` only) route command at the next junction, one-hot
+                      left / straight / right (:mod:`magail_sumo.sensors.command`)
 ====================  ======================================================================
 
 Layout ``"seed"`` (108 values with the defaults, the seed project's vector): position x, y
 (scene frame, m) 0–1; velocity vx, vy (scene frame, m/s) 2–3; heading (scene frame, rad) 4;
 lidar 5–84; side detector 85–94; lane-line detector 95–104; light 105; destination x, y
-(scene frame, m) 106–107.
+(scene frame, m) 106–107 (with ``command: true`` the 3 command values follow).
 
 The current lane is the nearest lane centre line running within 90° of the heading
 (:class:`~magail_sumo.sensors.lanes.LaneIndex`); its light comes from
@@ -50,6 +52,8 @@ from .raycast import SegmentGrid, box_edges, cast, polyline_segments
 from .traffic_lights import LightTable
 
 TWO_PI = 2.0 * np.pi
+#: names of the optional route-command one-hot (``ObservationConfig.command``)
+COMMAND_NAMES = ["command_left", "command_straight", "command_right"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,12 @@ class ObservationConfig:
 
     :param layout: ``"ego"`` (ego-frame quantities) or ``"seed"`` (the seed's 108 values).
     :param lane_cell: grid cell of the lane index (m); lane distances are capped at it.
+    :param command: append the route command (one-hot left / straight / right at the next
+        junction, :mod:`magail_sumo.sensors.command`) as ``command_left``,
+        ``command_straight``, ``command_right``; off by default (the default layout, expert
+        data and checkpoints keep their 113 values).
+    :param command_lookahead: route distance (m) ahead of the agent at which the command reads
+        the route's turn.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -79,10 +89,15 @@ class ObservationConfig:
     lane_line: BeamSpec = field(default_factory=lambda: BeamSpec(10, 3.0))
     layout: str = "ego"
     lane_cell: float = 10.0
+    command: bool = False
+    command_lookahead: float = 30.0
 
     def __post_init__(self) -> None:
         if self.layout not in ("ego", "seed"):
             raise ValueError(f"observation layout must be 'ego' or 'seed', got {self.layout!r}")
+        if not (np.isfinite(self.command_lookahead) and self.command_lookahead > 0):
+            raise ValueError(f"observation command_lookahead must be > 0 m, got "
+                             f"{self.command_lookahead!r}")
 
 
 def observation_names(config: ObservationConfig | None = None) -> list[str]:
@@ -91,11 +106,12 @@ def observation_names(config: ObservationConfig | None = None) -> list[str]:
     beams = [f"lidar_{j:02d}" for j in range(cfg.lidar.beams)] + \
         [f"side_{j:02d}" for j in range(cfg.side.beams)] + \
         [f"lane_line_{j:02d}" for j in range(cfg.lane_line.beams)]
+    command = COMMAND_NAMES if cfg.command else []
     if cfg.layout == "seed":
-        return ["x", "y", "vx", "vy", "heading", *beams, "light", "dest_x", "dest_y"]
+        return ["x", "y", "vx", "vy", "heading", *beams, "light", "dest_x", "dest_y", *command]
     return ["speed", "prev_accel", "prev_steer", "length", "width", "lane_lateral",
             "lane_heading_error", *beams, "light", "dest_x", "dest_y", "dest_distance",
-            "route_cos", "route_sin"]
+            "route_cos", "route_sin", *command]
 
 
 def observation_bounds(config: ObservationConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -110,6 +126,8 @@ def observation_bounds(config: ObservationConfig | None = None) -> tuple[np.ndar
                 low[k], high[k] = 0.0, spec.range
         if name == "light":
             low[k], high[k] = 0, 3
+        elif name in COMMAND_NAMES:
+            low[k], high[k] = 0.0, 1.0
         elif name in ("prev_accel", "prev_steer", "route_cos", "route_sin"):
             low[k], high[k] = -1.0, 1.0
         elif name in ("length", "width", "dest_distance"):
@@ -155,6 +173,9 @@ class EgoState:
     :param prev_action: (A, 2) previous normalised action (accel, steer).
     :param destination: (A, 2) destination (m, scene frame).
     :param destination_yaw: (A,) heading at the destination (rad, scene frame).
+    :param command: (A, 3) route-command one-hot (:mod:`magail_sumo.sensors.command`), used
+        with ``ObservationConfig.command``; None: ``straight`` for every agent (an env without
+        recorded routes, e.g. a city).
     """
 
     index: np.ndarray
@@ -162,6 +183,7 @@ class EgoState:
     prev_action: np.ndarray
     destination: np.ndarray
     destination_yaw: np.ndarray
+    command: np.ndarray | None = None
 
 
 class SensorSuite:
@@ -234,6 +256,13 @@ class SensorSuite:
             cols = [ego.speed, ego.prev_action[:, 0], ego.prev_action[:, 1], boxes.length[idx],
                     boxes.width[idx], lq.lateral, lq.heading_error, lidar, side, line, light,
                     c * dx + s * dy, -s * dx + c * dy, np.hypot(dx, dy), np.cos(rel), np.sin(rel)]
+        if cfg.command:
+            if ego.command is None:
+                from .command import STRAIGHT, one_hot
+
+                cols.append(one_hot(np.full(a, STRAIGHT)))
+            else:
+                cols.append(ego.command)
         out = np.empty((a, self.size), np.float32)
         k = 0
         for col in cols:  # a fixed handful of column blocks, not a per-agent loop

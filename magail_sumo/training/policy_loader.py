@@ -14,10 +14,16 @@ but never evaluated).
 Evaluation drives the env with the default observation layout, bicycle limits and action
 layout; a checkpoint trained with other ones is refused with a one-line error naming the
 difference (its actions and observations would mean something else there).
+
+SAC checkpoints (``algorithm: sac`` / ``sac_gail``; the checkpoint's recorded algorithm picks
+the loader) load as :class:`~magail_sumo.training.sac.SacCheckpointPolicy`: the command-branched
+actor, with the route command appended to the default observation (the policy's
+``observation`` attribute tells the evaluation env to compute it).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +32,7 @@ import torch
 from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
 
-from .trainer import CheckpointError, load_policy
+from .trainer import CheckpointError, checkpoint_config, load_checkpoint, load_policy
 
 
 class CheckpointPolicy:
@@ -100,6 +106,17 @@ def load_checkpoint_policy(path: str | Path, seed: int = 0,
     from magail_sumo.sensors.observation import observation_bounds
 
     torch.set_num_threads(1)  # small MLP; evaluation runs several worker processes
+    state = load_checkpoint(path)
+    cfg = checkpoint_config(state, path)
+    if cfg.algorithm in ("sac", "sac_gail"):
+        from .sac import load_sac_policy
+
+        env = target or EnvConfig()
+        # evaluation drives the env with the policy's route command (SacCheckpointPolicy.observation)
+        obs = replace(env.observation, command=cfg.env.observation.command,
+                      command_lookahead=cfg.env.observation.command_lookahead)
+        check_env_compatible(path, cfg.env, replace(env, observation=obs))
+        return load_sac_policy(path, state, replace(cfg, device="cpu"), seed, deterministic)
     policy, cfg = load_policy(path, device="cpu")
     check_env_compatible(path, cfg.env, target or EnvConfig())
     low, _ = observation_bounds(cfg.env.observation)

@@ -252,6 +252,10 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPoli
     """The policy of a checkpoint (and the run's config)."""
     state = load_checkpoint(path)
     cfg = replace(checkpoint_config(state, path), device=device)
+    if cfg.algorithm in ("sac", "sac_gail"):
+        raise CheckpointError(f"{path}: a {cfg.algorithm} checkpoint (command-branched SAC), not "
+                              "a PPO / behavioural-cloning policy (evaluate loads both: "
+                              "magail_sumo.training.policy_loader.load_checkpoint_policy)")
     policy = make_policy(cfg)
     _load_into(policy, state["policy"], "policy", Path(path))
     policy.set_training_mode(False)
@@ -298,7 +302,8 @@ def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
 
 def _run_dir(cfg: TrainConfig, name: str | None) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    kind = "bc" if cfg.algorithm == "bc" else f"gail-{cfg.discriminator.kind}"
+    kind = cfg.algorithm if cfg.algorithm in ("bc", "sac") else \
+        f"{cfg.algorithm}-{cfg.discriminator.kind}"
     return Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
 
 
@@ -383,9 +388,7 @@ def _encode_state(state: dict) -> dict:
     if "last_obs" in state:
         out["last_obs"] = torch.from_numpy(np.array(state["last_obs"]))
         out["last_episode_starts"] = torch.from_numpy(np.array(state["last_episode_starts"]))
-        out["env_state"] = [[int(ep), torch.from_numpy(np.stack(acts).astype(np.float32))
-                             if len(acts) else torch.zeros((0, 0), dtype=torch.float32)]
-                            for ep, acts in state["env_state"]]
+        out["env_state"] = encode_env_state(state["env_state"])
         out["env_counters"] = [int(v) for v in state["env_counters"]]
         dt = dict(state["disc_trainer"])
         dt["rng"] = _plain(dt["rng"])
@@ -422,7 +425,8 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
     :param run_dir: where to write (default ``out_dir/<algorithm>-seed<seed>-<time>``).
     :param resume: a run directory to continue from its ``checkpoints/latest.pt``.
     :param progress: called as ``progress(phase, done, total)`` after every behavioural-cloning
-        epoch (phase ``"bc"``) and PPO update (phase ``"updates"``), e.g. for a progress bar.
+        epoch (phase ``"bc"``), PPO update (phase ``"updates"``) and SAC update (phase
+        ``"sac_updates"``), e.g. for a progress bar.
     """
     check_train_config(cfg)
     ckpt = None
@@ -438,8 +442,14 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
         run_dir = check_run_dir(Path(run_dir) if run_dir is not None else _run_dir(cfg, None))
     torch.set_num_threads(max(1, cfg.torch_threads))
     _seed_everything(cfg.seed)
-    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
     progress = progress or (lambda phase, done, total: None)
+    if cfg.algorithm in ("sac", "sac_gail"):
+        from .sac import train_sac
+
+        expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation)) \
+            if cfg.algorithm == "sac_gail" else None
+        return train_sac(cfg, Path(run_dir), expert, ckpt, log, progress)
+    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
     if cfg.algorithm == "bc":
         return _train_bc(cfg, Path(run_dir), expert, ckpt, log, progress)
     return _train_gail(cfg, Path(run_dir), expert, ckpt, log, progress)
@@ -496,6 +506,74 @@ def _torch_threads_callback():
     return TorchThreads
 
 
+def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
+    """The run's scene-pool vector env (:func:`~magail_sumo.env.vec_env.pool_vec_env`) and
+    ``cfg`` with ``workers.count`` resolved (None: the usable cores, at most one per scene)."""
+    from converters.sumo.scenario import claim_networks_dir
+    from magail_sumo.env.scene_pool import resolve_pool
+    from magail_sumo.env.vec_env import pool_vec_env
+
+    from .config import usable_cores
+
+    skipped: list = []
+    refs = resolve_pool(cfg.scenes.files, skipped)
+    for s in skipped:
+        log(f"scene skipped: {s.what}: {s.reason}")
+    count = cfg.workers.count or min(len(refs), usable_cores())
+    cfg = replace(cfg, workers=replace(cfg.workers, count=count))
+    w = cfg.workers
+    claim_networks_dir(cfg.scenes.networks)
+    venv = pool_vec_env(
+        refs, cfg.scenes.networks, count, cfg.env, cfg.seed, cache=w.scene_cache,
+        city=cfg.city.env_config(cfg.env),
+        convert_budget_s=cfg.scenes.effective_convert_budget_s, log=log,
+        timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
+        backend=w.backend, backend_options={"address": w.ray.address,
+                                            "num_cpus": w.ray.num_cpus},
+        max_restarts=w.max_restarts)
+    venv.skipped[:0] = [(s.what, s.reason) for s in skipped]
+    venv.new_skipped[:0] = [(s.what, s.reason) for s in skipped]
+    log(f"scene pool: {len(refs)} scene(s) over {len(venv.specs)} "
+        f"{w.backend} worker(s), {venv.num_envs} agent slots")
+    return cfg, venv
+
+
+def note_skipped(venv, run_dir: Path) -> None:
+    """Append the scenes the pool skipped since the last call to the run's
+    :data:`SKIPPED_FILE`."""
+    from magail_sumo.env.scene_pool import PoolSkip, write_skipped
+
+    new, venv.new_skipped = venv.new_skipped, []
+    write_skipped(run_dir / SKIPPED_FILE, [PoolSkip(w, r) for w, r in new])
+
+
+def encode_env_state(env_state) -> list:
+    """:meth:`MultiSceneVecEnv.get_state` as tensors and plain data."""
+    return [[int(ep), torch.from_numpy(np.stack(acts).astype(np.float32))
+             if len(acts) else torch.zeros((0, 0), dtype=torch.float32)]
+            for ep, acts in env_state]
+
+
+def decode_env_state(venv, saved: Any) -> list[tuple[int, list[np.ndarray]]]:
+    """A checkpoint's env state (:func:`encode_env_state`) as
+    :meth:`MultiSceneVecEnv.set_state` takes it; ValueError / TypeError when it does not fit
+    the env's scenes."""
+    if not isinstance(saved, (list, tuple)) or len(saved) != len(venv.slots):
+        raise ValueError(f"env_state does not hold {len(venv.slots)} scenes")
+    out = []
+    for k, (ep, acts) in enumerate(saved):
+        acts = _tensor(acts, "env_state actions")
+        if not isinstance(ep, int) or not 0 <= ep < 1 << 31:
+            raise ValueError(f"env_state scene {k}: bad episode index")
+        if acts.numel() and (acts.dtype != torch.float32 or acts.dim() != 3
+                             or tuple(acts.shape[1:]) != (venv.slots[k], 2)
+                             or not bool(torch.isfinite(acts).all())):
+            raise ValueError(f"env_state scene {k}: actions are not finite float32 "
+                             f"(steps, {venv.slots[k]}, 2)")
+        out.append((ep, list(acts.numpy()) if acts.numel() else []))
+    return out
+
+
 class GailRun:
     """The objects of a GAIL / MAGAIL run (env, reward wrapper, discriminator, PPO, callbacks).
 
@@ -508,12 +586,6 @@ class GailRun:
                  log: Callable[[str], None] | None = None) -> None:
         from stable_baselines3.common.callbacks import CallbackList
 
-        from converters.sumo.scenario import claim_networks_dir
-        from magail_sumo.env.scene_pool import resolve_pool
-        from magail_sumo.env.vec_env import pool_vec_env
-
-        from .config import usable_cores
-
         from .discriminator_loss import DiscriminatorLossConfig
         from .ppo import KLAdaptiveLR, MaskedPPO
         from .reward import DiscriminatorCallback, DiscriminatorRewardWrapper, DiscriminatorTrainer
@@ -525,26 +597,8 @@ class GailRun:
         if d.kind == "decomposed":  # before any worker starts
             expert.require_poses("discriminator.kind 'decomposed'")
         self.log = log or (lambda msg: None)
-        skipped: list = []
-        refs = resolve_pool(cfg.scenes.files, skipped)
-        for s in skipped:
-            self.log(f"scene skipped: {s.what}: {s.reason}")
-        count = cfg.workers.count or min(len(refs), usable_cores())
-        self.cfg = cfg = replace(cfg, workers=replace(cfg.workers, count=count))
-        w = cfg.workers
-        claim_networks_dir(cfg.scenes.networks)
-        self.venv = pool_vec_env(
-            refs, cfg.scenes.networks, count, cfg.env, cfg.seed, cache=w.scene_cache,
-            city=cfg.city.env_config(cfg.env),
-            convert_budget_s=cfg.scenes.effective_convert_budget_s, log=self.log,
-            timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
-            backend=w.backend, backend_options={"address": w.ray.address,
-                                                "num_cpus": w.ray.num_cpus},
-            max_restarts=w.max_restarts)
-        self.venv.skipped[:0] = [(s.what, s.reason) for s in skipped]
-        self.venv.new_skipped[:0] = [(s.what, s.reason) for s in skipped]
-        self.log(f"scene pool: {len(refs)} scene(s) over {len(self.venv.specs)} "
-                 f"{w.backend} worker(s), {self.venv.num_envs} agent slots")
+        cfg, self.venv = make_pool_env(cfg, self.log)
+        self.cfg = cfg
         try:
             p = cfg.ppo
             rollout = p.n_steps * self.venv.num_envs
@@ -678,22 +732,8 @@ class GailRun:
                                   f"{printable(str(exc), 200)})") from None
 
     def _decode_env_state(self, saved: Any) -> list[tuple[int, list[np.ndarray]]]:
-        """The checkpoint's env state as :meth:`MultiSceneVecEnv.set_state` takes it;
-        ValueError / TypeError when it does not fit the env's scenes."""
-        if not isinstance(saved, (list, tuple)) or len(saved) != len(self.venv.slots):
-            raise ValueError(f"env_state does not hold {len(self.venv.slots)} scenes")
-        out = []
-        for k, (ep, acts) in enumerate(saved):
-            acts = _tensor(acts, "env_state actions")
-            if not isinstance(ep, int) or not 0 <= ep < 1 << 31:
-                raise ValueError(f"env_state scene {k}: bad episode index")
-            if acts.numel() and (acts.dtype != torch.float32 or acts.dim() != 3
-                                 or tuple(acts.shape[1:]) != (self.venv.slots[k], 2)
-                                 or not bool(torch.isfinite(acts).all())):
-                raise ValueError(f"env_state scene {k}: actions are not finite float32 "
-                                 f"(steps, {self.venv.slots[k]}, 2)")
-            out.append((ep, list(acts.numpy()) if acts.numel() else []))
-        return out
+        """:func:`decode_env_state` for this run's env."""
+        return decode_env_state(self.venv, saved)
 
     def save(self, run_dir: Path) -> Path:
         d = run_dir / "checkpoints"
@@ -722,12 +762,6 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
     run = GailRun(cfg, expert, log=log)
     cfg = run.cfg  # workers.count resolved
 
-    def note_skipped() -> None:
-        from magail_sumo.env.scene_pool import PoolSkip, write_skipped
-
-        new, run.venv.new_skipped = run.venv.new_skipped, []
-        write_skipped(run_dir / SKIPPED_FILE, [PoolSkip(w, r) for w, r in new])
-
     try:
         if ckpt is not None:
             run.load_state_dict(ckpt, run_dir / "checkpoints" / "latest.pt")
@@ -742,7 +776,7 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
                                     log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))
         claim_run_dir(run_dir, resumed=ckpt is not None)
         record_run(run_dir, cfg)
-        note_skipped()
+        note_skipped(run.venv, run_dir)
         run.model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
         while run.update < cfg.updates:
             t0 = time.perf_counter()
@@ -760,7 +794,7 @@ def _train_gail(cfg: TrainConfig, run_dir: Path, expert: ExpertDataset, ckpt: di
             if run.venv.restarts:
                 run.model.logger.record("workers/restarts", run.venv.restarts)
             run.model.logger.dump(run.model.num_timesteps)
-            note_skipped()
+            note_skipped(run.venv, run_dir)
             progress("updates", run.update, cfg.updates)
             if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
                 run.save(run_dir)
