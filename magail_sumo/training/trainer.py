@@ -296,7 +296,8 @@ def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
 
 def _run_dir(cfg: TrainConfig, name: str | None) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    kind = "bc" if cfg.algorithm == "bc" else f"gail-{cfg.discriminator.kind}"
+    kind = cfg.algorithm if cfg.algorithm in ("bc", "gameformer") \
+        else f"gail-{cfg.discriminator.kind}"
     return Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
 
 
@@ -436,8 +437,12 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
         run_dir = check_run_dir(Path(run_dir) if run_dir is not None else _run_dir(cfg, None))
     torch.set_num_threads(max(1, cfg.torch_threads))
     _seed_everything(cfg.seed)
-    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
     progress = progress or (lambda phase, done, total: None)
+    if cfg.algorithm == "gameformer":
+        from .gameformer import train_gameformer
+
+        return train_gameformer(cfg, Path(run_dir), ckpt, log, progress)
+    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
     if cfg.algorithm == "bc":
         return _train_bc(cfg, Path(run_dir), expert, ckpt, log, progress)
     return _train_gail(cfg, Path(run_dir), expert, ckpt, log, progress)
