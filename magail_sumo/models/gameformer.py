@@ -217,17 +217,23 @@ class GameFormer(nn.Module):
         c = self.fusion(tokens.flatten(0, 1), src_key_padding_mask=pad.flatten(0, 1))
         return c.unflatten(0, (b, n)), pad
 
-    def forward(self, agents: torch.Tensor, agent_mask: torch.Tensor, map_points: torch.Tensor,
-                map_mask: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """[(trajectories (B, N, M, T, 4), scores (B, N, M)) for level 0..K]."""
-        context, pad = self.encode(agents, agent_mask, map_points, map_mask)
-        b, n = agent_mask.shape
+    def decode_level0(self, context: torch.Tensor, pad: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Level 0 from the scene contexts: (traj, scores, query contents Z (B, N, M, D))."""
+        b, n = context.shape[:2]
         idx = torch.arange(n, device=context.device)
         own = context[:, idx, idx]  # (B, N, D): agent i's own token in C_i
         q = own.unsqueeze(2) + self.modal_query
         z = self.level0(q.flatten(0, 1), context.flatten(0, 1), pad.flatten(0, 1))
         z = z.unflatten(0, (b, n))
         traj, scores = self.head0(z)
+        return traj, scores, z
+
+    def forward(self, agents: torch.Tensor, agent_mask: torch.Tensor, map_points: torch.Tensor,
+                map_mask: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """[(trajectories (B, N, M, T, 4), scores (B, N, M)) for level 0..K]."""
+        context, pad = self.encode(agents, agent_mask, map_points, map_mask)
+        traj, scores, z = self.decode_level0(context, pad)
         outs = [(traj, scores)]
         for dec in self.levels:
             a_mf, tokens = dec.future_tokens(traj, scores, agent_mask)
