@@ -49,6 +49,8 @@ AGENT_FEATURES = 12
 MAP_FEATURES = 8
 #: metres per unit of the network's internal coordinates (inputs divided, outputs multiplied)
 POSITION_SCALE = 10.0
+#: metres per unit of the trajectory head's per-step displacements (μ is their running sum)
+STEP_SCALE = 1.0
 #: the future encoder and the repulsion term look at every this many future steps (0.5 s),
 #: ending at the last one
 FUTURE_STRIDE = 5
@@ -106,7 +108,8 @@ class CrossBlock(nn.Module):
 
 
 class GMMHead(nn.Module):
-    """Trajectories (B, N, M, T, 4) and scores (B, N, M) from query contents (B, N, M, D)."""
+    """Trajectories (B, N, M, T, 4) and scores (B, N, M) from query contents (B, N, M, D); the
+    means are the running sums of per-step displacements (a trajectory starts at the agent)."""
 
     def __init__(self, cfg: GameFormerModelConfig) -> None:
         super().__init__()
@@ -117,7 +120,7 @@ class GMMHead(nn.Module):
     def forward(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         c = self.cfg
         g = self.traj(z).unflatten(-1, (c.future_steps, 4))
-        mu = g[..., :2] * POSITION_SCALE
+        mu = torch.cumsum(g[..., :2] * STEP_SCALE, dim=-2)  # starts at the current position
         log_sigma = g[..., 2:].clamp(c.log_sigma_min, c.log_sigma_max)
         return torch.cat([mu, log_sigma], -1), self.score(z).squeeze(-1)
 
