@@ -17,7 +17,8 @@ max-pool over the points of an element gives the element's token (PointNet style
 agent i a transformer encoder fuses the N agent tokens with agent i's Nm map tokens into its
 scene context ``C_i`` ((N + Nm) tokens). Level 0: M learnable modality queries plus agent i's own
 token of ``C_i`` cross-attend ``C_i`` and give M Gaussian trajectories (μx, μy, log σx, log σy
-per future step, metres in the sample frame) and M mode scores (logits). Level k = 1..K: each
+per future step, metres in the sample frame; the means are running sums of predicted per-step
+displacements) and M mode scores (logits). Level k = 1..K: each
 agent's level-(k−1) trajectories are encoded (MLP per step, max-pool over time) to
 ``A_mf`` (B, N, M, D), averaged over modes with the softmax of the level-(k−1) scores to one
 future token per agent, the future tokens attend to each other (self-attention over the agents),
