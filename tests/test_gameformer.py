@@ -268,3 +268,13 @@ def test_closed_loop_evaluate(trained, tmp_path):
     df = pd.read_parquet(next((out / "rollouts" / "gf").glob("*.parquet")))
     assert sorted(df["rollout"].unique()) == [0, 1]
     assert np.isfinite(df[["x", "y", "heading"]].to_numpy()).all()
+
+
+def test_pt_loader_dispatches_on_the_algorithm(trained):
+    from magail_sumo.training.gameformer_policy import GameFormerPolicy
+    from magail_sumo.training.policy_loader import load_checkpoint_policy
+
+    pol = load_checkpoint_policy(trained, seed=4, deterministic=True)
+    assert isinstance(pol, GameFormerPolicy) and pol.deterministic
+    with pytest.raises(RuntimeError, match="begin"):
+        pol.act({"1": np.zeros(3, np.float32)})
