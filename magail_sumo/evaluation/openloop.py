@@ -15,8 +15,9 @@ the recorded history) and scored on its M modes at every level 0..K:
   above 11 m/s, linearly in between. A horizon where the ground truth is unobserved is not
   scored. ``miss_rate`` is the mean over the three horizons.
 * overlap rate: the share of focal agents whose most likely mode (highest score), as a box of
-  the agent's current size heading along its path, overlaps the recorded box of any other
-  object observed at the same step (:func:`~magail_sumo.evaluation.realism.interaction.signed_box_distance`
+  the agent's current size centred on the predicted position with the agent's recorded heading
+  at that step (where unrecorded, the heading along the predicted path), overlaps the recorded
+  box of any other object observed at the same step (:func:`~magail_sumo.evaluation.realism.interaction.signed_box_distance`
   < 0) at any future step.
 
 The constant-velocity prediction (one mode) is scored the same way for reference.
@@ -94,13 +95,15 @@ def path_heading(x: np.ndarray, y: np.ndarray, h0: float, min_step: float = 0.05
 
 
 def overlaps(scene: Scene, c: int, row: int, x: np.ndarray, y: np.ndarray, h0: float) -> bool:
-    """Whether the box of track ``row`` (its size at ``c``) moved along world-frame path
-    ``x, y`` (steps c+1 ..) overlaps another object's recorded box at any step."""
+    """Whether the box of track ``row`` (its size at ``c``, its recorded heading, module doc)
+    placed along world-frame path ``x, y`` (steps c+1 ..) overlaps another object's recorded
+    box at any step."""
     from magail_sumo.evaluation.realism.interaction import signed_box_distance
 
     tr = scene.tracks
     steps = np.arange(c + 1, c + 1 + len(x))
-    heading = path_heading(x - tr.x[row, c], y - tr.y[row, c], h0)
+    heading = np.where(tr.valid[row, steps], tr.heading[row, steps].astype(np.float64),
+                       path_heading(x - tr.x[row, c], y - tr.y[row, c], h0))
     others = np.flatnonzero(np.arange(tr.num_tracks) != row)
     ok = tr.valid[others][:, steps]  # (O, T)
     if not ok.any():
