@@ -11,9 +11,11 @@ own sample (:func:`~magail_sumo.training.gameformer_data.build_sample`) from tha
 history. Each agent follows one mode of the last level (K): per rollout each agent draws one
 u ~ U(0, 1) (from the rollout seed, agents in sorted-name order) and at every replan takes the
 first mode whose cumulative softmax score exceeds u (``deterministic``: the highest-scoring
-mode). The plan's next position is tracked through the bicycle model's inverse
-(:func:`magail_sumo.sim.dynamics.inverse`, heading target along the planned path) and returned
-as a normalised ``[accel, steer]`` in the env's limits and action layout.
+mode). The plan is tracked through the bicycle model (:meth:`GameFormerPolicy._track`: its
+speed profile by a proportional speed controller, its path by pure pursuit of a look-ahead
+point; steering angle from the bicycle curvature ``tan(steer) / wheelbase``) and returned as a
+normalised ``[accel, steer]`` (:func:`magail_sumo.sim.dynamics.normalise`) in the env's limits
+and action layout.
 """
 
 from __future__ import annotations
@@ -53,7 +55,8 @@ class GameFormerPolicy:
         self.t = env.t
         self.row_of = {str(int(i)): k for k, i in enumerate(scene.tracks.id.tolist())}
         self.u: dict[str, float] = {}
-        self.plans: dict[str, tuple[int, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.plans: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+        self.plan_start: dict[str, tuple[float, float]] = {}
         self.last_plan = None
 
     def _record(self, st) -> None:
@@ -101,15 +104,8 @@ class GameFormerPolicy:
                             prob.shape[1] - 1))
             fr = Frame(*samples[k]["frame"])
             wx, wy = fr.to_world(traj[k, m, :, 0], traj[k, m, :, 1])
-            px, py = np.concatenate([[fr.x], wx]), np.concatenate([[fr.y], wy])
-            dx, dy = np.diff(px), np.diff(py)
-            yaw = np.arctan2(dy, dx)
-            still = np.hypot(dx, dy) < 0.05
-            yaw = np.where(still, np.nan, yaw)
-            for t in range(len(yaw)):  # hold the last heading where the plan does not move
-                if np.isnan(yaw[t]):
-                    yaw[t] = yaw[t - 1] if t else fr.heading
-            self.plans[n] = (self.env.t, wx, wy, yaw)
+            self.plans[n] = (self.env.t, wx, wy)
+            self.plan_start[n] = (fr.x, fr.y)
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if self.env is None:
@@ -127,18 +123,46 @@ class GameFormerPolicy:
             self._replan([st.names[k] for k in pick], st.rows[pick])
             if due:
                 self.last_plan = env.t
-        f = self.g.model.future_steps
-        tx, ty, tyaw = (np.empty(len(st.names)) for _ in range(3))
-        for k, n in enumerate(st.names):
-            t0, wx, wy, yaw = self.plans[n]
-            j = min(env.t - t0, f - 1)
-            tx[k], ty[k], tyaw[k] = wx[j], wy[j], yaw[j]
-        accel, steer = dynamics.inverse(st.state, tx, ty, st.wheelbase, env.dt, yaw_next=tyaw)
+        accel, steer = self._track(st)
         lim = env.config.limits
         a = dynamics.normalise(np.clip(accel, -lim.max_brake, lim.max_accel),
                                np.clip(steer, -lim.max_steer, lim.max_steer), lim,
                                env.config.action_layout).astype(np.float32)
         return dict(zip(st.names, a))
+
+    def _track(self, st) -> tuple[np.ndarray, np.ndarray]:
+        """(accel m/s², steer rad) following each agent's plan: the speed of the plan over the
+        next :data:`SPEED_WINDOW` steps reached with time constant :data:`SPEED_TAU`, and
+        pure pursuit of the first plan point at least ``max(LOOKAHEAD_M, speed·LOOKAHEAD_S)``
+        ahead (curvature ``2 sin(α) / d`` to it; straight on where the plan stays closer)."""
+        f = self.g.model.future_steps
+        s = st.state
+        accel, steer = np.zeros(len(st.names)), np.zeros(len(st.names))
+        for k, n in enumerate(st.names):  # one plan per agent, 80 points
+            t0, wx, wy = self.plans[n]
+            j = min(max(self.env.t - t0, 0), f - 1)
+            j2 = min(j + SPEED_WINDOW, f - 1)
+            px = np.concatenate([[self.plan_start[n][0]], wx])
+            py = np.concatenate([[self.plan_start[n][1]], wy])
+            v_target = np.hypot(px[j2 + 1] - px[j], py[j2 + 1] - py[j]) / (
+                (j2 + 1 - j) * self.env.dt)
+            accel[k] = (v_target - s.speed[k]) / SPEED_TAU
+            ahead = np.hypot(wx[j:] - s.x[k], wy[j:] - s.y[k])
+            far = np.flatnonzero(ahead >= max(LOOKAHEAD_M, abs(s.speed[k]) * LOOKAHEAD_S))
+            if far.size:
+                i = j + far[0]
+                alpha = np.arctan2(wy[i] - s.y[k], wx[i] - s.x[k]) - s.yaw[k]
+                curv = 2.0 * np.sin(alpha) / ahead[far[0]]
+                steer[k] = np.arctan(curv * st.wheelbase[k])
+        return accel, steer
+
+
+#: plan steps over which the target speed is measured
+SPEED_WINDOW = 5
+#: s, time constant of the speed control
+SPEED_TAU = 0.5
+#: pure-pursuit look-ahead: at least this many metres, and this many seconds at the speed
+LOOKAHEAD_M, LOOKAHEAD_S = 3.0, 0.8
 
 
 def load_gameformer_policy(path: str | Path, seed: int = 0, deterministic: bool = False
