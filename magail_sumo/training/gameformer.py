@@ -118,7 +118,7 @@ def train_gameformer(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
                 + " ".join(f"{lv.nll.item():.2f}" for lv in levels)
                 + f" ce {levels[-1].score.item():.3f} inter {levels[-1].interaction.item():.4f}"
                 f" ({time.perf_counter() - t0:.0f} s)")
-        progress("updates", update, cfg.updates)
+        progress("gameformer updates", update, cfg.updates)
         if update % cfg.checkpoint_every == 0 or update == cfg.updates:
             save()
     if update == 0 and ckpt is None:
