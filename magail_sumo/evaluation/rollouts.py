@@ -80,7 +80,13 @@ class EvaluationError(MagailSumoError):
 # ---------------------------------------------------------------------------------- policies
 class Policy(Protocol):
     """What a policy under test provides: normalised ``[accel, steer]`` actions in [-1, 1]² per
-    agent from the env's observations (agents named by their WOMD track id)."""
+    agent from the env's observations (agents named by their WOMD track id).
+
+    Optional extension: a policy with a ``begin(scene, env)`` method is told the scene and the
+    :class:`~magail_sumo.env.SumoDrivingEnv` of each rollout right after the env's reset, before
+    its first ``act``; during ``act`` it may read the env (``env.t``, ``env.agent_states()`` for
+    the live agents' simulated states, ``env.scene`` for the recorded ones of the others) but
+    must not step or reset it. Policies without it are driven exactly as before."""
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
 
@@ -518,6 +524,9 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
     track = _Track.empty(len(ids))
     try:
         obs, _ = env.reset(seed=seed)
+        begin = getattr(policy, "begin", None)
+        if callable(begin):  # optional extension (see Policy)
+            begin(scene, env)
         while env.agents and env.t < cur + N_STEPS:
             st = env.agent_states()
             actions = policy.act(obs)

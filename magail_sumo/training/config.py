@@ -18,6 +18,7 @@ from magail_sumo.env.config import EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import TransformerConfig
+from magail_sumo.models.gameformer import GameFormerModelConfig
 
 
 @dataclass(frozen=True)
@@ -391,7 +392,66 @@ class SACConfig:
 
 
 #: algorithms of ``TrainConfig.algorithm``
-ALGORITHMS = ("gail", "bc", "sac", "sac_gail")
+ALGORITHMS = ("gail", "bc", "sac", "sac_gail", "gameformer")
+
+
+@dataclass(frozen=True)
+class GameFormerConfig:
+    """The ``gameformer`` algorithm: level-k interactive trajectory prediction trained on the
+    recorded scenes ``scenes.files`` (no simulation; :mod:`magail_sumo.training.gameformer`,
+    samples as in :mod:`magail_sumo.training.gameformer_data`), driving as a sim agent in
+    evaluation. ``updates`` of the run are gradient steps, one batch each.
+
+    :param model: network sizes (:class:`~magail_sumo.models.gameformer.GameFormerModelConfig`).
+    :param history_steps: 0.1-s history steps per agent, the current one included.
+    :param max_agents: agents per sample (the focal one and its nearest others).
+    :param map_elements: map elements per agent. :param map_points: points per element.
+    :param map_spacing: m between the points of an element.
+    :param window_stride: steps between the current steps of the training windows.
+    :param min_future_steps: observed future steps a focal agent needs to be a sample.
+    :param focal_types: object types that are focal agents (``vehicle``, ``pedestrian``,
+        ``cyclist``, ``other``).
+    :param interaction_weight: weight of the repulsion term; :param safety_distance: m below
+        which it acts.
+    :param cache_scenes: scenes the dataset holds at once (and groups when shuffling).
+    :param replan_every: steps between replans of the closed-loop agent.
+    :param eval_stride: steps between the current steps of the open-loop evaluation windows.
+    """
+
+    model: GameFormerModelConfig = field(default_factory=GameFormerModelConfig)
+    history_steps: int = 11
+    max_agents: int = 8
+    map_elements: int = 16
+    map_points: int = 10
+    map_spacing: float = 2.0
+    window_stride: int = 5
+    min_future_steps: int = 10
+    focal_types: tuple[str, ...] = ("vehicle", "cyclist")
+    batch_size: int = 32
+    learning_rate: float = 5e-4
+    weight_decay: float = 0.0
+    max_grad_norm: float = 1.0
+    interaction_weight: float = 0.1
+    safety_distance: float = 3.0
+    cache_scenes: int = 4
+    replan_every: int = 10
+    eval_stride: int = 10
+
+    def __post_init__(self) -> None:
+        for name in ("history_steps", "max_agents", "map_elements", "map_points",
+                     "window_stride", "min_future_steps", "batch_size", "cache_scenes",
+                     "replan_every", "eval_stride"):
+            v = getattr(self, name)
+            check(v >= 1, name, f"must be >= 1, got {show(v)}")
+        check(self.min_future_steps <= self.model.future_steps, "min_future_steps",
+              f"must be <= model.future_steps ({self.model.future_steps}), "
+              f"got {self.min_future_steps}")
+        check_positive(self, "map_spacing", "learning_rate", "max_grad_norm", "safety_distance")
+        check_positive(self, "weight_decay", "interaction_weight", allow_zero=True)
+        known = ("vehicle", "pedestrian", "cyclist", "other")
+        bad = [t for t in self.focal_types if t not in known]
+        check(bool(self.focal_types) and not bad, "focal_types",
+              f"must be a non-empty list of {', '.join(known)}, got {show(self.focal_types)}")
 
 
 @dataclass(frozen=True)
@@ -400,11 +460,14 @@ class TrainConfig:
 
     :param algorithm: ``"gail"`` (PPO + discriminator reward; MAGAIL with a transformer
         discriminator), ``"bc"`` (behavioural cloning only), ``"sac"`` (command-branched SAC
-        on the task reward ``sac.task_reward``) or ``"sac_gail"`` (the same SAC as the
-        off-policy generator of adversarial imitation, rewarded by the ``discriminator``);
-        both SAC algorithms need ``env.observation.command: true``.
+        on the task reward ``sac.task_reward``), ``"sac_gail"`` (the same SAC as the
+        off-policy generator of adversarial imitation, rewarded by the ``discriminator``;
+        both SAC algorithms need ``env.observation.command: true``) or ``"gameformer"``
+        (the GameFormer level-k predictor trained on the recorded ``scenes.files``, section
+        ``gameformer``).
     :param expert_dir: what ``magail-sumo expert`` wrote for the same observation layout.
-    :param updates: PPO updates (rollout + discriminator + PPO epochs) in the run.
+    :param updates: PPO updates (rollout + discriminator + PPO epochs) in the run (gameformer:
+        gradient steps).
     :param checkpoint_every: updates between checkpoints (the last update always saves).
     :param torch_threads: torch CPU threads of the trainer process (during rollouts, when the
         scene workers need the cores).
@@ -430,6 +493,7 @@ class TrainConfig:
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
     bc: BCConfig = field(default_factory=BCConfig)
     sac: SACConfig = field(default_factory=SACConfig)
+    gameformer: GameFormerConfig = field(default_factory=GameFormerConfig)
 
     def __post_init__(self) -> None:
         check(self.algorithm in ALGORITHMS, "algorithm",
@@ -501,6 +565,11 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
     except FieldError as exc:
         raise ConfigError(f"{where}{exc.key}: {exc.problem}") from None
     if cfg.algorithm == "bc":
+        return
+    if cfg.algorithm == "gameformer":
+        for i, f in enumerate(cfg.scenes.files):
+            if not set("*?[") & set(str(f)) and not Path(f).exists():
+                raise ConfigError(f"{where}scenes.files[{i}]: {show(f, 200)}: no such file")
         return
     from converters.scene_files import read_record
     from magail_sumo.env.scene_pool import is_city, resolve_pool, start_problem

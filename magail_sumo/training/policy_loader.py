@@ -11,6 +11,10 @@ rollout is reproducible whatever order the env lists them in); deterministically
 behavioural cloning, with an MLP or a transformer critic: the critic is loaded with the policy
 but never evaluated).
 
+A ``gameformer`` checkpoint is a closed-loop GameFormer agent instead
+(:class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy`: it replans from the simulated
+history of all objects through the rollout's ``begin(scene, env)`` hook).
+
 Evaluation drives the env with the default observation layout, bicycle limits and action
 layout; a checkpoint trained with other ones is refused with a one-line error naming the
 difference (its actions and observations would mean something else there).
@@ -97,7 +101,8 @@ def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig
 def load_checkpoint_policy(path: str | Path, seed: int = 0,
                            target: EnvConfig | None = None,
                            deterministic: bool = False) -> CheckpointPolicy:
-    """The evaluation :class:`CheckpointPolicy` of a training checkpoint.
+    """The evaluation :class:`CheckpointPolicy` of a training checkpoint (a
+    :class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy` for a gameformer run).
 
     :param seed: seed of the action samples (evaluation passes the rollout seed).
     :param target: the env config the policy will drive (default: evaluation's, the defaults).
@@ -105,6 +110,12 @@ def load_checkpoint_policy(path: str | Path, seed: int = 0,
     """
     from magail_sumo.sensors.observation import observation_bounds
 
+    from .trainer import load_checkpoint
+
+    if load_checkpoint(path)["config"].get("algorithm") == "gameformer":
+        from .gameformer_policy import load_gameformer_policy
+
+        return load_gameformer_policy(path, seed, deterministic)
     torch.set_num_threads(1)  # small MLP; evaluation runs several worker processes
     state = load_checkpoint(path)
     cfg = checkpoint_config(state, path)

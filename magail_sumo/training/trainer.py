@@ -302,7 +302,7 @@ def _check_resume_config(cfg: TrainConfig, saved: dict, where: Path) -> None:
 
 def _run_dir(cfg: TrainConfig, name: str | None) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    kind = cfg.algorithm if cfg.algorithm in ("bc", "sac") else \
+    kind = cfg.algorithm if cfg.algorithm in ("bc", "sac", "gameformer") else \
         f"{cfg.algorithm}-{cfg.discriminator.kind}"
     return Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
 
@@ -449,6 +449,10 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
         expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation)) \
             if cfg.algorithm == "sac_gail" else None
         return train_sac(cfg, Path(run_dir), expert, ckpt, log, progress)
+    if cfg.algorithm == "gameformer":
+        from .gameformer import train_gameformer
+
+        return train_gameformer(cfg, Path(run_dir), ckpt, log, progress)
     expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
     if cfg.algorithm == "bc":
         return _train_bc(cfg, Path(run_dir), expert, ckpt, log, progress)
