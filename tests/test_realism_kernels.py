@@ -132,6 +132,7 @@ def test_road_edge_grid_search_equals_all_segments(scene):
     q[500:600, :2] = rng.uniform(-5000, 5000, (100, 2))  # far outside the map
     q[600:700] = q[599]  # repeated points
     q[700:800, 2] = rng.uniform(-50, 50, 100) + lo[2]  # other levels
+    q[800:850, :2] = rng.uniform(-1e6, 1e6, (50, 2))  # very far: rounding grows with distance
     got = map_features.signed_distance_to_road_edge(q, segs)
     assert np.array_equal(got, _signed_distance_all_segments(q, segs))
 

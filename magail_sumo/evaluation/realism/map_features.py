@@ -28,6 +28,8 @@ INVALID_DISTANCE = -1e10
 #: Smallest grid cell (m) of the nearest-segment search; the grid has at most _MAX_CELLS cells.
 _MIN_CELL = 5.0
 _MAX_CELLS = 1_000_000
+#: Relative slack on the nearest distance so far when pruning (float32 rounding grows with it).
+_SLACK = 1.0 + 1e-5
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,7 +42,8 @@ class RoadEdgeSegments:
         left (positive 2-D cross product).
     :param grid: the segments bucketed in square cells (xy) for the nearest-segment search.
     :param margin: metres the search adds to its pruning bounds for float32 rounding (1 cm
-        plus 32 float32 ulps of the largest coordinate).
+        plus 32 float32 ulps of the largest coordinate; the distance so far also gets 1e-5
+        relative).
     """
 
     a: np.ndarray
@@ -124,7 +127,7 @@ def _visit(qx, qy, qz, a, b, x0, y0, cell, ny, offsets, items, margin, gx, gy, b
         return best, bi
     ex = max(x0 + gx * cell - qx, 0.0, qx - (x0 + (gx + 1) * cell))
     ey = max(y0 + gy * cell - qy, 0.0, qy - (y0 + (gy + 1) * cell))
-    reach = np.sqrt(np.float64(best)) + margin
+    reach = np.sqrt(np.float64(best)) * _SLACK + margin
     if ex * ex + ey * ey > reach * reach:
         return best, bi
     for m in range(offsets[c], offsets[c + 1]):
@@ -163,7 +166,7 @@ def _signed_distance(q, a, b, prior, nxt, cvp, cvn, x0, y0, cell, nx, ny, offset
                 # |q - c|^2 >= |q - p|^2 + |p - c|^2 (projection onto a convex set)
                 lb = min(px - (x0 + (cx - k + 1) * cell), x0 + (cx + k) * cell - px,
                          py - (y0 + (cy - k + 1) * cell), y0 + (cy + k) * cell - py)
-                reach = np.sqrt(np.float64(best)) + margin
+                reach = np.sqrt(np.float64(best)) * _SLACK + margin
                 if lb * lb + out_sq > reach * reach:
                     break
             for gx in range(max(cx - k, 0), min(cx + k, nx - 1) + 1):
