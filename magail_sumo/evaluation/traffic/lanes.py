@@ -4,6 +4,8 @@ right neighbour of the previous lane (successor/predecessor switches are not lan
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from magail_sumo.evaluation.realism.metrics import distinct_rows
@@ -65,4 +67,9 @@ class LaneChanges(TrafficMetric):
         rows = inp.is_vehicle & inp.valid.any(1)
         if not rows.any():
             return float("nan")
-        return float(lane_changes(inp)[1:, rows].mean())
+        # only the rollouts' vehicles count: look up nothing else (an object's count depends
+        # on its own poses only)
+        sub = dataclasses.replace(inp, x=inp.x[1:, rows], y=inp.y[1:, rows],
+                                  heading=inp.heading[1:, rows], valid=inp.valid[rows],
+                                  is_vehicle=inp.is_vehicle[rows])
+        return float(lane_changes(sub).mean())
