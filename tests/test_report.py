@@ -135,6 +135,13 @@ def test_scoring_workers_draw_the_same_views(folder):
         assert view.methods == tuple(sc.methods)
         assert view.trajectories_png == figures.trajectories(sc, sid)
         assert view.animation_html == animation.scene_animation(sc, sid)
+    # a view of other methods (an external submission scored later) is drawn again
+    from magail_sumo.evaluation.report import _view
+    from magail_sumo.evaluation.report.scoring import SceneView
+
+    sid = SCENES[0]
+    sc.views[sid] = SceneView(("elsewhere",), b"", "")
+    assert _view(sc, sid).trajectories_png == figures.trajectories(sc, sid)
 
 
 def test_scoring_jobs_are_balanced():
