@@ -123,6 +123,42 @@ def test_invalid_states_never_drawn(folder):
         assert [x is not None for x in log["x"][a][:len(v)]] == v.tolist()
 
 
+def test_scoring_workers_draw_the_same_views(folder):
+    """Each scoring worker draws the trajectory figure and animation of its scenes: the same
+    bytes as the report draws itself (it falls back to that for the other scenes)."""
+    from magail_sumo.evaluation.report import animation, figures
+    from magail_sumo.evaluation.report.scoring import collect
+
+    sc = collect(folder, workers=2)
+    assert set(sc.views) == set(SCENES)
+    for sid, view in sc.views.items():
+        assert view.methods == tuple(sc.methods)
+        assert view.trajectories_png == figures.trajectories(sc, sid)
+        assert view.animation_html == animation.scene_animation(sc, sid)
+    # a view of other methods (an external submission scored later) is drawn again
+    from magail_sumo.evaluation.report import _view
+    from magail_sumo.evaluation.report.scoring import SceneView
+
+    sid = SCENES[0]
+    sc.views[sid] = SceneView(("elsewhere",), b"", "")
+    assert _view(sc, sid).trajectories_png == figures.trajectories(sc, sid)
+
+
+def test_scoring_jobs_are_balanced():
+    from magail_sumo.evaluation.report.scoring import plan_jobs
+
+    costs = {"a": 15.0, "b": 50.0, "c": 4.0, "d": 66.0, "e": 25.0}
+    jobs = plan_jobs(costs, ["m1", "m2", "m3"], 2)
+    assert len(jobs) == 2 and all(ms == ["m1", "m2", "m3"] for job in jobs for _, ms in job)
+    assert sorted(sid for job in jobs for sid, _ in job) == sorted(costs)
+    loads = [sum(costs[sid] for sid, _ in job) for job in jobs]
+    assert max(loads) - min(loads) <= 4.0
+    # fewer scenes than workers: the scene's methods are split
+    assert plan_jobs({"a": 1.0}, ["m1", "m2", "m3"], 2) == [[("a", ["m1", "m2"])],
+                                                            [("a", ["m3"])]]
+    assert plan_jobs({"a": 1.0}, ["m1"], 4) == [[("a", ["m1"])]]
+
+
 def test_agent_table_and_named_method(folder, tmp_path):
     """Issue 14: the per-agent realism table (HTML and agents.csv) and a policy named with
     ``evaluate --name`` reported under that name."""

@@ -15,6 +15,7 @@ import numpy as np
 
 from magail_sumo.evaluation.realism.interaction import box_corners
 from magail_sumo.scene import Scene
+from magail_sumo.sensors.raycast import SegmentGrid
 
 #: Vertical stretch applied when choosing the nearest segment.
 Z_STRETCH = 3.0
@@ -24,7 +25,11 @@ CYCLIC_THRESHOLD_SQ = 1.0
 OFFROAD_DISTANCE_THRESHOLD = 0.0
 #: Fill value for invalid object steps.
 INVALID_DISTANCE = -1e10
-_BLOCK = 16  # segments per bounding box in the nearest-segment search
+#: Smallest grid cell (m) of the nearest-segment search; the grid has at most _MAX_CELLS cells.
+_MIN_CELL = 5.0
+_MAX_CELLS = 1_000_000
+#: Relative slack on the nearest distance so far when pruning (float32 rounding grows with it).
+_SLACK = 1.0 + 1e-5
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,7 +40,10 @@ class RoadEdgeSegments:
     :param prior, next: (S,) int64 neighbouring segment used beyond the start / end (-1: none).
     :param convex_prior, convex_next: (S,) bool, whether the joint with that neighbour turns
         left (positive 2-D cross product).
-    :param block_lo, block_hi: (nb, 2) float32 xy bounds of each block of ``_BLOCK`` segments.
+    :param grid: the segments bucketed in square cells (xy) for the nearest-segment search.
+    :param margin: metres the search adds to its pruning bounds for float32 rounding (1 cm
+        plus 32 float32 ulps of the largest coordinate; the distance so far also gets 1e-5
+        relative).
     """
 
     a: np.ndarray
@@ -44,8 +52,8 @@ class RoadEdgeSegments:
     next: np.ndarray
     convex_prior: np.ndarray
     convex_next: np.ndarray
-    block_lo: np.ndarray
-    block_hi: np.ndarray
+    grid: SegmentGrid
+    margin: float
 
 
 def road_edge_segments(scene: Scene) -> RoadEdgeSegments:
@@ -83,13 +91,12 @@ def road_edge_segments(scene: Scene) -> RoadEdgeSegments:
     s = np.arange(len(a))
     convex_prior = np.where(prior >= 0, cross(prior, s), False)
     convex_next = np.where(nxt >= 0, cross(s, nxt), False)
-    nb = -(-len(a) // _BLOCK)
-    pad = nb * _BLOCK - len(a)
-    lo = np.minimum(a[:, :2], b[:, :2])
-    hi = np.maximum(a[:, :2], b[:, :2])
-    lo = np.concatenate([lo, np.repeat(lo[-1:], pad, 0)]).reshape(nb, _BLOCK, 2).min(1)
-    hi = np.concatenate([hi, np.repeat(hi[-1:], pad, 0)]).reshape(nb, _BLOCK, 2).max(1)
-    return RoadEdgeSegments(a, b, prior, nxt, convex_prior, convex_next, lo, hi)
+    xy = np.concatenate([a[:, :2], b[:, :2]]).astype(np.float64)
+    span = xy.max(0) - xy.min(0)
+    cell = max(_MIN_CELL, float(np.sqrt(span[0] * span[1] / _MAX_CELLS)), float(span.max()) / 4096)
+    grid = SegmentGrid.build(a[:, :2], b[:, :2], cell)
+    margin = 0.01 + 4e-6 * float(np.abs(xy).max())
+    return RoadEdgeSegments(a, b, prior, nxt, convex_prior, convex_next, grid, margin)
 
 
 @numba.njit(cache=True, inline="always")
@@ -98,39 +105,89 @@ def _side(qx, qy, ax, ay, bx, by):  # pragma: no cover - numba
     return np.float32(1.0) if c > 0 else (np.float32(-1.0) if c < 0 else np.float32(0.0))
 
 
+@numba.njit(cache=True, inline="always")
+def _segment_d3(qx, qy, qz, a, b, s):  # pragma: no cover - numba
+    """Squared 3-D distance (z stretched) from the point to segment ``s`` (float32)."""
+    dx, dy, dz = b[s, 0] - a[s, 0], b[s, 1] - a[s, 1], b[s, 2] - a[s, 2]
+    px, py, pz = qx - a[s, 0], qy - a[s, 1], qz - a[s, 2]
+    den = dx * dx + dy * dy
+    t = (px * dx + py * dy) / den if den != 0 else np.float32(0.0)
+    tc = min(max(t, np.float32(0.0)), np.float32(1.0))
+    ox, oy, oz = px - dx * tc, py - dy * tc, (pz - dz * tc) * np.float32(Z_STRETCH)
+    return ox * ox + oy * oy + oz * oz
+
+
+@numba.njit(cache=True, inline="always")
+def _visit(qx, qy, qz, a, b, x0, y0, cell, ny, offsets, items, margin, gx, gy, best, bi
+           ):  # pragma: no cover - numba
+    """The nearest (d3, segment) so far after the segments of cell (gx, gy), unless no point
+    of the cell is within reach (the best distance plus the margin)."""
+    c = gx * ny + gy
+    if offsets[c] == offsets[c + 1]:
+        return best, bi
+    ex = max(x0 + gx * cell - qx, 0.0, qx - (x0 + (gx + 1) * cell))
+    ey = max(y0 + gy * cell - qy, 0.0, qy - (y0 + (gy + 1) * cell))
+    reach = np.sqrt(np.float64(best)) * _SLACK + margin
+    if ex * ex + ey * ey > reach * reach:
+        return best, bi
+    for m in range(offsets[c], offsets[c + 1]):
+        s = items[m]
+        d3 = _segment_d3(qx, qy, qz, a, b, s)
+        if d3 < best or (d3 == best and s < bi):
+            best = d3
+            bi = s
+    return best, bi
+
+
 @numba.njit(cache=True, parallel=True)
-def _signed_distance(q, a, b, prior, nxt, cvp, cvn, blo, bhi):  # pragma: no cover - numba
-    n, S = q.shape[0], a.shape[0]
-    nblk = blo.shape[0]
+def _signed_distance(q, a, b, prior, nxt, cvp, cvn, x0, y0, cell, nx, ny, offsets, items,
+                     margin):  # pragma: no cover - numba
+    n = q.shape[0]
     out = np.empty(n, np.float32)
-    zs = np.float32(Z_STRETCH)
+    gx1, gy1 = x0 + nx * cell, y0 + ny * cell
     for i in numba.prange(n):
         qx, qy, qz = q[i, 0], q[i, 1], q[i, 2]
         best = np.float32(np.inf)
-        bi = 0
-        for k in range(nblk):
-            gx = max(blo[k, 0] - qx, np.float32(0.0), qx - bhi[k, 0])
-            gy = max(blo[k, 1] - qy, np.float32(0.0), qy - bhi[k, 1])
-            if gx * gx + gy * gy > best:
-                continue
-            for s in range(k * _BLOCK, min(S, (k + 1) * _BLOCK)):
-                dx, dy, dz = b[s, 0] - a[s, 0], b[s, 1] - a[s, 1], b[s, 2] - a[s, 2]
-                px, py, pz = qx - a[s, 0], qy - a[s, 1], qz - a[s, 2]
-                den = dx * dx + dy * dy
-                t = (px * dx + py * dy) / den if den != 0 else np.float32(0.0)
-                tc = min(max(t, np.float32(0.0)), np.float32(1.0))
-                ox, oy, oz = px - dx * tc, py - dy * tc, (pz - dz * tc) * zs
-                d3 = ox * ox + oy * oy + oz * oz
-                if d3 < best:
-                    best = d3
-                    bi = s
-        s = bi
+        bi = -1
+        # rings of cells around the (clamped) cell of the point, nearest first; a segment
+        # wins with the smallest d3, the lowest index among equal ones (as a scan in order)
+        px = min(max(np.float64(qx), x0), gx1)
+        py = min(max(np.float64(qy), y0), gy1)
+        cx = min(max(int(np.floor((px - x0) / cell)), 0), nx - 1)
+        cy = min(max(int(np.floor((py - y0) / cell)), 0), ny - 1)
+        out_sq = (np.float64(qx) - px) ** 2 + (np.float64(qy) - py) ** 2
+        rings = max(nx, ny) + 1
+        if not (np.isfinite(qx) and np.isfinite(qy) and np.isfinite(qz)):
+            rings = 0  # no finite distance: segment 0, as a scan finds no smaller one
+        for k in range(rings):
+            if k > 0 and bi >= 0:
+                # every cell of ring k lies outside the box of rings < k around p, the
+                # projection of the point onto the grid, and for a point c of the grid
+                # |q - c|^2 >= |q - p|^2 + |p - c|^2 (projection onto a convex set)
+                lb = min(px - (x0 + (cx - k + 1) * cell), x0 + (cx + k) * cell - px,
+                         py - (y0 + (cy - k + 1) * cell), y0 + (cy + k) * cell - py)
+                reach = np.sqrt(np.float64(best)) * _SLACK + margin
+                if lb * lb + out_sq > reach * reach:
+                    break
+            for gx in range(max(cx - k, 0), min(cx + k, nx - 1) + 1):
+                if gx == cx - k or gx == cx + k:  # a side column of the ring: all its cells
+                    for gy in range(max(cy - k, 0), min(cy + k, ny - 1) + 1):
+                        best, bi = _visit(qx, qy, qz, a, b, x0, y0, cell, ny, offsets, items,
+                                          margin, gx, gy, best, bi)
+                else:  # an inner column: its bottom and top cells
+                    if cy - k >= 0:
+                        best, bi = _visit(qx, qy, qz, a, b, x0, y0, cell, ny, offsets, items,
+                                          margin, gx, cy - k, best, bi)
+                    if cy + k < ny:
+                        best, bi = _visit(qx, qy, qz, a, b, x0, y0, cell, ny, offsets, items,
+                                          margin, gx, cy + k, best, bi)
+        s = max(bi, 0)
         dx, dy = b[s, 0] - a[s, 0], b[s, 1] - a[s, 1]
-        px, py = qx - a[s, 0], qy - a[s, 1]
+        px32, py32 = qx - a[s, 0], qy - a[s, 1]
         den = dx * dx + dy * dy
-        t = (px * dx + py * dy) / den if den != 0 else np.float32(0.0)
+        t = (px32 * dx + py32 * dy) / den if den != 0 else np.float32(0.0)
         tc = min(max(t, np.float32(0.0)), np.float32(1.0))
-        ox, oy = px - dx * tc, py - dy * tc
+        ox, oy = px32 - dx * tc, py32 - dy * tc
         sign = _side(qx, qy, a[s, 0], a[s, 1], b[s, 0], b[s, 1])
         if t < 0 and prior[s] >= 0:
             p = prior[s]
@@ -145,11 +202,21 @@ def _signed_distance(q, a, b, prior, nxt, cvp, cvn, blo, bhi):  # pragma: no cov
 
 
 def signed_distance_to_road_edge(points: np.ndarray, segs: RoadEdgeSegments) -> np.ndarray:
-    """Signed 2-D distance (m, positive off-road) of (..., 3) float32 points."""
+    """Signed 2-D distance (m, positive off-road) of (..., 3) float32 points.
+
+    The nearest segment is searched in rings of grid cells around each point (numba), nearest
+    ring first, until no unvisited cell can hold a nearer one: the same segment as a scan over
+    all segments (the lowest index among equally near ones), hence the same distance. A point
+    equal (bit for bit) to the one before it in C order reuses its distance."""
     q = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
-    out = _signed_distance(q, segs.a, segs.b, segs.prior, segs.next, segs.convex_prior,
-                           segs.convex_next, segs.block_lo, segs.block_hi)
-    return out.reshape(points.shape[:-1])
+    new = np.ones(len(q), bool)
+    bits = q.view(np.int32)
+    new[1:] = (bits[1:] != bits[:-1]).any(1)
+    g = segs.grid
+    out = _signed_distance(q[new], segs.a, segs.b, segs.prior, segs.next, segs.convex_prior,
+                           segs.convex_next, g.x0, g.y0, g.cell, g.nx, g.ny, g.offsets, g.items,
+                           segs.margin)
+    return out[np.cumsum(new) - 1].reshape(points.shape[:-1])
 
 
 def distance_to_road_edge(x, y, z, heading, length, width, height, valid,
@@ -161,5 +228,9 @@ def distance_to_road_edge(x, y, z, heading, length, width, height, valid,
     cx, cy = box_corners(x, y, heading, np.broadcast_to(length, x.shape),
                          np.broadcast_to(width, x.shape))
     cz = np.broadcast_to((z - height / 2)[..., None], cx.shape)
-    d = signed_distance_to_road_edge(np.stack([cx, cy, cz], -1), segs).max(-1)
-    return np.where(valid, d, np.float32(INVALID_DISTANCE))
+    # valid steps only, steps last: a pose held over steps (a stopped car) repeats its corners
+    corners = np.moveaxis(np.stack([cx, cy, cz], -1), 3, 2)  # (B, E, 4, T, 3)
+    keep = np.broadcast_to(valid[:, :, None, :], corners.shape[:-1])
+    d = np.full(keep.shape, np.float32(INVALID_DISTANCE))
+    d[keep] = signed_distance_to_road_edge(corners[keep], segs)
+    return np.where(valid, d.max(2), np.float32(INVALID_DISTANCE))

@@ -59,13 +59,30 @@ class Features:
     log_valid_all: np.ndarray
 
 
-def compute_features(scene: Scene, jt: JointTrajectories,
-                     config: ChallengeConfig = CHALLENGE_2025) -> Features:
-    """All per-step features of the log and rollouts of ``jt`` (vectorised over both)."""
+def distinct_rows(*arrays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batch rows (axis 0) of the arrays that are byte-for-byte distinct: ``(first, inverse)``
+    with ``first`` the index of each distinct row's first occurrence and ``inverse`` (B,) the
+    distinct row of every batch row (log replay and constant-velocity rollouts repeat one row).
+    """
+    seen: dict[bytes, int] = {}
+    first, inverse = [], []
+    for k in range(arrays[0].shape[0]):
+        key = b"".join(np.ascontiguousarray(a[k]).tobytes() for a in arrays)
+        if key not in seen:
+            seen[key] = len(first)
+            first.append(k)
+        inverse.append(seen[key])
+    return np.asarray(first, np.int64), np.asarray(inverse, np.int64)
+
+
+def _row_features(scene: Scene, jt: JointTrajectories, rows: np.ndarray,
+                  config: ChallengeConfig) -> dict[str, np.ndarray]:
+    """The per-step features of batch ``rows`` of ``jt`` (each row's features depend on that
+    row only)."""
     E = jt.n_eval
     fut = slice(scene.current_time_index + 1, None)  # the scene's own history length
     dt = config.step_duration_s
-    x, y, z, h, v = jt.x, jt.y, jt.z, jt.heading, jt.valid
+    x, y, z, h, v = (a[rows] for a in (jt.x, jt.y, jt.z, jt.heading, jt.valid))
     speed, accel, ang_speed, ang_accel = kinematic.kinematic_features(
         x[:, :E], y[:, :E], z[:, :E], h[:, :E], dt)
     # interaction features need only the simulated steps (plus the 2-D speed, central diffs)
@@ -80,7 +97,7 @@ def compute_features(scene: Scene, jt: JointTrajectories,
         vs[:, :E], segs)
     lanes = traffic_light.signal_lanes(scene, x.shape[-1])
     tl = traffic_light.red_light_violation(x[:, :E], y[:, :E], v[:, :E], lanes)[..., fut]
-    values = {
+    return {
         "linear_speed": speed[..., fut], "linear_acceleration": accel[..., fut],
         "angular_speed": ang_speed[..., fut], "angular_acceleration": ang_accel[..., fut],
         "distance_to_nearest_object": dist_obj,
@@ -89,6 +106,21 @@ def compute_features(scene: Scene, jt: JointTrajectories,
         "offroad_per_step": dist_edge > map_features.OFFROAD_DISTANCE_THRESHOLD,
         "traffic_light_violation_per_step": tl,
     }
+
+
+def compute_features(scene: Scene, jt: JointTrajectories,
+                     config: ChallengeConfig = CHALLENGE_2025) -> Features:
+    """All per-step features of the log and rollouts of ``jt`` (vectorised over both).
+
+    Features are computed once per distinct batch row (:func:`distinct_rows`) and repeated
+    for the rows equal to it: the same values as computing every row."""
+    E = jt.n_eval
+    fut = slice(scene.current_time_index + 1, None)
+    x, y, z = jt.x, jt.y, jt.z
+    first, inverse = distinct_rows(x, y, z, jt.heading, jt.valid)
+    values = _row_features(scene, jt, first, config)
+    if len(first) < x.shape[0]:
+        values = {k: v[inverse] for k, v in values.items()}
     disp = np.sqrt((x[1:, :E] - x[:1, :E]) ** 2 + (y[1:, :E] - y[:1, :E]) ** 2
                    + (z[1:, :E] - z[:1, :E]) ** 2)
     return Features(jt.object_id[:E], jt.object_type[:E] == int(ObjectType.VEHICLE),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from magail_sumo.scene import Scene
@@ -92,8 +93,42 @@ def _nearest_segment(q: np.ndarray, pts: np.ndarray, seg_valid: np.ndarray
     return np.divmod(flat, a.shape[-2])
 
 
+@numba.njit(cache=True)
+def _nearest_lane_of(qx, qy, pts, seg_valid):  # pragma: no cover - numba
+    best = np.float32(np.inf)
+    lane = 0
+    for ln in range(pts.shape[0]):
+        for k in range(pts.shape[1] - 1):
+            if seg_valid[ln, k]:
+                dx, dy = pts[ln, k + 1, 0] - pts[ln, k, 0], pts[ln, k + 1, 1] - pts[ln, k, 1]
+                px, py = qx - pts[ln, k, 0], qy - pts[ln, k, 1]
+                den = dx * dx + dy * dy
+                t = (px * dx + py * dy) / den if den != 0 else np.float32(0.0)
+                tc = min(max(t, np.float32(0.0)), np.float32(1.0))
+                ox, oy = px + dx * tc, py + dy * tc  # sic: '+', as the official tool
+                d = np.sqrt(ox * ox + oy * oy)
+            else:
+                d = _FAR
+            if d != d:  # argmin stops at the first NaN
+                return ln
+            if d < best:
+                best = d
+                lane = ln
+    return lane
+
+
+@numba.njit(cache=True)
+def _nearest_lane(q, pts, seg_valid):  # pragma: no cover - numba
+    """:func:`_nearest_segment`'s lane for every point against all lanes (the same float32
+    operations; the first minimum in (lane, segment) order, or the first NaN, as argmin)."""
+    out = np.empty(q.shape[0], np.int64)
+    for i in range(q.shape[0]):
+        out[i] = _nearest_lane_of(q[i, 0], q[i, 1], pts, seg_valid)
+    return out
+
+
 def red_light_violation(x: np.ndarray, y: np.ndarray, valid: np.ndarray,
-                        lanes: SignalLanes | None, chunk: int = 256) -> np.ndarray:
+                        lanes: SignalLanes | None) -> np.ndarray:
     """Per-step violation flags (B, E, T) for object centres ``x, y`` (B, E, T) float32.
 
     A violation at step t: the object is valid at t, its projection on a red signal lane's stop
@@ -132,9 +167,7 @@ def red_light_violation(x: np.ndarray, y: np.ndarray, valid: np.ndarray,
     # current lane only where a red stop line was crossed
     where = np.nonzero(hit)
     qs = np.stack([x[where], y[where]], -1)
-    cur = np.empty(len(qs), np.int64)
-    for i in range(0, len(qs), chunk):
-        li, _ = _nearest_segment(qs[i:i + chunk], lanes.points[None], lanes.seg_valid[None])
-        cur[i:i + chunk] = lanes.lane_id[li]
+    cur = lanes.lane_id[_nearest_lane(np.ascontiguousarray(qs, np.float32), lanes.points,
+                                      lanes.seg_valid)]
     out[where] = (cand[where] & (cur[:, None] == lanes.signal_lane[js][None])).any(-1)
     return out

@@ -27,7 +27,7 @@ from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_
 
 from . import animation, figures
 from .render import REALISM_FIELDS, Document
-from .scoring import AGENT_FIELDS, Scores, collect, method_means
+from .scoring import AGENT_FIELDS, SceneView, Scores, collect, method_means, scene_view
 
 #: Traffic metrics in the main table, in order.
 MAIN = ["ade", "min_ade", "fde", "collision_rate", "offroad_rate", "red_light_rate",
@@ -147,18 +147,17 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: di
                                              ("time_to_collision", "time to collision (s)")]),
                   "distributions", "speed, acceleration and TTC distributions, log vs methods")
         doc.heading("Trajectories")
-        for sid in sids:
-            if any((sid, m) in sc.rollouts for m in sc.methods):
-                doc.image(figures.trajectories(sc, sid), f"traj_{safe_name(sid)}",
-                          f"top-down trajectories of scene {printable(sid)}")
+        views = {sid: _view(sc, sid) for sid in sids
+                 if any((sid, m) in sc.rollouts for m in sc.methods)}
+        for sid, view in views.items():
+            doc.image(view.trajectories_png, f"traj_{safe_name(sid)}",
+                      f"top-down trajectories of scene {printable(sid)}")
         doc.heading("Animated scenes")
         doc.para("Log (left) vs the first rollout of each method, 10 Hz from the current step; "
                  "play / pause, or drag the slider.")
-        for sid in sids:
-            if any((sid, m) in sc.rollouts for m in sc.methods):
-                doc.heading(printable(sid), 3)
-                doc.raw(animation.scene_animation(sc, sid),
-                        "(animated view: see report.html)")
+        for sid, view in views.items():
+            doc.heading(printable(sid), 3)
+            doc.raw(view.animation_html, "(animated view: see report.html)")
         doc.css.append(animation.CSS)
         doc.scripts.append(animation.SCRIPT)
     if sc.agent_rows:
@@ -186,6 +185,16 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: di
                     max(0, int(f.get("nonfinite", 0)) - int(f.get("missing", 0))),
                     int(f.get("clipped", 0))]
                    for f in fixes], "action-fixes")
+
+
+def _view(sc: Scores, sid: str) -> SceneView:
+    """The scene's trajectory figure and animation: the scoring worker's when it drew the
+    methods this report shows for the scene, else drawn here."""
+    view = sc.views.get(sid)
+    if view is not None and view.methods == tuple(m for m in sc.methods
+                                                  if (sid, m) in sc.rollouts):
+        return view
+    return scene_view(sc, sid)
 
 
 #: ``city.json`` fields in the city table and ``city.csv`` (then the terminations per event)

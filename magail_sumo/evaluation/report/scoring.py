@@ -13,6 +13,7 @@ column; log replay where the log has none) are kept as a mask so figures never d
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,6 +50,8 @@ class Scores:
         :func:`agent_metrics`.
     :param valid: per (scenario_id, method), (R, A, T) bool: the states the method marked
         valid (absent: all valid).
+    :param views: per scenario_id, its trajectory figure and animation drawn by a scoring
+        worker (see :class:`SceneView`); the report draws the scenes without one itself.
     """
 
     manifest: dict
@@ -61,6 +64,19 @@ class Scores:
     errors: list[str] = field(default_factory=list)
     agent_rows: list[dict] = field(default_factory=list)
     valid: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    views: dict[str, "SceneView"] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SceneView:
+    """A scene's trajectory figure (PNG bytes, :func:`figures.trajectories`) and animation
+    (HTML, :func:`animation.scene_animation`), drawn where the scene was scored from the
+    methods ``methods`` (in report order); valid for a report whose methods with rollouts for
+    this scene are exactly these."""
+
+    methods: tuple[str, ...]
+    trajectories_png: bytes
+    animation_html: str
 
 
 #: Per-agent columns of :func:`agent_metrics` (after scenario_id, method, object_id, type).
@@ -261,10 +277,26 @@ def _read_pair(folder: Path, method: str, scene: Scene
     return ro, read_valid(path, scene, ro)
 
 
-def _score_job(job: tuple[str, str, str, list[str]]) -> list[tuple]:
-    """Worker: score the given methods of one scene (read from its file) of a folder.
+def scene_view(scores: Scores, sid: str) -> SceneView:
+    """The trajectory figure and animation of one scene of ``scores``."""
+    from . import animation, figures
 
-    :returns: per method ``("ok", PairScore, rollouts, valid)`` or ``("error", message)``."""
+    methods = tuple(m for m in scores.methods if (sid, m) in scores.rollouts)
+    return SceneView(methods, figures.trajectories(scores, sid),
+                     animation.scene_animation(scores, sid))
+
+
+#: A scoring job: the folder, then per scene (scene file, scenario id, methods, whether to draw
+#: its view: the job scores all the folder's methods of it).
+ScoreJob = tuple[str, list[tuple[str, str, list[str], bool]]]
+
+
+def _score_job(job: ScoreJob) -> list[tuple[list[tuple], SceneView | None]]:
+    """Worker: score the given methods of the given scenes (read from their files) of a folder
+    and draw the views asked for.
+
+    :returns: per scene, (per method ``("ok", PairScore, rollouts, valid)`` or ``("error",
+        message)``; its :class:`SceneView` or None)."""
     import numba
 
     from converters import iter_scenes
@@ -272,16 +304,54 @@ def _score_job(job: tuple[str, str, str, list[str]]) -> list[tuple]:
     # the workers share the cores: one numba thread each (numba's parallel kernels would
     # otherwise start a thread per core in every worker and spin against each other)
     numba.set_num_threads(1)
-    folder, scene_file, sid, methods = job
-    scene = next(s for s in iter_scenes(scene_file) if s.scenario_id == sid)
-    out: list[tuple] = []
-    for m in methods:
-        got = _read_pair(Path(folder), m, scene)
-        if isinstance(got, str):
-            out.append(("error", got))
-        else:
-            out.append(("ok", score_pair(scene, m, got[0]), *got))
+    folder, units = job
+    out: list[tuple[list[tuple], SceneView | None]] = []
+    for scene_file, sid, methods, draw in units:
+        scene = next(s for s in iter_scenes(scene_file) if s.scenario_id == sid)
+        part = Scores({}, {sid: scene}, [])
+        items: list[tuple] = []
+        for m in methods:
+            got = _read_pair(Path(folder), m, scene)
+            if isinstance(got, str):
+                items.append(("error", got))
+            else:
+                items.append(("ok", score_pair(scene, m, got[0]), *got))
+                _add(part, *items[-1][1:])
+        view = None
+        if draw and part.methods:
+            try:
+                view = scene_view(part, sid)
+            except Exception:  # noqa: BLE001 - the report draws it again (and reports that)
+                view = None
+        out.append((items, view))
     return out
+
+
+def plan_jobs(costs: dict[str, float], methods: list[str], workers: int
+              ) -> list[list[tuple[str, list[str]]]]:
+    """(scene, methods) units in at most ``workers`` jobs of about equal cost (largest first,
+    each to the least loaded job): whole scenes when there are at least as many scenes as
+    workers, else each scene's methods split in as many parts as it takes.
+
+    :param costs: per scenario id, the relative cost of scoring one of its methods (e.g. the
+        number of sim agents)."""
+    parts = 1 if len(costs) >= workers else -(-workers // max(1, len(costs)))
+    per = max(1, -(-len(methods) // parts))
+    units = [(sid, methods[i:i + per]) for sid in costs for i in range(0, len(methods), per)]
+    units.sort(key=lambda u: -costs[u[0]] * len(u[1]))  # stable: ties keep scene order
+    jobs: list[list[tuple[str, list[str]]]] = [[] for _ in range(min(workers, len(units)))]
+    load = [0.0] * len(jobs)
+    for sid, ms in units:
+        k = load.index(min(load))
+        jobs[k].append((sid, ms))
+        load[k] += costs[sid] * len(ms)
+    return jobs
+
+
+def _agents(entry: dict) -> float:
+    """A manifest scene entry's number of sim agents (0 when absent or not a number)."""
+    n = entry.get("agents")
+    return float(n) if isinstance(n, (int, float)) and math.isfinite(n) and n > 0 else 0.0
 
 
 def default_workers() -> int:
@@ -311,17 +381,21 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
     if workers > 1 and len(scenes) * len(methods) > 1:
         from magail_sumo.workers import run_jobs
 
-        files = {s["scenario_id"]: s["file"] for s in manifest.get("scenes", [])}
-        # about 4 jobs per worker: a few methods of one scene each
-        per = max(1, -(-len(methods) * len(scenes) // (4 * workers)))
-        jobs = [(str(folder), files[sid], sid, methods[i:i + per])
-                for sid in scenes for i in range(0, len(methods), per)]
-        for res in run_jobs(_score_job, jobs, workers=workers, ordered=True):
-            _, _, sid, ms = res.job
-            for k, m in enumerate(ms):
-                results[(m, sid)] = res.value[k] if res.ok else \
-                    ("error", f"method {printable(m)}: scenario {printable(sid)}: cannot "
-                              f"score ({res.reason})")
+        entries = {s["scenario_id"]: s for s in manifest.get("scenes", [])}
+        # one job per worker (a worker's start-up, imports and compiled kernels cost seconds),
+        # balanced by the scenes' sim agents; a whole scene's job also draws its view
+        costs = {sid: 1.0 + _agents(entries[sid]) for sid in scenes}
+        jobs = [(str(folder), [(entries[sid]["file"], sid, ms, len(ms) == len(methods))
+                               for sid, ms in units])
+                for units in plan_jobs(costs, methods, workers)]
+        for res in run_jobs(_score_job, jobs, workers=workers):
+            for k, (_, sid, ms, _) in enumerate(res.job[1]):
+                items, view = res.value[k] if res.ok else (
+                    [("error", f"method {printable(m)}: scenario {printable(sid)}: cannot "
+                               f"score ({res.reason})") for m in ms], None)
+                results.update({(m, sid): item for m, item in zip(ms, items)})
+                if view is not None:
+                    scores.views[sid] = view
     for method in methods:
         for sid in scenes:
             if (method, sid) in results:

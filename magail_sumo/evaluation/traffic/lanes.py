@@ -4,8 +4,11 @@ right neighbour of the previous lane (successor/predecessor switches are not lan
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
+from magail_sumo.evaluation.realism.metrics import distinct_rows
 from magail_sumo.sensors.lanes import LaneIndex
 
 from .base import MetricInput, TrafficMetric, register
@@ -14,12 +17,20 @@ MAX_LATERAL = 3.0  #: m from the centre line beyond which a match is ignored
 
 
 def lane_sequence(inp: MetricInput) -> np.ndarray:
-    """(B, A, T) lane index into ``scene.roadmap.lanes`` of each pose (-1: none)."""
+    """(B, A, T) lane index into ``scene.roadmap.lanes`` of each pose at the log-valid steps
+    (the only ones a lane change counts at); -1: none, or a step the log has no state at.
+
+    Poses are looked up once per distinct batch row (log replay and constant-velocity
+    rollouts repeat one row)."""
     lanes = inp.scene.roadmap.lanes
     index = LaneIndex.build(lanes)
-    q = index.query(inp.x.ravel(), inp.y.ravel(), inp.heading.ravel())
-    lane = np.where(np.abs(q.lateral) <= MAX_LATERAL, q.lane, -1)
-    return lane.reshape(inp.x.shape)
+    first, inverse = distinct_rows(inp.x, inp.y, inp.heading)
+    x, y, h = inp.x[first], inp.y[first], inp.heading[first]
+    at = np.broadcast_to(inp.valid[None], x.shape)
+    q = index.query(x[at], y[at], h[at])
+    lane = np.full(x.shape, -1, np.int64)
+    lane[at] = np.where(np.abs(q.lateral) <= MAX_LATERAL, q.lane, -1)
+    return lane[inverse]
 
 
 def neighbour_pairs(inp: MetricInput) -> np.ndarray:
@@ -56,4 +67,9 @@ class LaneChanges(TrafficMetric):
         rows = inp.is_vehicle & inp.valid.any(1)
         if not rows.any():
             return float("nan")
-        return float(lane_changes(inp)[1:, rows].mean())
+        # only the rollouts' vehicles count: look up nothing else (an object's count depends
+        # on its own poses only)
+        sub = dataclasses.replace(inp, x=inp.x[1:, rows], y=inp.y[1:, rows],
+                                  heading=inp.heading[1:, rows], valid=inp.valid[rows],
+                                  is_vehicle=inp.is_vehicle[rows])
+        return float(lane_changes(sub).mean())
