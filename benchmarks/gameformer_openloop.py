@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -22,20 +21,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from magail_sumo.outputs import finite_json  # noqa: E402
+
 DEFAULT_SPLIT = "configs/splits/womd14.yaml"
 LABELS = (("min_ade", "minADE (m)"), ("min_fde", "minFDE (m)"), ("miss_rate_3s", "miss @3s"),
           ("miss_rate_5s", "miss @5s"), ("miss_rate_8s", "miss @8s"), ("miss_rate", "miss (mean)"),
           ("overlap_rate", "overlap"))
-
-
-def _nan_to_none(v):
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: _nan_to_none(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_nan_to_none(x) for x in v]
-    return v
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                trained_scenes=list(cfg.scenes.files), trained_on_scored=overlap,
                seconds=round(time.perf_counter() - t0, 1))
     if args.json:
-        print(json.dumps(_nan_to_none(res), indent=2))
+        print(json.dumps(finite_json(res), indent=2))
         return 0
     cols = list(res["levels"]) + ["constvel"]
     table = {**res["levels"], "constvel": res["constvel"]}

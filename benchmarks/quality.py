@@ -38,6 +38,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from magail_sumo.outputs import finite_json  # noqa: E402
+
 DEFAULT_SPLIT = "configs/splits/womd14.yaml"
 DEFAULT_BASELINES = ("logreplay", "constvel", "sumo")
 #: (field, label): WOSAC bucket fields (realism.bucket_metrics) and the report's speed bias
@@ -328,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
               "scenes": scenes, "scored": scored, "rows": rows, "scene_rows": scene_rows,
               "skipped_windows": notes, "errors": errors}
     if args.json:
-        print(json.dumps(_nan_to_none(result), indent=2))
+        print(json.dumps(finite_json(result), indent=2))
         return 1 if errors else 0
     print(f"{len(scenes)} scene window(s) from the {result['scenes_from']} "
           f"({os.path.relpath(split_path, ROOT) if split_path.is_relative_to(ROOT) else split_path})"
@@ -354,17 +356,6 @@ def main(argv: list[str] | None = None) -> int:
     for e in errors:
         print(f"error: {e}", file=sys.stderr)
     return 1 if errors else 0
-
-
-def _nan_to_none(v):
-    """JSON without NaN: NaN -> null (recursively)."""
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: _nan_to_none(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_nan_to_none(x) for x in v]
-    return v
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import re
 import tempfile
@@ -46,6 +47,18 @@ MARKER = ".magail_sumo.json"
 
 class OutputError(MagailSumoError):
     """An output path is unsafe or not ours to write."""
+
+
+def finite_json(v: object) -> object:
+    """``v`` with every non-finite float (NaN, inf) in nested dicts / lists / tuples replaced by
+    None, so ``json.dumps(..., allow_nan=False)`` writes it (``null``)."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: finite_json(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [finite_json(x) for x in v]
+    return v
 
 
 def printable(text: str, limit: int = 120) -> str:

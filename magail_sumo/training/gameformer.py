@@ -30,8 +30,8 @@ from magail_sumo.models.gameformer import GameFormer, gameformer_loss
 from .config import TrainConfig
 from .gameformer_data import StreamingDataset
 from .trainer import (CHECKPOINT_FORMAT, CheckpointError, _decode_rng, _encode_state, _load_into,
-                      _rng_state, _save, _set_rng_state, checkpoint_config, claim_run_dir,
-                      load_checkpoint)
+                      _rng_state, _set_rng_state, checkpoint_config, claim_run_dir,
+                      load_checkpoint, save_checkpoint)
 
 ALGORITHM = "gameformer"
 
@@ -96,13 +96,10 @@ def train_gameformer(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
         f"{data.batches_per_epoch} batches per epoch")
 
     def save() -> None:
-        d = run_dir / "checkpoints"
-        d.mkdir(parents=True, exist_ok=True)
-        state = _encode_state({"format": CHECKPOINT_FORMAT, "update": update,
-                               "config": to_dict(cfg), "policy": model.state_dict(),
-                               "optimizer": opt.state_dict(), "rng": _rng_state()})
-        _save(state, d / f"update_{update:06d}.pt")
-        _save(state, d / "latest.pt")
+        save_checkpoint(run_dir, _encode_state({
+            "format": CHECKPOINT_FORMAT, "update": update, "config": to_dict(cfg),
+            "policy": model.state_dict(), "optimizer": opt.state_dict(), "rng": _rng_state()}),
+            update)
 
     model.train()
     t0, every = time.perf_counter(), max(1, min(50, cfg.checkpoint_every))

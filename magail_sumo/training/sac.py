@@ -68,9 +68,9 @@ from magail_sumo.sensors.observation import COMMAND_NAMES, ObservationConfig, ob
 
 from .config import SACConfig, TaskRewardConfig, TrainConfig
 from .trainer import (CHECKPOINT_FORMAT, CheckpointError, _decode_rng, _encode_rng, _load_into,
-                      _plain, _rng_state, _save, _set_rng_state, _tensor, claim_run_dir,
+                      _plain, _rng_state, _set_rng_state, _tensor, claim_run_dir,
                       decode_env_state, encode_env_state, make_discriminator, make_pool_env,
-                      note_skipped)
+                      note_skipped, save_checkpoint)
 
 #: second entropy word of the seed of the replay sampler (apart from the other streams)
 SAC_STREAM = 0x5AC
@@ -546,13 +546,7 @@ class SacRun:
         _set_rng_state(rng)
 
     def save(self, run_dir: Path) -> Path:
-        d = run_dir / "checkpoints"
-        d.mkdir(parents=True, exist_ok=True)
-        state = self.state_dict()
-        path = d / f"update_{self.update:06d}.pt"
-        _save(state, path)
-        _save(state, d / "latest.pt")
-        return path
+        return save_checkpoint(run_dir, self.state_dict(), self.update)
 
     def close(self) -> None:
         self.venv.close()

@@ -248,6 +248,17 @@ def _save(state: dict, path: Path) -> None:
         torch.save(state, tmp)
 
 
+def save_checkpoint(run_dir: Path, state: dict, update: int) -> Path:
+    """A run's checkpoint at ``update``: ``checkpoints/update_<update>.pt`` and, the same,
+    ``checkpoints/latest.pt`` (both atomic); the first path."""
+    d = run_dir / "checkpoints"
+    d.mkdir(parents=True, exist_ok=True)
+    path = d / f"update_{update:06d}.pt"
+    _save(state, path)
+    _save(state, d / "latest.pt")
+    return path
+
+
 def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPolicy, TrainConfig]:
     """The policy of a checkpoint (and the run's config)."""
     state = load_checkpoint(path)
@@ -740,13 +751,7 @@ class GailRun:
         return decode_env_state(self.venv, saved)
 
     def save(self, run_dir: Path) -> Path:
-        d = run_dir / "checkpoints"
-        d.mkdir(parents=True, exist_ok=True)
-        state = self.state_dict()
-        path = d / f"update_{self.update:06d}.pt"
-        _save(state, path)
-        _save(state, d / "latest.pt")
-        return path
+        return save_checkpoint(run_dir, self.state_dict(), self.update)
 
     def run_update(self) -> None:
         """One PPO update: rollout (with imitation rewards), discriminator fit, PPO epochs."""
