@@ -357,21 +357,23 @@ def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] =
             last = ends[vid] = ls.vehicle.getRoute(vid)[-1]
         if edge != last or not last:
             continue
-        lane, added, chain = ls.vehicle.getLaneID(vid), 0.0, [edge]
+        lane, added, chain, dead_end = ls.vehicle.getLaneID(vid), 0.0, [edge], False
         while added < CONTINUE_AHEAD:
             links = [ln for ln in ls.lane.getLinks(lane) if ln[6] in _CONTINUE_ORDER]
             if not links:
+                dead_end = True  # ``lane`` (on ``chain[-1]``) goes nowhere
                 break
-            lane = min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]], ln[7]))[0]
-            if ls.lane.getEdgeID(lane) in chain:  # a loop
+            nxt = min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]], ln[7]))[0]
+            if ls.lane.getEdgeID(nxt) in chain:  # a loop
                 break
+            lane = nxt
             chain.append(ls.lane.getEdgeID(lane))
             added += ls.lane.getLength(lane)
         ends[vid] = chain[-1] if added >= CONTINUE_AHEAD else ""
         try:
             if len(chain) > 1:
                 ls.vehicle.setRoute(vid, chain)
-            if not ends[vid] and points is not None and _mapped_ahead(
+            if dead_end and points is not None and _mapped_ahead(
                     np.asarray(ls.lane.getShape(lane)), points):
                 ls.vehicle.setStop(vid, chain[-1], max(0.0, ls.lane.getLength(lane) - 0.1),
                                    int(lane.rsplit("_", 1)[1]), duration=1e6)
