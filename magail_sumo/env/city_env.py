@@ -355,7 +355,9 @@ class SumoCityEnv(ParallelEnv):
 
     def _info(self, k: int, events: dict[str, bool], reason: str | None, other: str = "") -> dict:
         return {"step": self.t, "events": events, "reason": reason, "collided_with": other,
-                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k])}
+                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k]),
+                "state": (float(self._x[k]), float(self._y[k]), float(self._yaw[k]),
+                          float(self._speed[k]))}
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):

@@ -24,7 +24,8 @@ the last valid step of its track (``end_of_life``, truncation). Rewards are 0 (i
 :data:`~magail_sumo.env.config.EVENTS` that ended the agent, else None), ``collided_with``
 (track id or -1), ``nan_actions`` and ``clipped_actions`` (this agent's running counts of
 non-finite / out-of-range actions; non-finite entries become 0, out-of-range ones are clipped
-to [-1, 1], a missing action counts as non-finite). ``env.action_counts`` counts, per episode,
+to [-1, 1], a missing action counts as non-finite) and ``state``: the agent's bicycle state
+``(x, y, yaw, speed)`` after this step (scene frame; m, rad, m/s), so no caller re-derives it. ``env.action_counts`` counts, per episode,
 the agent-steps without an action (``missing``: the agent coasts with action 0), the actions
 given for names that are no agent of the scene (``unknown``) or no longer / not yet live
 (``departed``), both ignored, and the non-finite and clipped ones
@@ -412,7 +413,9 @@ class SumoDrivingEnv(ParallelEnv):
 
     def _info(self, k: int, events: dict[str, bool], reason: str | None, other: int) -> dict:
         return {"step": self.t, "events": events, "reason": reason, "collided_with": int(other),
-                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k])}
+                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k]),
+                "state": (float(self._x[k]), float(self._y[k]), float(self._yaw[k]),
+                          float(self._speed[k]))}
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):

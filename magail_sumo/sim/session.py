@@ -154,6 +154,16 @@ class SumoSession:
         self._running = False
         _ACTIVE.remove(self)
 
+    @property
+    def api(self):
+        """The running simulation's TraCI-compatible domains (``api.vehicle``, ``api.lane``,
+        ``api.simulation``, ...), for the queries this class does not wrap. Modules outside
+        :mod:`magail_sumo.sim` reach SUMO only through a session, never by importing libsumo
+        (as sumo-rl's env holds its connection); raises when the session is not running."""
+        if not self._running:
+            raise SimulationError("the SUMO session is not running (call start() first)")
+        return _libsumo()
+
     def __enter__(self) -> "SumoSession":
         return self.start()
 
