@@ -8,11 +8,17 @@ regulariser (``ppo.bc_coef``, :class:`~magail_sumo.training.ppo.MaskedPPO`).
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
 import numpy as np
 import torch
 
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.policies import TanhGaussianPolicy
+
+if TYPE_CHECKING:
+    from .config import TrainConfig
 
 #: expert actions are clipped to ±this before the tanh is inverted (tanh cannot reach ±1)
 ACTION_BOUND = 0.999
@@ -63,3 +69,38 @@ def behavioural_cloning(policy: TanhGaussianPolicy, expert: ExpertDataset, epoch
             log(epoch, history[-1])
     policy.set_training_mode(False)
     return history
+
+
+def train_bc(cfg: TrainConfig, run_dir: Path, ckpt: dict | None, log: Callable[[str], None],
+             progress: Callable[[str, int, int], None]) -> Path:
+    """The ``bc`` algorithm: behavioural cloning of the run's expert data into a fresh policy,
+    saved as ``checkpoints/latest.pt`` (update 0); a run with a checkpoint is complete."""
+    from magail_sumo.config import record_run, to_dict
+
+    from .algorithms import load_expert
+    from .checkpoints import CHECKPOINT_FORMAT, encode_state, save_state
+    from .policies import make_policy
+    from .rng import rng_state
+    from .run_dir import claim_run_dir
+
+    expert = load_expert(cfg)
+    if ckpt is not None:
+        log(f"{run_dir}: behavioural cloning run already complete")
+        return run_dir
+    claim_run_dir(run_dir, resumed=False)
+    record_run(run_dir, cfg)
+    policy = make_policy(cfg)
+    policy.obs_normalizer.update(torch.as_tensor(expert.s))
+
+    def bc_log(e: int, v: float) -> None:
+        log(f"bc epoch {e + 1}: nll {v:.4f}")
+        progress("bc", e + 1, cfg.bc.epochs)
+
+    behavioural_cloning(policy, expert, cfg.bc.epochs, cfg.bc.batch_size, cfg.bc.learning_rate,
+                        cfg.seed, log=bc_log)
+    (run_dir / "checkpoints").mkdir(exist_ok=True)
+    state = encode_state({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+                           "policy": policy.state_dict(), "rng": rng_state()})
+    save_state(state, run_dir / "checkpoints" / "latest.pt")
+    log(f"{run_dir}: policy saved")
+    return run_dir

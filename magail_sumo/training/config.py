@@ -20,6 +20,8 @@ from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import TransformerConfig
 from magail_sumo.models.gameformer import GameFormerModelConfig
 
+from .algorithms import REGISTRY as ALGORITHMS  # ``TrainConfig.algorithm`` names (live registry)
+
 
 @dataclass(frozen=True)
 class ScenesConfig:
@@ -389,10 +391,6 @@ class SACConfig:
               f"must be a number in (-1000, 1000) or null, got {show(self.target_entropy)}")
         check(abs(self.absorbing_reward) < 1e3, "absorbing_reward",
               f"must be in (-1000, 1000), got {show(self.absorbing_reward)}")
-
-
-#: algorithms of ``TrainConfig.algorithm``
-ALGORITHMS = ("gail", "bc", "sac", "sac_gail", "gameformer")
 
 
 @dataclass(frozen=True)

@@ -29,9 +29,10 @@ from magail_sumo.models.gameformer import GameFormer, gameformer_loss
 
 from .config import TrainConfig
 from .gameformer_data import StreamingDataset
-from .trainer import (CHECKPOINT_FORMAT, CheckpointError, _decode_rng, _encode_state, _load_into,
-                      _rng_state, _set_rng_state, checkpoint_config, claim_run_dir,
-                      load_checkpoint, save_checkpoint)
+from .checkpoints import (CHECKPOINT_FORMAT, CheckpointError, checkpoint_config, encode_state,
+                          load_checkpoint, load_into, save_checkpoint)
+from .rng import decode_rng, rng_state, set_rng_state
+from .run_dir import claim_run_dir
 
 ALGORITHM = "gameformer"
 
@@ -80,15 +81,15 @@ def train_gameformer(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
     update = 0
     if ckpt is not None:
         try:
-            rng = _decode_rng(ckpt["rng"])
+            rng = decode_rng(ckpt["rng"])
             update = int(ckpt["update"])
         except KeyError as exc:
             raise CheckpointError(f"{where}: checkpoint lacks {exc.args[0]}") from None
         except (ValueError, TypeError) as exc:
             raise CheckpointError(f"{where}: checkpoint rng does not fit ({exc})") from None
-        _load_into(model, ckpt["policy"], "policy", where)
-        _load_into(opt, ckpt.get("optimizer"), "optimizer", where)
-        _set_rng_state(rng)
+        load_into(model, ckpt["policy"], "policy", where)
+        load_into(opt, ckpt.get("optimizer"), "optimizer", where)
+        set_rng_state(rng)
         log(f"resumed {run_dir} at update {update}")
     claim_run_dir(run_dir, resumed=ckpt is not None)
     record_run(run_dir, cfg)
@@ -96,9 +97,9 @@ def train_gameformer(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
         f"{data.batches_per_epoch} batches per epoch")
 
     def save() -> None:
-        save_checkpoint(run_dir, _encode_state({
+        save_checkpoint(run_dir, encode_state({
             "format": CHECKPOINT_FORMAT, "update": update, "config": to_dict(cfg),
-            "policy": model.state_dict(), "optimizer": opt.state_dict(), "rng": _rng_state()}),
+            "policy": model.state_dict(), "optimizer": opt.state_dict(), "rng": rng_state()}),
             update)
 
     model.train()
@@ -132,6 +133,6 @@ def load_gameformer(path: str | Path, device: str = "cpu") -> tuple[GameFormer, 
         raise CheckpointError(f"{path}: not a gameformer checkpoint (algorithm "
                               f"{cfg.algorithm!r})")
     model = make_model(cfg)
-    _load_into(model, state["policy"], "policy", Path(path))
+    load_into(model, state["policy"], "policy", Path(path))
     model.eval()
     return model, cfg

@@ -67,10 +67,12 @@ from magail_sumo.outputs import printable
 from magail_sumo.sensors.observation import COMMAND_NAMES, ObservationConfig, observation_names
 
 from .config import SACConfig, TaskRewardConfig, TrainConfig
-from .trainer import (CHECKPOINT_FORMAT, CheckpointError, _decode_rng, _encode_rng, _load_into,
-                      _plain, _rng_state, _set_rng_state, _tensor, claim_run_dir,
-                      decode_env_state, encode_env_state, make_discriminator, make_pool_env,
-                      note_skipped, save_checkpoint)
+from .adversarial import AdversarialReward
+from .checkpoints import (CHECKPOINT_FORMAT, CheckpointError, decode_env_state, encode_env_state,
+                          load_into, plain, save_checkpoint, tensor_field)
+from .gail import make_pool_env
+from .rng import decode_rng, encode_rng, rng_state, set_rng_state
+from .run_dir import claim_run_dir, note_skipped
 
 #: second entropy word of the seed of the replay sampler (apart from the other streams)
 SAC_STREAM = 0x5AC
@@ -131,7 +133,7 @@ class ReplayBuffer:
                 and 0 <= pos < max(self.capacity, 1) and (size == self.capacity or pos == size)):
             raise ValueError("replay buffer size / position do not fit its capacity")
         for k in self.FIELDS:
-            v = _tensor(state[k], f"replay buffer {k}")
+            v = tensor_field(state[k], f"replay buffer {k}")
             want = (size, *self.data[k].shape[1:])
             if v.dtype != torch.float32 or tuple(v.shape) != want:
                 raise ValueError(f"replay buffer {k} is not float32 {want}")
@@ -314,9 +316,9 @@ class SacAgent:
 
     def load_state_dict(self, state: dict, where: Path) -> None:
         for k, o in self.optimizers.items():
-            _load_into(o, state["optimizers"][k], f"optimizer {k}", where)
+            load_into(o, state["optimizers"][k], f"optimizer {k}", where)
         for k, s in self.schedulers.items():
-            _load_into(s, state["schedulers"][k], f"scheduler {k}", where)
+            load_into(s, state["schedulers"][k], f"scheduler {k}", where)
         steps = state["gradient_steps"]
         if type(steps) is not int or steps < 0:
             raise ValueError("gradient_steps is not a count")
@@ -396,21 +398,11 @@ class SacRun:
             self.collisions = ReplayBuffer(cfg.sac.buffer_size, width)
             self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, SAC_STREAM]))
             self.env = self.venv
-            self.discriminator = self.disc_trainer = None
+            self.discriminator = self.disc_trainer = self.reward = None
             if self.gail:
-                from .discriminator_loss import DiscriminatorLossConfig
-                from .reward import DiscriminatorRewardWrapper, DiscriminatorTrainer
-
-                self.discriminator = make_discriminator(cfg, 2 * self.venv.obs_dim)
-                self.env = DiscriminatorRewardWrapper(
-                    self.venv, self.discriminator, d.reward_t_coef, d.reward_i_coef,
-                    d.reward_floor, cfg.device,
-                    penalties={"collision": d.collision_penalty, "off_road": d.off_road_penalty},
-                    social_coef=d.decomposed.social_coef if d.kind == "decomposed" else 0.0)
-                self.disc_trainer = DiscriminatorTrainer(
-                    self.discriminator, expert, d.epochs, d.batch_size, d.learning_rate,
-                    d.weight_decay, DiscriminatorLossConfig(d.gp_coef, d.logit_reg), cfg.seed,
-                    cfg.device)
+                self.reward = AdversarialReward.build(cfg, self.venv, expert)
+                self.discriminator, self.env = self.reward.discriminator, self.reward.env
+                self.disc_trainer = self.reward.trainer
         except BaseException:
             self.venv.close()
             raise
@@ -483,27 +475,24 @@ class SacRun:
             "format": CHECKPOINT_FORMAT, "update": self.update, "config": to_dict(self.cfg),
             "policy": self.model.state_dict(), "sac": self.agent.state_dict(),
             "transitions": self.transitions,
-            "sampler_rng": _plain(self.rng.bit_generator.state),
+            "sampler_rng": plain(self.rng.bit_generator.state),
             "last_obs": torch.from_numpy(np.array(self.last_obs)),
             "env_state": encode_env_state(self.venv.get_state()),
             "env_counters": [int(self.venv.agent_steps), int(self.venv.episodes)],
             "buffers": {"main": self.buffer.state_dict(),
                         "collision": self.collisions.state_dict()}
             if self.cfg.sac.save_buffers else None,
-            "rng": _encode_rng(_rng_state())}
+            "rng": encode_rng(rng_state())}
         if self.gail:
-            dt = dict(self.disc_trainer.state_dict())
-            dt["rng"] = _plain(dt["rng"])
-            state["discriminator"] = self.discriminator.state_dict()
-            state["disc_trainer"] = dt
+            state.update(self.reward.state_dict())
         return state
 
     def load_state_dict(self, state: dict, where: Path) -> None:
         """Restore :meth:`state_dict`'s state (replaying the env); :class:`CheckpointError`
         (one line, naming ``where``) when it does not fit this run."""
         try:
-            rng = _decode_rng(state["rng"])
-            last_obs = _tensor(state["last_obs"], "last_obs").numpy()
+            rng = decode_rng(state["rng"])
+            last_obs = tensor_field(state["last_obs"], "last_obs").numpy()
             env_state = decode_env_state(self.venv, state["env_state"])
             agent_steps, episodes = (int(v) for v in state["env_counters"])
             transitions, update = state["transitions"], state["update"]
@@ -512,7 +501,7 @@ class SacRun:
             if last_obs.shape != (self.venv.num_envs, self.venv.obs_dim):
                 raise ValueError(f"last_obs has shape {tuple(last_obs.shape)}, the env "
                                  f"{(self.venv.num_envs, self.venv.obs_dim)}")
-            _load_into(self.model, state["policy"], "policy", where)
+            load_into(self.model, state["policy"], "policy", where)
             self.agent.load_state_dict(state["sac"], where)
             buffers = state["buffers"]
             if buffers is not None:
@@ -520,8 +509,7 @@ class SacRun:
                 self.collisions.load_state_dict(buffers["collision"])
             self.rng.bit_generator.state = state["sampler_rng"]
             if self.gail:
-                _load_into(self.discriminator, state["discriminator"], "discriminator", where)
-                self.disc_trainer.load_state_dict(state["disc_trainer"])
+                self.reward.load_state_dict(state, where)
         except KeyError as exc:
             raise CheckpointError(f"{where}: checkpoint lacks {printable(str(exc.args[0]), 60)}"
                                   ) from None
@@ -543,7 +531,7 @@ class SacRun:
                                   "observation (scene files or SUMO changed?)")
         self.venv.agent_steps, self.venv.episodes = agent_steps, episodes
         self.last_obs, self.transitions, self.update = obs, transitions, update
-        _set_rng_state(rng)
+        set_rng_state(rng)
 
     def save(self, run_dir: Path) -> Path:
         return save_checkpoint(run_dir, self.state_dict(), self.update)
@@ -552,11 +540,14 @@ class SacRun:
         self.venv.close()
 
 
-def train_sac(cfg: TrainConfig, run_dir: Path, expert, ckpt: dict | None,
+def train_sac(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
               log: Callable[[str], None], progress: Callable[[str, int, int], None]) -> Path:
     """Run (or resume, from ``ckpt``) a ``sac`` / ``sac_gail`` run in ``run_dir``."""
     from stable_baselines3.common.logger import configure
 
+    from .algorithms import load_expert
+
+    expert = load_expert(cfg) if cfg.algorithm == "sac_gail" else None
     run = SacRun(cfg, expert, log=log)
     cfg = run.cfg
     try:
@@ -645,7 +636,7 @@ def load_sac_policy(path: str | Path, state: dict, cfg: TrainConfig, seed: int =
                     deterministic: bool = False) -> SacCheckpointPolicy:
     """The :class:`SacCheckpointPolicy` of a loaded SAC checkpoint ``state`` (config ``cfg``)."""
     model = make_sac_model(cfg)
-    _load_into(model, state["policy"], "policy", Path(path))
+    load_into(model, state["policy"], "policy", Path(path))
     return SacCheckpointPolicy(model, cfg.env.observation, str(path), seed, deterministic)
 
 

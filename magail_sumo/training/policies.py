@@ -1,0 +1,59 @@
+"""The tanh-Gaussian actor-critic policy of PPO / GAIL / behavioural-cloning runs, built from a
+run config (spaces from the observation config, sizes from the ``policy`` block), and loaded
+from a checkpoint."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from magail_sumo.models.policies import TanhGaussianPolicy
+from magail_sumo.sensors.observation import observation_bounds
+from magail_sumo.sim.dynamics import ACTION_SIZE
+
+from .checkpoints import CheckpointError, checkpoint_config, load_checkpoint, load_into
+from .config import TrainConfig
+
+
+def spaces_of(cfg: TrainConfig) -> tuple[spaces.Box, spaces.Box]:
+    low, high = observation_bounds(cfg.env.observation)
+    return (spaces.Box(low, high, dtype=np.float32),
+            spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32))
+
+
+def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:
+    """:class:`TanhGaussianPolicy` arguments of the config's ``policy`` block."""
+    p = cfg.policy
+    kwargs: dict[str, Any] = {"net_arch": {"pi": list(p.actor_hidden), "vf": list(p.critic_hidden)},
+                              "log_std_init": p.log_std_init}
+    if p.critic == "transformer":
+        kwargs.update(net_arch={"pi": list(p.actor_hidden), "vf": []}, critic="transformer",
+                      critic_transformer=p.critic_transformer)
+    return kwargs
+
+
+def make_policy(cfg: TrainConfig) -> TanhGaussianPolicy:
+    """A fresh policy for the config's spaces (no env needed; a transformer critic has no scene
+    layout then, see :meth:`TanhGaussianPolicy.set_scene_layout` — evaluation uses the actor
+    only)."""
+    obs, act = spaces_of(cfg)
+    return TanhGaussianPolicy(obs, act, lambda _: cfg.ppo.learning_rate,
+                              **policy_kwargs(cfg)).to(cfg.device)
+
+
+def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPolicy, TrainConfig]:
+    """The policy of a checkpoint (and the run's config)."""
+    state = load_checkpoint(path)
+    cfg = replace(checkpoint_config(state, path), device=device)
+    if cfg.algorithm in ("sac", "sac_gail"):
+        raise CheckpointError(f"{path}: a {cfg.algorithm} checkpoint (command-branched SAC), not "
+                              "a PPO / behavioural-cloning policy (evaluate loads both: "
+                              "magail_sumo.training.policy_loader.load_checkpoint_policy)")
+    policy = make_policy(cfg)
+    load_into(policy, state["policy"], "policy", Path(path))
+    policy.set_training_mode(False)
+    return policy, cfg

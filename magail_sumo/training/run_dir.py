@@ -1,0 +1,64 @@
+"""A training run's directory: its default name, the checks before a new run writes into it,
+its output-folder marker, and the list of scenes the pool skipped."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import claim_output_dir, read_marker
+
+from .config import TrainConfig
+
+#: what ``train`` writes into a run directory (recorded in its marker: ``--overwrite`` removes
+#: only these)
+RUN_OUTPUTS = ("config.yaml", "environment.json", "checkpoints", "tb", "skipped_scenes.tsv")
+#: the run's list of scenes left out of the pool (tab-separated: scene, reason)
+SKIPPED_FILE = "skipped_scenes.tsv"
+
+
+def default_run_dir(cfg: TrainConfig, name: str | None) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    from .algorithms import get
+
+    kind = f"{cfg.algorithm}-{cfg.discriminator.kind}" if get(cfg.algorithm).adversarial \
+        else cfg.algorithm
+    return Path(cfg.out_dir) / (name or f"{kind}-seed{cfg.seed}-{stamp}")
+
+
+def check_run_dir(d: Path) -> Path:
+    """Check ``d`` can be the directory of a new run (:func:`claim_run_dir` marks it later).
+
+    Refused when it holds a run (use ``--resume`` or ``--overwrite``) or is a non-empty folder
+    magail_sumo did not write. A folder marked by ``train`` that holds none of
+    :data:`RUN_OUTPUTS` (an overwritten run next to files of the user's) is reused.
+    """
+    if d.exists() and not d.is_dir():
+        raise MagailSumoError(f"{d}: exists and is not a folder")
+    if d.is_dir() and any(d.iterdir()):
+        marker = read_marker(d)
+        if marker is not None and any((d / n).exists() for n in RUN_OUTPUTS):
+            raise MagailSumoError(f"{d}: run directory holds a run (use --resume, or "
+                                  "--overwrite to replace it)")
+        if marker is None:
+            raise MagailSumoError(f"{d}: run directory exists, is not empty and was not written "
+                                  "by magail-sumo train (choose a new or empty folder)")
+    return d
+
+
+def claim_run_dir(d: Path, resumed: bool) -> Path:
+    """Mark ``d`` as ``train``'s output folder (:func:`~magail_sumo.outputs.claim_output_dir`,
+    listing :data:`RUN_OUTPUTS`); a resumed run written before markers existed stays as it is."""
+    if resumed and read_marker(d) is None:
+        return d
+    return claim_output_dir(d, "train", RUN_OUTPUTS)
+
+
+def note_skipped(venv, run_dir: Path) -> None:
+    """Append the scenes the pool skipped since the last call to the run's
+    :data:`SKIPPED_FILE`."""
+    from magail_sumo.env.scene_pool import PoolSkip, write_skipped
+
+    new, venv.new_skipped = venv.new_skipped, []
+    write_skipped(run_dir / SKIPPED_FILE, [PoolSkip(w, r) for w, r in new])
