@@ -208,4 +208,9 @@ def sensor_class(name: str) -> type[Sensor]:
 def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
     route command when ``config.command``)."""
-    return LAYOUTS[config.layout] + (("command",) if config.command else ())
+    try:
+        layout = LAYOUTS[config.layout]
+    except KeyError:  # registered in another process (a worker imports what registers it)
+        raise KeyError(f"unknown observation layout {config.layout!r} (known: "
+                       f"{', '.join(LAYOUTS)})") from None
+    return layout + (("command",) if config.command else ())
