@@ -1,6 +1,9 @@
-"""The built-in sensor units, one module each; importing the package registers them
-(:func:`magail_sumo.sensors.base.register`)."""
+"""The built-in sensor units, one module each; importing the package imports every module in
+it, which registers its sensors (:func:`magail_sumo.sensors.base.register`): a new sensor is one
+new module here."""
 
-from . import command, destination, ego, lane, lane_line, lidar, light, seed, side
+import importlib
+import pkgutil
 
-__all__ = ["command", "destination", "ego", "lane", "lane_line", "lidar", "light", "seed", "side"]
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
