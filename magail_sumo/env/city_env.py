@@ -35,7 +35,6 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.scene import Scene, Tracks
 from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
@@ -148,8 +147,8 @@ class SumoCityEnv(ParallelEnv):
         self.fcd = None
         self.network: NetworkMap = network_map(net_file)
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
-        stub = Scene(self.sumocfg.stem, np.zeros(1), Tracks.empty(1), self.network.roadmap)
-        self.suite = SensorSuite(stub, cfg.observation)
+        # no recorded signals: _observe passes each agent's live SUMO light
+        self.suite = SensorSuite.from_map(self.network.roadmap, None, cfg.observation)
         self.dt = STEP_LENGTH
         self.possible_agents = vehicle_ids
         low, high = observation_bounds(cfg.observation)

@@ -21,6 +21,8 @@ import numpy as np
 #: command indices (columns of the one-hot, ``command_left`` / ``_straight`` / ``_right``)
 LEFT, STRAIGHT, RIGHT = 0, 1, 2
 COMMANDS = ("left", "straight", "right")
+#: feature names of the one-hot in the observation (``ObservationConfig.command``)
+COMMAND_NAMES = [f"command_{c}" for c in COMMANDS]
 #: heading change (rad) above which the route turns (30°)
 TURN = np.pi / 6
 

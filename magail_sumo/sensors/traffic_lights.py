@@ -5,15 +5,20 @@ Codes: 0 none/unknown, 1 green, 2 yellow, 3 red (:data:`LIGHT_CODES` maps the WO
 (usually the lanes inside a junction); a lane without a record of its own takes the states of
 its signalled exit lanes, the most permissive one (green > yellow > red), so an agent on the
 approach lane sees the light ahead of it.
+
+A *light source* (:class:`LightSource`) is what the sensors read lights from: a
+:class:`LightTable` of a recording's signals, or :data:`NO_LIGHTS` for a map without recorded
+signals (a SUMO city, whose env passes the live light of each agent to the sensors instead).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from magail_sumo.scene import Scene, SignalState
+from magail_sumo.scene import Lane, Scene, SignalStates, SignalState
 
 NONE, GREEN, YELLOW, RED = 0, 1, 2, 3
 #: light code of each :class:`SignalState` value
@@ -24,6 +29,13 @@ LIGHT_CODES[[SignalState.ARROW_STOP, SignalState.STOP, SignalState.FLASHING_STOP
 _RANK = np.array([0, 3, 2, 1], np.int8)  # permissiveness of codes none, green, yellow, red
 
 
+class LightSource(Protocol):
+    """Where the sensors read traffic lights from (lane indices: order of ``RoadMap.lanes``)."""
+
+    def lookup(self, step: int, lane: np.ndarray) -> np.ndarray:
+        """(A,) light codes of lane indices at a log step (0 for lane -1)."""
+
+
 @dataclass(frozen=True)
 class LightTable:
     """(T, L) light codes per log step and lane index (lane order of ``RoadMap.lanes``)."""
@@ -32,11 +44,16 @@ class LightTable:
 
     @classmethod
     def build(cls, scene: Scene) -> "LightTable":
-        lanes = scene.roadmap.lanes
-        t_steps = scene.num_steps
+        """The light table of a recorded scene (its map's lanes and its signal records)."""
+        return cls.from_signals(scene.roadmap.lanes, scene.signals, scene.num_steps)
+
+    @classmethod
+    def from_signals(cls, lanes: tuple[Lane, ...], sig: SignalStates, t_steps: int
+                     ) -> "LightTable":
+        """The light table of ``t_steps`` log steps of signal records ``sig`` over ``lanes``
+        (module doc: approach lanes take their signalled exits' lights)."""
         index = {l.id: k for k, l in enumerate(lanes)}
         own = np.zeros((t_steps, len(lanes)), np.int8)
-        sig = scene.signals
         known = np.array([int(l) in index for l in sig.lane], bool) if len(sig) else np.zeros(0, bool)
         if known.any():
             cols = np.array([index[int(l)] for l in sig.lane[known]], np.int64)
@@ -60,3 +77,7 @@ class LightTable:
         if not 0 <= step < self.codes.shape[0] or self.codes.shape[1] == 0:
             return np.zeros(lane.shape, np.int8)
         return np.where(lane >= 0, self.codes[step, np.maximum(lane, 0)], 0).astype(np.int8)
+
+
+#: light source of a map without recorded signals: every lane reads 0 (none) at every step
+NO_LIGHTS = LightTable(np.zeros((0, 0), np.int8))

@@ -1,0 +1,216 @@
+"""Sensor units: the interface every sensor implements, what it reads, and the registries.
+
+A sensor (:class:`Sensor` subclass, one module each under :mod:`magail_sumo.sensors.units`)
+declares
+
+* its feature names and (low, high) bounds for an :class:`ObservationConfig` (class methods:
+  the observation layout is known without a map, e.g. to size a policy);
+* what it builds once per map, in ``__init__(config, maps)`` over the :class:`SensorMaps`
+  (a road map, a light source and the lane index shared by the sensors that need it);
+* its reading of one step, :meth:`Sensor.read` over a :class:`SensorInput` (the road users'
+  boxes, the observing agents' :class:`EgoState`, the log step, and the current lane and light
+  of each agent, computed once per step when a sensor first asks).
+
+:func:`register` files a sensor class by its ``name``; a *layout* is an ordered list of sensor
+names (:data:`LAYOUTS`, :func:`register_layout`); :class:`~magail_sumo.sensors.observation.
+SensorSuite` concatenates the layout's sensors in that order. Adding a sensor is one new module
+plus one :func:`register` (and its name in a layout, or in a suite's ``sensors``).
+
+Frames and units: scene frame = the recording's frame (m, rad CCW from +x).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING, ClassVar, Sequence
+
+import numpy as np
+
+from magail_sumo.scene import RoadMap
+
+from .lanes import LaneIndex, LaneQuery
+from .raycast import box_edges
+
+if TYPE_CHECKING:
+    from .config import ObservationConfig
+    from .traffic_lights import LightSource
+
+
+@dataclass(frozen=True)
+class Boxes:
+    """Oriented boxes of every road user in the sensor world at one step (N,) arrays.
+
+    :param x, y: box centre (m, scene frame). :param yaw: heading (rad, scene frame).
+    :param length, width: box size (m).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(4N, 2) edge starts, ends and (4N,) owning box index."""
+        n = len(self)
+        centre = np.stack([self.x, self.y], axis=1)
+        half = 0.5 * np.stack([self.length, self.width], axis=1)
+        e = box_edges(centre, half, np.asarray(self.yaw, np.float64))
+        return (e[:, :, 0].reshape(-1, 2), e[:, :, 1].reshape(-1, 2),
+                np.repeat(np.arange(n, dtype=np.int64), 4))
+
+
+@dataclass(frozen=True)
+class EgoState:
+    """The observing agents (A,): rows of :class:`Boxes` plus what boxes do not carry.
+
+    :param index: (A,) row of each agent in the boxes (its own box is not seen).
+    :param speed: (A,) signed speed along the heading (m/s).
+    :param prev_action: (A, 2) previous normalised action (accel, steer).
+    :param destination: (A, 2) destination (m, scene frame).
+    :param destination_yaw: (A,) heading at the destination (rad, scene frame).
+    :param command: (A, 3) route-command one-hot (:mod:`magail_sumo.sensors.command`), used
+        with ``ObservationConfig.command``; None: ``straight`` for every agent (an env without
+        recorded routes, e.g. a city).
+    """
+
+    index: np.ndarray
+    speed: np.ndarray
+    prev_action: np.ndarray
+    destination: np.ndarray
+    destination_yaw: np.ndarray
+    command: np.ndarray | None = None
+
+
+class SensorMaps:
+    """The static world of the sensors of one map, built once: the road map, the light source
+    and the lane index (``lane_cell`` m cells) that lane and light sensors share."""
+
+    def __init__(self, roadmap: RoadMap, lights: "LightSource", lane_cell: float) -> None:
+        self.roadmap = roadmap
+        self.lights = lights
+        self.lanes = LaneIndex.build(roadmap.lanes, cell=lane_cell)
+
+
+class SensorInput:
+    """What the sensors read at one step, for the A observing agents (rows ``ego.index`` of
+    ``boxes``): their pose (``x``, ``y``, ``yaw`` (float64), ``origins`` (A, 2)), and on first
+    use their current lane (:attr:`lanes`) and its light (:attr:`light`).
+
+    :param lanes: the agents' lane query when the caller already computed it this step.
+    :param light: (A,) live light codes (0 none, 1 green, 2 yellow, 3 red); default: the
+        maps' light source at log step ``step`` on each agent's current lane.
+    """
+
+    def __init__(self, maps: SensorMaps, boxes: Boxes, ego: EgoState, step: int,
+                 lanes: LaneQuery | None = None, light: np.ndarray | None = None) -> None:
+        self.maps, self.boxes, self.ego, self.step = maps, boxes, ego, step
+        self.index = idx = np.asarray(ego.index, np.int64)
+        self.x, self.y = boxes.x[idx], boxes.y[idx]
+        self.yaw = np.asarray(boxes.yaw, np.float64)[idx]
+        self.origins = np.stack([self.x, self.y], axis=1)
+        self._lanes, self._light = lanes, light
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
+
+    @cached_property
+    def lanes(self) -> LaneQuery:
+        """The agents' current lanes (:class:`~magail_sumo.sensors.lanes.LaneQuery`)."""
+        if self._lanes is not None:
+            return self._lanes
+        return self.maps.lanes.query(self.x, self.y, self.yaw)
+
+    @cached_property
+    def light(self) -> np.ndarray:
+        """(A,) float64 light code of each agent's current lane (live when given)."""
+        light = self.maps.lights.lookup(self.step, self.lanes.lane) if self._light is None \
+            else np.asarray(self._light)
+        return light.astype(np.float64)
+
+
+class Sensor(ABC):
+    """One block of the observation vector (module doc).
+
+    :cvar name: registry name (:func:`register`).
+    """
+
+    name: ClassVar[str]
+
+    def __init__(self, config: "ObservationConfig", maps: SensorMaps) -> None:
+        self.config = config
+        self.maps = maps
+
+    @classmethod
+    @abstractmethod
+    def names(cls, config: "ObservationConfig") -> list[str]:
+        """Feature names of the block, in order."""
+
+    @classmethod
+    def bounds(cls, config: "ObservationConfig") -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) float32 bounds of the block's features (default: unbounded)."""
+        n = len(cls.names(config))
+        return np.full(n, -np.inf, np.float32), np.full(n, np.inf, np.float32)
+
+    @abstractmethod
+    def read(self, inp: SensorInput) -> np.ndarray:
+        """(A, width) readings of the observing agents (any float dtype; the suite stores
+        them as float32)."""
+
+
+def bounded(n: int, low: float, high: float) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) float32 bounds of ``n`` features that share them."""
+    return np.full(n, low, np.float32), np.full(n, high, np.float32)
+
+
+#: registered sensor classes by name
+SENSORS: dict[str, type[Sensor]] = {}
+
+#: layouts by name: the ordered sensor names of the observation vector (``ObservationConfig.
+#: layout``; the route command is appended with ``ObservationConfig.command``)
+LAYOUTS: dict[str, tuple[str, ...]] = {
+    "ego": ("ego", "lane", "lidar", "side", "lane_line", "light", "destination"),
+    "seed": ("seed_pose", "lidar", "side", "lane_line", "light", "seed_destination"),
+}
+
+
+def register(cls: type[Sensor]) -> type[Sensor]:
+    """Class decorator: file a sensor under its ``name`` (a name taken by another class is
+    refused)."""
+    old = SENSORS.get(cls.name)
+    if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(f"sensor name {cls.name!r} is taken by "
+                         f"{old.__module__}.{old.__qualname__}")
+    SENSORS[cls.name] = cls
+    return cls
+
+
+def register_layout(name: str, sensors: Sequence[str]) -> None:
+    """Make ``name`` a valid ``ObservationConfig.layout`` concatenating ``sensors`` in order."""
+    LAYOUTS[name] = tuple(sensors)
+
+
+def sensor_class(name: str) -> type[Sensor]:
+    """The sensor registered under ``name``; ``KeyError`` naming the known ones otherwise."""
+    from . import units  # noqa: F401  (registers the built-in sensors)
+
+    try:
+        return SENSORS[name]
+    except KeyError:
+        raise KeyError(f"unknown sensor {name!r} (known: {', '.join(sorted(SENSORS))})") from None
+
+
+def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
+    """The sensor names of ``config``'s observation vector, in order (its layout, then the
+    route command when ``config.command``)."""
+    try:
+        layout = LAYOUTS[config.layout]
+    except KeyError:  # registered in another process (a worker imports what registers it)
+        raise KeyError(f"unknown observation layout {config.layout!r} (known: "
+                       f"{', '.join(LAYOUTS)})") from None
+    return layout + (("command",) if config.command else ())

@@ -1,0 +1,62 @@
+"""Settings of the observation: the ray sensors' beams, the layout and the optional features.
+
+The layout names an ordered list of registered sensor units
+(:data:`magail_sumo.sensors.base.LAYOUTS`); :mod:`magail_sumo.sensors.observation` documents
+the built-in ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .base import LAYOUTS
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True)
+class BeamSpec:
+    """A ray sensor: ``beams`` rays over ``fov`` rad centred on the heading, ``range`` m."""
+
+    beams: int
+    range: float
+    fov: float = TWO_PI
+
+    def offsets(self) -> np.ndarray:
+        """(B,) beam angles relative to the heading (rad)."""
+        return -0.5 * self.fov + np.arange(self.beams) * (self.fov / max(self.beams, 1)) \
+            if self.fov < TWO_PI else np.arange(self.beams) * (TWO_PI / max(self.beams, 1))
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    """Sensors and layout of the observation vector (see :mod:`magail_sumo.sensors.observation`).
+
+    :param layout: ``"ego"`` (ego-frame quantities), ``"seed"`` (the seed's 108 values) or a
+        layout registered with :func:`~magail_sumo.sensors.base.register_layout`.
+    :param lane_cell: grid cell of the lane index (m); lane distances are capped at it.
+    :param command: append the route command (one-hot left / straight / right at the next
+        junction, :mod:`magail_sumo.sensors.command`) as ``command_left``,
+        ``command_straight``, ``command_right``; off by default (the default layout, expert
+        data and checkpoints keep their 113 values).
+    :param command_lookahead: route distance (m) ahead of the agent at which the command reads
+        the route's turn.
+    """
+
+    lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
+    side: BeamSpec = field(default_factory=lambda: BeamSpec(10, 8.0))
+    lane_line: BeamSpec = field(default_factory=lambda: BeamSpec(10, 3.0))
+    layout: str = "ego"
+    lane_cell: float = 10.0
+    command: bool = False
+    command_lookahead: float = 30.0
+
+    def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"observation layout must be one of "
+                             f"{', '.join(map(repr, LAYOUTS))}, got {self.layout!r}")
+        if not (np.isfinite(self.command_lookahead) and self.command_lookahead > 0):
+            raise ValueError(f"observation command_lookahead must be > 0 m, got "
+                             f"{self.command_lookahead!r}")
