@@ -88,18 +88,21 @@ class Fleet:
     def __len__(self) -> int:
         return len(self.names)
 
+    @property
+    def capacity(self) -> int:
+        """Rows the arrays have room for."""
+        return self.x.shape[0]
+
     def grow(self, n: int) -> None:
         """Make room for at least ``n`` rows (doubling; new rows zero)."""
-        size = self.x.shape[0]
+        size = self.capacity
         if n <= size:
             return
         new = max(n, 2 * size)
         for f in fields(self):
             old = getattr(self, f.name)
             if isinstance(old, np.ndarray):
-                arr = np.zeros((new,) + old.shape[1:], old.dtype)
-                arr[:size] = old
-                setattr(self, f.name, arr)
+                setattr(self, f.name, resized(old, new))
 
     def add(self, name: str, x: float, y: float, yaw: float, speed: float, length: float,
             width: float) -> int:
@@ -173,3 +176,11 @@ class Fleet:
     def agent_states(self, k: np.ndarray, rows: np.ndarray) -> AgentStates:
         """:class:`AgentStates` of rows ``k`` (``rows``: what the env reports as their rows)."""
         return AgentStates(self.names_of(k), rows, self.state(k), self.wheelbase(k))
+
+
+def resized(arr: np.ndarray, n: int) -> np.ndarray:
+    """``arr`` with ``n`` rows: its rows first, then zero rows (same dtype; a copy)."""
+    out = np.zeros((n,) + arr.shape[1:], arr.dtype)
+    m = min(n, arr.shape[0])
+    out[:m] = arr[:m]
+    return out
