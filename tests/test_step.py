@@ -82,6 +82,20 @@ def _check_infos(infos: dict, terms: dict, truncs: dict, names: set[str]) -> int
     return hits
 
 
+def _roll(env, road_users) -> tuple[int, set]:
+    """An episode of seeded random actions checking every step's infos (``road_users()``: the
+    names a collision may report); (collisions, reasons seen)."""
+    rng = np.random.default_rng(0)
+    env.reset(seed=0)
+    hits, reasons = 0, set()
+    while env.agents:
+        _, _, terms, truncs, infos = env.step({a: rng.uniform(-1, 1, 2) for a in env.agents})
+        hits += _check_infos(infos, terms, truncs, road_users())
+        reasons |= {i["reason"] for i in infos.values()}
+    env.close()
+    return hits, reasons
+
+
 @pytest.mark.sumo
 def test_driving_env_info_contract(tmp_path):
     from converters import load_scene
@@ -93,15 +107,7 @@ def test_driving_env_info_contract(tmp_path):
     env = SumoDrivingEnv(scene, tmp_path / scene.scenario_id,
                          EnvConfig(controlled="all", max_steps=30))
     names = {str(int(i)) for i in scene.tracks.id}
-    rng = np.random.default_rng(0)
-    env.reset(seed=0)
-    hits, reasons = 0, set()
-    while env.agents:
-        _, _, terms, truncs, infos = env.step(
-            {a: rng.uniform(-1, 1, 2) for a in env.agents})
-        hits += _check_infos(infos, terms, truncs, names)
-        reasons |= {i["reason"] for i in infos.values()}
-    env.close()
+    hits, reasons = _roll(env, lambda: names)
     assert hits > 0 and END_OF_EPISODE in reasons and env.t == 30
 
 
@@ -111,14 +117,5 @@ def test_city_env_info_contract():
 
     env = SumoCityEnv(ROOT / "data/sumo/ingolstadt21/ingolstadt21.sumocfg",
                       CityEnvConfig(warmup_s=300, max_steps=15, max_agents=60))
-    rng = np.random.default_rng(0)
-    env.reset(seed=0)
-    hits, reasons = 0, set()
-    while env.agents:
-        _, _, terms, truncs, infos = env.step(
-            {a: rng.uniform(-1, 1, 2) for a in env.agents})
-        names = set(env._sumo.ids) | set(env.fleet.names)
-        hits += _check_infos(infos, terms, truncs, names)
-        reasons |= {i["reason"] for i in infos.values()}
-    env.close()
+    hits, reasons = _roll(env, lambda: set(env._sumo.ids) | set(env.fleet.names))
     assert hits > 0 and END_OF_EPISODE in reasons

@@ -36,7 +36,6 @@ import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -48,7 +47,7 @@ from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
 from magail_sumo.sim import dynamics
-from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession, VehicleArrays
+from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
 from .actions import ACTION_COUNTS

@@ -7,7 +7,8 @@
 
 1. **clean actions** — the action dict to a clean (A, 2) array over the live agents
    (:func:`~magail_sumo.env.actions.checked_actions`), counting what was fixed;
-2. **dynamics** — the live agents move one step by the bicycle model (:meth:`Fleet.drive`);
+2. **dynamics** — the live agents move one step by the bicycle model
+   (:meth:`~magail_sumo.env.fleet.Fleet.drive`);
 3. **push to SUMO** — the env places its SUMO vehicles for the next step (hook ``_push``);
 4. **SUMO step** — SUMO advances one step (hook ``_sumo_step``: the env's bookkeeping of who
    entered and left SUMO);
@@ -16,8 +17,9 @@
    lane query shared by the sensors and the off-road rule;
 7. **events** — collision (oriented-box overlap with any other road user), off-road,
    red-light (hook ``_red_light``), destination, plus env-specific ones (hook ``_more_events``);
-8. **outcomes** — terminations, truncations and infos (:class:`~magail_sumo.env.outcomes.StepDicts`;
-   hook ``_time_up``: who is out of time and why); agents that left are taken out of SUMO.
+8. **outcomes** — terminations, truncations and infos
+   (:class:`~magail_sumo.env.outcomes.StepDicts`; hook ``_time_up``: who is out of time and
+   why); agents that left are taken out of SUMO.
 
 The envs differ only in the hooks: where agents and background come from (the log vs SUMO's
 routes) and their extra events.
