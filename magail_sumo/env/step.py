@@ -168,6 +168,42 @@ class FleetEnv(ParallelEnv):
                 "nan_actions": int(f.nan_actions[k]), "clipped_actions": int(f.clipped_actions[k]),
                 "state": f.pose(k)}
 
+    # ------------------------------------------------------------------ hooks each env implements
+    def _push(self) -> None:
+        """Stage 3: place the env's SUMO vehicles (live agents first) for the next step."""
+        raise NotImplementedError
+
+    def _sumo_step(self) -> tuple[list[str], list[str]]:
+        """Stage 4: step SUMO (and ``t``); (departed ids, arrived ids) of that step."""
+        raise NotImplementedError
+
+    def _join(self, departed: list[str]) -> np.ndarray:
+        """Stage 5: rows that become agents now (sorted, joined and active)."""
+        raise NotImplementedError
+
+    def _observe(self, agents: np.ndarray, lanes=None) -> tuple[dict, tuple[Any, Any]]:
+        """Stage 6: observations of rows ``agents`` (sorted) by name, and the world:
+        (boxes of the agents, in order, then every other road user; the boxes' ids)."""
+        raise NotImplementedError
+
+    def _red_light(self, act: np.ndarray, p0: np.ndarray, ctx: Any) -> np.ndarray:
+        """(A,) bool: the stepped rows ``act`` (at ``p0`` before the step) ran a red light."""
+        raise NotImplementedError
+
+    def _time_up(self, act: np.ndarray, flags: dict[str, np.ndarray], end: bool,
+                 arrived: list[str]) -> tuple[np.ndarray, list[str]]:
+        """(A,) bool: stepped rows out of time (truncated unless terminated), and (A,) the
+        truncation reason no event explains (``end``: the episode's last step)."""
+        raise NotImplementedError
+
+    def _road_user(self, ids: Any, j: int) -> str:
+        """The name of world box ``j`` (``collided_with``)."""
+        raise NotImplementedError
+
+    def _record_fcd(self) -> None:
+        """Add the step's poses to the env's FCD recording, if any."""
+        raise NotImplementedError
+
     # ------------------------------------------------------------------ optional hooks
     def _before_move(self, act: np.ndarray) -> Any:
         """What the events need from before the step besides the positions (none here)."""
