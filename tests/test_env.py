@@ -105,7 +105,7 @@ def test_expert_actions_follow_the_log(bundles, sid):
     assert checked > 100
     last = {str(int(tr.id[r])): int(np.flatnonzero(tr.valid[r])[-1]) for r in env._ctrl}
     assert {a: t for a, (t, _) in ended.items()} == {a: t for a, t in last.items() if t > 0}
-    assert all(r in ("end_of_life", "end_of_scene") for _, r in ended.values())
+    assert all(r in ("end_of_life", "end_of_episode") for _, r in ended.values())
 
 
 def _polygon(x, y, yaw, length, width):

@@ -17,7 +17,15 @@ Events ending an agent (``infos[agent]["reason"]``): ``collision`` (oriented-box
 any other vehicle), ``off_road`` (box centre farther than ``lane_width / 2 + margin`` from every
 lane, junction lanes included), ``red_light`` (the agent passes the stop line of a red signal
 that was its next signal at the step's start), ``destination`` (within ``destination_radius``
-of its route's end); ``end_of_episode`` truncates. Rewards are 0.
+of its route's end); truncation reasons: ``arrived`` (SUMO took the vehicle out: it reached
+its route's end) and ``end_of_episode`` (``max_steps`` reached). Rewards are 0.
+
+The step runs the stages of :class:`~magail_sumo.env.step.FleetEnv` over the agents'
+:class:`~magail_sumo.env.fleet.Fleet` state (rows appended as agents join), and ``infos`` follow
+both envs' contract (:mod:`magail_sumo.env.step`): ``step`` (steps since reset), ``events``,
+``reason``, ``collided_with`` (the other vehicle's SUMO id; ``""`` when none),
+``nan_actions``, ``clipped_actions`` and ``state`` (the agent's bicycle state
+``(x, y, yaw, speed)`` after the step, scene frame = SUMO's network frame).
 """
 
 from __future__ import annotations
@@ -28,11 +36,9 @@ import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from pettingzoo import ParallelEnv
 
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.sensors.lanes import LaneQuery
@@ -40,13 +46,12 @@ from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
 from magail_sumo.sim import dynamics
-from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession, VehicleArrays
+from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
-from .actions import ACTION_COUNTS, checked_actions, count_actions
-from .collision import first_overlap
-from .events import off_road, reached
-from .outcomes import StepDicts
+from .actions import ACTION_COUNTS
+from .fleet import Fleet, resized
+from .step import END_OF_EPISODE, FleetEnv
 
 #: Events of the city env, in the order the first one found becomes the reason.
 CITY_EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination")
@@ -122,7 +127,7 @@ def _scenario_files(sumocfg: Path) -> tuple[Path, list[str]]:
     return sumocfg.parent / net.get("value"), ids
 
 
-class SumoCityEnv(ParallelEnv):
+class SumoCityEnv(FleetEnv):
     """Many policy-driven vehicles in a SUMO city scenario (module doc).
 
     :param sumocfg: the scenario's ``.sumocfg`` (net and route files are read from it).
@@ -132,6 +137,7 @@ class SumoCityEnv(ParallelEnv):
 
     metadata = {"name": "magail_sumo_city_v0", "render_modes": [], "render_fps": 10}
     render_mode = None
+    events = CITY_EVENTS
 
     def __init__(self, sumocfg: str | Path, config: CityEnvConfig | None = None,
                  sumo_args: tuple[str, ...] = ()) -> None:
@@ -183,9 +189,7 @@ class SumoCityEnv(ParallelEnv):
                 while sim.time < target:
                     sim.step()
                 path = Path(self._state_dir.name) / "warm.xml.gz"
-                import libsumo
-
-                libsumo.simulation.saveState(str(path))
+                sim.api.simulation.saveState(str(path))
             self._state_file = path
         return self._state_file
 
@@ -198,17 +202,9 @@ class SumoCityEnv(ParallelEnv):
         self._seed = 0 if seed is None else int(seed)
         self._session = SumoSession(self.sumocfg, config=SessionConfig(
             seed=cfg.sumo_seed + self._seed, extra_args=extra)).start()
-        self._names: list[str] = []
-        self._index: dict[str, int] = {}
         n_max = 64
-        self._x, self._y, self._yaw, self._speed = (np.zeros(n_max) for _ in range(4))
-        self._length, self._width = np.zeros(n_max), np.zeros(n_max)
-        self._dest = np.zeros((n_max, 2))
-        self._dest_yaw = np.zeros(n_max)
-        self._prev_action = np.zeros((n_max, dynamics.ACTION_SIZE))
-        self._active = np.zeros(n_max, bool)
-        self._nan = np.zeros(n_max, np.int64)
-        self._clipped = np.zeros(n_max, np.int64)
+        #: the agents' state (rows appended as they join, :class:`Fleet`)
+        self.fleet = Fleet.empty(n_max)
         #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
@@ -217,13 +213,14 @@ class SumoCityEnv(ParallelEnv):
         self._waiting: dict[str, None] = {}  # chosen vehicles waiting for an agent place
         self.sensor_time = 0.0
         self.t = 0
+        self._end = cfg.max_steps
         self._session.step()
         self._sumo = self._session.vehicles()
         joiners = self._join(self._sumo.ids)
-        self.agents = [self._names[k] for k in np.flatnonzero(self._active)]
+        self.agents = self.fleet.names_of(self.fleet.live())
         obs, _ = self._observe(joiners)
         self._record_fcd()
-        return obs, {a: self._info(self._index[a], {}, None) for a in self.agents}
+        return obs, {a: self._info(self.fleet.index[a], {}, None) for a in self.agents}
 
     @property
     def sumo_time(self) -> float | None:
@@ -243,33 +240,14 @@ class SumoCityEnv(ParallelEnv):
         h = hashlib.blake2b(f"{self._seed}:{vid}".encode(), digest_size=8).digest()
         return int.from_bytes(h, "little") / 2**64 < self.config.control_fraction
 
-    def _grow(self, n: int) -> None:
-        size = self._x.shape[0]
-        if n <= size:
-            return
-        new = max(n, 2 * size)
-        for name in ("_x", "_y", "_yaw", "_speed", "_length", "_width", "_dest_yaw", "_nan",
-                     "_clipped", "_active", "_lc", "_ld"):
-            old = getattr(self, name)
-            arr = np.zeros(new, old.dtype)
-            arr[:size] = old
-            setattr(self, name, arr)
-        for name in ("_dest", "_prev_action"):
-            old = getattr(self, name)
-            arr = np.zeros((new, 2), old.dtype)
-            arr[:size] = old
-            setattr(self, name, arr)
-
     def _join(self, candidates) -> np.ndarray:
         """Vehicles seen for the first time become agents when chosen; their indices. With
         ``max_agents`` reached, a chosen vehicle is driven by SUMO and waits: it becomes an
-        agent, mid-trip, when an agent place frees (first come, first served)."""
-        import libsumo
-
-        v = self._sumo
+        agent, mid-trip, when an agent place frees (first come, first served). Step stage 5."""
+        v, f, api = self._sumo, self.fleet, self._session.api
         pos = {vid: i for i, vid in enumerate(v.ids)}
         cap = self.config.max_agents
-        n_active = int(self._active.sum())
+        n_active = int(f.active.sum())
         new = []
         waiting = self._waiting
         # vehicles that waited for a free agent place come first, in the order they appeared
@@ -288,48 +266,45 @@ class SumoCityEnv(ParallelEnv):
             waiting.pop(vid, None)
             self._decided.add(vid)
             n_active += 1
-            k = len(self._names)
-            self._grow(k + 1)
             i = pos[vid]
-            self._names.append(vid)
-            self._index[vid] = k
-            self._x[k], self._y[k], self._yaw[k] = v.x[i], v.y[i], v.yaw[i]
-            self._speed[k], self._length[k], self._width[k] = v.speed[i], v.length[i], v.width[i]
-            last_edge = libsumo.vehicle.getRoute(vid)[-1]
-            shape = np.asarray(libsumo.lane.getShape(f"{last_edge}_0"), np.float64)
-            self._dest[k] = shape[-1]
+            k = f.add(vid, v.x[i], v.y[i], v.yaw[i], v.speed[i], v.length[i], v.width[i])
+            if f.capacity > self._lc.shape[0]:
+                self._lc, self._ld = resized(self._lc, f.capacity), resized(self._ld, f.capacity)
+            last_edge = api.vehicle.getRoute(vid)[-1]
+            shape = np.asarray(api.lane.getShape(f"{last_edge}_0"), np.float64)
+            f.dest[k] = shape[-1]
             d = shape[-1] - shape[-2]
-            self._dest_yaw[k] = np.arctan2(d[1], d[0])
-            self._active[k] = True
+            f.dest_yaw[k] = np.arctan2(d[1], d[0])
+            f.join(k)
+            f.in_sumo[k] = True
             new.append(k)
         return np.array(new, np.int64)
 
     def _world(self, agents: np.ndarray) -> tuple[Boxes, list[str]]:
         """Boxes of the agents (first rows) then every other SUMO vehicle, with their ids."""
-        v = self._sumo
+        v, f = self._sumo, self.fleet
         # string ids: a set lookup per vehicle (~30 µs for 400) beats np.isin on object arrays
         # (~2.5 ms, measured)
-        ctrl = set(self._names[k] for k in np.flatnonzero(self._active))
+        ctrl = set(f.names_of(f.live()))
         bg = [i for i, vid in enumerate(v.ids) if vid not in ctrl]
-        boxes = Boxes(np.concatenate([self._x[agents], v.x[bg]]),
-                      np.concatenate([self._y[agents], v.y[bg]]),
-                      np.concatenate([self._yaw[agents], v.yaw[bg]]),
-                      np.concatenate([self._length[agents], v.length[bg]]),
-                      np.concatenate([self._width[agents], v.width[bg]]))
-        return boxes, [self._names[k] for k in agents] + [v.ids[i] for i in bg]
+        boxes = Boxes(np.concatenate([f.x[agents], v.x[bg]]),
+                      np.concatenate([f.y[agents], v.y[bg]]),
+                      np.concatenate([f.yaw[agents], v.yaw[bg]]),
+                      np.concatenate([f.length[agents], v.length[bg]]),
+                      np.concatenate([f.width[agents], v.width[bg]]))
+        return boxes, f.names_of(agents) + [v.ids[i] for i in bg]
 
     def _next_lights(self, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(A,) light code of each agent's next signal and (A,) distance to it (m, inf: none).
 
         libsumo has no bulk query for this; one ``getNextTLS`` call per agent (~µs each).
         """
-        import libsumo
-
+        vehicle, names = self._session.api.vehicle, self.fleet.names
         code = np.zeros(agents.size)
         dist = np.full(agents.size, np.inf)
         for j, k in enumerate(agents):
             try:
-                nxt = libsumo.vehicle.getNextTLS(self._names[k])
+                nxt = vehicle.getNextTLS(names[k])
             except Exception:  # vehicle not (yet) in SUMO
                 continue
             if nxt:
@@ -340,99 +315,60 @@ class SumoCityEnv(ParallelEnv):
 
     def _observe(self, agents: np.ndarray, lanes: LaneQuery | None = None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, list[str]]]:
-        """Observations of ``agents``; ``lanes``: their lane query when already computed."""
+        """Step stage 6: observations of fleet rows ``agents`` (sorted) and the world
+        (:meth:`_world`); ``lanes``: their lane query when already computed."""
         clock = time.perf_counter()
+        f = self.fleet
         world = self._world(agents)
         light, dist = self._next_lights(agents)
         self._lc[agents], self._ld[agents] = light, dist
-        ego = EgoState(np.arange(agents.size), self._speed[agents], self._prev_action[agents],
-                       self._dest[agents], self._dest_yaw[agents])
+        ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
+                       f.dest[agents], f.dest_yaw[agents])
         obs = self.suite.observe(world[0], ego, 0, lanes,
                                  light=np.where(dist < 50.0, light, 0))
         self.sensor_time += time.perf_counter() - clock
-        return {self._names[k]: obs[i] for i, k in enumerate(agents)}, world
+        return {f.names[k]: obs[i] for i, k in enumerate(agents)}, world
 
-    def _info(self, k: int, events: dict[str, bool], reason: str | None, other: str = "") -> dict:
-        return {"step": self.t, "events": events, "reason": reason, "collided_with": other,
-                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k]),
-                "state": (float(self._x[k]), float(self._y[k]), float(self._yaw[k]),
-                          float(self._speed[k]))}
+    # ------------------------------------------------------------------ step hooks
+    def _push(self) -> None:
+        """Step stage 3: place the live agents in SUMO at their poses."""
+        f = self.fleet
+        act = f.live()
+        self._session.move(f.names_of(act), f.x[act], f.y[act], f.yaw[act], f.length[act])
 
-    # ------------------------------------------------------------------ step
-    def step(self, actions: dict[str, Any]):
-        cfg = self.config
-        if self._session is None:
-            raise RuntimeError("call reset() before step()")
-        act = np.flatnonzero(self._active)
-        clean, nonfinite, outside, missing, extra = checked_actions(
-            actions, [self._names[k] for k in act])
-        self._nan[act] += nonfinite
-        self._clipped[act] += outside
-        count_actions(self.action_counts, actions, self._index, nonfinite, outside, missing,
-                      extra)
-        accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
-        red_before = self._lc[act] == 3
-        dist_before = self._ld[act].copy()
-        new = dynamics.step(dynamics.VehicleState(self._x[act], self._y[act], self._yaw[act],
-                                                  self._speed[act]),
-                            accel, steer, dynamics.WHEELBASE_RATIO * self._length[act], self.dt,
-                            cfg.limits)
-        moved = np.hypot(new.x - self._x[act], new.y - self._y[act])
-        self._x[act], self._y[act], self._yaw[act], self._speed[act] = new.x, new.y, new.yaw, new.speed
-        self._prev_action[act] = clean
-        sess = self._session
-        sess.move([self._names[k] for k in act], self._x[act], self._y[act], self._yaw[act],
-                  self._length[act])
-        departed, arrived = sess.step()
+    def _sumo_step(self) -> tuple[list[str], list[str]]:
+        """Step stage 4: SUMO steps; its vehicles are read; agents SUMO took out are noted."""
+        departed, arrived = self._session.step()
         self.t += 1
-        self._sumo = sess.vehicles()
-        arrived_set = set(arrived)
-        joiners = self._join(departed)
-        observed = np.concatenate([act, joiners])
-        clock = time.perf_counter()
-        lanes = self.suite.lane_query(self._x[observed], self._y[observed], self._yaw[observed])
-        self.sensor_time += time.perf_counter() - clock
-        obs, (boxes, ids) = self._observe(observed, lanes)
-        other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width,
-                              np.arange(act.size))
-        flags = {
-            "collision": other >= 0,
-            "off_road": off_road(lanes.distance[:act.size], cfg.lane_width, cfg.off_road_margin),
-            "red_light": red_before & (dist_before < moved),
-            "destination": reached(self._x[act], self._y[act], self._dest[act],
-                                   cfg.destination_radius),
-        }
-        gone_in_sumo = np.array([self._names[k] in arrived_set for k in act], bool)
-        end = self.t >= cfg.max_steps
-        out = StepDicts()
-        leaving = out.stepped(
-            [self._names[k] for k in act], flags, CITY_EVENTS, cfg.terminate_on,
-            gone_in_sumo | end, np.where(gone_in_sumo, "arrived", "end_of_episode").tolist(),
-            lambda i, ev, reason: self._info(act[i], ev, reason,
-                                             ids[other[i]] if other[i] >= 0 else ""))
-        out.joined([self._names[k] for k in joiners], end, "end_of_episode",
-                   lambda j, reason: self._info(joiners[j], {}, reason))
-        rewards, terms, truncs, infos = out.astuple()
-        gone = act[leaving]
-        if end:
-            gone = np.concatenate([gone, joiners])
-        self._active[gone] = False
-        for k in gone:
-            sess.remove(self._names[k])
-        self.agents = [self._names[k] for k in np.flatnonzero(self._active)]
-        self._record_fcd()
-        return obs, rewards, terms, truncs, infos
+        self._sumo = self._session.vehicles()
+        f = self.fleet
+        for vid in arrived:
+            k = f.index.get(vid)
+            if k is not None:
+                f.in_sumo[k] = False
+        return departed, arrived
 
-    def agent_states(self):
-        """Bicycle state of the live agents, in :attr:`agents` order
-        (:class:`~magail_sumo.env.driving_env.AgentStates`; ``rows`` are agent indices)."""
-        from .driving_env import AgentStates
+    def _before_move(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each stepped agent's next signal as last observed: red, and its distance (m)."""
+        return self._lc[act] == 3, self._ld[act].copy()
 
-        k = np.array([self._index[a] for a in self.agents], np.int64)
-        return AgentStates(list(self.agents), k,
-                           dynamics.VehicleState(self._x[k].copy(), self._y[k].copy(),
-                                                 self._yaw[k].copy(), self._speed[k].copy()),
-                           dynamics.WHEELBASE_RATIO * self._length[k])
+    def _red_light(self, act: np.ndarray, p0: np.ndarray, ctx) -> np.ndarray:
+        """The step moved the agent past the stop line of a signal that was red before it."""
+        red_before, dist_before = ctx
+        f = self.fleet
+        moved = np.hypot(f.x[act] - p0[:, 0], f.y[act] - p0[:, 1])
+        return red_before & (dist_before < moved)
+
+    def _time_up(self, act: np.ndarray, flags: dict[str, np.ndarray], end: bool,
+                 arrived: list[str]) -> tuple[np.ndarray, list[str]]:
+        """Out of time: SUMO took the vehicle out (``arrived``) or the episode ends."""
+        gone_in_sumo = ~self.fleet.in_sumo[act]
+        return gone_in_sumo | end, \
+            np.where(gone_in_sumo, "arrived", END_OF_EPISODE).tolist()
+
+    def _road_user(self, ids: list[str], j: int) -> str:
+        """Name of world box ``j``: its SUMO vehicle id."""
+        return ids[j]
 
     # ------------------------------------------------------------------ FCD
     def record_fcd(self, recorder=None):
@@ -459,14 +395,14 @@ class SumoCityEnv(ParallelEnv):
     def _record_fcd(self) -> None:
         if self.fcd is None or self._session is None:
             return
-        agents = np.flatnonzero(self._active)
+        agents = self.fleet.live()
         boxes, ids = self._world(agents)
         if not ids:
             return
         kind = ["agent"] * agents.size + ["sumo"] * (len(ids) - agents.size)
         ctrl = set(ids[:agents.size])
         v = self._sumo
-        speed = np.concatenate([self._speed[agents],
+        speed = np.concatenate([self.fleet.speed[agents],
                                 [sp for vid, sp in zip(v.ids, v.speed) if vid not in ctrl]])
         self.fcd.add(self.t * self.dt, ids, boxes.x, boxes.y, boxes.yaw, boxes.length,
                      boxes.width, kind, "passenger", speed)

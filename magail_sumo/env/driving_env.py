@@ -20,12 +20,17 @@ others with 0. An episode ends ``max_steps`` steps after its start (or with the 
 joins at the first log step its track is valid (from the start on) and leaves on an event (see
 :mod:`magail_sumo.env.events`; collision = oriented-box overlap with any other road user) or at
 the last valid step of its track (``end_of_life``, truncation). Rewards are 0 (imitation learning supplies its own).
-``infos[agent]``: ``step``, ``events`` (name -> bool), ``reason`` (first event of
-:data:`~magail_sumo.env.config.EVENTS` that ended the agent, else None), ``collided_with``
-(track id or -1), ``nan_actions`` and ``clipped_actions`` (this agent's running counts of
+``infos[agent]`` follows both envs' contract (:mod:`magail_sumo.env.step`): ``step`` (log
+step), ``events`` (name -> bool), ``reason`` (first event of
+:data:`~magail_sumo.env.config.EVENTS` that ended the agent — ``end_of_life`` always counts —,
+else ``end_of_episode`` when the episode's last step truncates it, else None),
+``collided_with`` (the other road user's track id as a decimal string, like agent names; ``""``
+when none), ``nan_actions`` and ``clipped_actions`` (this agent's running counts of
 non-finite / out-of-range actions; non-finite entries become 0, out-of-range ones are clipped
 to [-1, 1], a missing action counts as non-finite) and ``state``: the agent's bicycle state
-``(x, y, yaw, speed)`` after this step (scene frame; m, rad, m/s), so no caller re-derives it. ``env.action_counts`` counts, per episode,
+``(x, y, yaw, speed)`` after this step (scene frame; m, rad, m/s), so no caller re-derives it.
+The step runs the stages of :class:`~magail_sumo.env.step.FleetEnv` over the controlled
+vehicles' :class:`~magail_sumo.env.fleet.Fleet` state. ``env.action_counts`` counts, per episode,
 the agent-steps without an action (``missing``: the agent coasts with action 0), the actions
 given for names that are no agent of the scene (``unknown``) or no longer / not yet live
 (``departed``), both ignored, and the non-finite and clipped ones
@@ -34,13 +39,11 @@ given for names that are no agent of the scene (``unknown``) or no longer / not 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from pettingzoo import ParallelEnv
 
 from magail_sumo.scene import Scene
 from magail_sumo.sensors.command import RouteCommands
@@ -48,27 +51,16 @@ from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observ
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
-from .actions import ACTION_COUNTS, checked_actions, count_actions
+from .actions import ACTION_COUNTS
 from .bundle import SceneBundle
-from .collision import first_overlap
 from .config import EVENTS, EnvConfig, draw_start, window_starts
-from .events import StopLines, off_road, reached
+from .events import StopLines
+from .fleet import AgentStates, Fleet
 from .outcomes import StepDicts
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
+from .step import END_OF_EPISODE, FleetEnv
 
-
-@dataclass(frozen=True)
-class AgentStates:
-    """Bicycle state of the live agents, in ``env.agents`` order.
-
-    :param rows: (A,) track rows in ``scene.tracks``. :param state: their state (scene frame).
-    :param wheelbase: (A,) m.
-    """
-
-    names: list[str]
-    rows: np.ndarray
-    state: dynamics.VehicleState
-    wheelbase: np.ndarray
+__all__ = ["AgentStates", "SumoDrivingEnv"]
 
 
 def _median_valid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -78,7 +70,7 @@ def _median_valid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.nan_to_num(out)
 
 
-class SumoDrivingEnv(ParallelEnv):
+class SumoDrivingEnv(FleetEnv):
     """Multi-agent driving in a recorded scene co-simulated with SUMO (module doc).
 
     :param scene: the recorded scene, or a scene file path (WOMD / ScenarioNet).
@@ -86,6 +78,8 @@ class SumoDrivingEnv(ParallelEnv):
     """
 
     metadata = {"name": "magail_sumo_v0", "render_modes": ["rgb_array"], "render_fps": 10}
+    events = EVENTS
+    always_reasons = ("end_of_life",)
 
     def __init__(self, scene: Scene | str | Path, bundle: str | Path,
                  config: EnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -248,16 +242,13 @@ class SumoDrivingEnv(ParallelEnv):
             self._session, [str(int(i)) for i in self.scene.tracks.id[self._obstacle_rows]],
             self._length[self._obstacle_rows], self._width[self._obstacle_rows]) \
             if self._obstacle_rows.size else None
-        c = len(self._ctrl)
-        self._x, self._y, self._yaw, self._speed = (np.zeros(c) for _ in range(4))
-        self._prev_action = np.zeros((c, dynamics.ACTION_SIZE))
-        self._active = np.zeros(c, bool)
-        self._joined = np.zeros(c, bool)
-        self._nan = np.zeros(c, np.int64)
-        self._clipped = np.zeros(c, np.int64)
+        ctrl = self._ctrl
+        #: the controlled vehicles' state (row k: ``self._ctrl[k]``, :class:`Fleet`)
+        self.fleet = Fleet.roster(self._ctrl_names, self._length[ctrl], self._width[ctrl],
+                                  self._dest[ctrl], self._dest_yaw[ctrl])
         #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
-        self._in_sumo: set[str] = set()
+        self._bg_in_sumo: set[str] = set()  # background vehicles in SUMO
         self._sumo_bg = None
         self.sensor_time = 0.0
         self.t = -1
@@ -267,12 +258,12 @@ class SumoDrivingEnv(ParallelEnv):
         while self.t < min(start, self._end):
             self._advance()
         joiners = self._join()
-        while not joiners.size and self.t < self._end and (~self._joined).any():
+        while not joiners.size and self.t < self._end and (~self.fleet.joined).any():
             self._advance()
             joiners = self._join()
-        self.agents = [self._ctrl_names[k] for k in joiners]
-        obs, _ = self._observe(joiners, joiners)
-        infos = {a: self._info(k, {}, None, -1) for a, k in zip(self.agents, joiners)}
+        self.agents = self.fleet.names_of(joiners)
+        obs, _ = self._observe(joiners)
+        infos = {a: self._info(k, {}, None) for a, k in zip(self.agents, joiners)}
         self._record_fcd()
         return obs, infos
 
@@ -286,21 +277,25 @@ class SumoDrivingEnv(ParallelEnv):
     # ------------------------------------------------------------------ internals
     def _advance(self) -> None:
         """Place SUMO's controlled and log-replayed vehicles at log step t + 1, step SUMO."""
-        sess = self._session
+        self._push()
+        self._sumo_step()
+
+    def _push(self) -> None:
+        """Step stage 3: place the live agents in SUMO at their poses, the log-replayed
+        background and the obstacles at their recorded poses of log step t + 1."""
+        sess, f = self._session, self.fleet
         nxt = self.t + 1
         ids: list[str] = []
         parts = []
         if self.t >= 0:
-            act = np.flatnonzero(self._active)
-            names = [self._ctrl_names[k] for k in act]
-            keep = [i for i, a in enumerate(names) if a in self._in_sumo]
-            if keep:
-                k = act[keep]
-                ids += [names[i] for i in keep]
-                parts.append((self._x[k], self._y[k], self._yaw[k], self._length[self._ctrl[k]]))
+            act = f.live()
+            k = act[f.in_sumo[act]]
+            if k.size:
+                ids += f.names_of(k)
+                parts.append((f.x[k], f.y[k], f.yaw[k], f.length[k]))
             if self.config.background == "log" and self._bg_rows.size and nxt < self._T:
                 tr = self.scene.tracks
-                ok = [i for i, v in enumerate(self._bg_ids) if v in self._in_sumo
+                ok = [i for i, v in enumerate(self._bg_ids) if v in self._bg_in_sumo
                       and tr.valid[self._bg_rows[i], nxt]]
                 if ok:
                     r = self._bg_rows[ok]
@@ -316,20 +311,34 @@ class SumoDrivingEnv(ParallelEnv):
             self._obstacles.place(np.where(ok, tr.x[r, nxt], np.nan),
                                   np.where(ok, tr.y[r, nxt], np.nan),
                                   tr.heading[r, nxt].astype(np.float64))
+
+    def _sumo_step(self) -> tuple[list[str], list[str]]:
+        """Step stage 4: SUMO steps to log step t + 1; who entered and left SUMO is noted (an
+        agent that already left the episode is taken out as it enters)."""
+        sess, f = self._session, self.fleet
         departed, arrived = sess.step()
-        done_names = {self._ctrl_names[k] for k in np.flatnonzero(self._joined & ~self._active)}
+        done = f.left()
         for vid in departed:
             # parked vehicles carry a SUMO stop; SUMO refuses to step one moved off its stop
             # (even after the stop is removed) and fails on removing it: SUMO keeps them parked
             if vid in self.bundle.parked:
                 continue
-            if vid in done_names:
+            k = f.index.get(vid)
+            if k is None:
+                self._bg_in_sumo.add(vid)
+            elif done[k]:
                 sess.remove(vid)
-                continue
-            self._in_sumo.add(vid)
-        self._in_sumo.difference_update(arrived)
-        self.t = nxt
+            else:
+                f.in_sumo[k] = True
+        for vid in arrived:
+            k = f.index.get(vid)
+            if k is None:
+                self._bg_in_sumo.discard(vid)
+            else:
+                f.in_sumo[k] = False
+        self.t += 1
         self._sumo_bg = None
+        return departed, arrived
 
     def log_state(self, rows: np.ndarray, t: int) -> dynamics.VehicleState:
         """Bicycle state of track ``rows`` at log step ``t`` as an agent joins with it: the
@@ -350,38 +359,37 @@ class SumoDrivingEnv(ParallelEnv):
             self._prev_table = (upto, log_prev_actions(self, upto))
         return self._prev_table[1]
 
-    def _join(self) -> np.ndarray:
-        """Controlled tracks valid at step t that never joined become agents; their indices.
+    def _join(self, departed: list[str] | None = None) -> np.ndarray:
+        """Step stage 5: controlled tracks valid at step t that never joined become agents at
+        their recorded state; their fleet rows (``departed`` is not needed: the log says).
 
         A joiner valid at t - 1 too (only at the episode start: the log before it is history)
         gets the log's previous action (:func:`~magail_sumo.env.expert.log_prev_actions`),
         the others 0."""
-        tr, t = self.scene.tracks, self.t
-        new = np.flatnonzero(~self._joined & tr.valid[self._ctrl, t])
+        tr, t, f = self.scene.tracks, self.t, self.fleet
+        new = np.flatnonzero(~f.joined & tr.valid[self._ctrl, t])
         if new.size:
             r = self._ctrl[new]
-            st = self.log_state(r, t)
-            self._x[new], self._y[new], self._yaw[new], self._speed[new] = \
-                st.x, st.y, st.yaw, st.speed
-            self._prev_action[new] = 0.0
+            f.set_state(new, self.log_state(r, t))
+            f.prev_action[new] = 0.0
             if t > 0:
                 hist = tr.valid[r, t - 1]
                 if hist.any():
-                    self._prev_action[new[hist]] = self._log_prev_actions(t)[r[hist], t]
-            self._joined[new] = self._active[new] = True
+                    f.prev_action[new[hist]] = self._log_prev_actions(t)[r[hist], t]
+            f.join(new)
         return new
 
     def _world(self, agents: np.ndarray) -> tuple[Boxes, np.ndarray]:
         """Boxes of the agents (first rows, in order) and every other road user at step t,
         plus (N,) track id of each box (-1 unknown)."""
-        tr, t = self.scene.tracks, self.t
+        tr, t, f = self.scene.tracks, self.t, self.fleet
         rows = self._ctrl[agents]
         lr = self._log_rows[tr.valid[self._log_rows, t]]
-        xs = [self._x[agents], tr.x[lr, t]]
-        ys = [self._y[agents], tr.y[lr, t]]
-        yaws = [self._yaw[agents], tr.heading[lr, t].astype(np.float64)]
-        ls = [self._length[rows], tr.length[lr, t].astype(np.float64)]
-        ws = [self._width[rows], tr.width[lr, t].astype(np.float64)]
+        xs = [f.x[agents], tr.x[lr, t]]
+        ys = [f.y[agents], tr.y[lr, t]]
+        yaws = [f.yaw[agents], tr.heading[lr, t].astype(np.float64)]
+        ls = [f.length[agents], tr.length[lr, t].astype(np.float64)]
+        ws = [f.width[agents], tr.width[lr, t].astype(np.float64)]
         ids = [tr.id[rows], tr.id[lr]]
         if self.config.background == "sumo":
             if self._sumo_bg is None:
@@ -394,110 +402,70 @@ class SumoDrivingEnv(ParallelEnv):
         cat = lambda p: np.concatenate(p).astype(np.float64)  # noqa: E731
         return Boxes(cat(xs), cat(ys), cat(yaws), cat(ls), cat(ws)), np.concatenate(ids)
 
-    def _observe(self, agents: np.ndarray, observed: np.ndarray, lanes=None
+    def _observe(self, agents: np.ndarray, lanes=None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, np.ndarray]]:
-        """Observations of ``observed`` (a subset of ``agents``, world rows in that order)."""
+        """Step stage 6: observations of fleet rows ``agents`` (sorted), and the world
+        (:meth:`_world`); ``lanes``: their lane query when already made."""
         import time
 
         clock = time.perf_counter()
+        f = self.fleet
         world = self._world(agents)
-        pos = np.searchsorted(agents, observed) if agents.size else np.zeros(0, np.int64)
-        rows = self._ctrl[observed]
+        rows = self._ctrl[agents]
         cmd = None if self._commands is None else \
-            self._commands.commands(rows, self._x[observed], self._y[observed])
-        ego = EgoState(pos, self._speed[observed], self._prev_action[observed], self._dest[rows],
-                       self._dest_yaw[rows], cmd)
+            self._commands.commands(rows, f.x[agents], f.y[agents])
+        ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
+                       f.dest[agents], f.dest_yaw[agents], cmd)
         obs = self.suite.observe(world[0], ego, self.t, lanes)
         self.sensor_time += time.perf_counter() - clock
-        return {self._ctrl_names[k]: obs[i] for i, k in enumerate(observed)}, world
+        return {f.names[k]: obs[i] for i, k in enumerate(agents)}, world
 
-    def _info(self, k: int, events: dict[str, bool], reason: str | None, other: int) -> dict:
-        return {"step": self.t, "events": events, "reason": reason, "collided_with": int(other),
-                "nan_actions": int(self._nan[k]), "clipped_actions": int(self._clipped[k]),
-                "state": (float(self._x[k]), float(self._y[k]), float(self._yaw[k]),
-                          float(self._speed[k]))}
-
-    # ------------------------------------------------------------------ step
+    # ------------------------------------------------------------------ step hooks
     def step(self, actions: dict[str, Any]):
-        import time
+        """One log step (module doc; the stages: :class:`~magail_sumo.env.step.FleetEnv`)."""
+        out = super().step(actions)
+        if not self.agents and self._fcd_auto is not None:
+            self._finish_auto_fcd()
+        return out
 
-        cfg = self.config
-        if self._session is None:
-            raise RuntimeError("call reset() before step()")
-        act_idx = np.flatnonzero(self._active)
-        a = act_idx.size
-        clean, nonfinite, outside, missing, extra = checked_actions(
-            actions, [self._ctrl_names[k] for k in act_idx])
-        self._nan[act_idx] += nonfinite
-        self._clipped[act_idx] += outside
-        count_actions(self.action_counts, actions, self._name_index, nonfinite, outside, missing,
-                      extra)
-        accel, steer = dynamics.denormalise(clean, cfg.limits, cfg.action_layout)
-        rows = self._ctrl[act_idx]
-        p0 = np.stack([self._x[act_idx], self._y[act_idx]], axis=1)
-        new = dynamics.step(dynamics.VehicleState(self._x[act_idx], self._y[act_idx],
-                                                  self._yaw[act_idx], self._speed[act_idx]),
-                            accel, steer, dynamics.WHEELBASE_RATIO * self._length[rows], self.dt,
-                            cfg.limits)
-        self._x[act_idx], self._y[act_idx] = new.x, new.y
-        self._yaw[act_idx], self._speed[act_idx] = new.yaw, new.speed
-        self._prev_action[act_idx] = clean
-        self._advance()
-        joiners = self._join()
-        agents = np.concatenate([act_idx, joiners])
-        order = np.argsort(agents, kind="stable")
-        agents = agents[order]
-        # events of the stepped agents (rows 0..a-1 of the world after sorting by index)
-        clock = time.perf_counter()
-        lanes = self.suite.lane_query(self._x[agents], self._y[agents], self._yaw[agents])
-        self.sensor_time += time.perf_counter() - clock
-        obs, (boxes, box_ids) = self._observe(agents, agents, lanes)
-        stepped = np.searchsorted(agents, act_idx)
-        other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, stepped)
-        p1 = np.stack([self._x[act_idx], self._y[act_idx]], axis=1)
-        flags = {
-            "collision": other >= 0,
-            "off_road": off_road(lanes.distance[stepped], cfg.lane_width, cfg.off_road_margin),
-            "red_light": self.stop_lines.red_crossings(self.t - 1, p0, p1, cfg.lane_width),
-            "destination": reached(p1[:, 0], p1[:, 1], self._dest[rows], cfg.destination_radius),
-            "end_of_life": self.t >= self._last[rows],
-        }
-        end = self.t >= self._end
-        out = StepDicts()
-        leaving = out.stepped(
-            [self._ctrl_names[k] for k in act_idx], flags, EVENTS, cfg.terminate_on,
-            flags["end_of_life"] | end, ["end_of_scene"] * a,
-            lambda i, ev, reason: self._info(
-                act_idx[i], ev, reason, int(box_ids[other[i]]) if other[i] >= 0 else -1),
-            always_reasons=("end_of_life",))
-        out.joined([self._ctrl_names[k] for k in joiners], end, "end_of_scene",
-                   lambda j, reason: self._info(joiners[j], {}, reason, -1))
+    def _red_light(self, act: np.ndarray, p0: np.ndarray, ctx) -> np.ndarray:
+        """Crossed the stop line of a red signal during the step (:class:`StopLines`)."""
+        return self.stop_lines.red_crossings(self.t - 1, p0, self.fleet.position(act),
+                                             self.config.lane_width)
+
+    def _more_events(self, act: np.ndarray) -> dict[str, np.ndarray]:
+        """``end_of_life``: the agent's track has no later recorded step."""
+        return {"end_of_life": self.t >= self._last[self._ctrl[act]]}
+
+    def _time_up(self, act: np.ndarray, flags: dict[str, np.ndarray], end: bool,
+                 arrived: list[str]) -> tuple[np.ndarray, list[str]]:
+        """Out of time: at the end of the agent's track (reason ``end_of_life``) or of the
+        episode (:data:`~magail_sumo.env.step.END_OF_EPISODE`)."""
+        return flags["end_of_life"] | end, [END_OF_EPISODE] * act.size
+
+    def _road_user(self, ids: np.ndarray, j: int) -> str:
+        """Name of world box ``j``: its track id as a decimal string."""
+        return str(int(ids[j]))
+
+    def _after_step(self, obs: dict, out: StepDicts) -> None:
+        """Nobody left but agents to come: run the log on until someone joins (they join the
+        step's dicts as live agents)."""
+        f = self.fleet
         rewards, terms, truncs, infos = out.astuple()
-        gone = act_idx[leaving]
-        if end:
-            gone = np.concatenate([gone, joiners])
-        self._active[gone] = False
-        for k in gone:
-            name = self._ctrl_names[k]
-            if name in self._in_sumo:
-                self._session.remove(name)
-                self._in_sumo.discard(name)
-        # nobody left but agents to come: run the log on until someone joins
-        while not self._active.any() and self.t < self._end and (~self._joined).any():
+        while not f.active.any() and self.t < self._end and (~f.joined).any():
             self._advance()
             late = self._join()
             if late.size:
-                more, _ = self._observe(late, late)
+                more, _ = self._observe(late)
                 for k in late:
-                    name = self._ctrl_names[k]
+                    name = f.names[k]
                     obs[name] = more[name]
                     rewards[name], terms[name], truncs[name] = 0.0, False, False
-                    infos[name] = self._info(k, {}, None, -1)
-        self.agents = [self._ctrl_names[k] for k in np.flatnonzero(self._active)]
-        self._record_fcd()
-        if not self.agents and self._fcd_auto is not None:
-            self._finish_auto_fcd()
-        return obs, rewards, terms, truncs, infos
+                    infos[name] = self._info(k, {}, None)
+
+    def _agent_rows(self, k: np.ndarray) -> np.ndarray:
+        """Track rows of fleet rows ``k``."""
+        return self._ctrl[k]
 
     # ------------------------------------------------------------------ FCD
     def record_fcd(self, recorder=None):
@@ -537,7 +505,7 @@ class SumoDrivingEnv(ParallelEnv):
         from magail_sumo.sim.fcd import SHAPES
 
         tr = self.scene.tracks
-        agents = np.flatnonzero(self._active)
+        agents = self.fleet.live()
         boxes, ids = self._world(agents)
         if not len(ids):
             return
@@ -551,7 +519,7 @@ class SumoDrivingEnv(ParallelEnv):
         kind[:agents.size] = "agent"
         shape = [SHAPES.get(int(t), "passenger") for t in tr.type[rows]]
         speed = np.hypot(tr.vx[rows, self.t], tr.vy[rows, self.t]).astype(np.float64)
-        speed[:agents.size] = self._speed[agents]
+        speed[:agents.size] = self.fleet.speed[agents]
         if self.config.background == "sumo":
             speed[kind == "sumo"] = np.nan  # derived from the recorded positions
         self.fcd.add(self.t * self.dt, [str(int(i)) for i in ids], boxes.x, boxes.y, boxes.yaw,
@@ -575,15 +543,6 @@ class SumoDrivingEnv(ParallelEnv):
         self.fcd = None
 
     # ------------------------------------------------------------------ helpers
-    def agent_states(self) -> AgentStates:
-        """Bicycle state of the live agents (for :func:`~magail_sumo.env.expert.expert_actions`)."""
-        k = np.array([self._name_index[a] for a in self.agents], np.int64)
-        rows = self._ctrl[k]
-        return AgentStates(list(self.agents), rows,
-                           dynamics.VehicleState(self._x[k].copy(), self._y[k].copy(),
-                                                 self._yaw[k].copy(), self._speed[k].copy()),
-                           dynamics.WHEELBASE_RATIO * self._length[rows])
-
     def render(self) -> np.ndarray | None:
         """Top-down RGB frame (H, W, 3) uint8 of step t: agents green, SUMO vehicles blue,
         log-only objects grey."""
@@ -596,7 +555,7 @@ class SumoDrivingEnv(ParallelEnv):
             self._renderer = TopDownRenderer(self.scene, (xs.min() - pad, ys.min() - pad,
                                                           xs.max() + pad, ys.max() + pad),
                                              self.config.render_size)
-        agents = np.flatnonzero(self._active)
+        agents = self.fleet.live()
         boxes, ids = self._world(agents)
         col = np.empty((len(boxes), 3), np.uint8)
         col[:] = LOG_ONLY

@@ -1,0 +1,228 @@
+"""One env step as named stages, shared by both envs (recorded scenes and SUMO cities).
+
+:class:`FleetEnv` is the PettingZoo ``ParallelEnv`` base of
+:class:`~magail_sumo.env.driving_env.SumoDrivingEnv` and
+:class:`~magail_sumo.env.city_env.SumoCityEnv`. Its :meth:`~FleetEnv.step` runs, in order
+(as sumo-rl's env step does):
+
+1. **clean actions** — the action dict to a clean (A, 2) array over the live agents
+   (:func:`~magail_sumo.env.actions.checked_actions`), counting what was fixed;
+2. **dynamics** — the live agents move one step by the bicycle model
+   (:meth:`~magail_sumo.env.fleet.Fleet.drive`);
+3. **push to SUMO** — the env places its SUMO vehicles for the next step (hook ``_push``);
+4. **SUMO step** — SUMO advances one step (hook ``_sumo_step``: the env's bookkeeping of who
+   entered and left SUMO);
+5. **joins** — new agents (hook ``_join``: from the log, or from SUMO's departures);
+6. **observe** — observations of the stepped agents and joiners (hook ``_observe``), with one
+   lane query shared by the sensors and the off-road rule;
+7. **events** — collision (oriented-box overlap with any other road user), off-road,
+   red-light (hook ``_red_light``), destination, plus env-specific ones (hook ``_more_events``);
+8. **outcomes** — terminations, truncations and infos
+   (:class:`~magail_sumo.env.outcomes.StepDicts`; hook ``_time_up``: who is out of time and
+   why); agents that left are taken out of SUMO.
+
+The envs differ only in the hooks: where agents and background come from (the log vs SUMO's
+routes) and their extra events.
+
+**Info contract (both envs)**: ``infos[agent]`` has ``step`` (the env's step counter after the
+step), ``events`` (event name -> bool, the env's event order; empty for joiners), ``reason``
+(str or None: the first event of the env's order that ended the agent, else its truncation
+reason, :data:`END_OF_EPISODE` when the episode's time is up), ``collided_with`` (str: the name
+of the road user the agent's box overlapped first — a recorded track id as a decimal string,
+as agent names are, or a SUMO vehicle id; ``""`` when none), ``nan_actions`` and
+``clipped_actions`` (int: the agent's running counts) and ``state`` (the agent's bicycle state
+``(x, y, yaw, speed)`` after the step, floats: scene frame, m, rad, m/s).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Sequence
+
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from .actions import checked_actions, count_actions
+from .collision import first_overlap
+from .events import off_road, reached
+from .fleet import AgentStates, Fleet
+from .outcomes import StepDicts
+
+#: truncation reason of an agent still live when the episode's time is up (both envs)
+END_OF_EPISODE = "end_of_episode"
+#: ``infos[agent]["collided_with"]`` of an agent that overlapped nobody
+NO_ONE = ""
+
+
+class FleetEnv(ParallelEnv):
+    """Base of both envs: the :class:`Fleet` state and the step of named stages (module doc).
+
+    A subclass sets, in ``reset``: :attr:`fleet`, ``_session`` (the running
+    :class:`~magail_sumo.sim.session.SumoSession`), ``t`` and ``_end`` (the last step of the
+    episode: it ends when ``t >= _end``), ``action_counts``, ``sensor_time``; and it implements
+    the hooks ``_push``, ``_sumo_step``, ``_join``, ``_observe``, ``_red_light``,
+    ``_time_up``, ``_road_user`` (and, when it has some, ``_before_move``, ``_more_events``,
+    ``_after_step``, ``_agent_rows``).
+    """
+
+    #: event names in the order the first one found becomes the reason
+    events: tuple[str, ...] = ()
+    #: events that are a reason even outside ``terminate_on``
+    always_reasons: tuple[str, ...] = ()
+    fleet: Fleet
+
+    # ------------------------------------------------------------------ the step
+    def step(self, actions: dict[str, Any]):
+        if self._session is None:
+            raise RuntimeError("call reset() before step()")
+        act = self.fleet.live()
+        clean = self._clean_actions(actions, act)
+        p0 = self.fleet.position(act)
+        ctx = self._before_move(act)
+        self._dynamics(act, clean)
+        self._push()
+        departed, arrived = self._sumo_step()
+        joiners = self._join(departed)
+        agents = np.sort(np.concatenate([act, joiners]), kind="stable")
+        lanes = self._lane_query(agents)
+        obs, (boxes, ids) = self._observe(agents, lanes)
+        stepped = np.searchsorted(agents, act)
+        flags, other = self._events(act, stepped, p0, boxes, lanes, ctx)
+        out = self._outcomes(act, joiners, flags, other, ids, arrived)
+        self._after_step(obs, out)
+        self.agents = self.fleet.names_of(self.fleet.live())
+        self._record_fcd()
+        return (obs, *out.astuple())
+
+    # ------------------------------------------------------------------ stages
+    def _clean_actions(self, actions: dict[str, Any], act: np.ndarray) -> np.ndarray:
+        """Stage 1: (A, 2) clean actions of rows ``act``; counts the fixed ones."""
+        f = self.fleet
+        clean, nonfinite, outside, missing, extra = checked_actions(actions, f.names_of(act))
+        f.count_fixes(act, nonfinite, outside)
+        count_actions(self.action_counts, actions, f.index, nonfinite, outside, missing, extra)
+        return clean
+
+    def _dynamics(self, act: np.ndarray, clean: np.ndarray) -> None:
+        """Stage 2: the bicycle model moves rows ``act``."""
+        cfg = self.config
+        self.fleet.drive(act, clean, cfg.limits, cfg.action_layout, self.dt)
+
+    def _lane_query(self, agents: np.ndarray):
+        """Lane query of rows ``agents`` (sensors and off-road share it; timed as sensors)."""
+        f = self.fleet
+        clock = time.perf_counter()
+        lanes = self.suite.lane_query(f.x[agents], f.y[agents], f.yaw[agents])
+        self.sensor_time += time.perf_counter() - clock
+        return lanes
+
+    def _events(self, act: np.ndarray, stepped: np.ndarray, p0: np.ndarray, boxes, lanes,
+                ctx) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Stage 7: event name -> (A,) bool of the stepped rows ``act`` (at world rows
+        ``stepped``), and (A,) world row of the first box each overlaps (-1: none)."""
+        cfg, f = self.config, self.fleet
+        other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, stepped)
+        flags = {
+            "collision": other >= 0,
+            "off_road": off_road(lanes.distance[stepped], cfg.lane_width, cfg.off_road_margin),
+            "red_light": self._red_light(act, p0, ctx),
+            "destination": reached(f.x[act], f.y[act], f.dest[act], cfg.destination_radius),
+        }
+        flags.update(self._more_events(act))
+        return flags, other
+
+    def _outcomes(self, act: np.ndarray, joiners: np.ndarray, flags: dict[str, np.ndarray],
+                  other: np.ndarray, ids, arrived: Sequence[str]) -> StepDicts:
+        """Stage 8: the step's dicts; agents that left become inactive and leave SUMO."""
+        cfg, f = self.config, self.fleet
+        end = self.t >= self._end
+        time_up, why = self._time_up(act, flags, end, arrived)
+        out = StepDicts()
+        leaving = out.stepped(
+            f.names_of(act), flags, self.events, cfg.terminate_on, time_up, why,
+            lambda i, ev, reason: self._info(
+                act[i], ev, reason, self._road_user(ids, other[i]) if other[i] >= 0 else NO_ONE),
+            always_reasons=self.always_reasons)
+        out.joined(f.names_of(joiners), end, END_OF_EPISODE,
+                   lambda j, reason: self._info(joiners[j], {}, reason))
+        gone = act[leaving]
+        if end:
+            gone = np.concatenate([gone, joiners])
+        self._leave(gone)
+        return out
+
+    def _leave(self, gone: np.ndarray) -> None:
+        """Rows ``gone`` stop being agents; their vehicles leave SUMO."""
+        f = self.fleet
+        f.active[gone] = False
+        for k in gone:
+            if f.in_sumo[k]:
+                self._session.remove(f.names[k])
+                f.in_sumo[k] = False
+
+    def _info(self, k: int, events: dict[str, bool], reason: str | None,
+              other: str = NO_ONE) -> dict:
+        """``infos`` of row ``k`` (module doc)."""
+        f = self.fleet
+        return {"step": self.t, "events": events, "reason": reason, "collided_with": other,
+                "nan_actions": int(f.nan_actions[k]), "clipped_actions": int(f.clipped_actions[k]),
+                "state": f.pose(k)}
+
+    # ------------------------------------------------------------------ hooks each env implements
+    def _push(self) -> None:
+        """Stage 3: place the env's SUMO vehicles (live agents first) for the next step."""
+        raise NotImplementedError
+
+    def _sumo_step(self) -> tuple[list[str], list[str]]:
+        """Stage 4: step SUMO (and ``t``); (departed ids, arrived ids) of that step."""
+        raise NotImplementedError
+
+    def _join(self, departed: list[str]) -> np.ndarray:
+        """Stage 5: rows that become agents now (sorted, joined and active)."""
+        raise NotImplementedError
+
+    def _observe(self, agents: np.ndarray, lanes=None) -> tuple[dict, tuple[Any, Any]]:
+        """Stage 6: observations of rows ``agents`` (sorted) by name, and the world:
+        (boxes of the agents, in order, then every other road user; the boxes' ids)."""
+        raise NotImplementedError
+
+    def _red_light(self, act: np.ndarray, p0: np.ndarray, ctx: Any) -> np.ndarray:
+        """(A,) bool: the stepped rows ``act`` (at ``p0`` before the step) ran a red light."""
+        raise NotImplementedError
+
+    def _time_up(self, act: np.ndarray, flags: dict[str, np.ndarray], end: bool,
+                 arrived: list[str]) -> tuple[np.ndarray, list[str]]:
+        """(A,) bool: stepped rows out of time (truncated unless terminated), and (A,) the
+        truncation reason no event explains (``end``: the episode's last step)."""
+        raise NotImplementedError
+
+    def _road_user(self, ids: Any, j: int) -> str:
+        """The name of world box ``j`` (``collided_with``)."""
+        raise NotImplementedError
+
+    def _record_fcd(self) -> None:
+        """Add the step's poses to the env's FCD recording, if any."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ optional hooks
+    def _before_move(self, act: np.ndarray) -> Any:
+        """What the events need from before the step besides the positions (none here)."""
+        return None
+
+    def _more_events(self, act: np.ndarray) -> dict[str, np.ndarray]:
+        """Env-specific events of the stepped rows ``act`` (none here)."""
+        return {}
+
+    def _after_step(self, obs: dict, out: StepDicts) -> None:
+        """Runs after the outcomes, before the live agents are listed (nothing here)."""
+
+    def _agent_rows(self, k: np.ndarray) -> np.ndarray:
+        """What :meth:`agent_states` reports as the rows of fleet rows ``k`` (here: ``k``)."""
+        return k
+
+    # ------------------------------------------------------------------ accessors
+    def agent_states(self) -> AgentStates:
+        """Bicycle state of the live agents, in :attr:`agents` order (for
+        :func:`~magail_sumo.env.expert.expert_actions` and policies that need poses)."""
+        k = self.fleet.rows_of(self.agents)
+        return self.fleet.agent_states(k, self._agent_rows(k))
