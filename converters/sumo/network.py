@@ -17,6 +17,7 @@ from magail_sumo.outputs import inside, safe_name
 from magail_sumo.scene import Scene
 
 from .geometry import fmt_shape
+from .pedestrians import NETCONVERT_WALKING, SIDEWALK, PedestrianPlan, crossing_xml
 from .tools import run_tool
 from .topology import NetworkPlan
 
@@ -76,8 +77,12 @@ def node_types(scene: Scene, plan: NetworkPlan) -> dict[str, str]:
     return types
 
 
-def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[Path]:
-    """Write ``prefix``.nod.xml/.edg.xml/.con.xml; returns their paths."""
+def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path,
+                crossings: str = "") -> list[Path]:
+    """Write ``prefix``.nod.xml/.edg.xml/.con.xml; returns their paths.
+
+    Sidewalk lanes (:data:`.pedestrians.SIDEWALK`) allow pedestrians only; ``crossings`` (lines
+    of ``<crossing>`` elements, :func:`.pedestrians.crossing_xml`) go into the connection file."""
     nod, edg, con = (Path(f"{prefix}.{k}.xml") for k in ("nod", "edg", "con"))
     with open(nod, "w") as fh:
         fh.write('<nodes>\n')
@@ -93,6 +98,10 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[
                      f'numLanes="{len(e.lanes)}" speed="{e.speed:.2f}" {allow} '
                      f'spreadType="center" shape="{fmt_shape(centre)}">\n')
             for k, (shape, w) in enumerate(zip(e.shapes, e.widths)):
+                if e.lanes[k] == SIDEWALK:
+                    fh.write(f'    <lane index="{k}" width="{w:.2f}" allow="pedestrian" '
+                             f'shape="{fmt_shape(shape)}"/>\n')
+                    continue
                 param = ("womd_lane", e.lanes[k]) if e.synthesized_for is None else \
                     ("synthesized_for_track", e.synthesized_for)
                 fh.write(f'    <lane index="{k}" width="{w:.2f}" shape="{fmt_shape(shape)}">'
@@ -105,26 +114,36 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path) -> list[
             shape = f' shape="{fmt_shape(c.shape)}"' if c.shape is not None else ""
             fh.write(f'  <connection from="{c.from_edge}" to="{c.to_edge}" '
                      f'fromLane="{c.from_lane}" toLane="{c.to_lane}"{shape}/>\n')
+        fh.write(crossings)
         fh.write('</connections>\n')
     return [nod, edg, con]
 
 
 def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | None = None,
-                  timeout_s: float | None = None) -> BuiltNetwork:
+                  timeout_s: float | None = None,
+                  pedestrians: PedestrianPlan | None = None) -> BuiltNetwork:
     """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<name>.net.xml``
     (killed after ``timeout_s`` seconds).
 
+    :param pedestrians: sidewalks already in ``plan`` and the crossings to build
+        (:func:`.pedestrians.plan_pedestrians`); walking areas are built then. None: no
+        pedestrian network (the default conversion).
     :param name: file name stem; default :func:`magail_sumo.outputs.safe_name` of the scene id
         (the id itself for every real WOMD id), so a scenario id never becomes a path.
     """
     prefix = inside(out_dir, name or safe_name(scene.scenario_id))
     types = node_types(scene, plan)
-    plain = write_plain(plan, types, prefix)
+    plain = write_plain(plan, types, prefix,
+                        crossing_xml(pedestrians) if pedestrians is not None else "")
     net = Path(f"{prefix}.net.xml")
+    options = list(NETCONVERT_OPTIONS)
+    if pedestrians is not None:
+        k = options.index("--walkingareas")
+        options[k:k + 2] = NETCONVERT_WALKING
     # run in out_dir with bare file names: the net's header comment names no (temporary) folder
     warnings = run_tool("netconvert", [
         "--node-files", plain[0].name, "--edge-files", plain[1].name,
-        "--connection-files", plain[2].name, "--output-file", net.name, *NETCONVERT_OPTIONS],
+        "--connection-files", plain[2].name, "--output-file", net.name, *options],
         cwd=Path(out_dir), timeout_s=timeout_s)
     return BuiltNetwork(net, plain, types, warnings)
 

@@ -54,10 +54,14 @@ class LaneSegments:
 
 
 def lane_segments(net) -> LaneSegments:
-    """Segments of every lane (internal lanes included) of a sumolib net."""
+    """Segments of every lane (internal lanes included) of a sumolib net but the pedestrians'
+    (sidewalks, crossings, walking areas: :func:`.pedestrians.is_walking_lane`)."""
+    from .pedestrians import is_walking_lane
+
     return LaneSegments.from_shapes(
         (np.asarray(lane.getShape(), dtype=np.float64), lane.getWidth(), e.getID())
-        for e in net.getEdges(withInternal=True) for lane in e.getLanes())
+        for e in net.getEdges(withInternal=True) for lane in e.getLanes()
+        if not is_walking_lane(lane))
 
 
 def on_lanes(seg: LaneSegments, xy: np.ndarray, heading: np.ndarray,

@@ -34,6 +34,7 @@ from magail_sumo.scene.types import STEP_LENGTH
 
 from .matching import build_index
 from .network import build_network
+from .pedestrians import check_built, plan_pedestrians
 from .quality import lane_segments, on_network_rate, route_rate, run_baseline
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
@@ -59,6 +60,11 @@ class ConvertOptions:
     time_budget_s: float | None = 600.0
     #: also write ``<id>.xodr`` (OpenDRIVE, :mod:`converters.sumo.opendrive`)
     opendrive: bool = False
+    #: sidewalks on road edges and crossings from the crosswalks (:mod:`.pedestrians`), so
+    #: recorded pedestrians walk in SUMO as persons and SUMO's drivers yield to them
+    #: (:class:`magail_sumo.sim.session.Obstacles`); ``conversion.json``'s ``pedestrians``
+    #: says how many crosswalks became crossings and why the others were dropped
+    pedestrians: bool = False
 
 
 def converter_version() -> str:
@@ -79,11 +85,13 @@ _VERSION: str | None = None
 
 
 def options_key(options: ConvertOptions) -> str:
-    """Digest of the options that affect a bundle's files (all but ``time_budget_s``)."""
+    """Digest of the options that affect a bundle's files (all but ``time_budget_s``;
+    ``pedestrians`` only when set, so the default key is the one written before it existed)."""
     import dataclasses
     import hashlib
 
-    d = {k: v for k, v in dataclasses.asdict(options).items() if k != "time_budget_s"}
+    d = {k: v for k, v in dataclasses.asdict(options).items() if k != "time_budget_s"
+         and not (k == "pedestrians" and not v)}
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=repr).encode()).hexdigest()[:16]
 
 
@@ -110,12 +118,16 @@ class ConversionReport:
     #: (a folder of bundles is a training scene pool through it, see
     #: :mod:`magail_sumo.env.scene_pool`)
     source: dict[str, Any] = field(default_factory=dict)
+    #: with ``ConvertOptions.pedestrians``: sidewalks, crosswalks, crossings built, the planned
+    #: crossings and the crosswalks dropped with their reason
+    #: (:meth:`.pedestrians.PedestrianPlan.to_dict`); absent otherwise
+    pedestrians: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in ("scenario_id", "status", "reason", "files",
-                                              "unconverted", "synthesized", "timings", "quality",
-                                              "data_quality",
-                                              "converter_version", "options_key", "source")}
+        keys = ("scenario_id", "status", "reason", "files", "unconverted", "synthesized",
+                "timings", "quality", "data_quality", "converter_version", "options_key",
+                "source") + (("pedestrians",) if self.pedestrians is not None else ())
+        return {k: getattr(self, k) for k in keys}
 
 
 def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
@@ -279,8 +291,16 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         synthesized = synthesize_lanes(scene, plan, index_car, index_bike)
         rep.synthesized = [s.to_dict() for s in synthesized]
         lap("synthesize")
+        peds = None
+        if opts.pedestrians:
+            stage = "pedestrians"
+            peds = plan_pedestrians(scene, plan)
+            lap("pedestrians")
         stage = "netconvert"
-        built = build_network(scene, plan, out, name, timeout_s=remaining())
+        built = build_network(scene, plan, out, name, timeout_s=remaining(), pedestrians=peds)
+        if peds is not None:
+            check_built(peds, built.net_file, built.warnings)
+            rep.pedestrians = peds.to_dict()
         lap("netconvert")
         stage = "load network"
         net = sumolib.net.readNet(str(built.net_file), withInternal=True)

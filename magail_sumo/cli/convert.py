@@ -33,6 +33,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--opendrive", action="store_true",
                    help="also write DIR/<scenario_id>/<scenario_id>.xodr (OpenDRIVE, through "
                         "netconvert)")
+    p.add_argument("--pedestrians", action="store_true",
+                   help="sidewalks on road edges and crossings at the crosswalks, so recorded "
+                        "pedestrians walk in SUMO as persons and SUMO's drivers yield to them "
+                        "(conversion.json 'pedestrians': crossings built, crosswalks dropped)")
     p.add_argument("--force", action="store_true",
                    help="reconvert scenes whose bundle in DIR was already converted by this "
                         "converter version with the same options (default: skip them)")
@@ -74,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     # OUT/<safe name of the scenario id>/, never outside OUT
     claim_networks_dir(args.out, ["summary.csv"])
     opts = ConvertOptions(cycle_signals=args.cycle_signals, baseline=not args.no_baseline,
-                          time_budget_s=args.timeout_s, opendrive=args.opendrive)
+                          time_budget_s=args.timeout_s, opendrive=args.opendrive,
+                          pedestrians=args.pedestrians)
     rows = []
     workers = max(args.workers, 1)
     clock = time.perf_counter()

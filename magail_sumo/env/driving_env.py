@@ -240,7 +240,8 @@ class SumoDrivingEnv(FleetEnv):
         self._session.start()
         self._obstacles = Obstacles(
             self._session, [str(int(i)) for i in self.scene.tracks.id[self._obstacle_rows]],
-            self._length[self._obstacle_rows], self._width[self._obstacle_rows]) \
+            self._length[self._obstacle_rows], self._width[self._obstacle_rows],
+            kinds=self.scene.tracks.type[self._obstacle_rows]) \
             if self._obstacle_rows.size else None
         ctrl = self._ctrl
         #: the controlled vehicles' state (row k: ``self._ctrl[k]``, :class:`Fleet`)

@@ -451,7 +451,7 @@ def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray
                 obs = np.array([a for vid, a in col.items() if vid not in driven], np.int64)
                 _drop(ls, [ids[a] for a in obs], routed - present - later)
                 obstacles = Obstacles(sess, [str(int(ids[a])) for a in obs], length[obs],
-                                      width[obs])
+                                      width[obs], kinds=scene.tracks.type[rows[obs]])
             elif k == cur + 1 and obstacles is not None:  # insertions SUMO refused at the current step
                 now = set(ls.vehicle.getIDList())
                 late = np.array([col[vid] for vid in sorted(due - now - bundle.parked)], np.int64)

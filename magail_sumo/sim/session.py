@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.scene.types import STEP_LENGTH
+from magail_sumo.scene.types import STEP_LENGTH, ObjectType
 from magail_sumo.sim.frames import centre_to_front, front_to_centre, sumo_angle_to_yaw, yaw_to_sumo_angle
 
 
@@ -94,6 +94,7 @@ class SumoSession:
         self.config = config or SessionConfig()
         self.time = 0.0
         self._running = False
+        self._walkable: bool | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def command(self) -> list[str]:
@@ -163,6 +164,15 @@ class SumoSession:
         if not self._running:
             raise SimulationError("the SUMO session is not running (call start() first)")
         return _libsumo()
+
+    def walkable(self) -> bool:
+        """Whether the network has walking lanes (lanes only pedestrians may use: sidewalks,
+        crossings, walking areas), i.e. a bundle converted with pedestrians; cached."""
+        if self._walkable is None:
+            ls = self.api
+            self._walkable = any(ls.lane.getAllowed(lane) == ("pedestrian",)
+                                 for lane in ls.lane.getIDList())
+        return self._walkable
 
     def __enter__(self) -> "SumoSession":
         return self.start()
@@ -257,6 +267,9 @@ class SumoSession:
 
 OBSTACLE_PREFIX = "obstacle:"  #: SUMO id prefix of :class:`Obstacles` vehicles
 OBSTACLE_MATCH = 1.5  #: m, an obstacle blocks a lane when its front is this close to its centre
+PERSON_PREFIX = "walker:"  #: SUMO id prefix of the persons of pedestrian obstacles
+PERSON_MATCH = 3.0  #: m, farthest a pedestrian walks in SUMO from a walking lane
+PEDESTRIAN = int(ObjectType.PEDESTRIAN)
 _NO_ANGLE = -1073741824.0  # libsumo's INVALID_DOUBLE_VALUE: map by distance only
 
 
@@ -272,10 +285,20 @@ class Obstacles:
     lane (on a sidewalk, in a parking bay) is taken out of SUMO until it comes back onto one,
     so it never blocks a lane it does not touch. SUMO's speed of a placed obstacle is its moved
     distance per step. Obstacles are not subscribed: :meth:`SumoSession.vehicles` leaves them out.
+
+    On a network with walking lanes (a bundle converted with ``ConvertOptions.pedestrians``:
+    sidewalks, crossings, walking areas; :meth:`SumoSession.walkable`), each obstacle of kind
+    ``ObjectType.PEDESTRIAN`` (``kinds``) is also a SUMO person ``walker:<id>`` placed at the
+    same pose each step (``person.moveToXY``, keepRoute=0, on the walking lane within
+    :data:`PERSON_MATCH` m; none that close: taken out until it comes back). SUMO's junction
+    model then makes drivers yield to it on and before a crossing; the vehicle obstacle still
+    stops drivers on its lane (a pedestrian crossing off a crosswalk). Elsewhere (and without
+    ``kinds``) obstacles behave as above.
     """
 
     def __init__(self, session: "SumoSession", ids: Sequence[str], length: np.ndarray,
-                 width: np.ndarray, match_threshold: float = OBSTACLE_MATCH) -> None:
+                 width: np.ndarray, match_threshold: float = OBSTACLE_MATCH,
+                 kinds: np.ndarray | None = None) -> None:
         self.session = session
         self.threshold = match_threshold
         self.ids: list[str] = []
@@ -286,10 +309,17 @@ class Obstacles:
         self._retired: set[int] = set()
         self._miss = np.zeros((0, 2))  # front position last found off every lane (NaN: none)
         self._route = f"{OBSTACLE_PREFIX}route"
-        self.add(ids, length, width)
+        self._walker = np.zeros(0, bool)  # also a SUMO person (module doc)
+        self._person: dict[int, str] = {}  # obstacle -> SUMO id of its person now in SUMO
+        self._person_gen: dict[int, int] = {}
+        self._person_miss = np.zeros((0, 2))  # position last found off every walking lane
+        self.add(ids, length, width, kinds)
 
-    def add(self, ids: Sequence[str], length: np.ndarray, width: np.ndarray) -> None:
-        """More obstacles (recorded box length and width in m)."""
+    def add(self, ids: Sequence[str], length: np.ndarray, width: np.ndarray,
+            kinds: np.ndarray | None = None) -> None:
+        """More obstacles (recorded box length and width in m; ``kinds``: their
+        :class:`~magail_sumo.scene.ObjectType` values, pedestrians walk as persons on a walkable
+        network)."""
         ls = _libsumo()
         if len(ids) and self._route not in ls.route.getIDList():
             ls.route.add(self._route, [next(e for e in ls.edge.getIDList()
@@ -305,6 +335,13 @@ class Obstacles:
         self._gen += [0] * len(ids)
         self._placed += [False] * len(ids)
         self._miss = np.r_[self._miss, np.full((len(ids), 2), np.nan)]
+        walker = np.zeros(len(ids), bool)
+        if kinds is not None and len(ids):
+            walker = np.asarray(kinds) == PEDESTRIAN
+            if walker.any() and not self.session.walkable():
+                walker[:] = False
+        self._walker = np.r_[self._walker, walker]
+        self._person_miss = np.r_[self._person_miss, np.full((len(ids), 2), np.nan)]
         for k in range(start, len(self.ids)):
             vt = f"{OBSTACLE_PREFIX}{self.ids[k]}"
             ls.vehicletype.copy("DEFAULT_VEHTYPE", vt)
@@ -332,6 +369,46 @@ class Obstacles:
                     ls.vehicle.remove(self.sumo_id(k))
                 except Exception:  # never placed: dropped from the insertion queue all the same
                     pass
+                self._remove_person(k)
+
+    def persons(self) -> dict[str, str]:
+        """Obstacle id -> SUMO person id of the pedestrians walking in SUMO now."""
+        return {self.ids[k]: pid for k, pid in self._person.items()}
+
+    def _remove_person(self, k: int) -> None:
+        pid = self._person.pop(k, None)
+        if pid is not None:
+            try:
+                _libsumo().person.remove(pid)
+            except Exception:  # already gone
+                pass
+
+    def _place_persons(self, fx: np.ndarray, fy: np.ndarray, angle: np.ndarray) -> None:
+        """Persons of the pedestrian obstacles at their poses (front ``fx, fy``; see the class
+        doc); a NaN position or no walking lane within :data:`PERSON_MATCH` m takes it out."""
+        ls = _libsumo()
+        for k in np.flatnonzero(self._walker).tolist():  # one libsumo call per person
+            x, y = float(fx[k]), float(fy[k])
+            if k in self._retired or not (np.isfinite(x) and np.isfinite(y)):
+                self._remove_person(k)
+                continue
+            if k not in self._person and abs(x - self._person_miss[k, 0]) < 0.01 \
+                    and abs(y - self._person_miss[k, 1]) < 0.01:
+                continue  # standing where no walking lane was found
+            pid = self._person.get(k)
+            try:
+                if pid is None:
+                    edge, pos, _ = ls.simulation.convertRoad(x, y, False, "pedestrian")
+                    gen = self._person_gen.get(k, 0)
+                    self._person_gen[k] = gen + 1
+                    pid = f"{PERSON_PREFIX}{self.ids[k]}" + (f"#{gen}" if gen else "")
+                    ls.person.add(pid, edge, max(float(pos), 0.0), depart=-3)  # -3: now
+                    ls.person.appendWaitingStage(pid, 1e9)
+                    self._person[k] = pid
+                ls.person.moveToXY(pid, "", x, y, float(angle[k]), 0, PERSON_MATCH)
+            except Exception:  # no walking lane that close: not in SUMO's way
+                self._person_miss[k] = x, y
+                self._remove_person(k)
 
     def place(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> int:
         """Place every obstacle at box-centre poses (scene frame) for the next step; NaN
@@ -339,6 +416,9 @@ class Obstacles:
         ls = _libsumo()
         fx, fy = centre_to_front(np.asarray(x, np.float64), np.asarray(y, np.float64),
                                  np.asarray(yaw, np.float64), self.length)
+        if self._walker.any():  # a pedestrian's centre and navigation angle
+            self._place_persons(np.asarray(x, np.float64), np.asarray(y, np.float64),
+                                yaw_to_sumo_angle(np.asarray(yaw, np.float64)))
         on = 0
         for k in range(len(self.ids)):  # libsumo moves one vehicle per call (~20 µs each)
             if k in self._retired:
