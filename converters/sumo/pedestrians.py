@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -222,12 +223,19 @@ def check_built(ped: PedestrianPlan, net_file: Path, warnings: list[str]) -> Non
         if (c.node, c.edges) in built:
             keep.append(c)
             continue
-        why = next((w for w in warnings if "rossing" in w and f"'{c.node}'" in w), "")
+        why = next((w for w in warnings if f"{c.node}_c" in w and _warned_edges(w) == set(c.edges)),
+                   "")
         ped.dropped.append({"crosswalk": c.crosswalk, "reason": "netconvert did not build the "
                             f"crossing at node {c.node} over {' '.join(c.edges)}"
                             + (f": {why}" if why else "")})
     ped.crossings = keep
     ped.built = len(keep)
+
+
+def _warned_edges(warning: str) -> set[str]:
+    """The edges a netconvert crossing warning names (``[e1 e2]``), else none."""
+    m = re.search(r"\[([^\]]*)\]", warning)
+    return set(m.group(1).split()) if m else set()
 
 
 def is_walking_lane(lane) -> bool:
