@@ -12,6 +12,12 @@ without road edges, as in the nuScenes pickles) are reported as errors and left 
 collision rate ≤ log replay's + 0.05 and meta-metric ≥ 0.60 on scenes not used to tune it.
 
     python benchmarks/sumo_baseline.py data/womd/*.tfrecord [--rollouts 8] [--out DIR] [--json]
+    python benchmarks/sumo_baseline.py SCENES --pedestrians [--networks DIR]   # SUMO persons
+
+With ``--pedestrians`` the scenes are first converted with ``ConvertOptions.pedestrians``
+(sidewalks, crossings; recorded pedestrians walk as SUMO persons that SUMO's drivers yield to)
+into ``--networks DIR`` (default: a temporary folder); bundles already converted there with
+those options are reused.
     python benchmarks/sumo_baseline.py --rescore DIR     # score an earlier run's rollouts again
 """
 
@@ -46,17 +52,21 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rescore", type=Path, metavar="DIR",
                     help="no rollouts: report an earlier run's evaluation folder again")
+    ap.add_argument("--pedestrians", action="store_true",
+                    help="convert with sidewalks and crossings first (into --networks)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if bool(args.scenes) == bool(args.rescore):
         ap.error("give scene files or --rescore DIR")
+    errors: list[str] = []
+    if args.pedestrians and not args.rescore:
+        args.networks = pedestrian_networks(args.scenes, args.networks, errors)
 
     from magail_sumo.evaluation.realism.trajectories import evaluated_ids
     from magail_sumo.evaluation.report import build_report
     from magail_sumo.evaluation.rollouts import evaluate
     from magail_sumo.evaluation.submission import sim_agent_ids
 
-    errors: list[str] = []
     out = args.rescore or args.out or Path(tempfile.mkdtemp(prefix="sumo_baseline_"))
     if not args.rescore:
         errors += evaluate(args.scenes, "sumo", out, n_rollouts=args.rollouts,
@@ -105,6 +115,24 @@ def main() -> int:
           f"{verdict['collision_le_logreplay_plus_0.05']}; meta-metric ≥ {META_GOAL}: "
           f"{verdict['metametric_ge_0.60']}")
     return 0
+
+
+def pedestrian_networks(scenes: list[str], folder: Path | None, errors: list[str]) -> Path:
+    """``folder`` (default: a new temporary one) holding the scenes' bundles converted with
+    pedestrians (those already there with the same converter and options are kept)."""
+    from converters.scene_files import iter_scenes
+    from converters.sumo.batch import converted_before
+    from converters.sumo.scenario import ConvertOptions, claim_networks_dir, convert_scene
+
+    folder = folder or Path(tempfile.mkdtemp(prefix="sumo_baseline_networks_"))
+    claim_networks_dir(folder)
+    opts = ConvertOptions(pedestrians=True, baseline=False)
+    for scene in iter_scenes(scenes):
+        if converted_before(folder, scene.scenario_id, opts) is None:
+            rep = convert_scene(scene, folder, opts)
+            if rep.status != "ok":
+                errors.append(rep.reason)
+    return folder
 
 
 if __name__ == "__main__":
