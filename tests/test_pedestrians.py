@@ -259,3 +259,48 @@ def test_a_sumo_driver_yields_to_a_person_on_a_real_crossing(peds_850c):
                 if tried >= 2:
                     return
     assert tried, "no approach of a crossing that a vehicle passes unhindered"
+
+
+_APPEAR = """
+import sys, numpy as np
+from converters import load_scene
+from magail_sumo.scene import ObjectType
+from magail_sumo.sim.session import Obstacles, SumoSession
+scene = load_scene(sys.argv[1])
+tr = scene.tracks
+rows = np.flatnonzero(tr.type == ObjectType.PEDESTRIAN)
+k = int(np.flatnonzero(tr.id[rows] == 788)[0])
+t0 = int(np.flatnonzero(tr.valid[rows[k]])[0])
+with SumoSession(sys.argv[2]) as sim:
+    obs = Obstacles(sim, [str(int(i)) for i in tr.id[rows]], tr.length[rows, 0],
+                    tr.width[rows, 0], kinds=tr.type[rows])
+    for t in range(1, t0 + 5):
+        ok = tr.valid[rows, t]
+        obs.place(np.where(ok, tr.x[rows, t], np.nan), np.where(ok, tr.y[rows, t], np.nan),
+                  tr.heading[rows, t].astype(float))
+        sim.step()
+    pid = obs.persons()["788"]
+    print(sim.api.person.getLaneID(pid), *sim.api.person.getPosition(pid),
+          tr.x[rows[k], t0 + 4], tr.y[rows[k], t0 + 4])
+"""
+
+
+@pytest.mark.sumo
+def test_a_pedestrian_appearing_on_a_walking_area(tmp_path):
+    """A recorded pedestrian that appears on a walking area (2a1e44d405a6833f, track 788, among
+    the scene's other pedestrians) is added on a sidewalk and moved there: SUMO crashed
+    (segmentation fault) on a person departing inside the junction. Run in a subprocess so that
+    a crash fails only this test."""
+    import subprocess
+    import sys
+
+    scene = load_scene(ROOT / "data" / "scenarionet" / "2a1e44d405a6833f.pkl")
+    folder, _ = _convert(scene, tmp_path, pedestrians=True, baseline=False)
+    out = subprocess.run([sys.executable, "-c", _APPEAR,
+                          str(ROOT / "data" / "scenarionet" / "2a1e44d405a6833f.pkl"),
+                          str(folder / f"{scene.scenario_id}.sumocfg")],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-500:]
+    lane, px, py, x, y = out.stdout.split()
+    assert lane.startswith(":") and "_w" in lane  # on the walking area
+    assert np.hypot(float(px) - float(x), float(py) - float(y)) < 1e-3

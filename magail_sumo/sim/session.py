@@ -95,6 +95,10 @@ class SumoSession:
         self.time = 0.0
         self._running = False
         self._walkable: bool | None = None
+        #: a sidewalk edge (set by :meth:`walkable`): where a person is added when the walking
+        #: lane nearest to it is a crossing or walking area (SUMO crashes on a person departing
+        #: there); ``person.moveToXY`` then moves it
+        self.walk_edge = ""
 
     # ------------------------------------------------------------------ lifecycle
     def command(self) -> list[str]:
@@ -170,8 +174,11 @@ class SumoSession:
         crossings, walking areas), i.e. a bundle converted with pedestrians; cached."""
         if self._walkable is None:
             ls = self.api
-            self._walkable = any(ls.lane.getAllowed(lane) == ("pedestrian",)
-                                 for lane in ls.lane.getIDList())
+            walks = [lane for lane in ls.lane.getIDList()
+                     if ls.lane.getAllowed(lane) == ("pedestrian",)]
+            self._walkable = bool(walks)
+            self.walk_edge = next((w.rsplit("_", 1)[0] for w in walks if not w.startswith(":")),
+                                  "")
         return self._walkable
 
     def __enter__(self) -> "SumoSession":
@@ -399,6 +406,8 @@ class Obstacles:
             try:
                 if pid is None:
                     edge, pos, _ = ls.simulation.convertRoad(x, y, False, "pedestrian")
+                    if edge.startswith(":"):  # no departure inside a junction
+                        edge, pos = self.session.walk_edge, 0.0
                     gen = self._person_gen.get(k, 0)
                     self._person_gen[k] = gen + 1
                     pid = f"{PERSON_PREFIX}{self.ids[k]}" + (f"#{gen}" if gen else "")
