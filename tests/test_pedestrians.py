@@ -304,3 +304,33 @@ def test_a_pedestrian_appearing_on_a_walking_area(tmp_path):
     lane, px, py, x, y = out.stdout.split()
     assert lane.startswith(":") and "_w" in lane  # on the walking area
     assert np.hypot(float(px) - float(x), float(py) - float(y)) < 1e-3
+
+
+@pytest.mark.sumo
+def test_env_and_sumo_baseline_walk_pedestrians_on_a_pedestrian_bundle(peds_637f):
+    """The training env (SUMO background) and the ``sumo`` baseline pick the persons up from the
+    bundle alone: persons at the recorded poses in the env; a rollout runs with them."""
+    import libsumo as ls
+
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv, expert_actions
+    from magail_sumo.evaluation import rollouts as rl
+
+    scene, folder, _ = peds_637f
+    tr = scene.tracks
+    env = SumoDrivingEnv(scene, folder, EnvConfig(controlled="sdc", background="sumo",
+                                                  start_step=10, max_steps=5))
+    try:
+        env.reset(seed=0)
+        env.step(expert_actions(env))
+        persons = ls.person.getIDList()
+        assert persons and all(p.startswith(PERSON_PREFIX) for p in persons)
+        for p in persons:
+            k = int(np.flatnonzero(tr.id == int(p[len(PERSON_PREFIX):].split("#")[0]))[0])
+            assert tr.type[k] == ObjectType.PEDESTRIAN
+            t = 11  # the log step SUMO shows after the reset at step 10 and one step
+            assert np.hypot(*(np.array(ls.person.getPosition(p)) - [tr.x[k, t], tr.y[k, t]])) \
+                < 1e-3
+    finally:
+        env.close()
+    ro = rl.simulate(scene, "sumo", [0], bundle_dir=folder)
+    assert np.isfinite(ro.x).all()

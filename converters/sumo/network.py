@@ -17,7 +17,8 @@ from magail_sumo.outputs import inside, safe_name
 from magail_sumo.scene import Scene
 
 from .geometry import fmt_shape
-from .pedestrians import NETCONVERT_WALKING, SIDEWALK, PedestrianPlan, crossing_xml
+from .pedestrians import (NETCONVERT_WALKING, OBSTACLE_CLASS, SIDEWALK, PedestrianPlan,
+                          crossing_xml)
 from .tools import run_tool
 from .topology import NetworkPlan
 
@@ -78,11 +79,14 @@ def node_types(scene: Scene, plan: NetworkPlan) -> dict[str, str]:
 
 
 def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path,
-                crossings: str = "") -> list[Path]:
+                crossings: str = "", walking: bool = False) -> list[Path]:
     """Write ``prefix``.nod.xml/.edg.xml/.con.xml; returns their paths.
 
     Sidewalk lanes (:data:`.pedestrians.SIDEWALK`) allow pedestrians only; ``crossings`` (lines
-    of ``<crossing>`` elements, :func:`.pedestrians.crossing_xml`) go into the connection file."""
+    of ``<crossing>`` elements, :func:`.pedestrians.crossing_xml`) go into the connection file.
+    With ``walking`` (a pedestrian network) bike lanes also allow :data:`.pedestrians.OBSTACLE_CLASS`,
+    the class of the obstacles SUMO's drivers see, which walking lanes do not allow."""
+    bike = f"bicycle {OBSTACLE_CLASS}" if walking else "bicycle"
     nod, edg, con = (Path(f"{prefix}.{k}.xml") for k in ("nod", "edg", "con"))
     with open(nod, "w") as fh:
         fh.write('<nodes>\n')
@@ -92,7 +96,7 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path,
     with open(edg, "w") as fh:
         fh.write('<edges>\n')
         for e in plan.edges:
-            allow = 'allow="bicycle"' if e.bike_only else 'disallow="pedestrian"'
+            allow = f'allow="{bike}"' if e.bike_only else 'disallow="pedestrian"'
             centre = e.shapes[len(e.shapes) // 2]
             fh.write(f'  <edge id="{e.id}" from="{e.from_node}" to="{e.to_node}" '
                      f'numLanes="{len(e.lanes)}" speed="{e.speed:.2f}" {allow} '
@@ -134,7 +138,8 @@ def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | No
     prefix = inside(out_dir, name or safe_name(scene.scenario_id))
     types = node_types(scene, plan)
     plain = write_plain(plan, types, prefix,
-                        crossing_xml(pedestrians) if pedestrians is not None else "")
+                        crossing_xml(pedestrians) if pedestrians is not None else "",
+                        walking=pedestrians is not None)
     net = Path(f"{prefix}.net.xml")
     options = list(NETCONVERT_OPTIONS)
     if pedestrians is not None:

@@ -36,6 +36,11 @@ CROSSING_WIDTH = (2.0, 6.0)  #: m, range of a crossing's width (the crosswalk's 
 MAX_NODE_DISTANCE = 30.0  #: m, farthest junction node from a crosswalk's centre
 CROSS_TOLERANCE = 1.0  #: m, beyond the crosswalk's ends a lane end still counts as crossing it
 REACH = 12.0  #: m, farthest a crossing lane's end at the node lies before or beyond the crosswalk
+#: vClass of the obstacles (:class:`magail_sumo.sim.session.Obstacles`) on a pedestrian
+#: network: every vehicle lane allows it (bike lanes name it), walking lanes do not, so an
+#: obstacle is never placed on a sidewalk, crossing or walking area (SUMO crashes on a vehicle
+#: there); elsewhere obstacles are of class ``ignoring``
+OBSTACLE_CLASS = "custom1"
 #: netconvert options that differ from :data:`.network.NETCONVERT_OPTIONS` with pedestrians
 NETCONVERT_WALKING = ["--walkingareas", "true"]
 

@@ -277,6 +277,9 @@ OBSTACLE_MATCH = 1.5  #: m, an obstacle blocks a lane when its front is this clo
 PERSON_PREFIX = "walker:"  #: SUMO id prefix of the persons of pedestrian obstacles
 PERSON_MATCH = 3.0  #: m, farthest a pedestrian walks in SUMO from a walking lane
 PEDESTRIAN = int(ObjectType.PEDESTRIAN)
+#: vClass of obstacles on a walkable network: allowed on every vehicle lane, on no walking lane
+#: (``converters.sumo.pedestrians.OBSTACLE_CLASS``; SUMO crashes on a vehicle on a crossing)
+WALKABLE_OBSTACLE_CLASS = "custom1"
 _NO_ANGLE = -1073741824.0  # libsumo's INVALID_DOUBLE_VALUE: map by distance only
 
 
@@ -284,7 +287,8 @@ class Obstacles:
     """Road users SUMO does not drive (pedestrians, vehicles parked off the lane network, route
     vehicles not yet inserted), shown to SUMO's car-following as vehicles placed each step.
 
-    Each obstacle is a SUMO vehicle of vClass ``ignoring`` (allowed on every lane) with the
+    Each obstacle is a SUMO vehicle of vClass ``ignoring`` (allowed on every lane; on a walkable
+    network :data:`WALKABLE_OBSTACLE_CLASS`, kept off its walking lanes) with the
     recorded box, id ``obstacle:<id>``. :meth:`place` puts it at its box-centre pose for the
     next step (``moveToXY``, keepRoute=0) on the lane whose centre line lies within
     :data:`OBSTACLE_MATCH` m of its front: SUMO drivers on that lane then brake for it like for
@@ -349,10 +353,11 @@ class Obstacles:
                 walker[:] = False
         self._walker = np.r_[self._walker, walker]
         self._person_miss = np.r_[self._person_miss, np.full((len(ids), 2), np.nan)]
+        vclass = WALKABLE_OBSTACLE_CLASS if len(ids) and self.session.walkable() else "ignoring"
         for k in range(start, len(self.ids)):
             vt = f"{OBSTACLE_PREFIX}{self.ids[k]}"
             ls.vehicletype.copy("DEFAULT_VEHTYPE", vt)
-            ls.vehicletype.setVehicleClass(vt, "ignoring")
+            ls.vehicletype.setVehicleClass(vt, vclass)
             ls.vehicletype.setLength(vt, float(self.length[k]))
             ls.vehicletype.setWidth(vt, float(self.width[k]))
             ls.vehicletype.setMinGap(vt, 0.5)
