@@ -334,3 +334,27 @@ def test_env_and_sumo_baseline_walk_pedestrians_on_a_pedestrian_bundle(peds_637f
         env.close()
     ro = rl.simulate(scene, "sumo", [0], bundle_dir=folder)
     assert np.isfinite(ro.x).all()
+
+
+@pytest.mark.sumo
+def test_cli_convert_pedestrians_is_its_own_cached_bundle(tmp_path, capsys):
+    """``convert --pedestrians`` records the option (``pedestrians`` in conversion.json, its own
+    options key): a rerun with it skips the scene, one without it converts the scene again."""
+    from magail_sumo.cli.main import main
+
+    sid, out = "850c48d8bbfa008f", tmp_path / "out"
+    args = ["convert", str(WOMD_DIR / f"{sid}.tfrecord"), "--out", str(out), "--no-baseline"]
+
+    def report():
+        return json.loads((out / sid / "conversion.json").read_text())
+
+    assert main(args + ["--pedestrians"]) == 0
+    rep = report()
+    assert rep["pedestrians"]["crossings"] == 3
+    assert rep["options_key"] == options_key(ConvertOptions(pedestrians=True, baseline=False))
+    capsys.readouterr()
+    assert main(args + ["--pedestrians"]) == 0
+    assert "0 scene(s), 1 skipped" in capsys.readouterr().err
+    assert main(args) == 0
+    assert "1 scene(s), 0 skipped" in capsys.readouterr().err
+    assert "pedestrians" not in report()
