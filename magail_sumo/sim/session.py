@@ -8,6 +8,7 @@ vehicle state comes from libsumo subscriptions, returned as arrays in the scene 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -75,6 +76,7 @@ class SessionConfig:
 
 
 _ACTIVE: list["SumoSession"] = []
+_WALKING_AREA = re.compile(r":.+_w[0-9]+$")  #: SUMO's ids of walking areas
 _SUBSCRIBED_VARS: tuple[int, ...] = ()
 
 
@@ -95,10 +97,7 @@ class SumoSession:
         self.time = 0.0
         self._running = False
         self._walkable: bool | None = None
-        #: a sidewalk edge (set by :meth:`walkable`): where a person is added when the walking
-        #: lane nearest to it is a crossing or walking area (SUMO crashes on a person departing
-        #: there); ``person.moveToXY`` then moves it
-        self.walk_edge = ""
+        self._walk_edge: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def command(self) -> list[str]:
@@ -170,16 +169,23 @@ class SumoSession:
         return _libsumo()
 
     def walkable(self) -> bool:
-        """Whether the network has walking lanes (lanes only pedestrians may use: sidewalks,
-        crossings, walking areas), i.e. a bundle converted with pedestrians; cached."""
+        """Whether the network has walking areas (SUMO ids ``:<junction>_w<k>``), i.e. walking
+        lanes joined at junctions: a bundle converted with pedestrians; cached."""
         if self._walkable is None:
-            ls = self.api
-            walks = [lane for lane in ls.lane.getIDList()
-                     if ls.lane.getAllowed(lane) == ("pedestrian",)]
-            self._walkable = bool(walks)
-            self.walk_edge = next((w.rsplit("_", 1)[0] for w in walks if not w.startswith(":")),
-                                  "")
+            self._walkable = any(_WALKING_AREA.match(e) for e in self.api.edge.getIDList())
         return self._walkable
+
+    @property
+    def walk_edge(self) -> str:
+        """A sidewalk edge (a normal edge with a lane only pedestrians may use; "" when none):
+        where a person is added when the walking lane nearest to it is a crossing or walking
+        area (SUMO crashes on a person departing there); ``person.moveToXY`` then moves it."""
+        if self._walk_edge is None:
+            ls = self.api
+            self._walk_edge = next((lane.rsplit("_", 1)[0] for lane in ls.lane.getIDList()
+                                    if not lane.startswith(":")
+                                    and ls.lane.getAllowed(lane) == ("pedestrian",)), "")
+        return self._walk_edge
 
     def __enter__(self) -> "SumoSession":
         return self.start()
