@@ -104,7 +104,7 @@ class ConversionReport:
     #: checks of the recorded data itself: what the reader repaired or inferred
     #: (``Scene.data_quality``: ``dropped_references``, ``inferred_connectivity``, ``notes``)
     #: and ``signals`` (traffic-light sanity,
-    #: :func:`magail_sumo.evaluation.signal_sanity.signal_sanity`)
+    #: :func:`magail_sumo.scene.signal_sanity.signal_sanity`)
     data_quality: dict[str, Any] = field(default_factory=dict)
     converter_version: str = ""  #: :func:`converter_version` of the converter that wrote it
     options_key: str = ""  #: :func:`options_key` of the options it was written with
@@ -299,7 +299,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,
         }
-        from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
+        from magail_sumo.scene.signal_sanity import checked_signal_sanity
 
         rep.data_quality["signals"] = checked_signal_sanity(scene)
         lap("quality")
