@@ -28,7 +28,7 @@ import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
                                  read_marker, safe_name, write_text)
 from magail_sumo.scene import Scene
+
+if TYPE_CHECKING:
+    from converters.scene_files import RecordRef
 
 #: the conversion report of a bundle folder
 REPORT_FILE = "conversion.json"
@@ -229,7 +232,7 @@ def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = 
     return claim_output_dir(d, "convert", owned)
 
 
-def ensure_bundle(scene: Scene, networks: str | Path, source=None,
+def ensure_bundle(scene: Scene, networks: str | Path, source: RecordRef | None = None,
                   time_budget_s: float | None = 600.0, *, search: Sequence[str | Path] = (),
                   claim: bool = False) -> Path:
     """A complete bundle folder of ``scene``: the first found in ``search`` then ``networks``
