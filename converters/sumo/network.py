@@ -16,6 +16,7 @@ import numpy as np
 from magail_sumo.outputs import inside, safe_name
 from magail_sumo.scene import Scene
 
+from .bundle import BundleLayout
 from .geometry import fmt_shape
 from .tools import run_tool
 from .topology import NetworkPlan
@@ -120,7 +121,7 @@ def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | No
     prefix = inside(out_dir, name or safe_name(scene.scenario_id))
     types = node_types(scene, plan)
     plain = write_plain(plan, types, prefix)
-    net = Path(f"{prefix}.net.xml")
+    net = BundleLayout(Path(out_dir), prefix.name).net
     # run in out_dir with bare file names: the net's header comment names no (temporary) folder
     warnings = run_tool("netconvert", [
         "--node-files", plain[0].name, "--edge-files", plain[1].name,

@@ -117,7 +117,7 @@ def _umask() -> int:
 
 def run(args: argparse.Namespace) -> int:
     from converters import load_scene
-    from converters.sumo.scenario import ConvertOptions, bundle_folder, convert_scene
+    from converters.sumo.bundle import bundle_folder, ensure_bundle
     from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
     from magail_sumo.env.video import FORMATS
     from magail_sumo.errors import MagailSumoError
@@ -133,15 +133,8 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.fcd)
     scene = load_scene(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
-        bundle = args.bundle
         shipped = bundle_folder("networks", scene.scenario_id)  # a safe name: never a path
-        if bundle is None and shipped.is_dir():
-            bundle = shipped
-        if bundle is None:
-            rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
-            if rep.status != "ok":
-                raise MagailSumoError(f"{args.scene}: conversion failed: {rep.reason}")
-            bundle = bundle_folder(tmp, scene.scenario_id)
+        bundle = args.bundle or ensure_bundle(scene, tmp, search=["networks"])
         log = args.policy == "log"
         cfg = EnvConfig(terminate_on=() if log else ("collision", "off_road"),
                         limits=REPLAY_LIMITS if log else EnvConfig().limits,

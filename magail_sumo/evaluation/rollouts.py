@@ -907,25 +907,11 @@ class EvaluationResult:
 def _bundle(scene: Scene, networks: Path | None, out: Path,
             timeout_s: float | None = DEFAULT_TIMEOUT_S) -> Path:
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
-    into ``out/networks`` (bundle folders named by :func:`~magail_sumo.outputs.safe_name`)."""
-    from converters.sumo.scenario import (ConvertOptions, bundle_folder, claim_networks_dir,
-                                          convert_scene)
-    from magail_sumo.env.bundle import BundleError, SceneBundle
+    into ``out/networks`` (:func:`converters.sumo.bundle.ensure_bundle`)."""
+    from converters.sumo.bundle import ensure_bundle
 
-    sid = scene.scenario_id
-    for root in ([networks] if networks else []) + [out / "networks"]:
-        try:
-            folder = bundle_folder(root, sid)
-            SceneBundle.load(scene, folder)
-            return folder
-        except (BundleError, OutputError):
-            continue
-    claim_networks_dir(out / "networks")
-    rep = convert_scene(scene, out / "networks",
-                        ConvertOptions(baseline=False, time_budget_s=timeout_s))
-    if rep.status != "ok":
-        raise EvaluationError(f"scenario {printable(sid)}: conversion failed: {rep.reason}")
-    return bundle_folder(out / "networks", sid)
+    return ensure_bundle(scene, out / "networks", time_budget_s=timeout_s,
+                         search=[networks] if networks else [], claim=True)
 
 
 def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
