@@ -74,7 +74,11 @@ def constant_velocity(scene: Scene, ids: np.ndarray, n_steps: int
 
 class ConstantVelocityPolicy:
     """Zero action for every agent: speed and heading held (the bicycle model's constant
-    velocity, in any action layout)."""
+    velocity, in any action layout). A policy factory: the spec
+    ``magail_sumo.agents.constant_velocity:ConstantVelocityPolicy`` (the seed is unused)."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.seed = seed
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return {n: np.zeros(ACTION_SIZE, np.float32) for n in observations}
