@@ -39,6 +39,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+# policies live in magail_sumo.agents; names kept importable from here for the city evaluation,
+# the report, benchmarks and tests
 from magail_sumo.agents import (BASELINES, BUILTIN_POLICIES, POLICY_LOADERS, Policy,
                                 PolicyError, RandomPolicy, make_policy, method_name, rollout)
 from magail_sumo.agents import constant_velocity as _cv
@@ -68,12 +70,9 @@ def _line(exc: BaseException) -> str:
     return one_line(exc)
 
 
-
 def rollout_seed(seed: int, rollout: int) -> int:
     """Seed of one rollout (SUMO and numpy), from the run seed; < 2**31."""
     return int(np.random.SeedSequence([seed, rollout]).generate_state(1)[0] % (2 ** 31 - 1))
-
-
 
 
 # ------------------------------------------------------------------------- trajectory models
@@ -83,7 +82,6 @@ def constant_velocity(scene: Scene, ids: np.ndarray) -> tuple[np.ndarray, np.nda
     return _cv.constant_velocity(scene, ids, N_STEPS)
 
 
-
 def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
                  ) -> ScenarioRollouts:
     _, _, _, z0, _, _, _ = _current_state(scene, ids)
@@ -91,8 +89,6 @@ def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
     yaw = wrap_angle(yaw).astype(np.float32)
     z = np.broadcast_to(z0.astype(np.float32)[None, :, None], x.shape).copy()
     return ScenarioRollouts(scene.scenario_id, ids.astype(np.int64), x, y, z, yaw)
-
-
 
 
 # ---------------------------------------------------------------------------- policy rollouts
