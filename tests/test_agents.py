@@ -107,7 +107,42 @@ def test_rollout_loop():
     assert steps[1].terminations == {"1": False, "2": True}
     assert pol.seen[2] == ["1", "2"]  # acts on what the env observed (the leaving agent too)
     assert steps[3].infos["1"]["state"][0] == 4
-    assert agents.rollout(_Env(), _Recorder(), max_steps=2) == 2
+    resets = []
+    assert agents.rollout(_Env(), _Recorder(), max_steps=2,
+                          on_reset=lambda obs, infos: resets.append(sorted(obs))) == 2
+    assert resets == [["1", "2"]]
+
+
+def _seed_layout_checkpoint(tmp_path):
+    """A small untrained checkpoint of a run with ``env.action_layout: steer_throttle`` whose
+    mean action is clear: throttle (2nd entry) on, steering (1st) small."""
+    from magail_sumo.config import from_dict, to_dict
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import CHECKPOINT_FORMAT, make_policy
+
+    cfg = from_dict(TrainConfig, {"seed": 3, "env": {"action_layout": "steer_throttle"},
+                                  "policy": {"actor_hidden": [8], "critic_hidden": [8]}})
+    torch.manual_seed(3)
+    net = make_policy(cfg)
+    with torch.no_grad():
+        net.action_net.bias.copy_(torch.tensor([0.1, 1.5]))
+    ckpt = tmp_path / "seed_layout.pt"
+    torch.save({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+                "policy": net.state_dict()}, ckpt)
+    return ckpt
+
+
+def test_checkpoint_brings_its_action_layout(tmp_path):
+    """Evaluation's env takes a checkpoint's action layout (the policy's ``action_layout``); a
+    caller naming another env is refused."""
+    from magail_sumo.env import EnvConfig
+    from magail_sumo.training.policy_loader import load_checkpoint_policy
+    from magail_sumo.training.trainer import CheckpointError
+
+    ckpt = _seed_layout_checkpoint(tmp_path)
+    assert agents.make_policy(str(ckpt), 0).action_layout == "steer_throttle"
+    with pytest.raises(CheckpointError, match="env.action_layout: trained 'steer_throttle'"):
+        load_checkpoint_policy(ckpt, target=EnvConfig())
 
 
 @pytest.mark.sumo
@@ -117,26 +152,14 @@ def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path):
     re-derive the poses with the default layout: they were another vehicle's motion.)"""
     from converters import load_scene
     from converters.sumo.scenario import ConvertOptions, convert_scene
-    from magail_sumo.config import from_dict, to_dict
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
     from magail_sumo.evaluation import rollouts as rl
-    from magail_sumo.training.config import TrainConfig
-    from magail_sumo.training.trainer import CHECKPOINT_FORMAT, make_policy
 
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
     rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok", rep.reason
     bundle = tmp_path / SID
-    cfg = from_dict(TrainConfig, {"seed": 3, "env": {"action_layout": "steer_throttle"},
-                                  "policy": {"actor_hidden": [8], "critic_hidden": [8]}})
-    torch.manual_seed(3)
-    net = make_policy(cfg)
-    with torch.no_grad():  # a clear preference: throttle (2nd entry) on, steering (1st) small
-        net.action_net.bias.copy_(torch.tensor([0.1, 1.5]))
-    ckpt = tmp_path / "seed_layout.pt"
-    torch.save({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
-                "policy": net.state_dict()}, ckpt)
-    assert agents.make_policy(str(ckpt), 0).action_layout == "steer_throttle"
+    ckpt = _seed_layout_checkpoint(tmp_path)
 
     ro = rl.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=bundle, deterministic=True)
     # the same policy driving the env directly: the poses the env produced
