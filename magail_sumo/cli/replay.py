@@ -60,6 +60,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+class LiveRandomPolicy:
+    """``--policy random``: uniform random actions in [-1, 1]² for the env's live agents, one
+    draw per agent in the env's order (seeded)."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.env = None
+
+    def begin(self, scene, env) -> None:
+        self.env = env
+
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {a: self.rng.uniform(-1, 1, 2).astype(np.float32) for a in self.env.agents}
+
+
 def _write_video_atomic(path: Path, frames: list, fps: int) -> int:
     """:func:`~magail_sumo.env.video.write_video` into a temporary file beside ``path`` (same
     suffix: it picks the format), renamed over ``path`` when complete: a crash or a full disk
@@ -118,7 +133,8 @@ def _umask() -> int:
 def run(args: argparse.Namespace) -> int:
     from converters import load_scene
     from converters.sumo.bundle import bundle_folder, ensure_bundle
-    from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
+    from magail_sumo.agents import LogReplayPolicy, rollout
+    from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv
     from magail_sumo.env.video import FORMATS
     from magail_sumo.errors import MagailSumoError
     from magail_sumo.outputs import OutputError, printable
@@ -140,19 +156,21 @@ def run(args: argparse.Namespace) -> int:
                         limits=REPLAY_LIMITS if log else EnvConfig().limits,
                         render_size=(args.size, args.size))
         env = SumoDrivingEnv(scene, bundle, cfg, render_mode="rgb_array")
-        rng = np.random.default_rng(args.seed)
+        policy = LogReplayPolicy() if log else LiveRandomPolicy(args.seed)
         if args.fcd is not None:
             env.record_fcd()
-        env.reset(seed=args.seed)
-        frames = [env.render()]
-        for _ in progress(range(scene.num_steps - 1), desc="steps", unit="step"):
-            if not env.agents:
-                break
-            acts = expert_actions(env) if log else {
-                a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents}
-            env.step(acts)
+        frames = []
+        bar = progress(range(scene.num_steps - 1), desc="steps", unit="step")
+
+        def frame(*_) -> None:
+            next(bar, None)
             frames.append(env.render())
-        env.close()
+
+        try:
+            rollout(env, policy, frame, seed=args.seed, max_steps=scene.num_steps - 1,
+                    on_reset=lambda *_: frames.append(env.render()))
+        finally:
+            env.close()
         if args.fcd is not None:
             fcd = _write_fcd(env, args.fcd, bundle, temporary=args.bundle is None
                              and bundle != shipped)
