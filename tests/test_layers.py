@@ -16,17 +16,12 @@ BOTTOM = ("magail_sumo.errors", "magail_sumo.outputs", "magail_sumo.config",
 #: modules that still import libsumo / traci outside magail_sumo/sim while their owners move
 #: them onto SumoSession.api (issue 11, parallel branches); the coordinator empties this set
 #: after the merge, and the test then holds for every module
-LIBSUMO_IMPORT_ALLOWLIST_PENDING_MERGE = frozenset({
-    "magail_sumo/evaluation/rollouts.py",
-})
+LIBSUMO_IMPORT_ALLOWLIST_PENDING_MERGE: frozenset[str] = frozenset()
 
 #: modules that still spell bundle file names (``f"{name}.net.xml"``) while other branches own
 #: them (issue 11); the coordinator switches them to ``SceneBundle.files`` /
 #: ``BundleLayout.of(folder, scenario_id)`` after the merge and empties this set
-BUNDLE_NAMES_ALLOWLIST_PENDING_MERGE = frozenset({
-    "magail_sumo/cli/replay.py",
-    "magail_sumo/evaluation/rollouts.py",
-})
+BUNDLE_NAMES_ALLOWLIST_PENDING_MERGE: frozenset[str] = frozenset()
 
 
 def _modules():

@@ -42,11 +42,11 @@ SPEED_FACTOR_SD = 0.1
 QUEUED_MATCH = 5.0
 
 
-def _departures(folder: Path, sumocfg: Path) -> dict[str, int]:
+def _departures(routes: Path) -> dict[str, int]:
     """Departure step of every vehicle of a bundle's route file."""
     import xml.etree.ElementTree as ET
 
-    root = ET.parse(Path(folder) / sumocfg.name.replace(".sumocfg", ".rou.xml")).getroot()
+    root = ET.parse(routes).getroot()
     return {v.get("id", ""): int(round(float(v.get("depart", "0")) / DT))
             for v in root.iter("vehicle")}
 
@@ -166,7 +166,7 @@ def sumo_rollout(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarray, n_s
     track = Track.empty(len(ids), n_steps)
     held: list[str] = []
     routed = set(bundle.sumo_ids)
-    departs = _departures(bundle.folder, bundle.sumocfg)
+    departs = _departures(bundle.files.routes)
     due: set[str] = set()
     later: set[str] = set()
     gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO

@@ -104,18 +104,18 @@ def _write_fcd(env, path: Path, bundle: Path, temporary: bool):
     (``NAME.net.xml``, ``NAME.tll.xml``) so the config outlives it."""
     import shutil
 
-    from magail_sumo.outputs import atomic_path, safe_name
+    from converters.sumo.bundle import BundleLayout
+    from magail_sumo.outputs import atomic_path
     from magail_sumo.sim.fcd import replay_paths, write_replay
 
     if not temporary:
         return env.write_fcd(path)
-    name = safe_name(env.scene.scenario_id)
+    files = BundleLayout.of(bundle, env.scene.scenario_id)
     stem = replay_paths(path)[2].with_suffix("")
     copies = []
-    for suffix in (".net.xml", ".tll.xml"):
-        src = bundle / f"{name}{suffix}"
+    for src in (files.net, files.signals):
         if src.is_file():
-            dst = stem.with_name(stem.name + suffix)
+            dst = stem.with_name(stem.name + src.name[len(files.name):])
             with atomic_path(dst) as tmp:
                 shutil.copyfile(src, tmp)
             copies.append(dst)

@@ -203,12 +203,9 @@ class Batch:
 
 
 def _load(scene_file: str, scenario_id: str) -> Scene:
-    from converters import iter_scenes
+    from converters.scene_files import find_scene
 
-    for scene in iter_scenes(scene_file):
-        if scene.scenario_id == scenario_id:
-            return scene
-    raise EvaluationError(f"{scene_file}: scenario {printable(scenario_id)} not found")
+    return find_scene(scene_file, scenario_id)
 
 
 def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
@@ -340,9 +337,10 @@ def write_rollout_fcd(out: str | Path, scene: Scene, ro: ScenarioRollouts, metho
         v = np.where(tr.valid[rows], getattr(tr, name)[rows], np.nan)
         size[name] = np.nan_to_num(np.nanmedian(v, axis=1), nan=1.0)  # valid at current
     shape = [SHAPES.get(int(t), "passenger") for t in tr.type[rows]]
-    name = safe_name(scene.scenario_id)
-    net = bundle / f"{name}.net.xml"
-    tll = bundle / f"{name}.tll.xml"
+    from converters.sumo.bundle import BundleLayout
+
+    files = BundleLayout.of(bundle, scene.scenario_id)
+    name, net, tll = files.name, files.net, files.signals
     times = np.arange(cur + 1 + t_n) * DT
     written = []
     for r in range(min(rollouts, r_n)):
