@@ -44,13 +44,18 @@ class Step:
 
 def rollout(env, policy: Policy, on_step: Callable[[Step], None] | None = None, *,
             seed: int | None = None, max_steps: int | None = None, scene=None,
-            on_reset: Callable[[dict, dict], None] | None = None) -> int:
+            on_reset: Callable[[dict, dict], None] | None = None,
+            until_empty: bool = True, live_only: bool = False) -> int:
     """Reset ``env`` (with ``seed``), tell the policy (its optional ``begin(scene, env)``, with
     ``scene`` defaulting to ``env.scene``), then step until no agent is live or ``max_steps``
     steps are taken: each step ``policy.act(observations)`` -> ``env.step`` ->
     ``on_step(Step)``. Returns the number of steps taken.
 
     :param on_reset: called with the reset's (observations, infos) before the policy's ``begin``.
+    :param until_empty: stop when no agent is live (False: step on to ``max_steps``, which is
+        then required, with no actions while nobody is live: a city where agents join later).
+    :param live_only: the policy sees only the live agents' observations (not the final ones of
+        agents that just ended), so it acts, and draws samples, for live agents only.
     The env is left open (its episode state, e.g. ``action_counts``, stays readable); the
     caller closes it.
     """
@@ -60,10 +65,15 @@ def rollout(env, policy: Policy, on_step: Callable[[Step], None] | None = None, 
     begin = getattr(policy, "begin", None)
     if callable(begin):  # optional extension (see Policy)
         begin(getattr(env, "scene", None) if scene is None else scene, env)
+    if not until_empty and max_steps is None:
+        raise ValueError("rollout(until_empty=False) needs max_steps")
     n = 0
-    while env.agents and (max_steps is None or n < max_steps):
+    while (env.agents or not until_empty) and (max_steps is None or n < max_steps):
         t, agents = env.t, list(env.agents)
-        actions = policy.act(obs)
+        if live_only:
+            actions = policy.act({a: obs[a] for a in agents}) if agents else {}
+        else:
+            actions = policy.act(obs)
         nxt, rewards, terms, truncs, infos = env.step(actions)
         n += 1
         if on_step is not None:
