@@ -1,17 +1,20 @@
-"""Closed-loop comparison with every vehicle controlled: ADE, collision, off-road, speed error.
+"""Closed-loop comparison of driving policies: ADE, collision, off-road and red-light rates, speed
+bias — the evaluation's traffic metrics (:mod:`magail_sumo.evaluation.traffic`).
 
-Each policy drives all route vehicles of each scene from the first log step to the end
-(``terminate_on=()``: agents keep driving after an event, so every agent is scored over its
-whole recorded life; log background for the rest). Metrics over agents and their valid log
-steps: ADE (m, mean distance to the recorded position), collision rate and off-road rate (share
-of agents with at least one such event), mean speed error (m/s, |speed − recorded speed|) and
-speed bias (m/s, mean of speed − recorded speed: negative = slower than the humans).
-Policies: ``constant_velocity`` (zero action: speed and heading held), ``untrained`` (a fresh
-policy of the config, observation normaliser fitted on the expert data) and any
-``NAME=CHECKPOINT`` (deterministic mean action of the tanh-Gaussian actor). Every
-(policy, scene) rollout runs in its own process (libsumo).
+Each policy runs through ``magail-sumo evaluate`` (:func:`magail_sumo.evaluation.rollouts.
+evaluate`, its one rollout loop :func:`magail_sumo.agents.rollout`): from each scene's current
+step for 80 steps, every route vehicle and cyclist driven by the policy through the env with no
+terminating event, every other sim agent at constant velocity; deterministic actions (the tanh
+of the Gaussian mean) unless ``--sampled``. Figures per scene are
+:func:`~magail_sumo.evaluation.traffic.compute_metrics` of its rollouts (``ade`` m,
+``collision_rate`` / ``offroad_rate`` / ``red_light_rate`` shares of objects / vehicles with an
+event, ``speed_bias`` m/s: negative = slower than the humans); the table gives their mean over
+scenes. Policies: ``constant_velocity`` (zero action: speed and heading held,
+:class:`~magail_sumo.agents.ConstantVelocityPolicy`), ``untrained`` (a fresh policy of the
+config, observation normaliser fitted on the expert data) and any ``NAME=CHECKPOINT`` (or
+``NAME=SPEC``, any ``evaluate --policy`` spec). SUMO runs in worker processes (libsumo).
 
-    python benchmarks/compare_policies.py --expert out/expert --config configs/magail.yaml \
+    python benchmarks/compare_policies.py --expert out/expert --config configs/magail.yaml \\
         --policy bc=runs/bc/checkpoints/latest.pt --policy magail=runs/m/checkpoints/latest.pt [--json]
 """
 
@@ -19,8 +22,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -31,70 +34,50 @@ sys.path.insert(0, str(ROOT))
 
 SCENES = [ROOT / "data" / "womd" / f"{s}.tfrecord"
           for s in ("637f20cafde22ff8", "2831b6fde0420b0d", "850c48d8bbfa008f")]
+#: traffic metrics shown (magail_sumo.evaluation.traffic), with their table headers
+METRICS = {"ade": "ADE m", "collision_rate": "collision", "offroad_rate": "off-road",
+           "red_light_rate": "red light", "speed_bias": "bias m/s"}
+CONSTANT_VELOCITY = "magail_sumo.agents.constant_velocity:ConstantVelocityPolicy"
 
 
-def rollout(job: tuple) -> dict:
-    """One closed-loop episode of one policy on one scene; sums for the metrics."""
-    name, policy_state, cfg_dict, spec, seed = job
-    warnings.filterwarnings("ignore")
+def untrained_checkpoint(config: str, expert: str, seed: int, path: Path) -> Path:
+    """A fresh policy of ``config`` (observation normaliser fitted on ``expert``) saved as a
+    training checkpoint at ``path``."""
     import torch
 
-    from magail_sumo.config import from_dict
-    from magail_sumo.env import EnvConfig, SumoDrivingEnv
-    from magail_sumo.env.vec_env import load_spec_scene
+    from magail_sumo.config import load_config, to_dict
+    from magail_sumo.expert import ExpertDataset
+    from magail_sumo.sensors.observation import observation_names
     from magail_sumo.training.config import TrainConfig
-    from magail_sumo.training.trainer import make_policy
+    from magail_sumo.training.trainer import CHECKPOINT_FORMAT, make_policy
 
-    torch.set_num_threads(1)
-    cfg = from_dict(TrainConfig, cfg_dict)
-    policy = None
-    if policy_state is not None:
-        policy = make_policy(cfg)
-        policy.load_state_dict(policy_state)
-        policy.set_training_mode(False)
-    scene = load_spec_scene(spec)
-    env = SumoDrivingEnv(scene, spec.bundle, EnvConfig(
-        controlled="all", terminate_on=(), observation=cfg.env.observation,
-        limits=cfg.env.limits))
-    tr = scene.tracks
-    obs, _ = env.reset(seed=seed)
-    err_sum = speed_sum = bias_sum = 0.0
-    n = 0
-    collided: set[str] = set()
-    offroad: set[str] = set()
-    agents: set[str] = set()
-    while env.agents:
-        names = list(env.agents)
-        if policy is None:
-            act = np.zeros((len(names), 2), np.float32)
-        else:
-            x = np.stack([obs[a] for a in names]).astype(np.float32)
-            act, _ = policy.predict(x, deterministic=True)
-        obs, _, _, _, infos = env.step(dict(zip(names, act)))
-        for a, info in infos.items():
-            ev = info.get("events", {})
-            if ev.get("collision"):
-                collided.add(a)
-            if ev.get("off_road"):
-                offroad.add(a)
-        if env.agents:
-            st = env.agent_states()
-            t = env.t
-            ok = tr.valid[st.rows, t]
-            r = st.rows[ok]
-            dx = st.state.x[ok] - tr.x[r, t]
-            dy = st.state.y[ok] - tr.y[r, t]
-            h = tr.heading[r, t]
-            v_log = tr.vx[r, t] * np.cos(h) + tr.vy[r, t] * np.sin(h)
-            err_sum += float(np.hypot(dx, dy).sum())
-            speed_sum += float(np.abs(st.state.speed[ok] - v_log).sum())
-            bias_sum += float((st.state.speed[ok] - v_log).sum())
-            n += int(ok.sum())
-            agents.update(st.names)
-    env.close()
-    return {"policy": name, "scene": scene.scenario_id, "err": err_sum, "speed": speed_sum,
-            "bias": bias_sum, "n": n, "agents": len(agents), "collided": len(collided),
-            "offroad": len(offroad)}
+    cfg = load_config(config, TrainConfig)
+    torch.manual_seed(seed)
+    policy = make_policy(cfg)
+    data = ExpertDataset(expert, observation_names(cfg.env.observation))
+    policy.obs_normalizer.update(torch.as_tensor(data.s))
+    torch.save({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+                "policy": policy.state_dict()}, path)
+    return path
+
+
+def scene_metrics(out: Path, name: str) -> list[dict]:
+    """Traffic metrics of method ``name``'s rollouts of every scene evaluated into ``out``."""
+    from converters import iter_scenes
+    from magail_sumo.evaluation.rollouts import read_manifest, read_rollouts, rollouts_path
+    from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
+
+    rows = []
+    for entry in read_manifest(out)["scenes"]:
+        path = rollouts_path(out, name, entry["scenario_id"])
+        if not path.is_file():  # its rollouts failed (reported by evaluate)
+            continue
+        scene = next(s for s in iter_scenes(entry["file"])
+                     if s.scenario_id == entry["scenario_id"])
+        ro = read_rollouts(path, scene)
+        rows.append({"policy": name, "scene": entry["scenario_id"],
+                     **compute_metrics(MetricInput.build(scene, ro), list(METRICS))})
+    return rows
 
 
 def main() -> int:
@@ -104,56 +87,45 @@ def main() -> int:
     ap.add_argument("--policy", action="append", default=[], metavar="NAME=CHECKPOINT")
     ap.add_argument("--scenes", nargs="*", default=[str(s) for s in SCENES])
     ap.add_argument("--networks", default=str(ROOT / "out" / "networks"))
+    ap.add_argument("--out", help="evaluation folder kept (default: a temporary one)")
+    ap.add_argument("--rollouts", type=int, default=1, help="rollouts per scene and policy")
+    ap.add_argument("--sampled", action="store_true", help="sample checkpoint actions")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
-    import torch
+    from magail_sumo.evaluation.rollouts import evaluate
 
-    from magail_sumo.config import load_config, to_dict
-    from magail_sumo.env.vec_env import scene_specs
-    from magail_sumo.expert import ExpertDataset
-    from magail_sumo.sensors.observation import observation_names
-    from magail_sumo.training.config import TrainConfig
-    from magail_sumo.training.trainer import load_checkpoint, make_policy
-
-    cfg = load_config(args.config, TrainConfig)
-    torch.manual_seed(args.seed)
-    untrained = make_policy(cfg)
-    expert = ExpertDataset(args.expert, observation_names(cfg.env.observation))
-    untrained.obs_normalizer.update(torch.as_tensor(expert.s))
-    policies: list[tuple[str, dict | None, dict]] = [
-        ("constant_velocity", None, to_dict(cfg)),
-        ("untrained", untrained.state_dict(), to_dict(cfg))]
-    for item in args.policy:
-        name, _, path = item.partition("=")
-        state = load_checkpoint(path)
-        policies.append((name, state["policy"], state["config"]))
-    specs = scene_specs(args.scenes, args.networks)
-    jobs = [(n, p, c, s, args.seed) for n, p, c in policies for s in specs]
-    with mp.get_context("spawn").Pool(args.workers, maxtasksperchild=1) as pool:
-        rows = pool.map(rollout, jobs, chunksize=1)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(args.out or Path(tmp) / "eval")
+        policies = [("constant_velocity", CONSTANT_VELOCITY),
+                    ("untrained", str(untrained_checkpoint(args.config, args.expert, args.seed,
+                                                           Path(tmp) / "untrained.pt")))]
+        policies += [(item.partition("=")[0], item.partition("=")[2]) for item in args.policy]
+        rows: list[dict] = []
+        for name, spec in policies:
+            res = evaluate(args.scenes, spec, out, n_rollouts=args.rollouts, baselines=(),
+                           seed=args.seed, workers=args.workers, networks=args.networks,
+                           name=name, deterministic=not args.sampled)
+            for err in res.errors:
+                print(f"warning: {name}: {err}", file=sys.stderr)
+            rows += scene_metrics(out, name)
     table = []
-    for name, _, _ in policies:
+    for name, _ in policies:
         rs = [r for r in rows if r["policy"] == name]
-        n = sum(r["n"] for r in rs)
-        agents = sum(r["agents"] for r in rs)
-        table.append({"policy": name, "ade_m": sum(r["err"] for r in rs) / max(n, 1),
-                      "collision_rate": sum(r["collided"] for r in rs) / max(agents, 1),
-                      "off_road_rate": sum(r["offroad"] for r in rs) / max(agents, 1),
-                      "speed_error_mps": sum(r["speed"] for r in rs) / max(n, 1),
-                      "speed_bias_mps": sum(r["bias"] for r in rs) / max(n, 1),
-                      "agents": agents, "agent_steps": n})
+        table.append({"policy": name, "scenes": len(rs),
+                      **{m: float(np.nanmean([r[m] for r in rs])) if rs else float("nan")
+                         for m in METRICS}})
     if args.json:
-        print(json.dumps({"per_scene": rows, "table": table}, indent=2))
+        from magail_sumo.outputs import finite_json  # NaN -> null
+
+        print(json.dumps(finite_json({"per_scene": rows, "table": table}), indent=2))
     else:
-        print(f"{'policy':<20}{'ADE m':>9}{'collision':>11}{'off-road':>10}{'speed err':>11}"
-              f"{'bias':>7}{'agents':>8}")
+        print(f"{'policy':<20}" + "".join(f"{h:>11}" for h in METRICS.values()) + f"{'scenes':>8}")
         for t in table:
-            print(f"{t['policy']:<20}{t['ade_m']:>9.2f}{t['collision_rate']:>11.3f}"
-                  f"{t['off_road_rate']:>10.3f}{t['speed_error_mps']:>11.2f}"
-                  f"{t['speed_bias_mps']:>7.2f}{t['agents']:>8}")
+            print(f"{t['policy']:<20}" + "".join(f"{t[m]:>11.3f}" for m in METRICS)
+                  + f"{t['scenes']:>8}")
     return 0
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 import tempfile
 import time
@@ -33,6 +32,7 @@ from converters import load_scene  # noqa: E402
 from converters.sumo.scenario import ConvertOptions, convert_scene  # noqa: E402
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions  # noqa: E402
 from magail_sumo.sim.session import SessionConfig, SumoSession  # noqa: E402
+from magail_sumo.workers import run_one  # noqa: E402
 
 SCENE = "637f20cafde22ff8"
 CITY = "ingolstadt21"
@@ -99,6 +99,19 @@ def run_city_raw(cfg: Path, state: str, steps: int) -> tuple[float, int, int]:
     return total, steps, peak
 
 
+def _call(job: tuple):
+    fn, args = job
+    return fn(*args)
+
+
+def _in_fresh_process(fn, *args):
+    """``fn(*args)`` in a fresh worker process (:func:`magail_sumo.workers.run_one`)."""
+    res = run_one(_call, (fn, args))
+    if not res.ok:
+        raise SystemExit(f"{fn.__name__}: {res.reason}")
+    return res.value
+
+
 def run_city(args) -> dict:
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
 
@@ -120,9 +133,7 @@ def run_city(args) -> dict:
                 peak = max(peak, len(acts))
                 steps += 1
     state = str(env.warm_state())
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(1, maxtasksperchild=1) as pool:
-        raw_secs, raw_steps, raw_peak = pool.apply(run_city_raw, (cfg, state, args.city_steps))
+    raw_secs, raw_steps, raw_peak = _in_fresh_process(run_city_raw, cfg, state, args.city_steps)
     env.close()
     return {
         "scene": CITY,
@@ -168,10 +179,8 @@ def run_scene(args) -> dict:
         moved = set(env.possible_agents) - set(env.bundle.parked)
         # the floor runs in its own process: libsumo 1.28 segfaulted in the step of a session
         # started, in the same process, after a session that moved and removed vehicles
-        ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(1, maxtasksperchild=1) as pool:  # a fresh process per episode
-            runs = [pool.apply(run_raw, (env.bundle.sumocfg, scene, moved, 1))
-                    for _ in range(args.episodes)]
+        runs = [_in_fresh_process(run_raw, env.bundle.sumocfg, scene, moved, 1)
+                for _ in range(args.episodes)]  # a fresh process per episode
         raw_secs, raw_steps = (sum(v) for v in zip(*runs))
         run_env(env, 1)  # warm-up: numba kernels load, SUMO files cached
         secs, agent_steps, sensors, peak = run_env(env, args.episodes)

@@ -16,6 +16,7 @@ from converters.files import open_regular, path_problem
 from converters.scenarionet.reader import SUMMARY_FILE, iter_scenarionet
 from converters.womd.reader import iter_womd
 from magail_sumo.errors import SceneFormatError
+from magail_sumo.outputs import printable
 from magail_sumo.scene import Scene
 
 _PICKLE_MAGIC = (b"\x80\x02", b"\x80\x03", b"\x80\x04", b"\x80\x05")
@@ -87,6 +88,20 @@ def iter_scenes(paths: Iterable[str | PathLike] | str | PathLike) -> Iterator[Sc
             if rec.error is not None:
                 raise rec.error
             yield rec.scene  # type: ignore[misc]
+
+
+def find_scene(paths: Iterable[str | PathLike] | str | PathLike,
+               scenario_id: str | None) -> Scene:
+    """The scene ``scenario_id`` of the given files (None: their first scene), read lazily up
+    to it; raises the first :class:`SceneFormatError` met before it, or one naming the
+    file(s) when no scene has that id."""
+    for scene in iter_scenes(paths):
+        if scenario_id is None or scene.scenario_id == scenario_id:
+            return scene
+    where = paths if isinstance(paths, (str, PathLike)) else \
+        ", ".join(str(p) for p in paths)  # type: ignore[union-attr]
+    what = "no scene" if scenario_id is None else f"scenario {printable(scenario_id)} not found"
+    raise SceneFormatError(where, None, what)
 
 
 def load_scene(path: str | PathLike, index: int = 0) -> Scene:

@@ -117,7 +117,7 @@ def test_policy_specs(tmp_path):
     assert isinstance(rl.make_policy(f"{__name__}:stop_policy", 0), _StopPolicy)
     ckpt = tmp_path / "agent.ckpt"
     ckpt.write_bytes(b"x")
-    with pytest.raises(rl.EvaluationError, match="no policy loader"):
+    with pytest.raises(rl.PolicyError, match="no policy loader"):
         rl.make_policy(str(ckpt), 0)
     rl.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
     try:
@@ -125,7 +125,7 @@ def test_policy_specs(tmp_path):
         assert rl.method_name(str(ckpt)) == "agent"
     finally:
         del rl.POLICY_LOADERS[".ckpt"]
-    with pytest.raises(rl.EvaluationError, match="not a method"):
+    with pytest.raises(rl.PolicyError, match="not a method"):
         rl.make_policy("nonsense", 0)
     a = rl.RandomPolicy(1).act({"2": np.zeros(3), "1": np.zeros(3)})
     assert set(a) == {"1", "2"} and all(np.all(np.abs(v) <= 1) for v in a.values())

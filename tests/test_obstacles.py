@@ -13,6 +13,7 @@ import pytest
 from conftest import ROOT, WOMD_DIR
 from converters import load_scene
 from converters.sumo.scenario import ConvertOptions, convert_scene
+from magail_sumo.agents import sumo_baseline as sb
 from magail_sumo.evaluation import rollouts as rl
 from magail_sumo.evaluation.realism import log_replay, scenario_metrics
 from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SumoSession
@@ -131,7 +132,7 @@ def test_route_vehicles_drive_on_past_their_route_end(bundle):
             v = sim.vehicles()
             reached |= {vid for vid, e in zip(v.ids, v.edge) if e in extended.get(vid, ())}
             before = dict(ends)
-            rl._continue_routes(ls, v, ends)
+            sb._continue_routes(ls, v, ends)
             for vid, e in ends.items():
                 if e and before.get(vid, e) != e:
                     # the route from the vehicle's edge on (getRoute lists the driven part too)
@@ -164,12 +165,12 @@ def test_current_step_zero_starts_at_the_recorded_pose(tmp_path):
 
 def test_mapped_ahead_of_a_dead_end():
     shape = np.array([[0.0, 0.0], [10.0, 0.0]])  # a lane ending at x = 10 m, heading +x
-    assert rl._mapped_ahead(shape, np.array([[20.0, 3.0]]))  # road 10 m ahead, 3 m aside
-    assert not rl._mapped_ahead(shape, np.array([[11.0, 0.0]]))  # closer than 2 m
-    assert not rl._mapped_ahead(shape, np.array([[50.0, 0.0]]))  # beyond 30 m
-    assert not rl._mapped_ahead(shape, np.array([[20.0, 9.0]]))  # more than 8 m aside
-    assert not rl._mapped_ahead(shape, np.array([[0.0, 0.0], [-10.0, 0.0]]))  # behind
-    assert not rl._mapped_ahead(shape, np.zeros((0, 2)))
+    assert sb._mapped_ahead(shape, np.array([[20.0, 3.0]]))  # road 10 m ahead, 3 m aside
+    assert not sb._mapped_ahead(shape, np.array([[11.0, 0.0]]))  # closer than 2 m
+    assert not sb._mapped_ahead(shape, np.array([[50.0, 0.0]]))  # beyond 30 m
+    assert not sb._mapped_ahead(shape, np.array([[20.0, 9.0]]))  # more than 8 m aside
+    assert not sb._mapped_ahead(shape, np.array([[0.0, 0.0], [-10.0, 0.0]]))  # behind
+    assert not sb._mapped_ahead(shape, np.zeros((0, 2)))
 
 
 @pytest.mark.sumo
@@ -183,18 +184,18 @@ def test_dead_end_inside_the_map_holds_the_vehicle(bundle):
 
     scene, folder = bundle
     parked = SceneBundle.load(scene, folder).parked  # held at their own parking stops
-    points = rl.map_points(scene)
+    points = sb.map_points(scene)
     ends: dict[str, str] = {}
     held: set[str] = set()
     with SumoSession(folder / f"{scene.scenario_id}.sumocfg") as sim:
         for _ in range(150):
             sim.step()
             v = sim.vehicles()
-            rl._continue_routes(ls, v, ends, parked, points)
+            sb._continue_routes(ls, v, ends, parked, points)
             held |= {vid for vid in v.ids if vid not in parked and ls.vehicle.getStops(vid)}
         present = set(sim.vehicles().ids)
         assert held and held <= present  # stopped there, never arrived
         for vid in held:  # held at the end of a lane going nowhere else
             stop = ls.vehicle.getStops(vid)[0]
-            assert not [ln for ln in ls.lane.getLinks(stop.lane) if ln[6] in rl._CONTINUE_ORDER]
+            assert not [ln for ln in ls.lane.getLinks(stop.lane) if ln[6] in sb._CONTINUE_ORDER]
             assert ls.lane.getLength(stop.lane) - stop.endPos < 0.5

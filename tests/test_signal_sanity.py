@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magail_sumo.evaluation.signal_sanity import longest_run, signal_sanity
+from magail_sumo.scene.signal_sanity import longest_run, signal_sanity
 from magail_sumo.scene import Lane, ObjectType, RoadMap, Scene, SignalStates, Tracks
 from magail_sumo.scene.types import LaneType, SignalState
 
@@ -80,7 +80,7 @@ def test_bundled_scene_and_conversion_report(scene_637f, tmp_path):
 
 
 def test_a_failing_check_is_reported_not_raised(monkeypatch):
-    import magail_sumo.evaluation.signal_sanity as mod
+    import magail_sumo.scene.signal_sanity as mod
 
     def boom(scene):
         raise ValueError("odd\ndata")

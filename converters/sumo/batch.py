@@ -17,7 +17,6 @@ the small quality dict.
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -26,8 +25,8 @@ from converters.scene_files import SceneRecord, iter_scene_records
 from magail_sumo.outputs import NameRegistry, OutputError, atomic_write, printable
 from magail_sumo.scene import Scene
 
-from .scenario import (ConvertOptions, bundle_folder, convert_scene, converter_version,
-                       options_key)
+from .bundle import BundleError, bundle_folder, check_bundle
+from .scenario import ConvertOptions, convert_scene, converter_version, options_key
 
 SUMMARY_COLUMNS = ("file", "record", "scenario_id", "status", "reason", "on_network_rate",
                    "route_rate", "signal_fidelity", "synthesized_lanes", "netconvert_warnings",
@@ -57,22 +56,16 @@ class BatchRow:
 
 
 def converted_before(out: Path, scenario_id: str, options: ConvertOptions) -> dict | None:
-    """The ``conversion.json`` of ``scenario_id``'s bundle in ``out`` when it is a finished
-    conversion (status ok, all its files present) by this converter version with the same
+    """The ``conversion.json`` of ``scenario_id``'s bundle in ``out`` when it is a complete
+    bundle (:func:`.bundle.check_bundle`) written by this converter version with the same
     options; else None."""
     try:
-        folder = bundle_folder(out, scenario_id)
-        rep = json.loads((folder / "conversion.json").read_text())
-    except (OSError, ValueError, UnicodeDecodeError, OutputError):
+        rep = check_bundle(bundle_folder(out, scenario_id), scenario_id)
+    except (BundleError, OSError, OutputError):
         return None
-    if not isinstance(rep, dict) or rep.get("status") != "ok" or \
-            rep.get("scenario_id") != scenario_id or \
+    if rep.get("scenario_id") != scenario_id or \
             rep.get("converter_version") != converter_version() or \
             rep.get("options_key") != options_key(options):
-        return None
-    files = rep.get("files")
-    if not isinstance(files, list) or not files or \
-            not all(isinstance(f, str) and (folder / f).is_file() for f in files):
         return None
     return rep
 

@@ -16,6 +16,7 @@ import numpy as np
 from magail_sumo.outputs import inside, safe_name
 from magail_sumo.scene import Scene
 
+from .bundle import BundleLayout
 from .geometry import fmt_shape
 from .pedestrians import (NETCONVERT_WALKING, OBSTACLE_CLASS, SIDEWALK, PedestrianPlan,
                           crossing_xml)
@@ -140,7 +141,7 @@ def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | No
     plain = write_plain(plan, types, prefix,
                         crossing_xml(pedestrians) if pedestrians is not None else "",
                         walking=pedestrians is not None)
-    net = Path(f"{prefix}.net.xml")
+    net = BundleLayout(Path(out_dir), prefix.name).net
     options = list(NETCONVERT_OPTIONS)
     if pedestrians is not None:
         k = options.index("--walkingareas")

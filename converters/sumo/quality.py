@@ -157,14 +157,15 @@ class Baseline:
 
 def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
                  programs: SignalPrograms | None) -> Baseline:
-    """Run ``sumo -c cfg`` in libsumo for the scene's duration; compare with the log.
+    """Run ``sumo -c cfg`` (a :class:`~magail_sumo.sim.session.SumoSession` with the config's
+    own step length, seed and teleport time) for the scene's duration; compare with the log.
 
     Positions: SUMO reports the front bumper; the box centre is half a length behind it.
     Timing: a vehicle departing at ``k * dt`` is placed during the step from ``k * dt``, so
     after ``k + 1`` steps the simulation shows log step ``k`` (the signal programs hold their
     first state one extra step to match).
     """
-    import libsumo as ls
+    from magail_sumo.sim.session import SessionConfig, SumoSession
 
     tr = scene.tracks
     steps = scene.num_steps
@@ -173,11 +174,11 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
     has_signals = bool(scene.signals.known().any())
     hits = total = 0
     collisions = teleports = 0
-    ls.start(["sumo", "-c", cfg, "--no-step-log", "true", "--no-warnings", "true",
-              "--collision.action", "warn"])
-    try:
+    config = SessionConfig(step_length=None, seed=None, time_to_teleport=None, subscribe=False)
+    with SumoSession(cfg, config=config) as session:
+        ls = session.api
         for k in range(steps):  # after k + 1 steps SUMO shows the state of log step k
-            ls.simulationStep()
+            session.step()
             collisions += ls.simulation.getCollidingVehiclesNumber()
             teleports += ls.simulation.getStartingTeleportNumber()
             for vid in ls.vehicle.getIDList():
@@ -198,8 +199,6 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
                     if links and all(CHAR_CLASS.get(tls_state[t][i]) == STATE_CLASS[st]
                                      for t, i in links):
                         hits += 1
-    finally:
-        ls.close()
     errs, finals = [], []
     for vid, r in known.items():
         n = r.track

@@ -1,15 +1,16 @@
 """Convert one recorded scene into a SUMO scenario folder with ``conversion.json``.
 
-``DIR/<id>/`` receives ``<id>.net.xml`` (plus the plain ``.nod/.edg/.con.xml`` it is built
-from), ``<id>.rou.xml``, ``<id>.tll.xml`` (when the scene has signals), ``<id>.sumocfg`` and
+``DIR/<name>/`` receives the bundle described in :mod:`.bundle` (the layout and its reader are
+defined there): ``<name>.net.xml`` (plus the plain ``.nod/.edg/.con.xml`` it is built from),
+``<name>.rou.xml``, ``<name>.tll.xml`` (when the scene has signals), ``<name>.sumocfg`` and
 ``conversion.json``. Simulation step: 0.1 s, SUMO time 0 = the scene's first step.
 
-``<id>`` is :func:`magail_sumo.outputs.safe_name` of the scenario id: the id itself for every
+``<name>`` is :func:`magail_sumo.outputs.safe_name` of the scenario id: the id itself for every
 real WOMD id; an id that is not a plain file name (``/``, ``..``, control characters, empty,
 longer than 100 characters) gets its safe characters plus a hash, so nothing is written outside
 ``DIR``; ``conversion.json`` keeps the original ``scenario_id``. The bundle is built in a
 temporary folder beside it and renamed into place, so a crash or a full disk leaves the old
-bundle or none, never a half-written one; an existing ``DIR/<id>`` is only replaced when it is
+bundle or none, never a half-written one; an existing ``DIR/<name>`` is only replaced when it is
 a bundle of the same scene (or empty).
 Recorded driving off the mapped lanes gets synthesised lanes (:mod:`.synthesis`), listed under
 ``synthesized`` and counted in ``quality.synthesized_lanes``.
@@ -27,11 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, one_line,
-                                 printable, read_marker, safe_name, write_text)
+from magail_sumo.outputs import OutputError, one_line, printable, safe_name
 from magail_sumo.scene import LaneType, Scene
 from magail_sumo.scene.types import STEP_LENGTH
 
+from .bundle import REPORT_FILE, BundleLayout, bundle_folder
+from .bundle import claim_networks_dir  # noqa: F401 - re-exported: callers import it from here
 from .matching import build_index
 from .network import build_network
 from .pedestrians import check_built, plan_pedestrians
@@ -110,7 +112,7 @@ class ConversionReport:
     #: checks of the recorded data itself: what the reader repaired or inferred
     #: (``Scene.data_quality``: ``dropped_references``, ``inferred_connectivity``, ``notes``)
     #: and ``signals`` (traffic-light sanity,
-    #: :func:`magail_sumo.evaluation.signal_sanity.signal_sanity`)
+    #: :func:`magail_sumo.scene.signal_sanity.signal_sanity`)
     data_quality: dict[str, Any] = field(default_factory=dict)
     converter_version: str = ""  #: :func:`converter_version` of the converter that wrote it
     options_key: str = ""  #: :func:`options_key` of the options it was written with
@@ -130,39 +132,6 @@ class ConversionReport:
         return {k: getattr(self, k) for k in keys}
 
 
-def bundle_folder(out_root: str | Path, scenario_id: str) -> Path:
-    """``out_root/<safe name>``: the bundle folder of a scene (see the module doc)."""
-    return inside(out_root, safe_name(scenario_id))
-
-
-def _legacy_entry(path: Path) -> bool:
-    """What an unmarked networks folder may hold: converted bundles, README and summary.csv."""
-    if path.is_symlink():
-        return False
-    if path.is_dir():
-        return (path / "conversion.json").is_file()
-    return path.name in ("README.md", "summary.csv")
-
-
-def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = ()) -> Path:
-    """Make ``folder`` a networks folder of ``convert`` (bundles ``<name>/``), or
-    :class:`OutputError` when it is not one.
-
-    It may be new, empty, marked by any magail_sumo command
-    (:func:`magail_sumo.outputs.claim_output_dir`), or an unmarked folder that holds converted
-    bundles (folders with ``conversion.json``; at least one) and nothing else but ``README.md``
-    and ``summary.csv``, as the repository ships ``networks/`` and older versions left their
-    output: it is then marked.
-    """
-    d = Path(folder)
-    if d.is_dir() and not d.is_symlink() and read_marker(d) is None:
-        entries = [p for p in d.iterdir() if p.name != MARKER]
-        bundles = [p for p in entries if p.is_dir() and not p.is_symlink()]
-        if bundles and all(_legacy_entry(p) for p in entries):
-            write_text(d / MARKER, json.dumps({"tools": {}}, indent=1))
-    return claim_output_dir(d, "convert", owned)
-
-
 def _check_replaceable(folder: Path, sid: str) -> None:
     """:class:`OutputError` unless ``folder`` is absent, empty or a bundle of scene ``sid``."""
     if not folder.exists() and not folder.is_symlink():
@@ -171,7 +140,7 @@ def _check_replaceable(folder: Path, sid: str) -> None:
         raise OutputError(f"{folder}: exists and is not a bundle folder; not replaced")
     if not any(folder.iterdir()):
         return
-    conv = folder / "conversion.json"
+    conv = folder / REPORT_FILE
     if not conv.is_file():
         raise OutputError(f"{folder}: holds files that are not a converted bundle; not replaced")
     try:
@@ -218,10 +187,12 @@ def write_sumocfg(path: Path, sid: str, additional: list[str], end: float) -> No
     """A configuration that ``sumo -c`` / ``sumo-gui -c`` open as is (relative file names).
 
     :param sid: the file name stem of the bundle's files (the safe name of the scenario id)."""
+    files = BundleLayout(path.parent, sid)
     add = f'    <additional-files value="{",".join(additional)}"/>\n' if additional else ""
     path.write_text(
         "<configuration>\n  <input>\n"
-        f'    <net-file value="{sid}.net.xml"/>\n    <route-files value="{sid}.rou.xml"/>\n{add}'
+        f'    <net-file value="{files.net.name}"/>\n'
+        f'    <route-files value="{files.routes.name}"/>\n{add}'
         "  </input>\n  <time>\n"
         f'    <begin value="0"/>\n    <end value="{end:.1f}"/>\n'
         f'    <step-length value="{STEP_LENGTH}"/>\n'
@@ -261,6 +232,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.reason = f"{printable(sid)}: output: {_one_line(exc)}"
         rep.timings["total"] = 0.0
         return rep
+    files = BundleLayout(out, name)  # the bundle's files, written in the temporary folder
     io_error: OSError | None = None
     stage = "network plan"
     clock = time.perf_counter()
@@ -310,8 +282,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         additional: list[str] = []
         if len(scene.signals) and net.getTrafficLights():
             programs = build_programs(scene, plan, net)
-            write_programs(out / f"{name}.tll.xml", programs, STEP_LENGTH, opts.cycle_signals)
-            additional.append(f"{name}.tll.xml")
+            write_programs(files.signals, programs, STEP_LENGTH, opts.cycle_signals)
+            additional.append(files.signals.name)
             rep.unconverted.extend({"kind": "signal", "id": int(lane),
                                     "reason": "signalled lane is not part of a traffic-light link"}
                                    for lane in programs.unmapped_lanes)
@@ -324,16 +296,16 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         routes, unconverted = build_routes(scene, plan, index_car, index_bike, net)
         rep.unconverted.extend(unconverted)
         end = scene.num_steps * STEP_LENGTH
-        write_routes(out / f"{name}.rou.xml", routes, STEP_LENGTH, end)
-        write_sumocfg(out / f"{name}.sumocfg", name, additional, end)
+        write_routes(files.routes, routes, STEP_LENGTH, end)
+        write_sumocfg(files.sumocfg, name, additional, end)
         lap("routes")
         if opts.opendrive:
             from .opendrive import write_opendrive
 
             stage = "opendrive"
-            write_opendrive(built.net_file, out / f"{name}.xodr", timeout_s=remaining())
+            write_opendrive(built.net_file, files.opendrive, timeout_s=remaining())
             lap("opendrive")
-        rep.files = sorted(p.name for p in out.iterdir() if p.name != "conversion.json")
+        rep.files = sorted(p.name for p in out.iterdir() if p.name != REPORT_FILE)
         stage = "quality"
         seg = lane_segments(net)
         rep.quality = {
@@ -347,13 +319,13 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,
         }
-        from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
+        from magail_sumo.scene.signal_sanity import checked_signal_sanity
 
         rep.data_quality["signals"] = checked_signal_sanity(scene)
         lap("quality")
         if opts.baseline:
             stage = "sumo run"
-            base = run_baseline(scene, str(out / f"{name}.sumocfg"), routes, programs)
+            base = run_baseline(scene, str(files.sumocfg), routes, programs)
             rep.quality["signal_fidelity"] = base.signal_fidelity
             rep.quality["sumo_baseline"] = {"ade": base.ade, "fde": base.fde,
                                             "collisions": base.collisions,
@@ -378,7 +350,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         if io_error is not None:
             raise io_error
         # the folder is renamed into place only when complete: a plain write is atomic enough
-        (out / "conversion.json").write_text(json.dumps(rep.to_dict(), indent=1))
+        files.report.write_text(json.dumps(rep.to_dict(), indent=1))
         _move_into_place(out, final, sid)
     except (OSError, OutputError) as exc:
         shutil.rmtree(out, ignore_errors=True)

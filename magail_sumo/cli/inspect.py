@@ -25,7 +25,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def format_text(summary: dict[str, Any], duration: float) -> str:
-    from magail_sumo.evaluation.signal_sanity import format_signal_sanity
+    from magail_sumo.scene.signal_sanity import format_signal_sanity
 
     tb = summary["tracks_by_type"]
     mf = summary["map_features"]
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         scene = rec.scene
         assert scene is not None
         try:
-            from magail_sumo.evaluation.signal_sanity import checked_signal_sanity
+            from magail_sumo.scene.signal_sanity import checked_signal_sanity
 
             summary = scene.summary()
             summary["signal_sanity"] = checked_signal_sanity(scene)

@@ -60,6 +60,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+class LiveRandomPolicy:
+    """``--policy random``: uniform random actions in [-1, 1]² for the env's live agents, one
+    draw per agent in the env's order (seeded)."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.env = None
+
+    def begin(self, scene, env) -> None:
+        self.env = env
+
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {a: self.rng.uniform(-1, 1, 2).astype(np.float32) for a in self.env.agents}
+
+
 def _write_video_atomic(path: Path, frames: list, fps: int) -> int:
     """:func:`~magail_sumo.env.video.write_video` into a temporary file beside ``path`` (same
     suffix: it picks the format), renamed over ``path`` when complete: a crash or a full disk
@@ -89,18 +104,18 @@ def _write_fcd(env, path: Path, bundle: Path, temporary: bool):
     (``NAME.net.xml``, ``NAME.tll.xml``) so the config outlives it."""
     import shutil
 
-    from magail_sumo.outputs import atomic_path, safe_name
+    from converters.sumo.bundle import BundleLayout
+    from magail_sumo.outputs import atomic_path
     from magail_sumo.sim.fcd import replay_paths, write_replay
 
     if not temporary:
         return env.write_fcd(path)
-    name = safe_name(env.scene.scenario_id)
+    files = BundleLayout.of(bundle, env.scene.scenario_id)
     stem = replay_paths(path)[2].with_suffix("")
     copies = []
-    for suffix in (".net.xml", ".tll.xml"):
-        src = bundle / f"{name}{suffix}"
+    for src in (files.net, files.signals):
         if src.is_file():
-            dst = stem.with_name(stem.name + suffix)
+            dst = stem.with_name(stem.name + src.name[len(files.name):])
             with atomic_path(dst) as tmp:
                 shutil.copyfile(src, tmp)
             copies.append(dst)
@@ -117,8 +132,9 @@ def _umask() -> int:
 
 def run(args: argparse.Namespace) -> int:
     from converters import load_scene
-    from converters.sumo.scenario import ConvertOptions, bundle_folder, convert_scene
-    from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
+    from converters.sumo.bundle import bundle_folder, ensure_bundle
+    from magail_sumo.agents import LogReplayPolicy, rollout
+    from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv
     from magail_sumo.env.video import FORMATS
     from magail_sumo.errors import MagailSumoError
     from magail_sumo.outputs import OutputError, printable
@@ -133,33 +149,28 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.fcd)
     scene = load_scene(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
-        bundle = args.bundle
         shipped = bundle_folder("networks", scene.scenario_id)  # a safe name: never a path
-        if bundle is None and shipped.is_dir():
-            bundle = shipped
-        if bundle is None:
-            rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
-            if rep.status != "ok":
-                raise MagailSumoError(f"{args.scene}: conversion failed: {rep.reason}")
-            bundle = bundle_folder(tmp, scene.scenario_id)
+        bundle = args.bundle or ensure_bundle(scene, tmp, search=["networks"])
         log = args.policy == "log"
         cfg = EnvConfig(terminate_on=() if log else ("collision", "off_road"),
                         limits=REPLAY_LIMITS if log else EnvConfig().limits,
                         render_size=(args.size, args.size))
         env = SumoDrivingEnv(scene, bundle, cfg, render_mode="rgb_array")
-        rng = np.random.default_rng(args.seed)
+        policy = LogReplayPolicy() if log else LiveRandomPolicy(args.seed)
         if args.fcd is not None:
             env.record_fcd()
-        env.reset(seed=args.seed)
-        frames = [env.render()]
-        for _ in progress(range(scene.num_steps - 1), desc="steps", unit="step"):
-            if not env.agents:
-                break
-            acts = expert_actions(env) if log else {
-                a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents}
-            env.step(acts)
+        frames = []
+        bar = progress(range(scene.num_steps - 1), desc="steps", unit="step")
+
+        def frame(*_) -> None:
+            next(bar, None)
             frames.append(env.render())
-        env.close()
+
+        try:
+            rollout(env, policy, frame, seed=args.seed, max_steps=scene.num_steps - 1,
+                    on_reset=lambda *_: frames.append(env.render()))
+        finally:
+            env.close()
         if args.fcd is not None:
             fcd = _write_fcd(env, args.fcd, bundle, temporary=args.bundle is None
                              and bundle != shipped)

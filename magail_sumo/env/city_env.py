@@ -89,6 +89,19 @@ class CityEnvConfig:
     action_layout: str = "accel_steer"
     max_agents: int | None = None
 
+    @classmethod
+    def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
+                 warmup_s: float, max_steps: int) -> "CityEnvConfig":
+        """A city's settings with the observation, limits, event rules (the city's events of
+        ``env.terminate_on``), SUMO seed and action layout of a recorded-scene
+        :class:`~magail_sumo.env.config.EnvConfig` ``env``, so one policy drives both."""
+        return cls(control_fraction=control_fraction, warmup_s=warmup_s, max_steps=max_steps,
+                   terminate_on=tuple(e for e in env.terminate_on if e in CITY_EVENTS),
+                   observation=env.observation, limits=env.limits, lane_width=env.lane_width,
+                   off_road_margin=env.off_road_margin,
+                   destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
+                   action_layout=env.action_layout, max_agents=max_agents)
+
     def __post_init__(self) -> None:
         if self.max_agents is not None and self.max_agents < 1:
             raise ValueError(f"max_agents must be >= 1 or None, got {self.max_agents}")

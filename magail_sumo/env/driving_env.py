@@ -491,12 +491,9 @@ class SumoDrivingEnv(FleetEnv):
         rec = recorder if recorder is not None else self.fcd
         if rec is None:
             raise RuntimeError("nothing recorded: call record_fcd() first")
-        from magail_sumo.outputs import safe_name
-
-        name = safe_name(self.scene.scenario_id)
-        tll = self.bundle.folder / f"{name}.tll.xml"
-        return write_replay(rec, path, self.bundle.folder / f"{name}.net.xml",
-                            [tll] if tll.is_file() else [])
+        files = self.bundle.files
+        return write_replay(rec, path, files.net,
+                            [files.signals] if files.signals.is_file() else [])
 
     def _record_fcd(self) -> None:
         """Add step t's poses of all road users to :attr:`fcd` (agents, SUMO- and

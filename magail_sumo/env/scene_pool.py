@@ -25,8 +25,8 @@ the next one of the order plays instead — and reported once; which records fai
 of the data, so the order stays a pure function of (seed, episode), and exact resume holds.
 
 Bundles are converted on demand, the first time a worker plays a scene, into ``networks/`` and
-reused from then on (:func:`ensure_bundle`; a lock file per bundle keeps two workers from
-converting one scene at once). A worker keeps only its most recent scenes' envs
+reused from then on (:func:`converters.sumo.bundle.ensure_bundle`; a lock file per bundle keeps
+two workers from converting one scene at once). A worker keeps only its most recent scenes' envs
 (``cache`` of them), so memory does not grow with the pool.
 
 Slots: a city scenario needs ``max_agents`` slots; a worker holding one recorded scene sizes
@@ -40,7 +40,6 @@ setting can pick.
 from __future__ import annotations
 
 import glob
-import json
 import os
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -50,8 +49,9 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from converters.scene_files import RecordRef, list_records, read_record
+from converters.sumo.bundle import REPORT_FILE, BundleError, ensure_bundle, read_report
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import one_line, printable, safe_name
+from magail_sumo.outputs import one_line, printable
 
 from .config import EnvConfig
 
@@ -82,9 +82,9 @@ def _is_scene_file(p: Path) -> bool:
 
 def _bundle_sources(folder: Path, skipped: list[PoolSkip]) -> list[RecordRef]:
     refs = []
-    for conv in sorted(folder.glob("*/conversion.json")):
+    for conv in sorted(folder.glob(f"*/{REPORT_FILE}")):
         try:
-            rep = json.loads(conv.read_text())
+            rep = read_report(conv.parent)
             src = rep.get("source") or {}
             if rep.get("status") != "ok":
                 raise ValueError(f"conversion failed: {rep.get('reason', '')}")
@@ -100,7 +100,7 @@ def _bundle_sources(folder: Path, skipped: list[PoolSkip]) -> list[RecordRef]:
             if not path.exists():
                 raise ValueError(f"source scene file {src['file']} not found")
             refs.append(RecordRef(str(path), record))
-        except (OSError, ValueError, AttributeError, UnicodeDecodeError) as exc:
+        except (OSError, ValueError, AttributeError, BundleError) as exc:
             skipped.append(PoolSkip(str(conv.parent), printable(one_line(exc), 300)))
     return refs
 
@@ -124,12 +124,12 @@ def resolve_pool(entries: Iterable[str], skipped: list[PoolSkip] | None = None
                 if p.suffix == ".sumocfg" and p.is_file():  # a plain SUMO (city) scenario
                     out.append(RecordRef(str(p)))
                     continue
-                if p.is_dir() and not (p / "conversion.json").exists() \
+                if p.is_dir() and not (p / REPORT_FILE).exists() \
                         and len(cfgs := sorted(p.glob("*.sumocfg"))) == 1:
                     out.append(RecordRef(str(cfgs[0])))  # a city scenario folder
                     continue
                 if p.is_dir() and not (p / "dataset_summary.pkl").exists():
-                    if any(p.glob("*/conversion.json")):
+                    if any(p.glob(f"*/{REPORT_FILE}")):
                         out.extend(_bundle_sources(p, local))
                         continue
                     files = sorted(f for f in p.iterdir() if _is_scene_file(f))
@@ -209,40 +209,6 @@ def start_problem(scene, config: EnvConfig) -> str | None:
         return (f"{first} leaves no step to take in scene {printable(scene.scenario_id)!r} "
                 f"({scene.num_steps} steps)")
     return None
-
-
-def ensure_bundle(scene, networks: str | Path, source: RecordRef | None = None,
-                  time_budget_s: float | None = 600.0) -> Path:
-    """The converted bundle folder of ``scene`` under ``networks`` (``networks/<name>/``),
-    converting the scene first when it has none (SUMO baseline run skipped, ``time_budget_s``
-    at most). Safe across processes: a lock file per bundle (``networks/.locks/<name>``) lets
-    one converter at a time in; the others then find the bundle. :class:`MagailSumoError`
-    (one line) when the conversion fails."""
-    import fcntl
-
-    from converters.sumo.scenario import ConvertOptions, convert_scene
-
-    networks = Path(networks)
-    name = safe_name(scene.scenario_id)
-    folder = networks / name
-    if (folder / f"{name}.sumocfg").is_file():
-        return folder
-    locks = networks / ".locks"
-    locks.mkdir(parents=True, exist_ok=True)
-    with open(locks / name, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            if (folder / f"{name}.sumocfg").is_file():  # converted by another worker meanwhile
-                return folder
-            rep = convert_scene(scene, networks, ConvertOptions(
-                baseline=False, time_budget_s=time_budget_s),
-                source=None if source is None else (source.path, source.index))
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-    if rep.status != "ok":
-        raise MagailSumoError(f"scene {printable(scene.scenario_id)} could not be converted: "
-                              f"{rep.reason}")
-    return folder
 
 
 class PoolCursor:

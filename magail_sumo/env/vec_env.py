@@ -103,13 +103,10 @@ class SceneSpec:
 
 
 def load_spec_scene(spec: SceneSpec):
-    """The :class:`~magail_sumo.scene.Scene` a spec names."""
-    from converters import iter_scenes
+    """The :class:`~magail_sumo.scene.Scene` a spec names (:func:`converters.find_scene`)."""
+    from converters import find_scene
 
-    for scene in iter_scenes(spec.scene_file):
-        if spec.scenario_id is None or scene.scenario_id == spec.scenario_id:
-            return scene
-    raise VecEnvWorkerError(f"{spec.scene_file}: no scene {spec.scenario_id}")
+    return find_scene(spec.scene_file, spec.scenario_id)
 
 
 def episode_rng(seed: int, episode: int) -> np.random.Generator:
@@ -691,14 +688,16 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
     (``networks/<name>/``, ``name`` = :func:`magail_sumo.outputs.safe_name` of the scenario
     id), converting the scenes that have none yet (baseline run skipped, ``time_budget_s``
     seconds each at most) into ``networks`` once it is claimed
-    (:func:`converters.sumo.scenario.claim_networks_dir`). Two scenes whose ids map to one name
+    (:func:`converters.sumo.bundle.ensure_bundle`). Two scenes whose ids map to one name
     are refused (:class:`~magail_sumo.outputs.OutputError`).
 
     :param errors: when given, a scene (or file) that cannot be used is appended here as a
         one-line reason and left out, instead of raising :class:`MagailSumoError`.
     """
     from converters import iter_scenes
-    from magail_sumo.outputs import NameRegistry, inside, printable
+    from converters.scene_files import RecordRef
+    from converters.sumo.bundle import bundle_folder, complete_bundle, ensure_bundle
+    from magail_sumo.outputs import NameRegistry, printable
 
     networks = Path(networks)
     names = NameRegistry()
@@ -713,19 +712,17 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
         try:
             for index, scene in enumerate(iter_scenes(f)):
                 sid = scene.scenario_id
-                folder = inside(networks, names.name(sid))
-                if not (folder / f"{folder.name}.sumocfg").is_file():
-                    if not convert_missing:
-                        fail(f"{folder}: no converted bundle for scene {printable(sid)}")
+                names.name(sid)  # two ids of one name: refused
+                if not convert_missing:
+                    folder = complete_bundle(networks, sid)
+                    if folder is None:
+                        fail(f"{bundle_folder(networks, sid)}: no converted bundle for scene "
+                             f"{printable(sid)}")
                         continue
-                    from converters.scene_files import RecordRef
-                    from converters.sumo.scenario import claim_networks_dir
-
-                    from .scene_pool import ensure_bundle
-
-                    claim_networks_dir(networks)
+                else:
                     try:
-                        ensure_bundle(scene, networks, RecordRef(str(f), index), time_budget_s)
+                        folder = ensure_bundle(scene, networks, RecordRef(str(f), index),
+                                               time_budget_s, claim=True)
                     except MagailSumoError as exc:
                         fail(f"{f}: {exc}")
                         continue

@@ -167,13 +167,14 @@ def check_policy(spec: str, deterministic: bool = False) -> None:
 def run_policy(job: PolicyJob) -> PolicyRun:
     """Worker entry point (module level, picklable): the policy drives the city for the
     window (module doc); SUMO writes its outputs into ``job.out_dir``."""
-    from magail_sumo.env.city_env import SumoCityEnv
+    from magail_sumo.agents import rollout
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
     from magail_sumo.env.config import EnvConfig
-    from magail_sumo.training.config import CityConfig
 
     st = job.settings
-    cfg = CityConfig(max_agents=st.max_agents, control_fraction=st.control_fraction,
-                     warmup_s=st.warmup_s, max_steps=st.steps).env_config(EnvConfig())
+    cfg = CityEnvConfig.from_env(EnvConfig(), max_agents=st.max_agents,
+                                 control_fraction=st.control_fraction, warmup_s=st.warmup_s,
+                                 max_steps=st.steps)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
     policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic)
     state = env.warm_state()
@@ -183,21 +184,24 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     agent_steps = 0
     ends = dict.fromkeys(EVENTS, 0)
     completed: list[str] = []
-    try:
-        obs, _ = env.reset(seed=st.seed)
-        begin = round(float(env.sumo_time) - env.dt, 3)  # the reset made one step
-        while env.t < st.steps:
-            live = list(env.agents)
-            seen.update(live)
-            agent_steps += len(live)
-            actions = policy.act({a: obs[a] for a in live}) if live else {}
-            obs, _, terms, _, infos = env.step(actions)
-            for a, done in terms.items():
-                reason = infos[a].get("reason")
-                if done and reason in ends:
-                    ends[reason] += 1
-                    if reason == "destination":
-                        completed.append(a)
+    began: list[float] = []
+
+    def count(step) -> None:
+        nonlocal agent_steps
+        seen.update(step.agents)
+        agent_steps += len(step.agents)
+        for a, done in step.terminations.items():
+            reason = step.infos[a].get("reason")
+            if done and reason in ends:
+                ends[reason] += 1
+                if reason == "destination":
+                    completed.append(a)
+
+    try:  # the reset makes one SUMO step: the window begins a step before its time
+        rollout(env, policy, count, seed=st.seed, max_steps=st.steps, until_empty=False,
+                live_only=True,
+                on_reset=lambda *_: began.append(round(float(env.sumo_time) - env.dt, 3)))
+        begin = began[0]
         end = round(float(env.sumo_time), 3)
         counts = dict(env.action_counts)
     finally:

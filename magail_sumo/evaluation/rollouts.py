@@ -6,26 +6,15 @@ sim-agent set). Methods:
 
 * ``logreplay``: the recorded future (stored states, invalid ones included).
 * ``constvel``: constant velocity from the recorded state at the current step (heading held).
-* ``sumo``: SUMO's default car-following (Krauss) drives the converted routes. Route vehicles
-  are placed at their recorded pose and speed at the current step, then released (parked
-  vehicles, which SUMO holds on its own parking position, keep their recorded pose); each vehicle
-  gets a speed factor ~ N(1, 0.1) (clipped to [0.8, 1.2]) drawn from the rollout seed, which
-  also seeds SUMO (driver imperfection ``sigma``), so rollouts differ. Every other sim agent
-  (pedestrians, objects SUMO does not carry, parked vehicles, route vehicles that depart later
-  or whose insertion SUMO refused) moves at constant velocity and is an obstacle in SUMO
-  (:class:`~magail_sumo.sim.session.Obstacles`) that SUMO's drivers brake for; a route vehicle
-  departing later leaves its obstacle when SUMO inserts it. A route vehicle that reaches the
-  last edge of its route (its log ended there, or SUMO drove it faster than the human) keeps
-  driving: its route is extended, edge by edge, by the straightest connection from its lane
-  (:func:`_continue_routes`); at a dead end inside the mapped area (a driveway or parking aisle
-  without a lane) it stops at the lane's end, and only one that reaches the edge of the map
-  leaves SUMO and goes on at constant velocity as an obstacle. A route vehicle due at the
-  current step or whose insertion SUMO put off (no room at its departure) is inserted at its
-  recorded pose at the current step when its route passes within :data:`QUEUED_MATCH` m, else
-  it is taken out of SUMO and an obstacle.
-* a policy (``random``, or a checkpoint / ``module:factory`` spec, see :func:`make_policy`):
-  drives every route vehicle and cyclist through :class:`~magail_sumo.env.SumoDrivingEnv`
-  (bicycle model, SUMO co-simulation, no event terminates an agent). Each rollout builds its
+* ``sumo``: SUMO's default car-following (Krauss) drives the converted routes from every route
+  vehicle's recorded pose and speed at the current step, each with a seeded speed factor; every
+  other sim agent moves at constant velocity and is an obstacle SUMO's drivers brake for
+  (:mod:`magail_sumo.agents.sumo_baseline` has the details).
+* a policy (``random``, or a checkpoint / ``module:factory`` spec, see
+  :func:`magail_sumo.agents.make_policy`): drives every route vehicle and cyclist through
+  :class:`~magail_sumo.env.SumoDrivingEnv` (bicycle model, SUMO co-simulation, no event
+  terminates an agent; :func:`magail_sumo.agents.rollout`), built with the policy's
+  ``observation`` and ``action_layout`` when it names them. Each rollout builds its
   policy with the rollout seed; a training checkpoint samples its actions from that seed
   (``deterministic=True``: the tanh of the Gaussian mean, the same in every rollout).
 
@@ -41,182 +30,44 @@ simulation per process and has crashed when a second one starts after vehicle re
 
 from __future__ import annotations
 
-import importlib
-import inspect
 import json
 import math
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Collection, Iterable, Iterator, Protocol
+from typing import Iterable, Iterator
 
 import numpy as np
 
+# policies live in magail_sumo.agents; names kept importable from here for the city evaluation,
+# the report, benchmarks and tests
+from magail_sumo.agents import (BASELINES, BUILTIN_POLICIES, POLICY_LOADERS, Policy,
+                                PolicyError, RandomPolicy, make_policy, method_name, rollout)
+from magail_sumo.agents import constant_velocity as _cv
+from magail_sumo.agents.constant_velocity import Track as _Track
+from magail_sumo.agents.constant_velocity import current_state as _current_state
+from magail_sumo.agents.constant_velocity import fill_constant_velocity
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
 from magail_sumo.outputs import (NameRegistry, OutputError, atomic_path, claim_output_dir, inside,
                                  one_line, printable, safe_name, write_text)
 from magail_sumo.scene import Scene
 from magail_sumo.scene.types import STEP_LENGTH
-from magail_sumo.sim.dynamics import ACTION_SIZE, wrap_angle
+from magail_sumo.sim.dynamics import wrap_angle
 
 N_STEPS = 80  #: simulated steps per rollout (8 s)
 DT = STEP_LENGTH  #: s per step
-BASELINES = ("logreplay", "constvel", "sumo")
-BUILTIN_POLICIES = ("random",)
 SUMO_METHODS = ("sumo",)  #: baselines that need SUMO (worker processes)
 COLUMNS = ("scenario_id", "method", "rollout", "object_id", "step", "x", "y", "z", "heading",
            "valid")
-SPEED_FACTOR_SD = 0.1
-#: m, a route vehicle whose insertion SUMO put off is inserted at its recorded pose at the current
-#: step when its route passes this close (else it is an obstacle)
-QUEUED_MATCH = 5.0
 
 
 class EvaluationError(MagailSumoError):
     """A rollout or evaluation input cannot be used (one line naming the scene / agent)."""
 
 
-# ---------------------------------------------------------------------------------- policies
-class Policy(Protocol):
-    """What a policy under test provides: normalised ``[accel, steer]`` actions in [-1, 1]² per
-    agent from the env's observations (agents named by their WOMD track id).
-
-    Optional extension: a policy with a ``begin(scene, env)`` method is told the scene and the
-    :class:`~magail_sumo.env.SumoDrivingEnv` of each rollout right after the env's reset, before
-    its first ``act``; during ``act`` it may read the env (``env.t``, ``env.agent_states()`` for
-    the live agents' simulated states, ``env.scene`` for the recorded ones of the others) but
-    must not step or reset it. Policies without it are driven exactly as before."""
-
-    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
-
-
-class RandomPolicy:
-    """Uniform random actions in [-1, 1]², seeded (agents served in sorted-name order)."""
-
-    def __init__(self, seed: int) -> None:
-        self.rng = np.random.default_rng(seed)
-
-    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        names = sorted(observations)
-        a = self.rng.uniform(-1.0, 1.0, (len(names), ACTION_SIZE)).astype(np.float32)
-        return dict(zip(names, a))
-
-
-#: Checkpoint loaders by file suffix (e.g. ``".pt"``): ``loader(path, seed) -> Policy``; a
-#: loader with a ``deterministic`` keyword also gets evaluation's choice (sample the policy with
-#: ``seed``, or act deterministically). The training package registers its own;
-#: ``module:factory`` specs work without registering.
-POLICY_LOADERS: dict[str, Callable[..., Policy]] = {}
-
-
-def _training_checkpoint(path: Path, seed: int, deterministic: bool = False) -> Policy:
-    """``magail-sumo train`` checkpoints (imported lazily: torch / SB3 only when used)."""
-    from magail_sumo.training.policy_loader import load_checkpoint_policy
-
-    return load_checkpoint_policy(path, seed, deterministic=deterministic)
-
-
-POLICY_LOADERS[".pt"] = _training_checkpoint
-
-
-def _takes_deterministic(loader: Callable) -> bool:
-    """Whether ``loader`` accepts a ``deterministic`` keyword."""
-    try:
-        params = inspect.signature(loader).parameters.values()
-    except (TypeError, ValueError):  # no signature to read (a builtin)
-        return False
-    return any(p.name == "deterministic" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
-               or p.kind == p.VAR_KEYWORD for p in params)
-
-
-def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
-    """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
-    shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
-    another registry folder), a checkpoint file with a registered loader, or
-    ``package.module:factory`` (``factory(seed) -> Policy``).
-
-    :param seed: the policy's seed (evaluation passes :func:`rollout_seed`).
-    :param deterministic: passed to a checkpoint loader that takes it (a training checkpoint
-        then acts with the tanh of its Gaussian mean instead of sampling); ``random`` and
-        factories ignore it."""
-    if spec == "random":
-        return RandomPolicy(seed)
-    from magail_sumo.pretrained import is_pretrained_spec, resolve
-
-    if is_pretrained_spec(spec):
-        entry = resolve(spec)
-        loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
-        if loader is None:  # only if a caller unregistered ".pt"
-            raise EvaluationError(f"{spec}: no policy loader for '.pt' checkpoints")
-        return _checkpoint_policy(spec, loader, entry.checkpoint, seed, deterministic)
-    path = Path(spec)
-    if path.is_file():
-        loader = POLICY_LOADERS.get(path.suffix)
-        if loader is None:
-            raise EvaluationError(f"{spec}: no policy loader for '{path.suffix}' checkpoints "
-                                  "(register one in magail_sumo.evaluation.rollouts.POLICY_LOADERS)")
-        return _checkpoint_policy(spec, loader, path, seed, deterministic)
-    if ":" in spec:
-        mod, _, attr = spec.partition(":")
-        try:
-            factory = getattr(importlib.import_module(mod), attr)
-        except Exception as exc:  # noqa: BLE001 - any import failure of a user module
-            raise EvaluationError(f"{spec}: cannot import policy factory "
-                                  f"({type(exc).__name__}: {_line(exc)})") from None
-        return _built(spec, factory, seed)
-    raise EvaluationError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
-                          "pretrained[:NAME], a checkpoint file or a module:factory spec")
-
-
-def _checkpoint_policy(spec: str, loader: Callable, path: Path, seed: int,
-                       deterministic: bool) -> Policy:
-    if _takes_deterministic(loader):
-        return _built(spec, lambda p, s: loader(p, s, deterministic=deterministic), path, seed)
-    return _built(spec, loader, path, seed)
-
-
 def _line(exc: BaseException) -> str:
     return one_line(exc)
-
-
-def _built(spec: str, factory: Callable, *args) -> Policy:
-    """``factory(*args)``; any exception becomes one :class:`EvaluationError` naming ``spec``."""
-    try:
-        policy = factory(*args)
-    except MagailSumoError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - a user factory / loader may raise anything
-        raise EvaluationError(f"policy {spec}: could not be created: "
-                              f"{type(exc).__name__}: {_line(exc)}") from None
-    if not callable(getattr(policy, "act", None)):
-        raise EvaluationError(f"policy {spec}: the factory returned {type(policy).__name__}, "
-                              "which has no act(observations) method")
-    return policy
-
-
-def method_name(spec: str) -> str:
-    """Name a method is stored under (``evaluate --name`` overrides it): the spec itself for
-    built-ins; for a checkpoint in a run's ``checkpoints/`` folder the run folder's name
-    (``runs/magail/checkpoints/latest.pt`` -> ``magail``; another file there -> ``magail-<stem>``,
-    e.g. ``magail-update_000020``); another file's stem; a factory's name; for
-    ``pretrained:NAME`` the registry name ``NAME`` (``pretrained``: the default's name)."""
-    if spec in BASELINES + BUILTIN_POLICIES:
-        return spec
-    from magail_sumo.pretrained import PretrainedError, is_pretrained_spec, name_of
-
-    if is_pretrained_spec(spec):
-        try:
-            return name_of(spec)
-        except PretrainedError:
-            return spec.replace(":", "-")
-    p = Path(spec)
-    if p.is_file():
-        run = p.resolve().parent
-        if run.name == "checkpoints" and run.parent.name:
-            return run.parent.name if p.stem == "latest" else f"{run.parent.name}-{p.stem}"
-        return p.stem
-    return spec.rpartition(":")[2] or spec
 
 
 def rollout_seed(seed: int, rollout: int) -> int:
@@ -225,56 +76,10 @@ def rollout_seed(seed: int, rollout: int) -> int:
 
 
 # ------------------------------------------------------------------------- trajectory models
-@dataclass
-class _Track:
-    """Simulated states of the A sim agents over the T simulated steps, NaN where unknown."""
-
-    x: np.ndarray
-    y: np.ndarray
-    yaw: np.ndarray
-    speed: np.ndarray
-
-    @classmethod
-    def empty(cls, a: int, t: int = N_STEPS) -> "_Track":
-        return cls(*(np.full((a, t), np.nan) for _ in range(4)))
-
-
-def _current_state(scene: Scene, ids: np.ndarray) -> tuple[np.ndarray, ...]:
-    tr = scene.tracks
-    row_of = {int(i): k for k, i in enumerate(tr.id.tolist())}
-    rows = np.array([row_of[int(i)] for i in ids], np.int64)
-    c = scene.current_time_index
-    return (rows, tr.x[rows, c], tr.y[rows, c], tr.z[rows, c],
-            tr.heading[rows, c].astype(np.float64), tr.vx[rows, c].astype(np.float64),
-            tr.vy[rows, c].astype(np.float64))
-
-
-def fill_constant_velocity(scene: Scene, ids: np.ndarray, track: _Track
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Complete ``track``: unknown steps continue the last known state at constant velocity
-    (speed along the heading); before any known state, the recorded state at the current
-    step (its velocity vector) is extrapolated. Returns (x, y, yaw), each (A, T)."""
-    _, x0, y0, _, h0, vx0, vy0 = _current_state(scene, ids)
-    a, t = track.x.shape
-    have = np.isfinite(track.x) & np.isfinite(track.y)
-    steps = np.arange(t)
-    last = np.maximum.accumulate(np.where(have, steps, -1), axis=1)  # (A, T)
-    seen = last >= 0
-    li = np.maximum(last, 0)
-    take = lambda arr: np.take_along_axis(arr, li, 1)  # noqa: E731
-    bx = np.where(seen, take(track.x), x0[:, None])
-    by = np.where(seen, take(track.y), y0[:, None])
-    byaw = np.where(seen, take(track.yaw), h0[:, None])
-    sp = np.nan_to_num(take(track.speed))
-    vx = np.where(seen, sp * np.cos(byaw), vx0[:, None])
-    vy = np.where(seen, sp * np.sin(byaw), vy0[:, None])
-    gap = (steps[None] - np.where(seen, last, -1)) * DT  # s since the base state
-    return bx + vx * gap, by + vy * gap, byaw
-
-
 def constant_velocity(scene: Scene, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(x, y, yaw) (A, T): recorded state at the current step moved at its velocity."""
-    return fill_constant_velocity(scene, ids, _Track.empty(len(ids)))
+    """(x, y, yaw) (A, :data:`N_STEPS`): recorded state at the current step moved at its
+    velocity (:func:`magail_sumo.agents.constant_velocity.constant_velocity`)."""
+    return _cv.constant_velocity(scene, ids, N_STEPS)
 
 
 def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
@@ -286,266 +91,40 @@ def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
     return ScenarioRollouts(scene.scenario_id, ids.astype(np.int64), x, y, z, yaw)
 
 
-# ------------------------------------------------------------------------------ SUMO rollouts
-def _departures(folder: Path, sumocfg: Path) -> dict[str, int]:
-    """Departure step of every vehicle of a bundle's route file."""
-    import xml.etree.ElementTree as ET
-
-    root = ET.parse(Path(folder) / sumocfg.name.replace(".sumocfg", ".rou.xml")).getroot()
-    return {v.get("id", ""): int(round(float(v.get("depart", "0")) / DT))
-            for v in root.iter("vehicle")}
-
-
-#: link directions (SUMO ``lane.getLinks``) in the order a continued route prefers them;
-#: turnarounds ("t") are never taken
-_CONTINUE_ORDER = {"s": 0, "R": 1, "L": 1, "r": 2, "l": 2}
-
-
-#: m, a dead end (a lane without successor) has mapped road ahead when lane, road-line or
-#: road-edge points lie between these distances ahead of the lane's end...
-DEAD_END_AHEAD = (2.0, 30.0)
-#: m, ...and within this distance to either side of its direction
-DEAD_END_HALF_WIDTH = 8.0
-
-
-def map_points(scene: Scene) -> np.ndarray:
-    """(P, 2) points of every lane, road line and road edge of the scene's map (scene frame)."""
-    m = scene.roadmap
-    parts = [f.polyline[:, :2] for feats in (m.lanes, m.road_lines, m.road_edges) for f in feats]
-    return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 2))
-
-
-def _mapped_ahead(shape: np.ndarray, points: np.ndarray) -> bool:
-    """Whether ``points`` (P, 2) hold mapped road ahead of the end of a lane of centre line
-    ``shape`` (K, 2): :data:`DEAD_END_AHEAD` along its last segment, within
-    :data:`DEAD_END_HALF_WIDTH` to the side."""
-    d = shape[-1] - shape[-2]
-    n = float(np.hypot(*d))
-    if n < 1e-6 or not len(points):
-        return False
-    ux, uy = d / n
-    rx, ry = (points - shape[-1]).T
-    ahead, side = rx * ux + ry * uy, np.abs(ry * ux - rx * uy)
-    lo, hi = DEAD_END_AHEAD
-    return bool(np.any((ahead > lo) & (ahead < hi) & (side < DEAD_END_HALF_WIDTH)))
-
-
-#: m of lanes a continued route is extended by at a time (more than one step's drive: SUMO
-#: would otherwise cross a short added edge and arrive within one step)
-CONTINUE_AHEAD = 50.0
-
-
-def _continue_routes(ls, vehicles, ends: dict[str, str], keep: Collection[str] = (),
-                     points: np.ndarray | None = None) -> None:
-    """Extend the route of every vehicle now on the last edge of its route: edge after edge,
-    the successor reached from the lane by the straightest link (:data:`_CONTINUE_ORDER`, then
-    the shorter link), until :data:`CONTINUE_AHEAD` m are added or a dead end is reached.
-    ``ends`` maps a vehicle to the last edge of its route (filled on first sight, updated when
-    extended, "" once it ends for good); vehicles in ``keep`` (parked ones, held at their
-    parking stop) keep their routes.
-
-    A lane without a successor (a turnaround aside) is a dead end: where the scene's map goes on
-    ahead of it (``points``, :func:`map_points`; :func:`_mapped_ahead`) — the end of a driveway
-    or parking aisle the map has no lane for — the vehicle stops at the lane's end and stays
-    there (as the humans who drive there park); at the edge of the map it leaves SUMO at the
-    lane's end."""
-    for vid, edge in zip(vehicles.ids, vehicles.edge):
-        if vid in keep:
-            continue
-        last = ends.get(vid)
-        if last is None:
-            last = ends[vid] = ls.vehicle.getRoute(vid)[-1]
-        if edge != last or not last:
-            continue
-        lane, added, chain, dead_end = ls.vehicle.getLaneID(vid), 0.0, [edge], False
-        while added < CONTINUE_AHEAD:
-            links = [ln for ln in ls.lane.getLinks(lane) if ln[6] in _CONTINUE_ORDER]
-            if not links:
-                dead_end = True  # ``lane`` (on ``chain[-1]``) goes nowhere
-                break
-            nxt = min(links, key=lambda ln: (_CONTINUE_ORDER[ln[6]], ln[7]))[0]
-            if ls.lane.getEdgeID(nxt) in chain:  # a loop
-                break
-            lane = nxt
-            chain.append(ls.lane.getEdgeID(lane))
-            added += ls.lane.getLength(lane)
-        ends[vid] = chain[-1] if added >= CONTINUE_AHEAD else ""
-        try:
-            if len(chain) > 1:
-                ls.vehicle.setRoute(vid, chain)
-            if dead_end and points is not None and _mapped_ahead(
-                    np.asarray(ls.lane.getShape(lane)), points):
-                ls.vehicle.setStop(vid, chain[-1], max(0.0, ls.lane.getLength(lane) - 0.1),
-                                   int(lane.rsplit("_", 1)[1]), duration=1e6)
-        except Exception:  # SUMO refused (the class may not use the edge; too close to brake)
-            ends[vid] = ""
-
-
-def _drop(ls, ids, routed: set[str]) -> None:
-    """Take route vehicles that have not departed out of SUMO's insertion queue."""
-    for i in ids:
-        if str(int(i)) in routed:
-            try:
-                ls.vehicle.remove(str(int(i)))
-            except Exception:  # never loaded or already gone
-                pass
-
-
-def _sumo_rollout(scene: Scene, bundle_dir: Path, seed: int) -> tuple[np.ndarray, ...]:
-    """One rollout of SUMO's own car-following (see module doc); (x, y, yaw) (A, T)."""
-    import libsumo as ls
-
-    from magail_sumo.env.bundle import SceneBundle
-    from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
-    from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
-
-    bundle = SceneBundle.load(scene, bundle_dir)
-    ids = sim_agent_ids(scene)
-    col = {str(int(i)): k for k, i in enumerate(ids)}
-    rows, x0, y0, _, h0, vx0, vy0 = _current_state(scene, ids)
-    length = scene.tracks.length[rows, scene.current_time_index].astype(np.float64)
-    width = scene.tracks.width[rows, scene.current_time_index].astype(np.float64)
-    cur = scene.current_time_index
-    rng = np.random.default_rng(seed)
-    track = _Track.empty(len(ids))
-    held: list[str] = []
-    routed = set(bundle.sumo_ids)
-    departs = _departures(bundle.folder, bundle.sumocfg)
-    due: set[str] = set()
-    later: set[str] = set()
-    gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO
-    ends: dict[str, str] = {}  # driven vehicle -> last edge of its (continued) route
-    points = map_points(scene)
-    obstacles: Obstacles | None = None
-    obs = np.zeros(0, np.int64)
-    ox, oy, oyaw = constant_velocity(scene, ids)  # the future of every agent SUMO does not drive
-    with SumoSession(bundle.sumocfg, config=SessionConfig(seed=seed)) as sess:
-        for k in range(cur + 1 + N_STEPS):  # after k + 1 steps SUMO shows log step k
-            if k == cur:  # start the future from the recorded state: pose and speed
-                present = set(ls.vehicle.getIDList())
-                # route vehicles whose insertion SUMO has put off (no room at their departure)
-                # are inserted at their recorded pose on their route, when it is that close
-                queued = {vid for vid in col if vid in routed and vid not in present
-                          and vid not in bundle.parked and departs.get(vid, cur) <= cur}
-                for vid in sorted(present | queued):
-                    a = col.get(vid)
-                    if a is None or vid in bundle.parked:
-                        continue
-                    fx, fy = centre_to_front(x0[a:a + 1], y0[a:a + 1], h0[a:a + 1],
-                                             length[a:a + 1])
-                    try:
-                        ls.vehicle.moveToXY(vid, "", -1, float(fx[0]), float(fy[0]),
-                                            float(yaw_to_sumo_angle(h0[a:a + 1])[0]), 1,
-                                            100.0 if vid in present else QUEUED_MATCH)
-                        ls.vehicle.setSpeed(vid, float(np.hypot(vx0[a], vy0[a])))
-                        held.append(vid)
-                        present.add(vid)
-                    except Exception:  # off its route: SUMO keeps its own state
-                        pass
-                # every other agent becomes an obstacle SUMO's drivers see: pedestrians,
-                # objects SUMO does not carry, parked vehicles (off the lanes in SUMO) and route
-                # vehicles not in SUMO yet (those departing later drop theirs when they depart)
-                due = {vid for vid in col if departs.get(vid, -1) == cur}  # inserted this step
-                later = {vid for vid in col if departs.get(vid, -1) > cur}
-                driven = (present | due) - bundle.parked
-                obs = np.array([a for vid, a in col.items() if vid not in driven], np.int64)
-                _drop(ls, [ids[a] for a in obs], routed - present - later)
-                obstacles = Obstacles(sess, [str(int(ids[a])) for a in obs], length[obs],
-                                      width[obs], kinds=scene.tracks.type[rows[obs]])
-            elif k == cur + 1 and obstacles is not None:  # insertions SUMO refused at the current step
-                now = set(ls.vehicle.getIDList())
-                late = np.array([col[vid] for vid in sorted(due - now - bundle.parked)], np.int64)
-                if len(late):
-                    _drop(ls, [ids[a] for a in late], routed - now)
-                    obstacles.add([str(int(ids[a])) for a in late], length[late], width[late])
-                    obs = np.r_[obs, late]
-            if obstacles is not None and k >= cur:
-                t = k - cur - 1  # column of log step k (-1: the current step)
-                if t < 0:
-                    obstacles.place(x0[obs], y0[obs], h0[obs])
-                else:
-                    px, py, pyaw = ox[obs, t], oy[obs, t], oyaw[obs, t]
-                    for j in np.flatnonzero(np.isin(obs, list(gone))).tolist():
-                        a, t0 = int(obs[j]), gone[int(obs[j])]  # on from its last SUMO state
-                        d = track.speed[a, t0] * (t - t0) * DT
-                        px[j] = track.x[a, t0] + d * np.cos(track.yaw[a, t0])
-                        py[j] = track.y[a, t0] + d * np.sin(track.yaw[a, t0])
-                        pyaw[j] = track.yaw[a, t0]
-                    obstacles.place(px, py, pyaw)
-            if k == cur + 1:
-                for vid in held:
-                    try:
-                        ls.vehicle.setSpeed(vid, -1.0)
-                    except Exception:
-                        pass
-            departed, arrived = sess.step()
-            if obstacles is not None and later.intersection(departed):
-                obstacles.retire(later.intersection(departed))
-            # an agent leaving SUMO (its route ends) goes on at constant velocity: an obstacle
-            left = [col[vid] for vid in arrived if vid in col and vid not in bundle.parked]
-            if obstacles is not None and k > cur + 1 and left:
-                t0 = k - cur - 2  # column of its last state in SUMO
-                left = [a for a in left if np.isfinite(track.x[a, t0]) and a not in gone]
-                if left:
-                    gone.update({a: t0 for a in left})
-                    obstacles.add([str(int(ids[a])) for a in left], length[left], width[left])
-                    obs = np.r_[obs, np.array(left, np.int64)]
-            for vid in departed:
-                if not vid.startswith(OBSTACLE_PREFIX):
-                    f = float(np.clip(rng.normal(1.0, SPEED_FACTOR_SD), 0.8, 1.2))
-                    ls.vehicle.setSpeedFactor(vid, f)
-            if k > cur:
-                v = sess.vehicles()
-                _continue_routes(ls, v, ends, bundle.parked, points)
-                t = k - cur - 1
-                sel = [(i, col[vid]) for i, vid in enumerate(v.ids)
-                       if vid in col and vid not in bundle.parked]
-                if sel:
-                    i, a = (np.array(s) for s in zip(*sel))
-                    track.x[a, t], track.y[a, t] = v.x[i], v.y[i]
-                    track.yaw[a, t], track.speed[a, t] = v.yaw[i], v.speed[i]
-    return fill_constant_velocity(scene, ids, track)
-
-
+# ---------------------------------------------------------------------------- policy rollouts
 def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
                     counts: dict[str, int] | None = None) -> tuple[np.ndarray, ...]:
     """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv (with the
-    policy's ``observation`` config when it has one, e.g. a SAC policy's route command).
+    policy's ``observation`` config and ``action_layout`` when it has them, e.g. a SAC
+    policy's route command), by :func:`magail_sumo.agents.rollout`. Each agent's simulated
+    state at a step is the one the env reports after it (``infos[agent]["state"]``).
 
     :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
         actions) are added to it."""
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
-    from magail_sumo.sim import dynamics
 
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     cur = scene.current_time_index
-    extra = {"observation": policy.observation} if hasattr(policy, "observation") else {}
+    extra = {k: getattr(policy, k) for k in ("observation", "action_layout")
+             if hasattr(policy, k)}
     env = SumoDrivingEnv(scene, bundle_dir, EnvConfig(
         controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=(), **extra))
-    track = _Track.empty(len(ids))
+    track = _Track.empty(len(ids), N_STEPS)
+
+    def keep(step) -> None:
+        t = step.t - cur  # column of log step step.t + 1
+        if not 0 <= t < N_STEPS:
+            return
+        sel = [(col[n], step.infos[n]["state"]) for n in step.agents if n in col]
+        if sel:
+            a = np.array([s[0] for s in sel])
+            state = np.array([s[1] for s in sel], np.float64)  # (n, 4): x, y, yaw, speed
+            track.x[a, t], track.y[a, t] = state[:, 0], state[:, 1]
+            track.yaw[a, t], track.speed[a, t] = state[:, 2], state[:, 3]
+
     try:
-        obs, _ = env.reset(seed=seed)
-        begin = getattr(policy, "begin", None)
-        if callable(begin):  # optional extension (see Policy)
-            begin(scene, env)
-        while env.agents and env.t < cur + N_STEPS:
-            st = env.agent_states()
-            actions = policy.act(obs)
-            none = (np.nan,) * ACTION_SIZE
-            raw = np.stack([np.asarray(actions.get(n, none), np.float64).reshape(ACTION_SIZE)
-                            for n in st.names])
-            clean = np.clip(np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
-            accel, steer = dynamics.denormalise(clean, env.config.limits)
-            nxt = dynamics.step(st.state, accel, steer, st.wheelbase, env.dt, env.config.limits)
-            t = env.t - cur  # column of log step env.t + 1
-            obs, *_ = env.step(actions)
-            if 0 <= t < N_STEPS:
-                sel = [(i, col[n]) for i, n in enumerate(st.names) if n in col]
-                if sel:
-                    i, a = (np.array(s) for s in zip(*sel))
-                    track.x[a, t], track.y[a, t] = nxt.x[i], nxt.y[i]
-                    track.yaw[a, t], track.speed[a, t] = nxt.yaw[i], nxt.speed[i]
+        rollout(env, policy, keep, seed=seed, max_steps=N_STEPS, scene=scene)
         if counts is not None:
             for k, v in env.action_counts.items():
                 counts[k] = counts.get(k, 0) + v
@@ -585,7 +164,9 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
             raise EvaluationError(f"scenario {printable(scene.scenario_id)}: method {method} "
                                   "needs a converted SUMO bundle")
         elif method == "sumo":
-            x, y, yaw = _sumo_rollout(scene, Path(bundle_dir), s)
+            from magail_sumo.agents.sumo_baseline import sumo_rollout
+
+            x, y, yaw = sumo_rollout(scene, Path(bundle_dir), s, ids, N_STEPS)
         else:
             x, y, yaw = _policy_rollout(scene, Path(bundle_dir),
                                         make_policy(method, s, deterministic), s, counts)
@@ -622,12 +203,9 @@ class Batch:
 
 
 def _load(scene_file: str, scenario_id: str) -> Scene:
-    from converters import iter_scenes
+    from converters.scene_files import find_scene
 
-    for scene in iter_scenes(scene_file):
-        if scene.scenario_id == scenario_id:
-            return scene
-    raise EvaluationError(f"{scene_file}: scenario {printable(scenario_id)} not found")
+    return find_scene(scene_file, scenario_id)
 
 
 def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
@@ -759,9 +337,10 @@ def write_rollout_fcd(out: str | Path, scene: Scene, ro: ScenarioRollouts, metho
         v = np.where(tr.valid[rows], getattr(tr, name)[rows], np.nan)
         size[name] = np.nan_to_num(np.nanmedian(v, axis=1), nan=1.0)  # valid at current
     shape = [SHAPES.get(int(t), "passenger") for t in tr.type[rows]]
-    name = safe_name(scene.scenario_id)
-    net = bundle / f"{name}.net.xml"
-    tll = bundle / f"{name}.tll.xml"
+    from converters.sumo.bundle import BundleLayout
+
+    files = BundleLayout.of(bundle, scene.scenario_id)
+    name, net, tll = files.name, files.net, files.signals
     times = np.arange(cur + 1 + t_n) * DT
     written = []
     for r in range(min(rollouts, r_n)):
@@ -890,7 +469,7 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-__all__ = ["BASELINES", "Batch", "EvaluationError", "POLICY_LOADERS", "Policy",
+__all__ = ["BASELINES", "Batch", "EvaluationError", "POLICY_LOADERS", "Policy", "PolicyError",
            "RandomPolicy", "constant_velocity", "make_policy", "method_name", "read_rollouts",
            "rollout_seed", "run_batches", "simulate", "to_frame"]
 
@@ -907,25 +486,11 @@ class EvaluationResult:
 def _bundle(scene: Scene, networks: Path | None, out: Path,
             timeout_s: float | None = DEFAULT_TIMEOUT_S) -> Path:
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
-    into ``out/networks`` (bundle folders named by :func:`~magail_sumo.outputs.safe_name`)."""
-    from converters.sumo.scenario import (ConvertOptions, bundle_folder, claim_networks_dir,
-                                          convert_scene)
-    from magail_sumo.env.bundle import BundleError, SceneBundle
+    into ``out/networks`` (:func:`converters.sumo.bundle.ensure_bundle`)."""
+    from converters.sumo.bundle import ensure_bundle
 
-    sid = scene.scenario_id
-    for root in ([networks] if networks else []) + [out / "networks"]:
-        try:
-            folder = bundle_folder(root, sid)
-            SceneBundle.load(scene, folder)
-            return folder
-        except (BundleError, OutputError):
-            continue
-    claim_networks_dir(out / "networks")
-    rep = convert_scene(scene, out / "networks",
-                        ConvertOptions(baseline=False, time_budget_s=timeout_s))
-    if rep.status != "ok":
-        raise EvaluationError(f"scenario {printable(sid)}: conversion failed: {rep.reason}")
-    return bundle_folder(out / "networks", sid)
+    return ensure_bundle(scene, out / "networks", time_budget_s=timeout_s,
+                         search=[networks] if networks else [], claim=True)
 
 
 def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,

@@ -1,7 +1,8 @@
 """Record expert demonstrations: replay the log through the same sensors as training.
 
 Each scene runs in :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` with every route vehicle
-controlled, driven by :func:`~magail_sumo.env.expert.expert_actions` under
+controlled, driven by :func:`~magail_sumo.env.expert.expert_actions`
+(:class:`~magail_sumo.agents.LogReplayPolicy` through :func:`magail_sumo.agents.rollout`) under
 :data:`~magail_sumo.env.expert.REPLAY_LIMITS` (wide enough to follow the recorded tracks), no
 terminating events, log background. Per vehicle and step the Parquet file stores ``s``,
 ``s_next`` (the observation before and after the step), ``action`` — the inverse-dynamics
@@ -58,7 +59,8 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv, expert_actions
+    from magail_sumo.agents import LogReplayPolicy, Step, rollout
+    from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv
     from magail_sumo.env.expert import training_actions
 
     scene = load_spec_scene(spec)
@@ -69,33 +71,35 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
     prev = [names.index(n) for n in ("prev_accel", "prev_steer") if n in names]
     cols: dict[str, list] = {k: [] for k in ("track", "step", "done", "s", "s_next", "action",
                                              "accel", "steer", "pose")}
-    obs, _ = env.reset(seed=seed)
-    while env.agents:
-        st = env.agent_states()  # poses at the step of s; acts' keys follow st.names
-        acts = expert_actions(env, st)
+    expert = LogReplayPolicy()
+
+    def keep(step: Step) -> None:
+        st = expert.states  # poses at the step of s; the actions' keys follow st.names
         pose = np.stack([st.state.x, st.state.y, st.state.yaw], axis=1)
-        t = env.t
-        nobs, _, terms, truncs, _ = env.step(acts)
-        names_now = list(acts)
-        raw = np.stack([acts[a] for a in names_now]).astype(np.float64)
+        names_now = list(step.actions)
+        raw = np.stack([step.actions[a] for a in names_now]).astype(np.float64)
         a_train, accel, steer = training_actions(raw, limits)
-        s = np.stack([obs[a] for a in names_now]).astype(np.float32)
-        s_next = np.stack([nobs[a] for a in names_now]).astype(np.float32)
-        if len(prev) == 2:
+        s = np.stack([step.observations[a] for a in names_now]).astype(np.float32)
+        s_next = np.stack([step.next_observations[a] for a in names_now]).astype(np.float32)
+        if len(prev) == 2:  # the next step's s sees the rewritten entries too
             s_next[:, prev] = a_train
             for i, a in enumerate(names_now):
-                nobs[a] = s_next[i]
+                step.next_observations[a] = s_next[i]
         cols["track"].append(np.array([int(a) for a in names_now], np.int64))
-        cols["step"].append(np.full(len(names_now), t, np.int32))
-        cols["done"].append(np.array([bool(terms[a] or truncs[a]) for a in names_now]))
+        cols["step"].append(np.full(len(names_now), step.t, np.int32))
+        cols["done"].append(np.array([bool(step.terminations[a] or step.truncations[a])
+                                      for a in names_now]))
         cols["s"].append(s)
         cols["s_next"].append(s_next)
         cols["action"].append(a_train)
         cols["accel"].append(np.asarray(accel, np.float32))
         cols["steer"].append(np.asarray(steer, np.float32))
         cols["pose"].append(pose.astype(np.float64))
-        obs = nobs
-    env.close()
+
+    try:
+        rollout(env, expert, keep, seed=seed)
+    finally:
+        env.close()
     width = {"action": 2, "pose": 3}
     cat = {k: (np.concatenate(v) if v else np.zeros((0,) if k in ("track", "step", "done",
                                                                   "accel", "steer")

@@ -59,20 +59,25 @@ class VehicleArrays:
 
 @dataclass
 class SessionConfig:
-    """How SUMO is started.
+    """How SUMO is started. An option set to None is not passed: the ``.sumocfg``'s value, or
+    SUMO's default, holds (a run that must match the ``sumo`` binary on the same config).
 
     :param step_length: seconds per step.
     :param seed: SUMO's random seed.
     :param time_to_teleport: -1 disables SUMO's teleporting of jammed vehicles.
     :param collision_action: SUMO's reaction to collisions ("warn": report, keep both).
     :param extra_args: further SUMO command-line options.
+    :param subscribe: subscribe every vehicle to the bulk state of :meth:`SumoSession.vehicles`;
+        False for a run that only queries through :attr:`SumoSession.api` (lighter, and a
+        caller may then remove vehicles through the api freely).
     """
 
-    step_length: float = STEP_LENGTH
-    seed: int = 0
-    time_to_teleport: float = -1
-    collision_action: str = "warn"
+    step_length: float | None = STEP_LENGTH
+    seed: int | None = 0
+    time_to_teleport: float | None = -1
+    collision_action: str | None = "warn"
     extra_args: Sequence[str] = field(default_factory=tuple)
+    subscribe: bool = True
 
 
 _ACTIVE: list["SumoSession"] = []
@@ -110,11 +115,12 @@ class SumoSession:
             cmd += ["-n", str(self.net)]
         if self.routes:
             cmd += ["-r", ",".join(str(r) for r in self.routes)]
-        cmd += ["--step-length", str(cfg.step_length), "--seed", str(cfg.seed),
-                "--time-to-teleport", str(cfg.time_to_teleport),
-                "--collision.action", cfg.collision_action, "--no-step-log", "true",
-                "--no-warnings", "true", *cfg.extra_args]
-        return cmd
+        for option, value in (("--step-length", cfg.step_length), ("--seed", cfg.seed),
+                              ("--time-to-teleport", cfg.time_to_teleport),
+                              ("--collision.action", cfg.collision_action)):
+            if value is not None:
+                cmd += [option, str(value)]
+        return cmd + ["--no-step-log", "true", "--no-warnings", "true", *cfg.extra_args]
 
     def _check_inputs(self) -> None:
         for label, path in (("config", self.sumocfg), ("network", self.net),
@@ -138,8 +144,9 @@ class SumoSession:
         self._running = True
         _ACTIVE.append(self)
         self.time = float(ls.simulation.getTime())
-        for vid in ls.vehicle.getIDList():  # vehicles of a loaded state are there from the start
-            ls.vehicle.subscribe(vid, self._variables())
+        if self.config.subscribe:
+            for vid in ls.vehicle.getIDList():  # vehicles of a loaded state are there already
+                ls.vehicle.subscribe(vid, self._variables())
         return self
 
     @staticmethod
@@ -205,10 +212,11 @@ class SumoSession:
             self.close()
             raise SimulationError(f"SUMO failed at t={self.time:.1f} s: {_one_line(exc)}") from None
         self.time = float(ls.simulation.getTime())
-        var = self._variables()
-        for vid in departed:
-            if not vid.startswith(OBSTACLE_PREFIX):
-                ls.vehicle.subscribe(vid, var)
+        if self.config.subscribe:
+            var = self._variables()
+            for vid in departed:
+                if not vid.startswith(OBSTACLE_PREFIX):
+                    ls.vehicle.subscribe(vid, var)
         return departed, arrived
 
     def vehicles(self) -> VehicleArrays:

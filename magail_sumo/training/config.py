@@ -84,16 +84,11 @@ class CityConfig:
 
     def env_config(self, env: EnvConfig):
         """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
-        from magail_sumo.env.city_env import CITY_EVENTS, CityEnvConfig
+        from magail_sumo.env.city_env import CityEnvConfig
 
-        return CityEnvConfig(
-            control_fraction=self.control_fraction, warmup_s=self.warmup_s,
-            max_steps=self.max_steps,
-            terminate_on=tuple(e for e in env.terminate_on if e in CITY_EVENTS),
-            observation=env.observation, limits=env.limits, lane_width=env.lane_width,
-            off_road_margin=env.off_road_margin, destination_radius=env.destination_radius,
-            sumo_seed=env.sumo_seed, action_layout=env.action_layout,
-            max_agents=self.max_agents)
+        return CityEnvConfig.from_env(env, max_agents=self.max_agents,
+                                      control_fraction=self.control_fraction,
+                                      warmup_s=self.warmup_s, max_steps=self.max_steps)
 
 
 @dataclass(frozen=True)

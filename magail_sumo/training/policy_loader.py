@@ -1,7 +1,10 @@
 """Training checkpoints as evaluation policies (``magail-sumo evaluate --policy RUN/checkpoints/latest.pt``).
 
-:func:`load_checkpoint_policy` is registered for ``.pt`` files in
-:data:`magail_sumo.evaluation.rollouts.POLICY_LOADERS`. The policy is the checkpoint's SB3 actor
+The loaders here are registered by algorithm in :data:`magail_sumo.agents.CHECKPOINT_LOADERS`
+(``gail`` / ``bc``: :func:`load_actor_policy`; ``sac`` / ``sac_gail``:
+:func:`load_sac_checkpoint_policy`), which evaluation reaches through ``.pt`` in
+:data:`magail_sumo.agents.POLICY_LOADERS`; :func:`load_checkpoint_policy` picks by the
+checkpoint's algorithm. The policy is the checkpoint's SB3 actor
 (with its observation normaliser, stored in the policy's state dict), each vehicle acting from its
 own observation with normalised ``[accel, steer]`` in [-1, 1]²: by default a sample of the
 policy, ``a = tanh(mu(o) + sigma ⊙ eps)`` with ``eps ~ N(0, I)`` drawn from the policy's own
@@ -15,9 +18,10 @@ A ``gameformer`` checkpoint is a closed-loop GameFormer agent instead
 (:class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy`: it replans from the simulated
 history of all objects through the rollout's ``begin(scene, env)`` hook).
 
-Evaluation drives the env with the default observation layout, bicycle limits and action
-layout; a checkpoint trained with other ones is refused with a one-line error naming the
-difference (its actions and observations would mean something else there).
+Evaluation drives the env with the default observation layout and bicycle limits; a checkpoint
+trained with other ones is refused with a one-line error naming the difference (its actions and
+observations would mean something else there). The action layout is the checkpoint's: the
+policy's ``action_layout`` attribute makes evaluation build its env with it.
 
 SAC checkpoints (``algorithm: sac`` / ``sac_gail``; the checkpoint's recorded algorithm picks
 the loader) load as :class:`~magail_sumo.training.sac.SacCheckpointPolicy`: the command-branched
@@ -45,11 +49,14 @@ class CheckpointPolicy:
     :param policy: the SB3 policy (eval mode). :param obs_dim: observation size it expects.
     :param seed: seed of the sampling generator (the rollout seed).
     :param deterministic: act with ``tanh(mu(o))`` instead of sampling.
+    :param action_layout: the order of its actions (the env config it trained in); evaluation
+        builds its env with it.
     """
 
     def __init__(self, policy, obs_dim: int, name: str = "", seed: int = 0,
-                 deterministic: bool = False) -> None:
+                 deterministic: bool = False, action_layout: str = "accel_steer") -> None:
         self.policy = policy
+        self.action_layout = action_layout
         self.obs_dim = obs_dim
         self.name = name
         self.deterministic = bool(deterministic)
@@ -100,36 +107,62 @@ def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig
 
 def load_checkpoint_policy(path: str | Path, seed: int = 0,
                            target: EnvConfig | None = None,
-                           deterministic: bool = False) -> CheckpointPolicy:
-    """The evaluation :class:`CheckpointPolicy` of a training checkpoint (a
-    :class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy` for a gameformer run).
+                           deterministic: bool = False):
+    """The evaluation policy of a training checkpoint, by the loader its algorithm registered
+    (:data:`magail_sumo.agents.CHECKPOINT_LOADERS`): a :class:`CheckpointPolicy` for PPO /
+    behavioural cloning, a :class:`~magail_sumo.training.sac.SacCheckpointPolicy` for SAC, a
+    :class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy` for a gameformer run.
 
     :param seed: seed of the action samples (evaluation passes the rollout seed).
-    :param target: the env config the policy will drive (default: evaluation's, the defaults).
+    :param target: the env config the policy will drive (default: evaluation's, the defaults
+        with the policy's action layout; a gameformer agent adapts to any).
     :param deterministic: act with the tanh of the Gaussian mean (no sampling).
     """
+    from magail_sumo.agents.registry import load_training_checkpoint
+
+    return load_training_checkpoint(path, seed, deterministic=deterministic,
+                                    **({} if target is None else {"target": target}))
+
+
+def _target(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
+    """The env a checkpoint trained in ``trained`` drives: ``target``, or evaluation's (the
+    defaults) with the policy's action layout (the policy's ``action_layout`` attribute makes
+    evaluation build its env so)."""
+    return target or EnvConfig(action_layout=trained.action_layout)
+
+
+def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
+                      target: EnvConfig | None = None) -> CheckpointPolicy:
+    """The :class:`CheckpointPolicy` of a PPO / behavioural-cloning checkpoint (``gail``,
+    ``bc``), registered in :data:`magail_sumo.agents.CHECKPOINT_LOADERS`; parameters as
+    :func:`load_checkpoint_policy`."""
     from magail_sumo.sensors.observation import observation_bounds
 
-    from .trainer import load_checkpoint
-
-    if load_checkpoint(path)["config"].get("algorithm") == "gameformer":
-        from .gameformer_policy import load_gameformer_policy
-
-        return load_gameformer_policy(path, seed, deterministic)
     torch.set_num_threads(1)  # small MLP; evaluation runs several worker processes
-    state = load_checkpoint(path)
-    cfg = checkpoint_config(state, path)
-    if cfg.algorithm in ("sac", "sac_gail"):
-        from .sac import load_sac_policy
-
-        env = target or EnvConfig()
-        # evaluation drives the env with the policy's route command (SacCheckpointPolicy.observation)
-        obs = replace(env.observation, command=cfg.env.observation.command,
-                      command_lookahead=cfg.env.observation.command_lookahead)
-        check_env_compatible(path, cfg.env, replace(env, observation=obs))
-        return load_sac_policy(path, state, replace(cfg, device="cpu"), seed, deterministic)
     policy, cfg = load_policy(path, device="cpu")
-    check_env_compatible(path, cfg.env, target or EnvConfig())
+    check_env_compatible(path, cfg.env, _target(cfg.env, target))
     low, _ = observation_bounds(cfg.env.observation)
     return CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
-                            deterministic=deterministic)
+                            deterministic=deterministic, action_layout=cfg.env.action_layout)
+
+
+def load_sac_checkpoint_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
+                               target: EnvConfig | None = None):
+    """The :class:`~magail_sumo.training.sac.SacCheckpointPolicy` of a ``sac`` / ``sac_gail``
+    checkpoint, registered in :data:`magail_sumo.agents.CHECKPOINT_LOADERS`; parameters as
+    :func:`load_checkpoint_policy`."""
+    from .sac import load_sac_policy
+
+    torch.set_num_threads(1)
+    state = load_checkpoint(path)
+    cfg = checkpoint_config(state, path)
+    if cfg.algorithm not in ("sac", "sac_gail"):
+        raise CheckpointError(f"{path}: a {cfg.algorithm} checkpoint, not a SAC one")
+    env = _target(cfg.env, target)
+    # evaluation drives the env with the policy's route command (SacCheckpointPolicy.observation)
+    obs = replace(env.observation, command=cfg.env.observation.command,
+                  command_lookahead=cfg.env.observation.command_lookahead)
+    check_env_compatible(path, cfg.env, replace(env, observation=obs))
+    pol = load_sac_policy(path, state, replace(cfg, device="cpu"), seed, deterministic)
+    pol.action_layout = cfg.env.action_layout
+    return pol

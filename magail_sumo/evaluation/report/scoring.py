@@ -299,7 +299,7 @@ def _score_job(job: ScoreJob) -> list[tuple[list[tuple], SceneView | None]]:
         message)``; its :class:`SceneView` or None)."""
     import numba
 
-    from converters import iter_scenes
+    from converters import find_scene
 
     # the workers share the cores: one numba thread each (numba's parallel kernels would
     # otherwise start a thread per core in every worker and spin against each other)
@@ -307,7 +307,7 @@ def _score_job(job: ScoreJob) -> list[tuple[list[tuple], SceneView | None]]:
     folder, units = job
     out: list[tuple[list[tuple], SceneView | None]] = []
     for scene_file, sid, methods, draw in units:
-        scene = next(s for s in iter_scenes(scene_file) if s.scenario_id == sid)
+        scene = find_scene(scene_file, sid)
         part = Scores({}, {sid: scene}, [])
         items: list[tuple] = []
         for m in methods:

@@ -1,7 +1,8 @@
 """City-scale traffic figures of a plain SUMO scenario, from SUMO's own outputs.
 
 :func:`run_sumo_outputs` runs a ``.sumocfg`` (the ``sumo`` binary for the SUMO-default run, or
-libsumo in a fresh process with a controller callback for a controlled run) writing
+a :class:`~magail_sumo.sim.session.SumoSession` in a fresh process with a controller callback
+for a controlled run) writing
 ``tripinfo.xml``, ``edgedata.xml`` and ``statistics.xml``, and :func:`summarise` reads them
 (sumolib) into a :class:`SumoRunSummary`. :func:`compare_runs` puts runs side by side (pandas).
 :func:`output_args` gives the three output options alone, for a run started elsewhere (the
@@ -70,38 +71,47 @@ def output_args(out: str | Path) -> list[str]:
             "--statistic-output", str(o["statistics"])]
 
 
+def sumo_options(out: Path, begin: float | None, end: float | None, seed: int,
+                 extra_args: Sequence[str] = ()) -> list[str]:
+    """The options of a run writing the three outputs into ``out``, beyond those every
+    :class:`~magail_sumo.sim.session.SumoSession` passes (``--no-step-log``, ``--no-warnings``)."""
+    opts = [*output_args(out), "--seed", str(seed), "--duration-log.disable", "true"]
+    if begin is not None:
+        opts += ["--begin", str(begin)]
+    if end is not None:
+        opts += ["--end", str(end)]
+    return opts + list(extra_args)
+
+
 def sumo_command(sumocfg: Path, out: Path, begin: float | None, end: float | None, seed: int,
                  extra_args: Sequence[str] = ()) -> list[str]:
     """``sumo`` command line writing the three outputs into ``out``."""
-    cmd = ["sumo", "-c", str(sumocfg), *output_args(out),
-           "--seed", str(seed), "--no-step-log", "true", "--no-warnings", "true",
-           "--duration-log.disable", "true"]
-    if begin is not None:
-        cmd += ["--begin", str(begin)]
-    if end is not None:
-        cmd += ["--end", str(end)]
-    return cmd + list(extra_args)
+    return ["sumo", "-c", str(sumocfg), "--no-step-log", "true", "--no-warnings", "true",
+            *sumo_options(out, begin, end, seed, extra_args)]
 
 
-def _controlled(cmd: list[str], controller: str) -> None:
-    """Worker: run ``cmd`` in libsumo, calling ``controller(libsumo, time_s)`` before each step."""
-    import libsumo
+def _controlled(sumocfg: str, options: list[str], controller: str) -> None:
+    """Worker: run ``sumocfg`` with ``options`` (:func:`sumo_options`) in a
+    :class:`~magail_sumo.sim.session.SumoSession`, calling ``controller(api, time_s)`` before
+    each step (``api``: the session's :attr:`~magail_sumo.sim.session.SumoSession.api`)."""
+    from magail_sumo.sim.session import SessionConfig, SumoSession
 
     mod, _, attr = controller.partition(":")
     fn = getattr(importlib.import_module(mod), attr)
-    libsumo.start(cmd)
-    try:
-        while libsumo.simulation.getMinExpectedNumber() > 0:
-            fn(libsumo, libsumo.simulation.getTime())
-            libsumo.simulationStep()
-            end = libsumo.simulation.getEndTime()
-            if end >= 0 and libsumo.simulation.getTime() >= end:
+    # every option comes from ``options``: none of the session's own (teleports, collisions)
+    config = SessionConfig(step_length=None, seed=None, time_to_teleport=None,
+                           collision_action=None, extra_args=options, subscribe=False)
+    with SumoSession(sumocfg, config=config) as session:
+        api = session.api
+        while api.simulation.getMinExpectedNumber() > 0:
+            fn(api, api.simulation.getTime())
+            session.step()
+            end = api.simulation.getEndTime()
+            if end >= 0 and api.simulation.getTime() >= end:
                 break
-    finally:
-        libsumo.close()
 
 
-def _controlled_job(job: tuple[list[str], str]) -> None:
+def _controlled_job(job: tuple[str, list[str], str]) -> None:
     _controlled(*job)
 
 
@@ -110,8 +120,10 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
                      extra_args: Sequence[str] = (), timeout_s: float = 600) -> SumoRunSummary:
     """Run a scenario with tripinfo / edgeData / statistics outputs and summarise them.
 
-    :param controller: ``"module:function"``; when given, ``function(libsumo, time_s)`` is
-        called before every step in a fresh ``spawn`` process (a controlled run); else the
+    :param controller: ``"module:function"``; when given, ``function(api, time_s)`` is
+        called before every step in a fresh worker process (:func:`magail_sumo.workers.run_one`)
+        running a :class:`~magail_sumo.sim.session.SumoSession` (``api``: its TraCI-style
+        domains, :attr:`~magail_sumo.sim.session.SumoSession.api`), a controlled run; else the
         ``sumo`` binary runs unchanged (SUMO default).
     :raises SumoRunError: SUMO fails or times out.
     """
@@ -119,8 +131,8 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
     if not cfg.is_file():
         raise SumoRunError(f"{cfg}: SUMO config not found")
     out.mkdir(parents=True, exist_ok=True)
-    cmd = sumo_command(cfg, out, begin, end, seed, extra_args)
     if controller is None:
+        cmd = sumo_command(cfg, out, begin, end, seed, extra_args)
         try:
             res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -131,7 +143,8 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
     else:
         from magail_sumo.workers import run_one
 
-        res = run_one(_controlled_job, (cmd, controller), timeout_s=timeout_s)
+        res = run_one(_controlled_job, (str(cfg), sumo_options(out, begin, end, seed, extra_args),
+                                        controller), timeout_s=timeout_s)
         if res.kind == "timeout":
             raise SumoRunError(f"{cfg}: controlled SUMO run timed out after {timeout_s:.0f} s")
         if not res.ok:

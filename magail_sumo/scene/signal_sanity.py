@@ -5,7 +5,7 @@ and signal records that are missing for some steps or UNKNOWN. :func:`signal_san
 per scene (numpy over all tracks and steps at once):
 
 * ``red_light_runs``: logged red-light running by vehicles and cyclists, with the WOSAC
-  traffic-light violation rule of :mod:`magail_sumo.evaluation.realism.traffic_light` (the
+  traffic-light violation rule of :mod:`magail_sumo.scene.traffic_light` (the
   object's projection on a red (STOP / ARROW_STOP) signal lane's stop segment goes from behind
   the stop point to ahead of it between two valid steps while its nearest lane is that signal
   lane): ``events`` (object-steps), ``vehicles`` (distinct tracks) and the first
@@ -43,7 +43,7 @@ def longest_run(mask: np.ndarray) -> np.ndarray:
 
 def red_light_runs(scene: Scene) -> np.ndarray:
     """(N, T) bool: track n (a vehicle or cyclist) ran a red light at step t (see module doc)."""
-    from magail_sumo.evaluation.realism.traffic_light import red_light_violation, signal_lanes
+    from magail_sumo.scene.traffic_light import red_light_violation, signal_lanes
 
     tr = scene.tracks
     n, t = tr.valid.shape

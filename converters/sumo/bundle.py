@@ -1,0 +1,276 @@
+"""The converted-bundle layout, defined once: what :func:`.scenario.convert_scene` writes, how a
+complete bundle is recognised, its reader (:class:`SceneBundle`) and :func:`ensure_bundle`.
+
+A networks folder ``DIR`` holds one bundle folder per scene, ``DIR/<name>/``, where ``<name>``
+is :func:`magail_sumo.outputs.safe_name` of the scenario id (:func:`bundle_folder`: the id
+itself for every real WOMD id; an id that is not a plain file name gets its safe characters
+plus a hash). A bundle folder holds (:class:`BundleLayout`):
+
+* ``<name>.net.xml``: the SUMO network (plus the plain ``.nod/.edg/.con.xml`` it is built from);
+* ``<name>.rou.xml``: the routes (vehicle ids = the scene's track ids);
+* ``<name>.tll.xml``: the signal programs, when the scene has signals;
+* ``<name>.sumocfg``: a configuration ``sumo -c`` opens as is (relative file names);
+* ``<name>.xodr``: OpenDRIVE, when asked for;
+* ``conversion.json`` (:data:`REPORT_FILE`): the conversion report, with the original
+  ``scenario_id``, ``status``, ``files`` (every other file of the folder) and ``unconverted``
+  (objects not in SUMO, e.g. parked off-network vehicles, pedestrians).
+
+A bundle is *complete* (:func:`check_bundle`) when its report is readable, says ``status`` ok
+for this scenario id (a report without an id, from early versions, is taken as this scene's),
+and the configuration, network, routes and every file the report lists are there. Bundles are
+renamed into place only when written (see :mod:`.scenario`), so a folder is either a whole
+bundle (of a successful or a failed conversion) or absent.
+"""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
+                                 read_marker, safe_name, write_text)
+from magail_sumo.scene import Scene
+
+if TYPE_CHECKING:
+    from converters.scene_files import RecordRef
+
+#: the conversion report of a bundle folder
+REPORT_FILE = "conversion.json"
+#: files an unmarked networks folder may hold beside its bundles (see :func:`claim_networks_dir`)
+NETWORKS_EXTRAS = ("README.md", "summary.csv")
+LOCKS = ".locks"  #: sub-folder of a networks folder with one lock file per bundle being made
+
+
+class BundleError(MagailSumoError):
+    """A scene bundle is missing a file, does not match its scene, or could not be made."""
+
+
+def bundle_folder(root: str | Path, scenario_id: str) -> Path:
+    """``root/<safe name>``: the bundle folder of a scene (see the module doc)."""
+    return inside(root, safe_name(scenario_id))
+
+
+@dataclass(frozen=True)
+class BundleLayout:
+    """The file paths of one bundle folder (module doc). ``name``: the files' stem."""
+
+    folder: Path
+    name: str
+
+    @classmethod
+    def of(cls, folder: str | Path, scenario_id: str) -> "BundleLayout":
+        """The layout of ``scenario_id``'s bundle in ``folder``."""
+        return cls(Path(folder), safe_name(scenario_id))
+
+    def _file(self, suffix: str) -> Path:
+        return self.folder / f"{self.name}{suffix}"
+
+    @property
+    def net(self) -> Path:
+        return self._file(".net.xml")
+
+    @property
+    def routes(self) -> Path:
+        return self._file(".rou.xml")
+
+    @property
+    def signals(self) -> Path:
+        """Signal programs (only when the scene has signals)."""
+        return self._file(".tll.xml")
+
+    @property
+    def sumocfg(self) -> Path:
+        return self._file(".sumocfg")
+
+    @property
+    def opendrive(self) -> Path:
+        return self._file(".xodr")
+
+    @property
+    def report(self) -> Path:
+        return self.folder / REPORT_FILE
+
+    def required(self) -> tuple[Path, ...]:
+        """The files every complete bundle has, in the order they are checked."""
+        return self.sumocfg, self.net, self.routes, self.report
+
+
+def is_bundle_dir(path: Path) -> bool:
+    """Whether ``path`` is a bundle folder (a real folder with a conversion report; complete
+    or not)."""
+    return path.is_dir() and not path.is_symlink() and (path / REPORT_FILE).is_file()
+
+
+def read_report(folder: str | Path) -> dict[str, Any]:
+    """The ``conversion.json`` of a bundle folder; :class:`BundleError` when unreadable."""
+    path = Path(folder) / REPORT_FILE
+    try:
+        report = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise BundleError(f"{Path(folder)}: unreadable bundle file: "
+                          f"{' '.join(str(exc).split())}") from None
+    if not isinstance(report, dict):
+        raise BundleError(f"{path}: not a conversion report")
+    return report
+
+
+def check_bundle(folder: str | Path, scenario_id: str) -> dict[str, Any]:
+    """The conversion report of ``scenario_id``'s complete bundle in ``folder`` (module doc);
+    :class:`BundleError` (one line naming the file) when it is not complete."""
+    files = BundleLayout.of(folder, scenario_id)
+    for path in files.required():
+        if not path.is_file():
+            raise BundleError(f"{path}: bundle file not found (convert the scene with "
+                              "converters.sumo.scenario.convert_scene)")
+    report = read_report(files.folder)
+    if report.get("scenario_id", scenario_id) != scenario_id:
+        raise BundleError(f"{files.report}: bundle of scenario "
+                          f"{printable(str(report.get('scenario_id')))}, not "
+                          f"{printable(scenario_id)}")
+    if report.get("status") != "ok":
+        raise BundleError(f"{files.report}: conversion failed: "
+                          f"{printable(str(report.get('reason', '')), 1000)}")
+    listed = report.get("files")
+    for name in listed if isinstance(listed, list) else ():
+        if not isinstance(name, str) or Path(name).name != name:
+            raise BundleError(f"{files.report}: bad file name {printable(str(name))!r}")
+        if not (files.folder / name).is_file():
+            raise BundleError(f"{files.folder / name}: bundle file not found")
+    return report
+
+
+def complete_bundle(root: str | Path, scenario_id: str) -> Path | None:
+    """``scenario_id``'s bundle folder under the networks folder ``root`` when it is complete
+    (:func:`check_bundle`), else None."""
+    try:
+        folder = bundle_folder(root, scenario_id)
+        check_bundle(folder, scenario_id)
+    except (BundleError, OutputError, OSError):
+        return None
+    return folder
+
+
+@dataclass(frozen=True)
+class SceneBundle:
+    """A converted scene bundle: the recorded scene plus its complete bundle folder, read.
+
+    :param sumocfg: the SUMO configuration.
+    :param sumo_rows: (V,) track rows (into ``scene.tracks``) of the vehicles in the routes.
+    :param sumo_ids: SUMO id of each of those vehicles.
+    :param unconverted: ``conversion.json``'s list of objects left out of SUMO.
+    :param parked: ids of the route vehicles with a parking stop.
+    """
+
+    scene: Scene
+    folder: Path
+    sumocfg: Path
+    sumo_rows: np.ndarray
+    sumo_ids: tuple[str, ...]
+    unconverted: tuple[dict, ...]
+    parked: frozenset[str] = frozenset()
+
+    @property
+    def files(self) -> BundleLayout:
+        """The bundle's file paths (network, signals, ...)."""
+        return BundleLayout.of(self.folder, self.scene.scenario_id)
+
+    @classmethod
+    def load(cls, scene: Scene, folder: str | Path) -> "SceneBundle":
+        """Check (:func:`check_bundle`) and read the bundle folder of ``scene``;
+        :class:`BundleError` when it is incomplete or its routes name vehicles that are not
+        tracks of ``scene``."""
+        files = BundleLayout.of(folder, scene.scenario_id)
+        report = check_bundle(files.folder, scene.scenario_id)
+        try:
+            root = ET.parse(files.routes).getroot()
+        except ET.ParseError as exc:
+            raise BundleError(f"{files.folder}: unreadable bundle file: "
+                              f"{' '.join(str(exc).split())}") from None
+        row_of = {int(t): k for k, t in enumerate(scene.tracks.id.tolist())}
+        ids = tuple(v.get("id") for v in root.iter("vehicle"))
+        bad = [i for i in ids if not i.lstrip("-").isdigit() or int(i) not in row_of]
+        if bad:
+            raise BundleError(f"{files.routes}: vehicle {printable(str(bad[0]))} is not "
+                              f"a track of scene {printable(scene.scenario_id)}")
+        rows = np.array([row_of[int(i)] for i in ids], np.int64)
+        parked = frozenset(v.get("id") for v in root.iter("vehicle") if v.find("stop") is not None)
+        return cls(scene, files.folder, files.sumocfg, rows, ids,
+                   tuple(report.get("unconverted", ())), parked)
+
+
+def _networks_entry(path: Path) -> bool:
+    """What an unmarked networks folder may hold: bundle folders and :data:`NETWORKS_EXTRAS`."""
+    if path.is_symlink():
+        return False
+    if path.is_dir():
+        return (path / REPORT_FILE).is_file()
+    return path.name in NETWORKS_EXTRAS
+
+
+def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = ()) -> Path:
+    """Make ``folder`` a networks folder of ``convert`` (bundles ``<name>/``), or
+    :class:`~magail_sumo.outputs.OutputError` when it is not one.
+
+    It may be new, empty, marked by any magail_sumo command
+    (:func:`magail_sumo.outputs.claim_output_dir`), or an unmarked folder that holds converted
+    bundles (folders with ``conversion.json``; at least one) and nothing else but ``README.md``
+    and ``summary.csv``, as the repository ships ``networks/`` and older versions left their
+    output: it is then marked.
+    """
+    d = Path(folder)
+    if d.is_dir() and not d.is_symlink() and read_marker(d) is None:
+        entries = [p for p in d.iterdir() if p.name != MARKER]
+        bundles = [p for p in entries if p.is_dir() and not p.is_symlink()]
+        if bundles and all(_networks_entry(p) for p in entries):
+            write_text(d / MARKER, json.dumps({"tools": {}}, indent=1))
+    return claim_output_dir(d, "convert", owned)
+
+
+def ensure_bundle(scene: Scene, networks: str | Path, source: RecordRef | None = None,
+                  time_budget_s: float | None = 600.0, *, search: Sequence[str | Path] = (),
+                  claim: bool = False) -> Path:
+    """A complete bundle folder of ``scene``: the first found in ``search`` then ``networks``
+    (:func:`complete_bundle`), else the scene converted once into ``networks`` (SUMO baseline
+    run skipped, ``time_budget_s`` at most) and its new folder returned.
+
+    Safe across processes: a lock file per bundle (``networks/.locks/<name>``) lets one
+    converter at a time in; the others then find the bundle.
+
+    :param source: the scene's :class:`~converters.scene_files.RecordRef`, recorded in
+        ``conversion.json`` (a folder of bundles is then a training scene pool).
+    :param claim: claim ``networks`` (:func:`claim_networks_dir`) before converting into it.
+    :raises BundleError: the conversion failed (one line with its reason).
+    """
+    import fcntl
+
+    from .scenario import ConvertOptions, convert_scene
+
+    sid = scene.scenario_id
+    for root in (*search, networks):
+        if (found := complete_bundle(root, sid)) is not None:
+            return found
+    if claim:
+        claim_networks_dir(networks)
+    networks = Path(networks)
+    name = safe_name(sid)
+    locks = networks / LOCKS
+    locks.mkdir(parents=True, exist_ok=True)
+    with open(locks / name, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            if (found := complete_bundle(networks, sid)) is not None:
+                return found  # converted by another process meanwhile
+            rep = convert_scene(scene, networks, ConvertOptions(
+                baseline=False, time_budget_s=time_budget_s),
+                source=None if source is None else (source.path, source.index))
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    if rep.status != "ok":
+        raise BundleError(f"scenario {printable(sid)}: conversion failed: {rep.reason}")
+    return bundle_folder(networks, sid)

@@ -1,0 +1,37 @@
+"""What a policy under test is: the :class:`Policy` protocol and :class:`PolicyError`."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from magail_sumo.errors import MagailSumoError
+
+
+class PolicyError(MagailSumoError):
+    """A policy spec cannot be used: unknown name, no loader for the file, a factory or
+    loader that fails (one line naming the spec)."""
+
+
+class Policy(Protocol):
+    """What a policy under test provides: normalised actions in [-1, 1]² per agent (in the
+    env's ``action_layout``, ``[accel, steer]`` by default) from the env's observations
+    (agents named by their WOMD track id).
+
+    Optional extensions, each read with ``getattr`` (policies without them are driven exactly
+    as before):
+
+    * ``begin(scene, env)``: told the scene and the env of each rollout right after the env's
+      reset, before its first ``act`` (:func:`~magail_sumo.agents.rollout.rollout`); during
+      ``act`` it may read the env (``env.t``, ``env.agent_states()`` for the live agents'
+      simulated states, ``env.scene`` for the recorded ones of the others) but must not step
+      or reset it.
+    * ``observation``: an :class:`~magail_sumo.sensors.observation.ObservationConfig` the env
+      must observe with (e.g. a SAC policy's route command).
+    * ``action_layout``: the order of its actions (:data:`~magail_sumo.sim.dynamics.
+      ACTION_LAYOUTS`) when not the default ``"accel_steer"`` (a checkpoint trained with the
+      seed's ``"steer_throttle"``); the env is built with it.
+    """
+
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...

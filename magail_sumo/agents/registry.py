@@ -1,0 +1,192 @@
+"""Policies by spec: :func:`make_policy`, :func:`method_name` and the checkpoint-loader
+registries.
+
+Two registries, both holding a callable or a lazy ``"package.module:function"`` entry point
+(imported when first used, as gymnasium registers envs, so this package imports no training
+code):
+
+* :data:`POLICY_LOADERS`, by file suffix: ``loader(path, seed) -> Policy``; a loader with a
+  ``deterministic`` keyword also gets the caller's choice (sample the policy with ``seed``, or
+  act deterministically). ``.pt`` is a training checkpoint (:func:`load_training_checkpoint`).
+* :data:`CHECKPOINT_LOADERS`, by the algorithm a training checkpoint records
+  (``config.algorithm``): ``loader(path, seed, deterministic=False, **options) -> Policy``.
+  A new algorithm registers its loader here (:func:`register_checkpoint_loader`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from pathlib import Path
+from typing import Callable, Union
+
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import one_line
+
+from .base import Policy, PolicyError
+from .random_policy import RandomPolicy
+
+#: methods that are no env policy: whole-trajectory models (evaluation runs them itself)
+BASELINES = ("logreplay", "constvel", "sumo")
+BUILTIN_POLICIES = ("random",)
+
+Loader = Union[Callable[..., Policy], str]
+
+#: checkpoint loaders by file suffix (``".pt"``); see the module doc
+POLICY_LOADERS: dict[str, Loader] = {
+    ".pt": "magail_sumo.agents.registry:load_training_checkpoint"}
+
+#: algorithm whose loader reads a checkpoint that records none, or an algorithm without a
+#: loader (it names what is wrong with the file)
+DEFAULT_ALGORITHM = "gail"
+#: training-checkpoint loaders by ``config.algorithm``; see the module doc
+CHECKPOINT_LOADERS: dict[str, Loader] = {
+    "gail": "magail_sumo.training.policy_loader:load_actor_policy",
+    "bc": "magail_sumo.training.policy_loader:load_actor_policy",
+    "sac": "magail_sumo.training.policy_loader:load_sac_checkpoint_policy",
+    "sac_gail": "magail_sumo.training.policy_loader:load_sac_checkpoint_policy",
+    "gameformer": "magail_sumo.training.gameformer_policy:load_gameformer_policy",
+}
+
+
+def register_checkpoint_loader(algorithm: str, loader: Loader) -> None:
+    """Make ``loader`` (a callable or ``"module:function"``) load checkpoints of ``algorithm``."""
+    CHECKPOINT_LOADERS[algorithm] = loader
+
+
+def resolve(loader: Loader) -> Callable[..., Policy]:
+    """The callable of a registry entry (a ``"module:function"`` string is imported)."""
+    if callable(loader):
+        return loader
+    mod, _, attr = loader.partition(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+def checkpoint_algorithm(path: str | Path) -> str | None:
+    """The algorithm a training checkpoint records (``config.algorithm``), None when the file
+    cannot be read as one or records none (read with ``torch.load(weights_only=True)``)."""
+    import torch
+
+    try:
+        state = torch.load(Path(path), map_location="cpu", weights_only=True)
+        algorithm = state["config"].get("algorithm")
+    except Exception:  # noqa: BLE001 - the default loader names what is wrong with the file
+        return None
+    return algorithm if isinstance(algorithm, str) else None
+
+
+def load_training_checkpoint(path: str | Path, seed: int = 0, deterministic: bool = False,
+                             **options) -> Policy:
+    """The policy of a ``magail-sumo train`` checkpoint, by the loader registered for its
+    algorithm (:data:`CHECKPOINT_LOADERS`; :data:`DEFAULT_ALGORITHM`'s for a file that records
+    none or an unregistered one: it reports the problem). ``options`` (e.g. ``target``, the env
+    config the policy is to drive) go to the loader."""
+    algorithm = checkpoint_algorithm(path)
+    loader = resolve(CHECKPOINT_LOADERS.get(algorithm or "",
+                                            CHECKPOINT_LOADERS[DEFAULT_ALGORITHM]))
+    # an option the loader has no keyword for is not its concern (a gameformer agent adapts
+    # to any env: it takes no ``target``)
+    return loader(path, seed, deterministic=deterministic,
+                  **{k: v for k, v in options.items() if _takes(loader, k)})
+
+
+def _takes(loader: Callable, keyword: str) -> bool:
+    """Whether ``loader`` accepts the keyword argument ``keyword``."""
+    try:
+        params = inspect.signature(loader).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin)
+        return False
+    return any(p.name == keyword and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+               or p.kind == p.VAR_KEYWORD for p in params)
+
+
+def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
+    """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
+    shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
+    another registry folder), a checkpoint file with a registered loader
+    (:data:`POLICY_LOADERS`), or ``package.module:factory`` (``factory(seed) -> Policy``).
+
+    :param seed: the policy's seed (evaluation passes its rollout seed).
+    :param deterministic: passed to a checkpoint loader that takes it (a training checkpoint
+        then acts with the tanh of its Gaussian mean instead of sampling); ``random`` and
+        factories ignore it.
+    :raises PolicyError: an unusable spec, or a loader / factory that fails (one line).
+    """
+    if spec == "random":
+        return RandomPolicy(seed)
+    from magail_sumo.pretrained import is_pretrained_spec, resolve as resolve_pretrained
+
+    if is_pretrained_spec(spec):
+        entry = resolve_pretrained(spec)
+        loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
+        if loader is None:  # only if a caller unregistered ".pt"
+            raise PolicyError(f"{spec}: no policy loader for '.pt' checkpoints")
+        return _checkpoint_policy(spec, loader, entry.checkpoint, seed, deterministic)
+    path = Path(spec)
+    if path.is_file():
+        loader = POLICY_LOADERS.get(path.suffix)
+        if loader is None:
+            raise PolicyError(f"{spec}: no policy loader for '{path.suffix}' checkpoints "
+                              "(register one in magail_sumo.agents.POLICY_LOADERS)")
+        return _checkpoint_policy(spec, loader, path, seed, deterministic)
+    if ":" in spec:
+        mod, _, attr = spec.partition(":")
+        try:
+            factory = getattr(importlib.import_module(mod), attr)
+        except Exception as exc:  # noqa: BLE001 - any import failure of a user module
+            raise PolicyError(f"{spec}: cannot import policy factory "
+                              f"({type(exc).__name__}: {one_line(exc)})") from None
+        return _built(spec, factory, seed)
+    raise PolicyError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
+                      "pretrained[:NAME], a checkpoint file or a module:factory spec")
+
+
+def _checkpoint_policy(spec: str, loader: Loader, path: Path, seed: int,
+                       deterministic: bool) -> Policy:
+    try:
+        fn = resolve(loader)
+    except Exception as exc:  # noqa: BLE001 - a registered entry point that does not import
+        raise PolicyError(f"policy {spec}: its loader {loader!r} cannot be imported "
+                          f"({type(exc).__name__}: {one_line(exc)})") from None
+    if _takes(fn, "deterministic"):
+        return _built(spec, lambda p, s: fn(p, s, deterministic=deterministic), path, seed)
+    return _built(spec, fn, path, seed)
+
+
+def _built(spec: str, factory: Callable, *args) -> Policy:
+    """``factory(*args)``; any exception becomes one :class:`PolicyError` naming ``spec``."""
+    try:
+        policy = factory(*args)
+    except MagailSumoError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a user factory / loader may raise anything
+        raise PolicyError(f"policy {spec}: could not be created: "
+                          f"{type(exc).__name__}: {one_line(exc)}") from None
+    if not callable(getattr(policy, "act", None)):
+        raise PolicyError(f"policy {spec}: the factory returned {type(policy).__name__}, "
+                          "which has no act(observations) method")
+    return policy
+
+
+def method_name(spec: str) -> str:
+    """Name a method is stored under (``evaluate --name`` overrides it): the spec itself for
+    built-ins; for a checkpoint in a run's ``checkpoints/`` folder the run folder's name
+    (``runs/magail/checkpoints/latest.pt`` -> ``magail``; another file there -> ``magail-<stem>``,
+    e.g. ``magail-update_000020``); another file's stem; a factory's name; for
+    ``pretrained:NAME`` the registry name ``NAME`` (``pretrained``: the default's name)."""
+    if spec in BASELINES + BUILTIN_POLICIES:
+        return spec
+    from magail_sumo.pretrained import PretrainedError, is_pretrained_spec, name_of
+
+    if is_pretrained_spec(spec):
+        try:
+            return name_of(spec)
+        except PretrainedError:
+            return spec.replace(":", "-")
+    p = Path(spec)
+    if p.is_file():
+        run = p.resolve().parent
+        if run.name == "checkpoints" and run.parent.name:
+            return run.parent.name if p.stem == "latest" else f"{run.parent.name}-{p.stem}"
+        return p.stem
+    return spec.rpartition(":")[2] or spec
