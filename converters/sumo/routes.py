@@ -19,7 +19,9 @@ from sumolib.geomhelper import polygonOffsetWithMinimumDistanceToPoint
 from .matching import LaneIndex, match_track
 from .topology import NetworkPlan
 
-PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked
+PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked (see :func:`moved_distance`)
+SPIKE = 1.0  #: m, a one-state jump of a box at least this far is a spike (not motion)
+SPIKE_TURN = np.radians(45.0)  #: rad, heading jump marking a spike at a track's first/last state
 #: SUMO insertion checks kept: all but the speed limit (recorded speeds may exceed it).
 CHECKS = "collision leaderGap followerGap stop"
 MAX_DETOUR = 150.0  #: m, longest shortest-path filler between two matched edges
@@ -49,13 +51,43 @@ class VehicleRoute:
 
 
 def moved_distance(scene: Scene) -> np.ndarray:
-    """(N,) largest distance (m) of any valid state from the track's first valid state."""
+    """(N,) largest distance (m) of any valid state from the track's first valid state, both
+    leaving out *spikes*: a box recorded for one state :data:`SPIKE` m or more away from its
+    valid neighbours -- between two (whose positions lie within ``SPIKE`` m of each other) or,
+    at the first or last valid state, beside one with a heading more than
+    :data:`SPIKE_TURN` rad apart. A stationary car whose box jumps for one step is no motion;
+    a moving track is no spike (its neighbours lie apart, its heading turns slowly)."""
     tr = scene.tracks
-    first = np.argmax(tr.valid, axis=1)
+    if not tr.num_steps or not tr.num_tracks:
+        return np.zeros(tr.num_tracks)
+    # valid states first, in step order
+    order = np.argsort(~tr.valid, axis=1, kind="stable")
+    ok = np.take_along_axis(tr.valid, order, axis=1)
+    x = np.take_along_axis(tr.x, order, axis=1).astype(np.float64)
+    y = np.take_along_axis(tr.y, order, axis=1).astype(np.float64)
+    h = np.take_along_axis(tr.heading, order, axis=1).astype(np.float64)
+    count = ok.sum(axis=1, keepdims=True)
+    k = np.arange(tr.num_steps)[None]
+    has_prev, has_next = ok & (k > 0), ok & (k < count - 1)
+
+    def shift(a: np.ndarray, by: int) -> np.ndarray:  # a[:, k - by], edge-padded
+        return np.concatenate([np.repeat(a[:, :1], by, 1), a[:, :-by]], 1) if by > 0 else \
+            np.concatenate([a[:, -by:], np.repeat(a[:, -1:], -by, 1)], 1)
+
+    def gap(by: int) -> np.ndarray:
+        return np.hypot(x - shift(x, by), y - shift(y, by))
+
+    d_prev, d_next = gap(1), gap(-1)
+    d_across = np.hypot(shift(x, 1) - shift(x, -1), shift(y, 1) - shift(y, -1))
+    turn = lambda by: np.abs((h - shift(h, by) + np.pi) % (2 * np.pi) - np.pi)  # noqa: E731
+    spike = (has_prev & has_next & (d_prev >= SPIKE) & (d_next >= SPIKE) & (d_across < SPIKE)) \
+        | (~has_prev & has_next & (d_next >= SPIKE) & (turn(-1) > SPIKE_TURN)) \
+        | (has_prev & ~has_next & (d_prev >= SPIKE) & (turn(1) > SPIKE_TURN))
+    keep = ok & ~spike
+    first = np.argmax(keep, axis=1)
     n = np.arange(tr.num_tracks)
-    dx = np.where(tr.valid, tr.x - tr.x[n, first][:, None], 0.0)
-    dy = np.where(tr.valid, tr.y - tr.y[n, first][:, None], 0.0)
-    return np.hypot(dx, dy).max(axis=1) if tr.num_steps else np.zeros(tr.num_tracks)
+    d = np.hypot(x - x[n, first][:, None], y - y[n, first][:, None])
+    return np.where(keep, d, 0.0).max(axis=1)
 
 
 def _piece(plan: NetworkPlan, lane: int, pos: float) -> tuple[str, int, float] | None:

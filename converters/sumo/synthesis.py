@@ -37,7 +37,7 @@ from .topology import ConnectionPlan, EdgePlan, NetworkPlan
 
 DT = STEP_LENGTH  #: s, WOMD step (10 Hz)
 MIN_DURATION = 1.0  #: s, shortest off-map stretch that gets a lane
-MIN_LENGTH = 3.0  #: m, shortest recorded path of a stretch that gets a lane
+MIN_LENGTH = PARKED_MOVE  #: m, shortest recorded path of a stretch that gets a lane
 SMOOTH = 5  #: states in the moving average of the recorded path
 WIDTH_MARGIN = 1.0  #: m added to the median vehicle width
 MIN_WIDTH, MIN_WIDTH_BIKE, MAX_WIDTH = 2.5, 1.5, 4.5  #: m, clip of the synthesised lane width
