@@ -18,7 +18,8 @@ at the matched position; where it re-enters, likewise at the start node of the n
 or a split. The lane's shape starts (ends) at the end (start) of the lane of the edge it joins, not
 at the node's position (the mean of its lane ends, far off the path in a wide junction). Without a
 matched state within :data:`MAX_JOIN` - :data:`SNAP` m of the stretch it starts
-/ends at a new dead-end node (where the track starts/ends, or at the map border)."""
+/ends at a new dead-end node (where the track starts/ends, or at the map border); a lane from
+a dead end also carries the junction states before the stretch (back to the last road state)."""
 
 from __future__ import annotations
 
@@ -201,18 +202,27 @@ def synthesize_lanes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex,
         width = float(np.clip(np.median(tr.width[n, steps]) + WIDTH_MARGIN,
                               MIN_WIDTH_BIKE if bike else MIN_WIDTH, MAX_WIDTH))
         speeds = np.hypot(tr.vx[n, steps], tr.vy[n, steps])
-        for s, e in stretches:
+        for k, (s, e) in enumerate(stretches):
             out.append(_synthesize(plan, n, int(tr.id[n]), steps, xy, z, heading, m, s, e, width,
                                    max(float(np.quantile(speeds[s:e + 1], 0.95)), 1.0), bike,
-                                   str(len(plan.synthesized))))
+                                   str(len(plan.synthesized)),
+                                   stretches[k - 1][1] + 1 if k else 0))
             plan.synthesized.append(out[-1])
     return out
 
 
 def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.ndarray,
                 z: np.ndarray, heading: np.ndarray, m: Match, s: int, e: int, width: float,
-                speed: float, bike: bool, tag: str) -> SynthesizedLane:
-    """One synthesised lane for states ``s..e`` of track ``n`` (joins, shape, plan entries)."""
+                speed: float, bike: bool, tag: str, free: int) -> SynthesizedLane:
+    """One synthesised lane for states ``s..e`` of track ``n`` (joins, shape, plan entries).
+
+    A lane from a dead end also carries the states before the stretch back to the nearest state
+    on a road lane: they lie on junction lanes (or match no lane), and a route starting on the
+    new lane would leave them out -- a track that begins in a junction and cuts across its
+    turn. It reaches back no further than state ``free`` (the first after the track's previous
+    stretch). A lane to a dead end is not carried on alike: the route through the junction
+    lanes after it covers those states, and a lane drawn through a wide junction to the track's
+    end lies inside netconvert's junction shape, which cuts it away."""
     pieces = [_piece(plan, int(lane), float(pos)) if lane >= 0 else None
               for lane, pos in zip(m.lane, m.pos)]
     junction = np.isin(m.lane, list(plan.junction_lanes))
@@ -237,6 +247,8 @@ def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.n
 
     before = next((k for k in range(s - 1, -1, -1) if pieces[k] is not None), None)
     after = next((k for k in range(e + 1, len(pieces)) if pieces[k] is not None), None)
+    # a lane from a dead end reaches back over the junction states to the nearest road state
+    s_dead = max(before + 1 if before is not None else 0, free)
     near = MAX_JOIN - SNAP  # the join node lies within SNAP of the matched state or on its lane
     if before is not None and np.hypot(*(xy[before] - xy[s])) > near:
         before = None
@@ -244,6 +256,8 @@ def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.n
         after = None
     start = join(before, slice(before + 1, s), True) if before is not None else None
     end = join(after, slice(e + 1, after), False) if after is not None else None
+    if start is None:
+        s = s_dead
     path = np.column_stack([_smooth(xy[s:e + 1]), z[s:e + 1]])
     h = heading[s:e + 1]
     fwd = np.stack([np.cos(h), np.sin(h)], axis=1)
