@@ -46,6 +46,7 @@ SNAP = 3.0  #: m, a join node this close to the last/first matched state is used
 MIN_SPLIT = 1.0  #: m, shortest edge part left by a split
 MAX_JOIN = 25.0  #: m, farthest join from the first/last off-map state
 SPLIT_SHIFT = 0.5  #: m, split beyond the matched position so it falls on the right part
+MAX_CHANGE_GAP = 2.0  #: s, longest gap between the two matched states of a recorded lane move
 
 
 @dataclass(frozen=True)
@@ -170,8 +171,88 @@ def split_edge(plan: NetworkPlan, eid: str, lane: int, pos: float, tag: str) -> 
     return node, second
 
 
+def _between_joins(path: np.ndarray, fwd: np.ndarray, a_pt: np.ndarray | None,
+                   b_pt: np.ndarray | None) -> np.ndarray:
+    """``path`` (M, 3) without the recorded points behind or within 1 m of the join point
+    ``a_pt`` (2,) it starts from, nor those beyond or within 1 m of ``b_pt`` it ends at (None:
+    no join); ``fwd`` (M, 2) are the unit headings. At least one point stays."""
+    if a_pt is not None:
+        rel = path[:, :2] - a_pt
+        keep = ((rel * fwd).sum(1) > 0) & (np.linalg.norm(rel, axis=1) > 1.0)
+        path = path[np.argmax(keep):] if keep.any() else path[-1:]
+    if b_pt is not None:
+        rel = b_pt - path[:, :2]
+        keep = ((rel * fwd[-len(path):]).sum(1) > 0) & (np.linalg.norm(rel, axis=1) > 1.0)
+        path = path[:len(keep) - np.argmax(keep[::-1])] if keep.any() else path[:1]
+    return path
+
+
 def _edge(plan: NetworkPlan, eid: str) -> EdgePlan:
     return next(e for e in plan.edges if e.id == eid)
+
+
+def _side(plan: NetworkPlan, lane: int, pos: float, leaving: bool) -> tuple[str, int] | None:
+    """(edge, lane index) a track is on when it leaves (enters) WOMD lane ``lane`` at arc
+    ``pos`` m: the road piece there, or for a junction lane the edge its connection comes from
+    (goes to); None when the lane has neither."""
+    piece = _piece(plan, lane, pos)
+    if piece is not None:
+        return piece[0], piece[1]
+    c = next((c for c in plan.connections if lane in c.via), None)
+    if c is None:
+        return None
+    return (c.from_edge, c.from_lane) if leaving else (c.to_edge, c.to_lane)
+
+
+def connect_recorded_changes(scene: Scene, plan: NetworkPlan, tracks: np.ndarray,
+                             index_car: LaneIndex, index_bike: LaneIndex) -> list[ConnectionPlan]:
+    """Add a connection for every recorded move between two edges that meet at one node and
+    have none: a lane change inside a junction (onto the junction lane beside the one its lane
+    leads into, or from a junction lane onto a road lane it does not lead into) leaves the
+    track's matched edges unconnected, so no route could carry it. A move is two consecutive
+    matched states (at most :data:`MAX_CHANGE_GAP` s apart) on different WOMD lanes; the
+    connection goes from the edge of the first (for a junction lane: the edge its connection
+    comes from) to the edge of the second (or where its connection goes), lane to lane, through
+    the junction lanes among the two (for the traffic-light states), shaped along the recorded
+    states between the two edges. Returns the connections added (also in ``plan.connections``)."""
+    tr = scene.tracks
+    edges = {e.id: e for e in plan.edges}
+    have = {(c.from_edge, c.to_edge) for c in plan.connections}
+    added: list[ConnectionPlan] = []
+    for n in tracks.tolist():
+        steps = np.flatnonzero(tr.valid[n])
+        xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+        heading = tr.heading[n, steps].astype(np.float64)
+        bike = int(tr.type[n]) == ObjectType.CYCLIST
+        m = match_track(index_bike if bike else index_car, xy, heading, steps)
+        k = np.flatnonzero(m.lane >= 0)
+        moves = np.flatnonzero((m.lane[k[1:]] != m.lane[k[:-1]])
+                               & (steps[k[1:]] - steps[k[:-1]] <= MAX_CHANGE_GAP / DT))
+        for j in moves.tolist():
+            a, b = k[j], k[j + 1]
+            la, lb = int(m.lane[a]), int(m.lane[b])
+            x = _side(plan, la, float(m.pos[a]), True)
+            y = _side(plan, lb, float(m.pos[b]), False)
+            if x is None or y is None or x[0] == y[0] or (x[0], y[0]) in have \
+                    or edges[x[0]].to_node != edges[y[0]].from_node:
+                continue
+            via = tuple(v for v in (la, lb) if v in plan.junction_lanes)
+            # the shape follows the recorded states between the two road pieces
+            road = [q for q in k.tolist() if _piece(plan, int(m.lane[q]), float(m.pos[q]))]
+            r0 = max((q for q in road if q <= a), default=int(k[0]) - 1)
+            r1 = min((q for q in road if q >= b), default=int(k[-1]) + 1)
+            a_pt = edges[x[0]].shapes[x[1]][-1]
+            b_pt = edges[y[0]].shapes[y[1]][0]
+            inner = np.arange(r0 + 1, r1)
+            shape = np.vstack([a_pt, b_pt])
+            if len(inner):
+                path = np.column_stack([_smooth(xy[inner]), tr.z[n, steps[inner]]])
+                fwd = np.stack([np.cos(heading[inner]), np.sin(heading[inner])], axis=1)
+                shape = np.vstack([a_pt, _between_joins(path, fwd, a_pt[:2], b_pt[:2]), b_pt])
+            added.append(ConnectionPlan(x[0], x[1], y[0], y[1], via, shape))
+            have.add((x[0], y[0]))
+    plan.connections.extend(added)
+    return added
 
 
 def synthesize_lanes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex,
@@ -186,6 +267,7 @@ def synthesize_lanes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex,
     kinds = np.isin(tr.type, [ObjectType.VEHICLE, ObjectType.CYCLIST]) & (moved > PARKED_MOVE)
     if not kinds.any() or not plan.edges:
         return []
+    connect_recorded_changes(scene, plan, np.flatnonzero(kinds), index_car, index_bike)
     seg = plan_segments(plan)
     out: list[SynthesizedLane] = []
     for n in np.flatnonzero(kinds).tolist():
@@ -265,14 +347,7 @@ def _synthesize(plan: NetworkPlan, n: int, tid: int, steps: np.ndarray, xy: np.n
     # mean of its lane ends, which in a wide junction lies far off the recorded path
     a_pt = _edge(plan, start[1][0]).shapes[start[1][1]][-1, :2] if start else None
     b_pt = _edge(plan, end[1][0]).shapes[end[1][1]][0, :2] if end else None
-    if start is not None:  # drop recorded points behind or on top of the join point
-        rel = path[:, :2] - a_pt
-        keep = ((rel * fwd).sum(1) > 0) & (np.linalg.norm(rel, axis=1) > 1.0)
-        path = path[np.argmax(keep):] if keep.any() else path[-1:]
-    if end is not None:
-        rel = b_pt - path[:, :2]
-        keep = ((rel * fwd[-len(path):]).sum(1) > 0) & (np.linalg.norm(rel, axis=1) > 1.0)
-        path = path[:len(keep) - np.argmax(keep[::-1])] if keep.any() else path[:1]
+    path = _between_joins(path, fwd, a_pt, b_pt)
     a_node = start[0] if start else f"d{tag}a"
     b_node = end[0] if end else f"d{tag}b"
     if start is None:
