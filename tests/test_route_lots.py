@@ -168,3 +168,17 @@ def test_nuscenes_1077_route_rate(tmp_path):
     route, gets its whole route (the blip left out)."""
     rep = convert_scene(load_scene(NUSCENES_1077), tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok" and rep.quality["route_rate"] > 0.94
+
+
+@pytest.mark.sumo
+def test_short_off_map_start_gets_a_lane(tmp_path):
+    """b36a vehicle 2290 (15 states) starts 0.6 s off the map before it joins node n19: a run
+    under 1 s got no lane, and its route covered 5 of its states (0.333). A run of two states
+    or more at a track's start or end gets one (nothing else can carry those states)."""
+    scene, rep, net, folder = _convert(tmp_path, "b36a6d0bc9e525bc")
+    lane = next(s for s in rep.synthesized if s["track_id"] == 2290)
+    assert lane["start"] == "dead end" and lane["steps"][0] == 123
+    routes = {v.get("id"): v.find("route").get("edges").split()
+              for v in ET.parse(folder / f"{scene.scenario_id}.rou.xml").getroot().iter("vehicle")}
+    assert _covers(scene, net, routes, 2290) >= COVERAGE
+    assert rep.quality["route_rate"] >= 0.95

@@ -1,7 +1,8 @@
 """Synthesised lanes for recorded driving that the map has no lanes for (lots, driveways).
 
 An *off-map stretch* of a moving vehicle or cyclist (moved > 2 m) is a run of consecutive valid
-states, spanning (last step - first step + 1) x 0.1 s >= :data:`MIN_DURATION` s and at least
+states, spanning (last step - first step + 1) x 0.1 s >= :data:`MIN_DURATION` s (or two states
+or more at the track's first or last valid state) and at least
 :data:`MIN_LENGTH` m of path, whose box centres all lie farther than half the lane width + 0.5 m
 from every planned lane (edge lanes and junction connection shapes) whose direction is within
 45° of the heading -- the on-network test of :mod:`.quality`, applied to the plan. Stretches
@@ -86,14 +87,16 @@ def plan_segments(plan: NetworkPlan) -> LaneSegments:
 
 
 def off_map_stretches(off: np.ndarray, steps: np.ndarray) -> list[tuple[int, int]]:
-    """(first, last) indices into the valid states of off-map runs lasting >= MIN_DURATION s,
+    """(first, last) indices into the valid states of off-map runs lasting >= MIN_DURATION s
+    or of two or more states at the track's start or end (no route around them covers those),
     merged when less than MIN_DURATION s of on-map states separate them."""
     idx = np.flatnonzero(off)
     if not len(idx):
         return []
     cut = np.flatnonzero(np.diff(idx) > 1)
     runs = [(int(s), int(e)) for s, e in zip(np.r_[idx[0], idx[cut + 1]], np.r_[idx[cut], idx[-1]])
-            if (steps[e] - steps[s] + 1) * DT >= MIN_DURATION - 1e-9]
+            if (steps[e] - steps[s] + 1) * DT >= MIN_DURATION - 1e-9
+            or (e > s and (s == 0 or e == len(off) - 1))]
     merged: list[tuple[int, int]] = []
     for s, e in runs:
         if merged and (steps[s] - steps[merged[-1][1]] - 1) * DT < MIN_DURATION:
