@@ -207,8 +207,21 @@ def _side(plan: NetworkPlan, lane: int, pos: float, leaving: bool) -> tuple[str,
     return (c.from_edge, c.from_lane) if leaving else (c.to_edge, c.to_lane)
 
 
-def connect_recorded_changes(scene: Scene, plan: NetworkPlan, tracks: np.ndarray,
-                             index_car: LaneIndex, index_bike: LaneIndex) -> list[ConnectionPlan]:
+def track_matches(scene: Scene, tracks: np.ndarray, index_car: LaneIndex,
+                  index_bike: LaneIndex) -> dict[int, Match]:
+    """Map matches of tracks ``tracks`` (valid states; cyclists on ``index_bike``)."""
+    tr = scene.tracks
+    out = {}
+    for n in tracks.tolist():
+        steps = np.flatnonzero(tr.valid[n])
+        xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+        index = index_bike if int(tr.type[n]) == ObjectType.CYCLIST else index_car
+        out[n] = match_track(index, xy, tr.heading[n, steps].astype(np.float64), steps)
+    return out
+
+
+def connect_recorded_changes(scene: Scene, plan: NetworkPlan, matches: dict[int, Match]
+                             ) -> list[ConnectionPlan]:
     """Add a connection for every recorded move between two edges that meet at one node and
     have none: a lane change inside a junction (onto the junction lane beside the one its lane
     leads into, or from a junction lane onto a road lane it does not lead into) leaves the
@@ -217,17 +230,16 @@ def connect_recorded_changes(scene: Scene, plan: NetworkPlan, tracks: np.ndarray
     connection goes from the edge of the first (for a junction lane: the edge its connection
     comes from) to the edge of the second (or where its connection goes), lane to lane, through
     the junction lanes among the two (for the traffic-light states), shaped along the recorded
-    states between the two edges. Returns the connections added (also in ``plan.connections``)."""
+    states between the two edges. ``matches``: the map match of each moving track (valid states).
+    Returns the connections added (also in ``plan.connections``)."""
     tr = scene.tracks
     edges = {e.id: e for e in plan.edges}
     have = {(c.from_edge, c.to_edge) for c in plan.connections}
     added: list[ConnectionPlan] = []
-    for n in tracks.tolist():
-        steps = np.flatnonzero(tr.valid[n])
+    for n, m in matches.items():
+        steps = m.steps
         xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
         heading = tr.heading[n, steps].astype(np.float64)
-        bike = int(tr.type[n]) == ObjectType.CYCLIST
-        m = match_track(index_bike if bike else index_car, xy, heading, steps)
         k = np.flatnonzero(m.lane >= 0)
         moves = np.flatnonzero((m.lane[k[1:]] != m.lane[k[:-1]])
                                & (steps[k[1:]] - steps[k[:-1]] <= MAX_CHANGE_GAP / DT))
@@ -270,7 +282,8 @@ def synthesize_lanes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex,
     kinds = np.isin(tr.type, [ObjectType.VEHICLE, ObjectType.CYCLIST]) & (moved > PARKED_MOVE)
     if not kinds.any() or not plan.edges:
         return []
-    connect_recorded_changes(scene, plan, np.flatnonzero(kinds), index_car, index_bike)
+    matches = track_matches(scene, np.flatnonzero(kinds), index_car, index_bike)
+    connect_recorded_changes(scene, plan, matches)
     seg = plan_segments(plan)
     out: list[SynthesizedLane] = []
     for n in np.flatnonzero(kinds).tolist():
@@ -282,7 +295,7 @@ def synthesize_lanes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex,
         if not stretches:
             continue
         bike = int(tr.type[n]) == ObjectType.CYCLIST
-        m = match_track(index_bike if bike else index_car, xy, heading, steps)
+        m = matches[n]
         z = tr.z[n, steps]
         width = float(np.clip(np.median(tr.width[n, steps]) + WIDTH_MARGIN,
                               MIN_WIDTH_BIKE if bike else MIN_WIDTH, MAX_WIDTH))
