@@ -19,6 +19,7 @@ from converters import load_scene  # noqa: E402
 from converters.womd import write_womd  # noqa: E402
 from converters.sumo import ConvertOptions, convert_scene  # noqa: E402
 from converters.sumo.signals import lane_state_table  # noqa: E402
+from converters.sumo.scenario import CONVERTER_VERSION  # noqa: E402
 from converters.sumo.tools import binary  # noqa: E402
 from magail_sumo.cli.main import main  # noqa: E402
 from magail_sumo.scene import LaneType  # noqa: E402
@@ -291,7 +292,7 @@ def test_cli_convert_is_resumable(tmp_path, capsys):
     assert main(args) == 0
     first, t0 = rows()[0], stamp()
     rep = json.loads((out / sid / "conversion.json").read_text())
-    assert rep["converter_version"].startswith("1+") and len(rep["options_key"]) == 16
+    assert rep["converter_version"].startswith(f"{CONVERTER_VERSION}+") and len(rep["options_key"]) == 16
     capsys.readouterr()
     assert main(args) == 0  # nothing to do: skipped, bundle untouched, quality kept
     (again,) = rows()

@@ -19,10 +19,13 @@ from sumolib.geomhelper import polygonOffsetWithMinimumDistanceToPoint
 from .matching import LaneIndex, match_track
 from .topology import NetworkPlan
 
-PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked
+PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked (see :func:`moved_distance`)
+SPIKE = 1.0  #: m, a one-state jump of a box at least this far is a spike (not motion)
+SPIKE_TURN = np.radians(45.0)  #: rad, heading jump marking a spike at a track's first/last state
 #: SUMO insertion checks kept: all but the speed limit (recorded speeds may exceed it).
 CHECKS = "collision leaderGap followerGap stop"
 MAX_DETOUR = 150.0  #: m, longest shortest-path filler between two matched edges
+BLIP_STATES = 10  #: fewer valid states than this on an edge a route cannot reach is a blip
 SYNTHESIZED = -2  #: matched-lane code of states on a synthesised lane (-1 = unmatched)
 
 
@@ -49,13 +52,43 @@ class VehicleRoute:
 
 
 def moved_distance(scene: Scene) -> np.ndarray:
-    """(N,) largest distance (m) of any valid state from the track's first valid state."""
+    """(N,) largest distance (m) of any valid state from the track's first valid state, both
+    leaving out *spikes*: a box recorded for one state :data:`SPIKE` m or more away from its
+    valid neighbours -- between two (whose positions lie within ``SPIKE`` m of each other) or,
+    at the first or last valid state, beside one with a heading more than
+    :data:`SPIKE_TURN` rad apart. A stationary car whose box jumps for one step is no motion;
+    a moving track is no spike (its neighbours lie apart, its heading turns slowly)."""
     tr = scene.tracks
-    first = np.argmax(tr.valid, axis=1)
+    if not tr.num_steps or not tr.num_tracks:
+        return np.zeros(tr.num_tracks)
+    # valid states first, in step order
+    order = np.argsort(~tr.valid, axis=1, kind="stable")
+    ok = np.take_along_axis(tr.valid, order, axis=1)
+    x = np.take_along_axis(tr.x, order, axis=1).astype(np.float64)
+    y = np.take_along_axis(tr.y, order, axis=1).astype(np.float64)
+    h = np.take_along_axis(tr.heading, order, axis=1).astype(np.float64)
+    count = ok.sum(axis=1, keepdims=True)
+    k = np.arange(tr.num_steps)[None]
+    has_prev, has_next = ok & (k > 0), ok & (k < count - 1)
+
+    def shift(a: np.ndarray, by: int) -> np.ndarray:  # a[:, k - by], edge-padded
+        return np.concatenate([np.repeat(a[:, :1], by, 1), a[:, :-by]], 1) if by > 0 else \
+            np.concatenate([a[:, -by:], np.repeat(a[:, -1:], -by, 1)], 1)
+
+    def gap(by: int) -> np.ndarray:
+        return np.hypot(x - shift(x, by), y - shift(y, by))
+
+    d_prev, d_next = gap(1), gap(-1)
+    d_across = np.hypot(shift(x, 1) - shift(x, -1), shift(y, 1) - shift(y, -1))
+    turn = lambda by: np.abs((h - shift(h, by) + np.pi) % (2 * np.pi) - np.pi)  # noqa: E731
+    spike = (has_prev & has_next & (d_prev >= SPIKE) & (d_next >= SPIKE) & (d_across < SPIKE)) \
+        | (~has_prev & has_next & (d_next >= SPIKE) & (turn(-1) > SPIKE_TURN)) \
+        | (has_prev & ~has_next & (d_prev >= SPIKE) & (turn(1) > SPIKE_TURN))
+    keep = ok & ~spike
+    first = np.argmax(keep, axis=1)
     n = np.arange(tr.num_tracks)
-    dx = np.where(tr.valid, tr.x - tr.x[n, first][:, None], 0.0)
-    dy = np.where(tr.valid, tr.y - tr.y[n, first][:, None], 0.0)
-    return np.hypot(dx, dy).max(axis=1) if tr.num_steps else np.zeros(tr.num_tracks)
+    d = np.hypot(x - x[n, first][:, None], y - y[n, first][:, None])
+    return np.where(keep, d, 0.0).max(axis=1)
 
 
 def _piece(plan: NetworkPlan, lane: int, pos: float) -> tuple[str, int, float] | None:
@@ -122,15 +155,37 @@ def _connect_trimmed(net, seq: list[str], head_added: bool, tail_added: bool
     return edges, False
 
 
-def _longest_connected(net, edges: list[str]) -> list[str]:
-    """The longest run of ``edges`` in which each edge leads to the next."""
-    best, run = [], [edges[0]]
-    for a, b in zip(edges[:-1], edges[1:]):
-        if net.getEdge(b) in net.getEdge(a).getOutgoing():
-            run.append(b)
-        else:
-            best, run = max(best, run, key=len), [b]
-    return max(best, run, key=len)
+def _connect_best(net, seq: list[str], weight: list[int]) -> tuple[list[str], bool]:
+    """Where :func:`_connect_trimmed` leaves a gap: the connected route through the ordered
+    subsequence of ``seq`` that carries the most states (``weight[i]``: the valid states matched
+    to ``seq[i]``), gaps closed as in :func:`_connect`; connected when each edge left out
+    carries less than :data:`BLIP_STATES` states (a momentary match onto a lane beside the
+    route, which no route can reach and come back from)."""
+    n = len(seq)
+    reach: dict[tuple[int, int], bool] = {}
+
+    def joins(i: int, j: int) -> bool:
+        if (i, j) not in reach:
+            a, b = net.getEdge(seq[i]), net.getEdge(seq[j])
+            reach[i, j] = b in a.getOutgoing() or \
+                bool(net.getShortestPath(a, b, maxCost=MAX_DETOUR)[0])
+        return reach[i, j]
+
+    best = [float(w) for w in weight]
+    prev = [-1] * n
+    for j in range(n):
+        for i in range(j):
+            if best[i] + weight[j] > best[j] and seq[i] != seq[j] and joins(i, j):
+                best[j], prev[j] = best[i] + weight[j], i
+    j = int(np.argmax(best))
+    keep = []
+    while j >= 0:
+        keep.append(j)
+        j = prev[j]
+    keep.reverse()
+    edges, _ = _connect(net, [seq[i] for i in keep])
+    dropped = set(range(n)) - set(keep)
+    return edges, all(weight[i] < BLIP_STATES for i in dropped)
 
 
 def _via_edges(net, a: str, b: str) -> set[str]:
@@ -199,9 +254,13 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
         return "parked off the lane network" if parked else \
             "no state matches a lane (distance and heading)"
     seq: list[str] = []
+    weight: list[int] = []  # valid states matched to each edge of seq
     for p in pieces:
         if p is not None and (not seq or seq[-1] != p[0]):
             seq.append(p[0])
+            weight.append(0)
+        if p is not None:
+            weight[-1] += 1
     first = int(matched[0])
     head = tail = None
     if int(lane_of[first]) in plan.junction_lanes:  # starts inside a junction
@@ -212,19 +271,22 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
     head_added = tail_added = False
     if head is not None and (not seq or seq[0] != head.from_edge):
         seq.insert(0, head.from_edge)
+        weight.insert(0, 0)
         head_added = True
     if not seq and tail is not None:
         seq.append(tail.from_edge)
+        weight.append(0)
     if tail is not None and seq[-1] != tail.to_edge:
         seq.append(tail.to_edge)
+        weight.append(0)
         tail_added = True
     if not seq:
         return "matched junction lanes belong to no connection"
     if parked:
-        seq = seq[:1]
+        seq, weight = seq[:1], weight[:1]
     edges, connected = _connect_trimmed(net, seq, head_added, tail_added)
     if not connected:
-        edges = _longest_connected(net, edges)
+        edges, connected = _connect_best(net, seq, weight)
     depart_edge = 0
     first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[0]), None)
     if first is None and head is not None and edges[0] == head.from_edge and len(edges) > 1:

@@ -47,7 +47,7 @@ from .topology import TimeBudgetExceeded, plan_network
 #: Version of the converter's outputs, recorded in ``conversion.json`` (``converter_version``,
 #: with a digest of this package's sources appended: see :func:`converter_version`). ``convert``
 #: skips a scene whose bundle has the same version and options; bump it when outputs change.
-CONVERTER_VERSION = "1"
+CONVERTER_VERSION = "2"
 
 
 @dataclass
