@@ -12,16 +12,10 @@ PACKAGES = ("magail_sumo", "converters")
 #: bottom layer: the scene model, the SUMO session and shared helpers
 BOTTOM = ("magail_sumo.errors", "magail_sumo.outputs", "magail_sumo.config",
           "magail_sumo.workers", "magail_sumo.scene", "magail_sumo.sim")
-
-#: modules that still import libsumo / traci outside magail_sumo/sim while their owners move
-#: them onto SumoSession.api (issue 11, parallel branches); the coordinator empties this set
-#: after the merge, and the test then holds for every module
-LIBSUMO_IMPORT_ALLOWLIST_PENDING_MERGE: frozenset[str] = frozenset()
-
-#: modules that still spell bundle file names (``f"{name}.net.xml"``) while other branches own
-#: them (issue 11); the coordinator switches them to ``SceneBundle.files`` /
-#: ``BundleLayout.of(folder, scenario_id)`` after the merge and empties this set
-BUNDLE_NAMES_ALLOWLIST_PENDING_MERGE: frozenset[str] = frozenset()
+#: top-layer packages that must not import training code: evaluating a policy needs no trainer
+#: (a trained policy's loader is found through the agents registry's lazy entry points)
+NO_TRAINING = ("magail_sumo.evaluation", "magail_sumo.agents", "magail_sumo.env",
+               "magail_sumo.sensors", "magail_sumo.expert", "magail_sumo.models")
 
 
 def _modules():
@@ -65,7 +59,7 @@ def _under(name: str, prefixes) -> bool:
 def test_libsumo_is_imported_only_by_the_sim_layer():
     found = []
     for rel, tree in _modules():
-        if rel.startswith("magail_sumo/sim/") or rel in LIBSUMO_IMPORT_ALLOWLIST_PENDING_MERGE:
+        if rel.startswith("magail_sumo/sim/"):
             continue
         found += [f"{rel}:{line}: {name}" for name, line in _imports(rel, tree)
                   if _under(name, ("libsumo", "traci"))]
@@ -73,9 +67,13 @@ def test_libsumo_is_imported_only_by_the_sim_layer():
         "\n".join(found)
 
 
-def test_allowlists_name_existing_modules():
-    for rel in LIBSUMO_IMPORT_ALLOWLIST_PENDING_MERGE | BUNDLE_NAMES_ALLOWLIST_PENDING_MERGE:
-        assert (ROOT / rel).is_file(), rel
+def test_evaluation_and_agents_import_no_training():
+    found = []
+    for rel, tree in _modules():
+        if _under(_module_name(rel), NO_TRAINING):
+            found += [f"{rel}:{line}: {imp}" for imp, line in _imports(rel, tree)
+                      if _under(imp, ("magail_sumo.training",))]
+    assert not found, "imports of training code:\n" + "\n".join(found)
 
 
 def test_imports_go_one_way():
@@ -99,7 +97,7 @@ def test_bundle_layout_is_defined_once():
     :class:`converters.sumo.bundle.BundleLayout` (``SceneBundle.files``) and ``REPORT_FILE``."""
     spelled = []
     for rel, tree in _modules():
-        if rel == "converters/sumo/bundle.py" or rel in BUNDLE_NAMES_ALLOWLIST_PENDING_MERGE:
+        if rel == "converters/sumo/bundle.py":
             continue
         for node in ast.walk(tree):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and \

@@ -3,7 +3,7 @@
 Windows: every current step ``c = history_steps − 1, + eval_stride, …`` of a scene with the
 full ``future_steps`` future inside the scene; focal agents: objects of the run's
 ``focal_types`` observed at ``c`` and at ``c + future_steps`` (as WOMD requires a valid last
-step). Each focal agent is predicted in its own sample (:func:`~magail_sumo.training.gameformer_data.build_sample`,
+step). Each focal agent is predicted in its own sample (:func:`~magail_sumo.models.gameformer_features.build_sample`,
 the recorded history) and scored on its M modes at every level 0..K:
 
 * minADE: the smallest over the modes of the mean displacement (m) over the observed future
@@ -132,7 +132,7 @@ def _scores(scene: Scene, pairs: np.ndarray, frames: np.ndarray, pred: np.ndarra
             best: np.ndarray, future_steps: int) -> dict[str, np.ndarray]:
     """Per-sample metrics of predictions ``pred`` (S, M, T, 2) in each sample's frame, the most
     likely mode ``best`` (S,)."""
-    from magail_sumo.training.gameformer_data import Frame, log_future
+    from magail_sumo.models.gameformer_features import Frame, log_future
 
     tr = scene.tracks
     gts, valids, heads, speeds = [], [], [], []
@@ -169,8 +169,8 @@ def evaluate_openloop(model, cfg, scene_files: list[str | Path], batch_size: int
         "scenes": [scenario ids], "per_scene": [...]}``.
     """
     from converters import iter_scenes
-    from magail_sumo.training.gameformer_data import (build_sample, collate, focal_types,
-                                                      log_history, scene_data)
+    from magail_sumo.models.gameformer_features import (build_sample, collate, focal_types,
+                                                        log_history, map_chunks)
 
     g = cfg.gameformer
     f = g.model.future_steps
@@ -188,7 +188,7 @@ def evaluate_openloop(model, cfg, scene_files: list[str | Path], batch_size: int
             if not len(pairs):
                 continue
             scenes.append(scene.scenario_id)
-            sd = scene_data(scene, g)
+            chunks = map_chunks(scene, g.map_points, g.map_spacing)
             preds = [[] for _ in range(levels)]
             bests = [[] for _ in range(levels)]
             frames = []
@@ -198,7 +198,7 @@ def evaluate_openloop(model, cfg, scene_files: list[str | Path], batch_size: int
                 for c, r in pairs[k:k + batch_size]:
                     if c not in hist_of:
                         hist_of = {c: log_history(scene, int(c), g.history_steps)}
-                    samples.append(build_sample(hist_of[c], int(r), sd.chunks, g.max_agents,
+                    samples.append(build_sample(hist_of[c], int(r), chunks, g.max_agents,
                                                 g.map_elements))
                 b = collate(samples)
                 frames.extend(s["frame"] for s in samples)

@@ -4,7 +4,7 @@ After Huang et al., "GameFormer: Game-theoretic Modeling and Learning of Transfo
 Interactive Prediction and Planning" (ICCV 2023); our own implementation.
 
 Inputs (one sample = N agents and, for each agent, its Nm nearest map elements, all in one
-agent-centric frame; :mod:`magail_sumo.training.gameformer_data` builds them):
+agent-centric frame; :mod:`magail_sumo.models.gameformer_features` builds them):
 
 * ``agents`` (B, N, Th, :data:`AGENT_FEATURES`) history states, zero at unobserved steps;
   ``agent_mask`` (B, N) bool: the agent exists (observed at the current step, the last

@@ -7,7 +7,7 @@ The agent uses the optional ``begin(scene, env)`` hook of the evaluation rollout
 reset, it keeps the last ``history_steps`` world-frame states of every object — the simulated
 state (``env.agent_states()``) of the live agents, the recorded one of every other object — and
 every ``replan_every`` steps (and when an agent first appears) predicts every live agent in its
-own sample (:func:`~magail_sumo.training.gameformer_data.build_sample`) from that *simulated*
+own sample (:func:`~magail_sumo.models.gameformer_features.build_sample`) from that *simulated*
 history. Each agent follows one mode of the last level (K): per rollout each agent draws one
 u ~ U(0, 1) (from the rollout seed, agents in sorted-name order) and at every replan takes the
 first mode whose cumulative softmax score exceeds u (``deterministic``: the highest-scoring
@@ -27,7 +27,8 @@ import torch
 
 from magail_sumo.sim import dynamics
 
-from .gameformer_data import build_sample, collate, log_history, map_chunks, History, Frame
+from magail_sumo.models.gameformer_features import (Frame, History, build_sample, collate,
+                                                   log_history, map_chunks)
 
 
 class GameFormerPolicy:
