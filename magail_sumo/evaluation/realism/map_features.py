@@ -56,6 +56,12 @@ class RoadEdgeSegments:
     margin: float
 
 
+def has_road_edges(scene: Scene) -> bool:
+    """Whether the scene's map has a road edge with at least 2 points (the map features need
+    one; real maps may have none, e.g. nuScenes ScenarioNet pickles)."""
+    return any(len(e.polyline) >= 2 for e in scene.roadmap.road_edges)
+
+
 def road_edge_segments(scene: Scene) -> RoadEdgeSegments:
     """Segments of every road edge with at least 2 points.
 

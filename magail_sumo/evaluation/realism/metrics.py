@@ -9,7 +9,7 @@ import numpy as np
 
 from magail_sumo.evaluation.realism import interaction, kinematic, map_features, traffic_light
 from magail_sumo.evaluation.realism.config import (
-    BUCKETS, CHALLENGE_2025, Bernoulli, ChallengeConfig, Histogram,
+    BUCKETS, CHALLENGE_2025, Bernoulli, ChallengeConfig, FeatureConfig, Histogram,
 )
 from magail_sumo.evaluation.realism.estimators import (
     bernoulli_log_likelihood, histogram_log_likelihood, masked_mean_likelihood,
@@ -37,11 +37,18 @@ FEATURE_NAMES = (
 )
 
 
+#: Per-step features that need the map's road edges: absent from :attr:`Features.values` of a
+#: scene without any (:func:`~magail_sumo.evaluation.realism.map_features.has_road_edges`).
+ROAD_EDGE_FEATURES = ("distance_to_road_edge", "offroad_per_step")
+
+
 @dataclass(frozen=True, eq=False)
 class Features:
     """Per-step features of the evaluated objects over the simulated steps.
 
-    Each value of ``values`` is ``(B, E, T_sim)``: row 0 the log, rows 1.. the rollouts.
+    Each value of ``values`` is ``(B, E, T_sim)``: row 0 the log, rows 1.. the rollouts. A
+    scene whose map has no road edges lacks :data:`ROAD_EDGE_FEATURES` (every other feature is
+    computed as usual).
 
     :param object_id: (E,) ids of the evaluated objects (ascending).
     :param is_vehicle: (E,) bool.
@@ -78,7 +85,7 @@ def distinct_rows(*arrays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _row_features(scene: Scene, jt: JointTrajectories, rows: np.ndarray,
                   config: ChallengeConfig) -> dict[str, np.ndarray]:
     """The per-step features of batch ``rows`` of ``jt`` (each row's features depend on that
-    row only)."""
+    row only); a scene without road edges has no :data:`ROAD_EDGE_FEATURES`."""
     E = jt.n_eval
     fut = slice(scene.current_time_index + 1, None)  # the scene's own history length
     dt = config.step_duration_s
@@ -91,21 +98,25 @@ def _row_features(scene: Scene, jt: JointTrajectories, rows: np.ndarray,
     ls, ws = jt.length[:, fut], jt.width[:, fut]
     dist_obj = interaction.distance_to_nearest_object(xs, ys, hs, ls, ws, vs, E)
     ttc = interaction.time_to_collision(xs, ys, hs, ls, ws, vs, speed2d, E)
-    segs = map_features.road_edge_segments(scene)
-    dist_edge = map_features.distance_to_road_edge(
-        xs[:, :E], ys[:, :E], z[:, :E, fut], hs[:, :E], ls[:E], ws[:E], jt.height[:E, fut],
-        vs[:, :E], segs)
+    dist_edge = offroad = None
+    if map_features.has_road_edges(scene):
+        segs = map_features.road_edge_segments(scene)
+        dist_edge = map_features.distance_to_road_edge(
+            xs[:, :E], ys[:, :E], z[:, :E, fut], hs[:, :E], ls[:E], ws[:E],
+            jt.height[:E, fut], vs[:, :E], segs)
+        offroad = dist_edge > map_features.OFFROAD_DISTANCE_THRESHOLD
     lanes = traffic_light.signal_lanes(scene, x.shape[-1])
     tl = traffic_light.red_light_violation(x[:, :E], y[:, :E], v[:, :E], lanes)[..., fut]
-    return {
+    out = {
         "linear_speed": speed[..., fut], "linear_acceleration": accel[..., fut],
         "angular_speed": ang_speed[..., fut], "angular_acceleration": ang_accel[..., fut],
         "distance_to_nearest_object": dist_obj,
         "collision_per_step": dist_obj < interaction.COLLISION_DISTANCE_THRESHOLD,
         "time_to_collision": ttc, "distance_to_road_edge": dist_edge,
-        "offroad_per_step": dist_edge > map_features.OFFROAD_DISTANCE_THRESHOLD,
+        "offroad_per_step": offroad,
         "traffic_light_violation_per_step": tl,
     }
+    return {k: a for k, a in out.items() if a is not None}
 
 
 def compute_features(scene: Scene, jt: JointTrajectories,
@@ -151,15 +162,26 @@ def feature_masks(feat: Features) -> tuple[dict[str, np.ndarray], dict[str, np.n
     return masks, flag_mask
 
 
+def value_name(fc: FeatureConfig) -> str:
+    """The :attr:`Features.values` key a scored feature is computed from."""
+    return _FLAGS.get(fc.name, fc.name) if isinstance(fc.estimator, Bernoulli) else fc.name
+
+
 def metrics_from_features(feat: Features, config: ChallengeConfig = CHALLENGE_2025
                           ) -> dict[str, float]:
-    """The official per-scenario fields from a feature bundle."""
+    """The official per-scenario fields from a feature bundle.
+
+    Without road edges (:data:`ROAD_EDGE_FEATURES` absent) the road-edge likelihoods and
+    ``simulated_offroad_rate`` are NaN, and so is ``metametric`` (its weighted sum needs every
+    component: not comparable with scenes that have it); every other field is as usual."""
     valid = feat.valid
     masks, flag_mask = feature_masks(feat)
     out: dict[str, float] = {}
     flags = {}
     for fc in config.features:
-        if isinstance(fc.estimator, Histogram):
+        if value_name(fc) not in feat.values:  # a road-edge feature of a map without edges
+            out[f"{fc.name}_likelihood"] = float("nan")
+        elif isinstance(fc.estimator, Histogram):
             vals = feat.values[fc.name]
             ll = histogram_log_likelihood(vals[0], vals[1:], fc.estimator)
             out[f"{fc.name}_likelihood"] = masked_mean_likelihood(ll, masks[_MASKS[fc.name]])
@@ -177,7 +199,8 @@ def metrics_from_features(feat: Features, config: ChallengeConfig = CHALLENGE_20
     out["average_displacement_error"] = float(ade.mean())
     out["min_average_displacement_error"] = float(ade.mean(1).min())
     out["simulated_collision_rate"] = float(flags["collision_indication"][1:].mean())
-    out["simulated_offroad_rate"] = float(flags["offroad_indication"][1:].mean())
+    out["simulated_offroad_rate"] = float(flags["offroad_indication"][1:].mean()) \
+        if "offroad_indication" in flags else float("nan")
     tl_any = (feat.values["traffic_light_violation_per_step"][1:] & valid).any(-1)
     out["simulated_traffic_light_violation_rate"] = float(tl_any.mean())
     return {k: out[k] for k in METRIC_FIELDS}
@@ -188,8 +211,10 @@ def scenario_metrics(scene: Scene, rollouts: ScenarioRollouts,
                      validate: bool = True) -> dict[str, float]:
     """Realism metrics of one scenario's rollouts (official field names and definitions).
 
+    A scene whose map has no road edges gets NaN road-edge fields and meta-metric (see
+    :func:`metrics_from_features`).
+
     :raises SubmissionError: rollouts that do not fit the scene (when ``validate``).
-    :raises ValueError: a scene without road edges.
     """
     if validate:
         validate_rollouts(rollouts, scene, config.n_rollouts, config.n_simulation_steps)

@@ -26,6 +26,7 @@ from magail_sumo.evaluation.realism.estimators import (
 )
 from magail_sumo.evaluation.realism.metrics import (
     _FLAGS, _MASKS, Features, compute_features, feature_masks, metrics_from_features,
+    value_name,
 )
 from magail_sumo.evaluation.realism.trajectories import joint_trajectories
 from magail_sumo.evaluation.rollouts import N_STEPS, read_manifest, read_rollouts, rollouts_path
@@ -89,13 +90,16 @@ def agent_metrics(feat: Features, config=CHALLENGE_2025) -> dict[str, np.ndarray
     the mean log-likelihood over that agent's masked steps, NaN where it has none; Bernoulli
     features: the likelihood of its logged flag), ADE and minADE over rollouts (m), and the
     share of rollouts in which it collides / goes off-road — the per-agent parts of
-    :func:`~magail_sumo.evaluation.realism.metrics.metrics_from_features`."""
+    :func:`~magail_sumo.evaluation.realism.metrics.metrics_from_features` (NaN road-edge
+    fields on a map without road edges)."""
     masks, flag_mask = feature_masks(feat)
     out: dict[str, np.ndarray] = {}
     flags = {}
     with np.errstate(invalid="ignore", divide="ignore"):
         for fc in config.features:
-            if isinstance(fc.estimator, Histogram):
+            if value_name(fc) not in feat.values:  # a road-edge feature of a map without edges
+                out[f"{fc.name}_likelihood"] = np.full(len(feat.object_id), np.nan)
+            elif isinstance(fc.estimator, Histogram):
                 vals = feat.values[fc.name]
                 ll = histogram_log_likelihood(vals[0], vals[1:], fc.estimator)
                 m = masks[_MASKS[fc.name]]
@@ -111,7 +115,8 @@ def agent_metrics(feat: Features, config=CHALLENGE_2025) -> dict[str, np.ndarray
     out["ade"] = ade.mean(0)
     out["min_ade"] = ade.min(0)
     out["collision_rate"] = flags["collision_indication"][1:].mean(0)
-    out["offroad_rate"] = flags["offroad_indication"][1:].mean(0)
+    out["offroad_rate"] = flags["offroad_indication"][1:].mean(0) \
+        if "offroad_indication" in flags else np.full(len(feat.object_id), np.nan)
     return out
 
 

@@ -1,6 +1,7 @@
 """Event rates: share of (rollout, object) pairs with at least one event step on the log-valid
 steps (collision: box overlap, off-road: a box corner beyond the road edge, both from the
-realism features; red-light violation; hard braking: acceleration < -3 m/s²)."""
+realism features; off-road is NaN on a map without road edges; red-light violation; hard
+braking: acceleration < -3 m/s²)."""
 
 from __future__ import annotations
 
@@ -34,6 +35,8 @@ class OffroadRate(TrafficMetric):
     description = "vehicles with a box corner beyond the road edge at least once"
 
     def compute(self, inp: MetricInput) -> float:
+        if "offroad_per_step" not in inp.feat.values:  # a map without road edges
+            return float("nan")
         return _rate(inp.feature("offroad_per_step"), inp.valid & inp.is_vehicle[:, None])
 
 
