@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from typing import Any
 
 from converters.scene_files import iter_scene_records
 from magail_sumo.evaluation.realism import METRIC_FIELDS, aggregate_metrics, scenario_metrics
+from magail_sumo.evaluation.realism.map_features import has_road_edges
 from magail_sumo.evaluation.submission import SubmissionError, iter_submission
+from magail_sumo.outputs import printable
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -17,14 +20,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description="Compute the Waymo Open Sim Agents Challenge 2025 realism "
                                    "metrics of a SimAgentsChallengeSubmission against the "
                                    "recorded scenes. Bad scenarios are reported on stderr and "
-                                   "the others are still scored.")
+                                   "the others are still scored. A scene whose map has no road "
+                                   "edges is scored without them: its road-edge fields and "
+                                   "meta-metric are NaN (null in --json), noted on stderr.")
     p.add_argument("--scenes", nargs="+", required=True, metavar="FILE",
                    help="scene files (WOMD TFRecords, ScenarioNet pickles or folders)")
     p.add_argument("--submission", nargs="+", required=True, metavar="FILE.binproto",
                    help="submission file(s) or shards")
     p.add_argument("--json", action="store_true",
-                   help="one JSON object per scene (scenario_id plus the official field names)")
+                   help="one JSON object per scene (scenario_id plus the official field names; "
+                        "null for NaN)")
     p.set_defaults(func=run)
+
+
+#: Fields a scene whose map has no road edges gets as NaN (the meta-metric sums them all).
+ROAD_EDGE_FIELDS = ("metametric", "distance_to_road_edge_likelihood",
+                    "offroad_indication_likelihood", "simulated_offroad_rate")
+
+
+def json_row(row: dict[str, Any]) -> dict[str, Any]:
+    """``row`` with NaN fields as None (JSON ``null``: standard JSON has no NaN)."""
+    return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()}
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
@@ -73,13 +89,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: {exc}", file=sys.stderr)
             failed += 1
             continue
-        except ValueError as exc:  # a scene the metrics cannot use (e.g. no road edges)
+        except ValueError as exc:  # a scene the metrics cannot use
             print(f"error: scenario {rec.scenario_id}: {exc}", file=sys.stderr)
             failed += 1
             continue
+        if not has_road_edges(scenes[ro.scenario_id]):
+            print(f"note: scenario {printable(ro.scenario_id)}: the map has no road edges: "
+                  f"{', '.join(ROAD_EDGE_FIELDS)} are NaN (not comparable)", file=sys.stderr)
         rows.append(row)
         if args.json:
-            print(json.dumps(row), flush=True)
+            print(json.dumps(json_row(row)), flush=True)
     for sid in sorted(scenes.keys() - seen):
         print(f"error: scenario {sid}: no rollouts in the submission", file=sys.stderr)
         failed += 1
