@@ -89,3 +89,26 @@ def test_realism_cli_reports_partial_fields(nusc, tmp_path, capsys):
     assert meta.split()[1] == "nan"
     assert np.isfinite(float(next(ln for ln in table.splitlines()
                                   if ln.startswith("simulated_collision_rate")).split()[1]))
+
+
+def test_report_of_nuscenes_scene(tmp_path):
+    """``evaluate`` + ``report`` on the nuScenes scene: a metrics.csv row per method with the
+    collision rates and NaN meta-metric / off-road fields, no errors, and the report says why."""
+    import csv
+
+    from magail_sumo.evaluation.report import build_report
+    from magail_sumo.evaluation.rollouts import evaluate
+
+    res = evaluate([str(NUSC)], "constvel", tmp_path / "ev", n_rollouts=2,
+                   baselines=["logreplay"], workers=1)
+    assert not res.errors
+    rep = build_report(tmp_path / "ev", workers=1)
+    assert rep.errors == ()
+    with open(rep.metrics_csv, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted(r["method"] for r in rows) == ["constvel", "logreplay"]
+    for r in rows:
+        assert math.isnan(float(r["metametric"])) and math.isnan(float(r["offroad_rate"]))
+        assert math.isfinite(float(r["simulated_collision_rate"]))
+        assert math.isfinite(float(r["collision_rate"]))
+    assert "No road edges in the map of 1 scene(s) (scene-0757)" in rep.markdown.read_text()

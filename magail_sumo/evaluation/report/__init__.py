@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS
+from magail_sumo.evaluation.realism.map_features import has_road_edges
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
 
@@ -131,6 +132,11 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: di
                                     {**units, "metametric": "WOSAC"}, "Methods compared"),
                   "bars", "bar charts of the main metrics per method")
     doc.heading("Realism (WOSAC 2025) breakdown")
+    bare = [printable(s) for s in sorted(sc.scenes) if not has_road_edges(sc.scenes[s])]
+    if bare:
+        doc.para(f"No road edges in the map of {len(bare)} scene(s) ({', '.join(bare)}): their "
+                 "distance-to-road-edge and off-road fields and their meta-metric are NaN (not "
+                 "comparable); the means of those fields are over the other scenes.")
     doc.table(["method", "metametric"] + REALISM_FIELDS,
               [[m, means[m]["metametric"], *(means[m][f] for f in REALISM_FIELDS)]
                for m in sc.methods], "realism")
