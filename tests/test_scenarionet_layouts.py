@@ -239,3 +239,26 @@ def test_older_layout_bad_signal_arrays_are_named(field, value, message):
     with pytest.raises(SceneValidationError, match=message) as err:
         reader.scene_from_scenarionet(sd)
     assert "dynamic_map_states['47'].state" in str(err.value)
+
+
+def test_sideways_recording_vehicle_box_is_set_upright():
+    """ScenarioNet's nuScenes ego is 1.73 m long and 4.08 m wide in the pickle
+    (metadriverse/scenarionet#68): the reader swaps the two for the recording vehicle only and
+    says so; a WOMD scene's boxes are kept as recorded."""
+    raw = safe_loads(NUSCENES.read_bytes())
+    sdc_key = raw["metadata"]["sdc_id"]
+    state = {k: np.asarray(raw["tracks"][sdc_key]["state"][k], np.float32).reshape(-1)
+             for k in ("length", "width")}
+    scene = load_scenarionet(NUSCENES)
+    i, tr = scene.sdc_track_index, scene.tracks
+    v = tr.valid[i]
+    assert np.median(state["length"][v]) < np.median(state["width"][v])  # as shipped
+    assert np.array_equal(tr.length[i], state["width"])
+    assert np.array_equal(tr.width[i], state["length"])
+    assert any("length and width swapped" in n for n in scene.data_quality.notes)
+    for key, k in ((key, k) for k, key in enumerate(raw["tracks"]) if key != sdc_key):
+        recorded = np.asarray(raw["tracks"][key]["state"]["length"], np.float32).reshape(-1)
+        assert np.array_equal(tr.length[k], recorded), key  # kept as recorded
+        break
+    womd = load_scenarionet(OLDER)
+    assert not any("swapped" in n for n in womd.data_quality.notes)

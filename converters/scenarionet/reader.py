@@ -293,6 +293,7 @@ def _scene(sd: Any) -> Scene:
     index_of = {name: i for i, name in enumerate(
         track_ids.names if track_ids.renumbered else (str(v) for v in track_ids.ids))}
     sdc_index = _sdc_index(sd, meta, index_of, tracks.num_tracks)
+    tracks = _upright_sdc_box(tracks, sdc_index, notes)
     ttp = meta.get("tracks_to_predict")
     if ttp is None or (isinstance(ttp, (list, tuple)) and not ttp):
         ttp = {}
@@ -342,6 +343,27 @@ def _scene(sd: Any) -> Scene:
         source_ids=SourceIds(track_ids.pairs(), feature_ids.pairs()),
         data_quality=DataQuality(tuple(dropped), successors, neighbors, tuple(notes)),
     )
+
+
+def _upright_sdc_box(tracks: Tracks, sdc: int, notes: list[str]) -> Tracks:
+    """The tracks with the recording vehicle's box length and width swapped when its box is
+    wider than long (median over its valid states): ScenarioNet's nuScenes converter writes the
+    ego's size as 1.73 m long and 4.08 m wide (metadriverse/scenarionet#68), which puts a
+    sideways box into every collision and overlap test. Noted in ``notes``; other tracks are
+    kept as recorded."""
+    if not 0 <= sdc < tracks.num_tracks or int(tracks.type[sdc]) != int(ObjectType.VEHICLE):
+        return tracks
+    v = tracks.valid[sdc]
+    if not v.any():
+        return tracks
+    length, width = float(np.median(tracks.length[sdc, v])), float(np.median(tracks.width[sdc, v]))
+    if not length < width:
+        return tracks
+    new_length, new_width = tracks.length.copy(), tracks.width.copy()
+    new_length[sdc], new_width[sdc] = tracks.width[sdc], tracks.length[sdc]
+    notes.append(f"sdc box wider than long ({length:.2f} m x {width:.2f} m): length and width "
+                 "swapped")
+    return dataclasses.replace(tracks, length=new_length, width=new_width)
 
 
 def _sdc_index(sd: dict, meta: dict, index_of: dict[str, int], n: int) -> int:
