@@ -18,12 +18,16 @@ measurement and reports the median (``agent_steps_per_s_runs`` lists the runs). 
 ``device``, ``config``, ``backend``, ``workers``, ``nodes``, ``agent_steps_per_s``,
 ``disc_tokens_per_s`` and, when the same config/backend/device was measured with one worker,
 ``efficiency`` = rate / (workers × one-worker rate). ``--pin-workers`` pins process workers to
-cores (``scenes.pin_workers``). Run it on an otherwise idle machine: the scene workers, the
-trainer and torch's update threads all need the cores.
+cores (``scenes.pin_workers``). ``--torch-threads-update N`` overrides the config's
+``torch_threads_update`` (torch threads of the discriminator fit and PPO epochs; a different
+count changes the discriminator's float rounding, so results differ from the config's) and the
+rows carry ``torch_threads_update``. Run it on an otherwise idle machine: the scene workers,
+the trainer and torch's update threads all need the cores (two update threads on a busy
+2-core machine wait on each other: see the README's Benchmarks section).
 
     python benchmarks/train_throughput.py [--json] [--updates N] [--config YAML ...]
         [--workers 1,2] [--backend process,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
-        [--scenes ENTRY ...]
+        [--scenes ENTRY ...] [--torch-threads-update N]
 
 ``--scenes`` trains on other pool entries than the config's, e.g. a city scenario alone
 (``--config configs/city_ingolstadt21.yaml --scenes data/sumo/ingolstadt21``); the expert data
@@ -124,6 +128,9 @@ def main() -> int:
                          "scenario alone); the expert data still come from the config's "
                          "recorded scenes")
     ap.add_argument("--pin-workers", action="store_true", help="pin scene workers to cores")
+    ap.add_argument("--torch-threads-update", type=int, default=None,
+                    help="torch threads of the discriminator fit and PPO epochs (default: the "
+                         "config's torch_threads_update; another count changes results)")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     configs = args.config or [ROOT / "configs" / "magail.yaml"]
@@ -210,6 +217,8 @@ def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
                       workers=replace(w, backend=backend, count=workers or w.count,
                                       ray=replace(w.ray, address=None if cluster is None
                                                   else cluster.address)))
+        if args.torch_threads_update is not None:
+            cfg = replace(cfg, torch_threads_update=args.torch_threads_update)
         torch.set_num_threads(max(1, cfg.torch_threads))
         runs = []
         for _ in range(max(1, args.repeats)):
@@ -220,6 +229,7 @@ def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
             f"{path.name}[{','.join(Path(f).name for f in args.scenes)}]"
         rows.append({"device": device, "config": name, "backend": backend,
                      "workers": loop["workers"], "nodes": nodes,
+                     "torch_threads_update": cfg.torch_threads_update or cfg.torch_threads,
                      "agent_steps_per_s": float(np.median(runs)),
                      "agent_steps_per_s_runs": runs, "disc_tokens_per_s": round(tok, 1)})
     return rows

@@ -121,3 +121,39 @@ def test_workers_are_pinned_when_asked(specs):
         assert os.sched_getaffinity(venv._procs[0].pid) == os.sched_getaffinity(0)
     finally:
         venv.close()
+
+
+class _Echo:
+    """A trivial worker object for transport tests (no SUMO)."""
+
+    def hello(self) -> dict:
+        return {"pid": os.getpid()}
+
+    def handle(self, cmd, arg):
+        return os.sched_getscheduler(0) if cmd == "policy" else arg
+
+    def close(self) -> None:
+        pass
+
+
+def _echo() -> _Echo:
+    return _Echo()
+
+
+def test_process_workers_run_as_batch_tasks():
+    """Process workers run under SCHED_BATCH (they never preempt the trainer's sends)."""
+    if not hasattr(os, "SCHED_BATCH"):
+        pytest.skip("no SCHED_BATCH on this platform")
+    from magail_sumo.env.transport import ProcessWorker
+
+    w = ProcessWorker("echo", _echo, ())
+    w.start()
+    try:
+        assert w.recv(30.0)["pid"] == w.pid
+        w.send("policy", None, 5.0)
+        assert w.recv(30.0) == os.SCHED_BATCH
+        w.send("echo", [1, 2], 5.0)
+        assert w.recv(30.0) == [1, 2]
+    finally:
+        w.close()
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the trainer keeps the default

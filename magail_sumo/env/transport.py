@@ -106,7 +106,26 @@ class WorkerHandle:
 
 
 # ------------------------------------------------------------------------------- process backend
+def batch_scheduling() -> None:
+    """Run this process under Linux's ``SCHED_BATCH`` policy (best effort; elsewhere a no-op).
+
+    A scene worker is woken by each request; under the default policy the woken worker
+    preempts the trainer in the middle of its loop of sends (it has just written to the
+    worker's pipe), so on a machine with fewer cores than workers + trainer the trainer only
+    reaches the next worker's request after the first worker's whole step. ``SCHED_BATCH``
+    tasks do not preempt on wakeup: the trainer sends every request first, then the workers
+    step side by side. Scheduling only: results are unchanged (measured in the README's
+    Benchmarks section)."""
+    import os
+
+    try:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+    except (AttributeError, OSError):  # not Linux, or refused: keep the default policy
+        pass
+
+
 def _process_main(conn, factory, args: tuple) -> None:
+    batch_scheduling()
     state: dict = {}
     while True:
         try:
