@@ -153,8 +153,8 @@ def _continue_routes(api, vehicles, ends: dict[str, str], keep: Collection[str] 
 
 
 def lateral_offsets(api, v, cols: dict[str, int], x0: np.ndarray, y0: np.ndarray,
-                    width: np.ndarray) -> dict[int, float]:
-    """Signed lateral offset (m, left of the direction of travel positive) of each recorded
+                    width: np.ndarray) -> np.ndarray:
+    """(A,) signed lateral offset (m, left of the direction of travel positive) of each recorded
     centre ``(x0, y0)[a]`` from the pose SUMO placed vehicle ``vid`` (``cols``: vehicle ->
     agent ``a``) at, for the vehicles of ``v`` (:meth:`~magail_sumo.sim.session.SumoSession.
     vehicles`, right after the placement), clipped so the box stays within its lane (``width``
@@ -164,8 +164,9 @@ def lateral_offsets(api, v, cols: dict[str, int], x0: np.ndarray, y0: np.ndarray
     the right of a 4.5 m lane is put up to 2 m aside, into the path of a car turning past it,
     and every vehicle jumps sideways at the handover. The offset is carried in the reported pose
     instead (:func:`sumo_rollout`); SUMO's sublane model, which would carry it in SUMO, drove
-    worse (module doc). ``api``: the running session's TraCI-style domains."""
-    out: dict[int, float] = {}
+    worse (module doc). ``api``: the running session's TraCI-style domains. Agents not placed
+    (not in ``cols``, or off every lane) get 0."""
+    out = np.zeros(len(x0))
     for i, vid in enumerate(v.ids):
         a = cols.get(vid)
         if a is None:
@@ -175,7 +176,8 @@ def lateral_offsets(api, v, cols: dict[str, int], x0: np.ndarray, y0: np.ndarray
         except Exception:  # not on a lane
             continue
         lat = (-(x0[a] - v.x[i]) * np.sin(v.yaw[i]) + (y0[a] - v.y[i]) * np.cos(v.yaw[i]))
-        out[a] = float(np.clip(lat, -max(half, 0.0), max(half, 0.0)))
+        half = max(half, 0.0)
+        out[a] = np.clip(lat, -half, half)
     return out
 
 
@@ -281,9 +283,8 @@ def sumo_rollout(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarray, n_s
                         pass
             departed, arrived = sess.step()
             if k == cur:
-                for a, lat in lateral_offsets(api, sess.vehicles(), {vid: col[vid] for vid in held},
-                                              x0, y0, width).items():
-                    offsets[a] = lat
+                offsets = lateral_offsets(api, sess.vehicles(), {vid: col[vid] for vid in held},
+                                          x0, y0, width)
             if obstacles is not None and later.intersection(departed):
                 obstacles.retire(later.intersection(departed))
             # an agent leaving SUMO (its route ends) goes on at constant velocity: an obstacle
