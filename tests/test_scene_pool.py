@@ -143,6 +143,25 @@ def test_pool_plays_every_scene_skips_the_bad_one_and_resumes_exactly(pool_dir, 
 
 
 @pytest.mark.sumo
+def test_kept_scene_envs_play_exactly_as_freshly_built_ones(pool_dir, tmp_path):
+    """A worker keeping its scenes' envs (the default cache) plays the same rollouts as one
+    that rebuilds the env at every scene change (cache 1): a reused env carries nothing from
+    its earlier episodes."""
+    refs = [r for r in resolve_pool([str(pool_dir)]) if not r.path.endswith("broken.pkl")][:2]
+    runs = []
+    for cache in (1, 16):
+        venv = pool_vec_env(refs, tmp_path / "nets", 1, CFG, seed=7, cache=cache)
+        scenes: list[str] = []
+        try:
+            runs.append(roll_random(venv, 70, hook=lambda t, v: scenes.extend(v.worker_scene)))
+        finally:
+            venv.close()
+        assert len(set(scenes)) == 2  # both scenes played, several episodes each
+    for a, b in zip(*runs):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.sumo
 def test_worker_with_only_bad_scenes_is_dropped_at_start(pool_dir, tmp_path):
     refs = [RecordRef(str(pool_dir / "broken.pkl")), RecordRef(str(SMALL[0]))]
     venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=0)

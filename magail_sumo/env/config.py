@@ -16,6 +16,11 @@ from magail_sumo.sim.dynamics import ACTION_LAYOUTS, BicycleLimits
 EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination", "end_of_life")
 #: named controlled sets (``EnvConfig.controlled``; an int K is the other choice)
 CONTROLLED: tuple[str, ...] = ("all", "sdc", "tracks_to_predict", "scored")
+#: scene envs a pool worker keeps built (the most recent; :class:`~magail_sumo.env.scene_pool.
+#: PoolCursor`): a recorded scene's env holds about 3.5 MiB (the 10 womd14 train scenes: 0.1 to
+#: 7.4 MiB), and a rebuild re-reads the scene file and its bundle (20 to 100 ms), so a shard of up
+#: to this many scenes builds each once
+SCENE_CACHE = 16
 #: ``EnvConfig.start_window`` choices
 START_WINDOWS: tuple[str, ...] = ("fixed", "random")
 

@@ -53,7 +53,7 @@ from converters.sumo.bundle import REPORT_FILE, BundleError, ensure_bundle, read
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import one_line, printable
 
-from .config import EnvConfig
+from .config import SCENE_CACHE, EnvConfig
 
 #: SeedSequence stream of the per-pass scene order (apart from the start-window stream)
 POOL_STREAM = 0x5CE4E
@@ -223,7 +223,7 @@ class PoolCursor:
     """
 
     def __init__(self, refs: Sequence[RecordRef], networks: str | Path, seed: int,
-                 make_env: Callable, config: EnvConfig, cache: int = 2,
+                 make_env: Callable, config: EnvConfig, cache: int = SCENE_CACHE,
                  convert_budget_s: float | None = 600.0, city=None) -> None:
         if not refs:
             raise ScenePoolError("a worker needs at least one scene")

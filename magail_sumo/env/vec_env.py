@@ -49,7 +49,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.sim.dynamics import ACTION_SIZE
 
-from .config import EnvConfig, draw_start
+from .config import SCENE_CACHE, EnvConfig, draw_start
 
 SEED_STRIDE = 100_003
 #: per-step cost of a scene worker in units of one agent's cost (SUMO step, log replay, sensor
@@ -151,7 +151,7 @@ class PoolSpec:
 
     refs: tuple
     networks: str
-    cache: int = 2
+    cache: int = SCENE_CACHE
     convert_budget_s: float | None = 600.0
     #: :class:`~magail_sumo.env.city_env.CityEnvConfig` of the pool's city scenarios
     city: Any = None
@@ -736,7 +736,7 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
 
 
 def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
-                 config: EnvConfig | None = None, seed: int = 0, *, cache: int = 2,
+                 config: EnvConfig | None = None, seed: int = 0, *, cache: int = SCENE_CACHE,
                  convert_budget_s: float | None = 90.0, city=None, log=None, **kwargs
                  ) -> MultiSceneVecEnv:
     """A :class:`MultiSceneVecEnv` over a scene pool: ``refs``

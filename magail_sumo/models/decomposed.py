@@ -47,8 +47,8 @@ with ``d_ij ≤ R`` = ``radius``; ties at equal distance are broken by slot orde
 
 Absent vehicles neither receive nor give pairwise terms (their logit is 0); a vehicle without
 neighbours gets its ego term only. Everything runs on (B, V, K) arrays — no loop over vehicles.
-The first layer of ``MLP_p`` is linear in its three input blocks, so it is applied to the
-tokens once per vehicle (B, V, H) and gathered per neighbour, not once per pair.
+The first layer of ``MLP_p`` is linear in its three input blocks, so its two token blocks are
+applied once per present vehicle and gathered per pair, not once per pair (K times fewer rows).
 """
 
 from __future__ import annotations
@@ -164,10 +164,12 @@ class DecomposedDiscriminator(_TokenInput):
             pair = [self.pair_i.weight, self.pair_j.weight, self.pair_geometry.weight]
         return [self.ego[-1].weight, *pair]
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor, pos: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Logits of raw tokens x (B, V, F) with mask (B, V) and poses (B, V, 3)."""
-        return self.forward_normalized(self.normalizer(x), mask, pos)
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, pos: torch.Tensor,
+                neighbours: Neighbours | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits of raw tokens x (B, V, F) with mask (B, V) and poses (B, V, 3);
+        ``neighbours``: :meth:`neighbours` of ``pos`` and ``mask`` when already computed."""
+        bi, vi = mask.nonzero(as_tuple=True)  # normalise the present vehicles' tokens only
+        return self._logits(self.normalizer(x[bi, vi]), bi, vi, mask, pos, neighbours)
 
     @torch.no_grad()
     def neighbours(self, pos: torch.Tensor, mask: torch.Tensor) -> Neighbours:
@@ -202,33 +204,45 @@ class DecomposedDiscriminator(_TokenInput):
         weight = torch.where(valid, weight, 0.0)  # also the NaN of all-invalid softmax rows
         return Neighbours(index, valid, weight, geometry, dist)
 
-    def forward_normalized(self, x: torch.Tensor, mask: torch.Tensor, pos: torch.Tensor
+    def forward_normalized(self, x: torch.Tensor, mask: torch.Tensor, pos: torch.Tensor,
+                           neighbours: Neighbours | None = None
                            ) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits of already-normalised tokens: ((B, V) ``D_i``, (B,) scene logits)."""
+        bi, vi = mask.nonzero(as_tuple=True)
+        return self._logits(x[bi, vi], bi, vi, mask, pos, neighbours)
+
+    def _logits(self, xp: torch.Tensor, bi: torch.Tensor, vi: torch.Tensor, mask: torch.Tensor,
+                pos: torch.Tensor, neighbours: Neighbours | None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward_normalized` from the normalised tokens ``xp`` (N, F) of the present
+        vehicles ``(bi, vi)`` (``mask.nonzero()``, in that order)."""
         if pos is None:
             raise ValueError("the decomposed discriminator needs the vehicles' poses")
-        nb = self.neighbours(pos, mask)
-        xm = x * self.feature_mask
+        nb = self.neighbours(pos, mask) if neighbours is None else neighbours
         # the heads run on present vehicles and valid pairs only (a padded batch of a large
         # scene is mostly absent slots and missing neighbours); the rest stays 0
-        bi, vi = mask.nonzero(as_tuple=True)
-        ego = x.new_zeros(mask.shape).index_put((bi, vi), self.ego(xm[bi, vi]).squeeze(-1))
+        xp = xp * self.feature_mask
+        ego = xp.new_zeros(mask.shape).index_put((bi, vi), self.ego(xp).squeeze(-1))
         pb, pv, pk = nb.valid.nonzero(as_tuple=True)
-        pj = nb.index[pb, pv, pk]
-        pre = (self.pair_i(xm[pb, pv]) + self.pair_j(xm[pb, pj])
-               + self.pair_geometry(nb.geometry[pb, pv, pk].to(x.dtype)))  # (P, H)
-        pair = x.new_zeros(nb.valid.shape).index_put((pb, pv, pk),
-                                                     self.pair_rest(pre).squeeze(-1))
-        tokens = (ego + (nb.weight.to(x.dtype) * pair).sum(-1)).masked_fill(~mask, 0.0)
+        # row of each vehicle among the present ones; the first layer's token blocks run once
+        # per present vehicle and are gathered per pair (about K times fewer rows)
+        row = torch.zeros(mask.shape, dtype=torch.long, device=xp.device)
+        row[bi, vi] = torch.arange(bi.numel(), device=xp.device)
+        pre = (self.pair_i(xp)[row[pb, pv]] + self.pair_j(xp)[row[pb, nb.index[pb, pv, pk]]]
+               + self.pair_geometry(nb.geometry[pb, pv, pk].to(xp.dtype)))  # (P, H)
+        pair = xp.new_zeros(nb.valid.shape).index_put((pb, pv, pk),
+                                                      self.pair_rest(pre).squeeze(-1))
+        tokens = (ego + (nb.weight.to(xp.dtype) * pair).sum(-1)).masked_fill(~mask, 0.0)
         m = mask.to(tokens.dtype)
         return tokens, (tokens * m).sum(1) / m.sum(1).clamp(min=1.0)
 
     @torch.no_grad()
     def social_reward(self, rewards: torch.Tensor, pos: torch.Tensor, mask: torch.Tensor,
-                      coef: float) -> torch.Tensor:
-        """``r_i + coef·Σ_{j∈N(i)} w_ij·r_j`` for (B, V) rewards (0 stays 0 where absent)."""
+                      coef: float, neighbours: Neighbours | None = None) -> torch.Tensor:
+        """``r_i + coef·Σ_{j∈N(i)} w_ij·r_j`` for (B, V) rewards (0 stays 0 where absent);
+        ``neighbours``: :meth:`neighbours` of ``pos`` and ``mask`` when already computed."""
         if coef == 0.0:
             return rewards
-        nb = self.neighbours(pos, mask)
+        nb = self.neighbours(pos, mask) if neighbours is None else neighbours
         social = (nb.weight.to(rewards.dtype) * _gather_slots(rewards, nb.index)).sum(-1)
         return (rewards + coef * social).masked_fill(~mask, 0.0)

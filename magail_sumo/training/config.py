@@ -14,7 +14,7 @@ from os import PathLike
 from typing import Literal
 
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
-from magail_sumo.env.config import EnvConfig
+from magail_sumo.env.config import SCENE_CACHE, EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import TransformerConfig
@@ -120,14 +120,15 @@ class WorkersConfig:
     :param ray: Ray options.
     :param max_restarts: times in a row a worker that dies or hangs is replaced (its episode
         replayed) before the run stops with its last checkpoint.
-    :param scene_cache: scene envs each worker keeps built (the most recent).
+    :param scene_cache: scene envs each worker keeps built (the most recent; default
+        :data:`~magail_sumo.env.config.SCENE_CACHE`).
     """
 
     count: int | None = None
     backend: Literal["process", "ray"] = "process"
     ray: RayConfig = field(default_factory=RayConfig)
     max_restarts: int = 3
-    scene_cache: int = 2
+    scene_cache: int = SCENE_CACHE
 
     def __post_init__(self) -> None:
         check(self.count is None or self.count >= 1, "count",

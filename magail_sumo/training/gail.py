@@ -140,6 +140,8 @@ class GailRun:
             self.reward = AdversarialReward.build(cfg, self.venv, expert, deferred=True)
             self.discriminator = self.reward.discriminator
             self.wrapper, self.disc_trainer = self.reward.env, self.reward.trainer
+            # the reward pass runs after the rollout, while the workers wait, as the updates
+            self.wrapper.flush_threads = cfg.torch_threads_update or cfg.torch_threads
             self.model = MaskedPPO(
                 TanhGaussianPolicy, self.wrapper, learning_rate=p.learning_rate,
                 n_steps=p.n_steps, batch_size=p.batch_size, n_epochs=p.n_epochs, gamma=p.gamma,

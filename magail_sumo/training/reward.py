@@ -84,6 +84,8 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         #: task reward −penalty at the step an agent leaves for that reason (e.g. "collision")
         self.penalties = {k: float(v) for k, v in (penalties or {}).items() if v}
         self.chunk_tokens = chunk_tokens
+        #: torch CPU threads of :meth:`flush_rewards` (None: the current count)
+        self.flush_threads: int | None = None
         #: deferred mode: per step since the last flush, the scenes kept in rollout_x (indices)
         self._pending: list[np.ndarray] = []
         self._pending_first = 0  # index into rollout_x of the first pending step
@@ -131,10 +133,16 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         xt = torch.as_tensor(x, device=self.device)
         mt = torch.as_tensor(mask, device=self.device)
         pt = None if pos is None else torch.as_tensor(pos, device=self.device)
-        logits, _ = disc(xt, mt, *pose_args(disc, pt))
+        args = pose_args(disc, pt)
+        if args and hasattr(disc, "neighbours"):  # one neighbour search for logits and social
+            nb = disc.neighbours(pt, mt)
+            logits, _ = disc(xt, mt, pt, nb)
+        else:
+            nb = None
+            logits, _ = disc(xt, mt, *args)
         r = imitation_reward(logits, self.floor).masked_fill(~mt, 0.0)
         if self.social_coef:
-            r = disc.social_reward(r, pt, mt, self.social_coef)
+            r = disc.social_reward(r, pt, mt, self.social_coef, nb)
         return r.cpu().numpy()
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -174,32 +182,43 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
 
     def flush_rewards(self) -> np.ndarray:
         """Deferred mode: ``c_i`` × the imitation rewards of the steps since the last flush,
-        (steps, num_envs) float32 (0 for free slots), in batched forwards; cleared."""
+        (steps, num_envs) float32 (0 for free slots), in batched forwards with
+        :attr:`flush_threads` torch threads (the scene workers wait meanwhile); cleared."""
+        threads = torch.get_num_threads()
+        if self.flush_threads and self.flush_threads != threads:
+            torch.set_num_threads(self.flush_threads)
+        try:
+            return self._flush_rewards()
+        finally:
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
+
+    def _flush_rewards(self) -> np.ndarray:
         steps, first = self._pending, self._pending_first
         self._pending = []
         self._pending_first = len(self.rollout_x)
         out = np.zeros((len(steps), self.num_envs), np.float32)
-        scenes = np.concatenate(steps) if steps else np.zeros(0, np.int64)
-        if scenes.size == 0:
-            return out
-        step_of = np.repeat(np.arange(len(steps)), [len(k) for k in steps])
-        used = sum(1 for k in steps if len(k))  # steps that appended to rollout_x
-        x = np.concatenate(self.rollout_x[first:first + used])
-        m = np.concatenate(self.rollout_mask[first:first + used])
-        p = np.concatenate(self.rollout_pos[first:first + used])
         present = np.zeros(out.shape, bool)
+        # rollout_x[first + entry[j]] holds the scenes steps[j] of step j (in that order);
+        # each scene's rows are gathered trimmed to its slots ever occupied (no full copy)
+        entry = first + np.cumsum([len(k) > 0 for k in steps]) - 1
         for k in range(self.num_scenes):
-            rows = np.flatnonzero(scenes == k)
-            if rows.size == 0:
+            at = [(j, int(np.searchsorted(sc, k))) for j, sc in enumerate(steps)
+                  if sc.size and k in sc]
+            if not at:
                 continue
-            v = int(m[rows].any(axis=0).nonzero()[0].max()) + 1
+            js = np.array([j for j, _ in at])
+            m = np.stack([self.rollout_mask[entry[j]][i] for j, i in at])
+            v = int(m.any(axis=0).nonzero()[0].max()) + 1
+            m = m[:, :v]
+            x = np.stack([self.rollout_x[entry[j]][i, :v] for j, i in at])
+            p = np.stack([self.rollout_pos[entry[j]][i, :v] for j, i in at])
             per = max(1, self.chunk_tokens // v)
-            r = np.concatenate([self.rewards(x[rows[i:i + per], :v], m[rows[i:i + per], :v],
-                                             p[rows[i:i + per], :v])
-                                for i in range(0, rows.size, per)])
+            r = np.concatenate([self.rewards(x[i:i + per], m[i:i + per], p[i:i + per])
+                                for i in range(0, len(at), per)])
             start = self.base.scene_slices[k].start
-            out[step_of[rows], start:start + v] = r
-            present[step_of[rows], start:start + v] = m[rows, :v]
+            out[js, start:start + v] = r
+            present[js, start:start + v] = m
         self._add_stats(out[present])
         return self.reward_i_coef * out
 
