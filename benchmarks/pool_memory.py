@@ -3,10 +3,11 @@
 A pool of ``--scenes`` distinct scene files (default 1,000) is built in a temporary folder as
 symlinks ``s0000_<name>.pkl``, ``s0001_<name>.pkl``, … cycling over the real WOMD ScenarioNet
 pickles of ``data/scenarionet/`` (the nuScenes one left out), listed with ``resolve_pool`` and
-played by ``pool_vec_env`` over ``--workers`` process workers (seed 0, ``cache=2``, bundles
-converted on demand into the temporary folder: one per scenario id, so the 11 real scenes are
-converted once and every other file reuses its bundle, but each file is its own pool record,
-read and given its own env when it plays). Env: ``EnvConfig(start_window="random",
+played by ``pool_vec_env`` over ``--workers`` process workers (seed 0; ``--cache`` scene envs
+kept per worker, default ``SCENE_CACHE`` as in training; bundles converted on demand into the
+temporary folder: one per scenario id, so the 11 real scenes are converted once and every other
+file reuses its bundle, but each file is its own pool record, read and given its own env when
+it plays). Env: ``EnvConfig(start_window="random",
 max_steps=--max-steps (8), controlled=4)``, short episodes so that many fit. Uniform random
 actions (seeded) are stepped until ``venv.episodes >= scenes``: each worker plays its shard in a
 seeded permutation, so by then about every record of the pool has been played once.
@@ -21,6 +22,7 @@ episode finished, from each worker's seeded order), ``trainer_rss_mib`` / ``trai
 of the summed worker RSS from the 10 % row to the end, in MiB and %.
 
     python benchmarks/pool_memory.py [--json] [--scenes N] [--workers W] [--max-steps S]
+        [--cache C]
 """
 
 from __future__ import annotations
@@ -136,10 +138,12 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=8, help="env steps per episode")
     ap.add_argument("--controlled", type=int, default=4, help="controlled agents per scene")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cache", type=int, default=None,
+                    help="scene envs each worker keeps (default: workers.scene_cache's default)")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
 
-    from magail_sumo.env.config import EnvConfig
+    from magail_sumo.env.config import SCENE_CACHE, EnvConfig
     from magail_sumo.env.scene_pool import resolve_pool
     from magail_sumo.env.vec_env import pool_vec_env
 
@@ -152,7 +156,7 @@ def main() -> None:
         n = len(refs)
         ts = time.perf_counter()
         venv = pool_vec_env(refs, tmp / "networks", args.workers, cfg, seed=args.seed,
-                            cache=2, convert_budget_s=90, log=logs.append)
+                            cache=args.cache or SCENE_CACHE, convert_budget_s=90, log=logs.append)
         rows = []
         try:
             rng = np.random.default_rng(args.seed)
