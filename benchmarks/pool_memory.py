@@ -156,7 +156,8 @@ def main() -> None:
         n = len(refs)
         ts = time.perf_counter()
         venv = pool_vec_env(refs, tmp / "networks", args.workers, cfg, seed=args.seed,
-                            cache=args.cache or SCENE_CACHE, convert_budget_s=90, log=logs.append)
+                            cache=SCENE_CACHE if args.cache is None else args.cache,
+                            convert_budget_s=90, log=logs.append)
         rows = []
         try:
             rng = np.random.default_rng(args.seed)

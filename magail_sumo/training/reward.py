@@ -199,12 +199,15 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         self._pending_first = len(self.rollout_x)
         out = np.zeros((len(steps), self.num_envs), np.float32)
         present = np.zeros(out.shape, bool)
-        # rollout_x[first + entry[j]] holds the scenes steps[j] of step j (in that order);
-        # each scene's rows are gathered trimmed to its slots ever occupied (no full copy)
+        # rollout_x[first + entry[j]] holds the scenes steps[j] of step j (in that order): one
+        # pass lists each scene's (step, row) pairs; each scene's rows are then gathered trimmed
+        # to its slots ever occupied (no copy of the whole padded rollout)
         entry = first + np.cumsum([len(k) > 0 for k in steps]) - 1
-        for k in range(self.num_scenes):
-            at = [(j, int(np.searchsorted(sc, k))) for j, sc in enumerate(steps)
-                  if sc.size and k in sc]
+        rows_of: list[list[tuple[int, int]]] = [[] for _ in range(self.num_scenes)]
+        for j, sc in enumerate(steps):
+            for i, k in enumerate(sc.tolist()):
+                rows_of[k].append((j, i))
+        for k, at in enumerate(rows_of):
             if not at:
                 continue
             js = np.array([j for j, _ in at])
