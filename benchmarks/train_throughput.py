@@ -46,21 +46,26 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from magail_sumo.config import load_config  # noqa: E402
-from magail_sumo.env.scene_pool import is_city, resolve_pool  # noqa: E402
-from magail_sumo.env.vec_env import scene_specs  # noqa: E402
-from magail_sumo.expert import ExpertDataset, record_expert  # noqa: E402
-from magail_sumo.sensors.observation import observation_names  # noqa: E402
-from magail_sumo.training.bc import behavioural_cloning  # noqa: E402
-from magail_sumo.training.config import TrainConfig  # noqa: E402
-from magail_sumo.training.discriminator_loss import (  # noqa: E402
-    DiscriminatorLossConfig, discriminator_loss)
-from magail_sumo.training.trainer import GailRun, make_discriminator  # noqa: E402
+if __name__ == "__main__":
+    # The learner's imports (torch, SB3). The scene workers are spawned processes that import
+    # this script again as ``__mp_main__``; they need none of it (magail_sumo.env.slot_worker),
+    # and importing it would add about 0.5 GiB to each and measure workers unlike training's.
+    import torch
+
+    from magail_sumo.config import load_config
+    from magail_sumo.env.scene_pool import is_city, resolve_pool
+    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.expert import ExpertDataset, record_expert
+    from magail_sumo.sensors.observation import observation_names
+    from magail_sumo.training.bc import behavioural_cloning
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.discriminator_loss import (DiscriminatorLossConfig,
+                                                         discriminator_loss)
+    from magail_sumo.training.trainer import GailRun, make_discriminator
 
 
 def loop_throughput(cfg: TrainConfig, expert: ExpertDataset, updates: int) -> dict:

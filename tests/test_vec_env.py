@@ -157,3 +157,31 @@ def test_process_workers_run_as_batch_tasks():
     finally:
         w.close()
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the trainer keeps the default
+
+
+_WORKER_IMPORTS = """
+import sys
+from magail_sumo.env import EnvConfig
+from magail_sumo.env.slot_worker import SceneSpec, make_worker
+w = make_worker(SceneSpec(*sys.argv[1:4]), EnvConfig(controlled=3, max_steps=5), 0, None)
+packet = w.reset()
+packet = w.step(packet["obs"][:, :2] * 0)
+assert packet["agent_steps"] > 0
+w.close()
+print(sorted(m for m in ("torch", "stable_baselines3") if m in sys.modules))
+"""
+
+
+@pytest.mark.sumo
+def test_scene_worker_holds_no_learner_imports(specs):
+    """A scene worker builds, resets and steps its scene without importing torch or SB3
+    (about 0.5 GiB per worker process): what the process and Ray backends import."""
+    import subprocess
+    import sys
+
+    spec = specs[1]
+    out = subprocess.run([sys.executable, "-c", _WORKER_IMPORTS, spec.scene_file, spec.bundle,
+                          spec.scenario_id], capture_output=True, text=True, cwd=ROOT,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]"

@@ -1,7 +1,7 @@
 """Ray backend of the scene workers: one Ray actor per worker, anywhere on a Ray cluster.
 
 ``workers.backend: ray`` in a training config. The learner stays in the driver (the
-``magail-sumo train`` process); each scene worker (:class:`~magail_sumo.env.vec_env.SlotWorker`,
+``magail-sumo train`` process); each scene worker (:class:`~magail_sumo.env.slot_worker.SlotWorker`,
 one SUMO) is an actor with ``num_cpus`` CPUs (default 1), spread over the cluster's nodes
 (``SPREAD`` scheduling). The requests and answers are the process backend's, so with the same
 seeds both backends produce the same rollouts.

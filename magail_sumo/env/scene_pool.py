@@ -31,7 +31,7 @@ two workers from converting one scene at once). A worker keeps only its most rec
 
 Slots: a city scenario needs ``max_agents`` slots; a worker holding one recorded scene sizes
 its slots exactly (the scene's most concurrent agents,
-:func:`~magail_sumo.env.vec_env.max_concurrent_agents`); a worker holding several sizes them to
+:func:`~magail_sumo.env.slot_worker.max_concurrent_agents`); a worker holding several sizes them to
 the largest :func:`agent_bound` of its scenes, computed from each scene alone when the worker
 starts (no conversion needed): the vehicles and cyclists alive at once that the controlled
 setting can pick.
@@ -299,7 +299,7 @@ class PoolCursor:
         """The worker's slot count: exact for one record, else the largest :func:`agent_bound`
         (records that cannot be read are failed here)."""
         if len(self.refs) == 1 and not is_city(self.refs[0]):
-            from .vec_env import max_concurrent_agents
+            from .slot_worker import max_concurrent_agents
 
             _, env = self.env_for(0)
             return max_concurrent_agents(env)

@@ -1,6 +1,6 @@
 """How the vector env talks to its scene workers: one worker object, several backends.
 
-A scene worker (:class:`~magail_sumo.env.vec_env.SlotWorker`, one SUMO each) answers requests
+A scene worker (:class:`~magail_sumo.env.slot_worker.SlotWorker`, one SUMO each) answers requests
 ``(command, argument)`` with ``("ok", payload)`` or ``("error", one-line text + traceback)``. A
 *backend* runs workers somewhere and carries the requests: :class:`WorkerHandle` is its whole
 interface (start, send, receive with a timeout, kill). Backends are registered in

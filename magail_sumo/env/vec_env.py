@@ -37,7 +37,6 @@ and a replaced worker continues exactly where the lost one was.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -49,7 +48,11 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.sim.dynamics import ACTION_SIZE
 
-from .config import SCENE_CACHE, EnvConfig, draw_start
+from .config import SCENE_CACHE, EnvConfig
+# the worker side lives in .slot_worker (no torch or SB3 in the workers); its names stay
+# importable from here
+from .slot_worker import (PoolSpec, SceneSpec, SlotWorker, VecEnvWorkerError,  # noqa: F401
+                          episode_rng, load_spec_scene, make_worker, max_concurrent_agents)
 
 SEED_STRIDE = 100_003
 #: per-step cost of a scene worker in units of one agent's cost (SUMO step, log replay, sensor
@@ -76,10 +79,6 @@ def place_workers(loads: Sequence[float], cores: Sequence[int]) -> list[set[int]
     return out
 
 
-class VecEnvWorkerError(MagailSumoError):
-    """A scene worker process died, failed, or did not answer in time."""
-
-
 class WorkerStartError(VecEnvWorkerError):
     """A scene worker could not start (:attr:`worker`: its index)."""
 
@@ -87,263 +86,6 @@ class WorkerStartError(VecEnvWorkerError):
         super().__init__(message)
         self.worker = worker
 
-
-@dataclass(frozen=True)
-class SceneSpec:
-    """One scene for a worker: the scene file, its converted bundle folder, and which scene of
-    the file (``scenario_id``; None: the first)."""
-
-    scene_file: str
-    bundle: str
-    scenario_id: str | None = None
-
-    @property
-    def name(self) -> str:
-        return self.scenario_id or Path(self.scene_file).stem
-
-
-def load_spec_scene(spec: SceneSpec):
-    """The :class:`~magail_sumo.scene.Scene` a spec names (:func:`converters.find_scene`)."""
-    from converters import find_scene
-
-    return find_scene(spec.scene_file, spec.scenario_id)
-
-
-def episode_rng(seed: int, episode: int) -> np.random.Generator:
-    """The generator drawing episode ``episode``'s start window of a worker seeded ``seed``."""
-    return np.random.default_rng(np.random.SeedSequence([seed % (1 << 64), episode]))
-
-
-def max_concurrent_agents(env) -> int:
-    """Upper bound of the number of agents of ``env`` alive at one step (>= 1), over every
-    episode window its config allows (``start_window: random``: over the whole log; never
-    more than K with ``controlled: K``)."""
-    tr = env.scene.tracks
-    row_of = {int(t): k for k, t in enumerate(tr.id.tolist())}
-    rows = np.array([row_of[int(a)] for a in env.possible_agents], np.int64)
-    if rows.size == 0:
-        return 1
-    cfg = env.config
-    t_steps = tr.valid.shape[1]
-    if cfg.start_window == "random":  # every window lies in the log; tracks join no earlier
-        start, end = 0, t_steps - 1
-    else:
-        start = min(cfg.start_step, t_steps - 1)
-        end = t_steps - 1 if cfg.max_steps is None else min(t_steps - 1, start + cfg.max_steps)
-    valid = tr.valid[rows]
-    steps = np.arange(t_steps)
-    join = np.where(valid & (steps[None] >= start), steps[None], t_steps).min(axis=1)
-    last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
-    alive = (steps[None] >= join[:, None]) & (steps[None] <= last[:, None]) & \
-        (steps[None] <= end)
-    most = int(alive.sum(axis=0).max())
-    if not isinstance(cfg.controlled, str):
-        most = min(most, int(cfg.controlled))
-    return max(1, most)
-
-
-# ---------------------------------------------------------------------------------- worker side
-@dataclass(frozen=True)
-class PoolSpec:
-    """A worker's shard of a scene pool (:mod:`magail_sumo.env.scene_pool`): its records, the
-    bundles folder (missing bundles are converted there on demand), how many scene envs it
-    keeps, and the time budget of one conversion."""
-
-    refs: tuple
-    networks: str
-    cache: int = SCENE_CACHE
-    convert_budget_s: float | None = 600.0
-    #: :class:`~magail_sumo.env.city_env.CityEnvConfig` of the pool's city scenarios
-    city: Any = None
-
-    @property
-    def name(self) -> str:
-        first = str(self.refs[0]) if self.refs else "(empty)"
-        return first if len(self.refs) == 1 else f"{first} +{len(self.refs) - 1} scenes"
-
-
-def _scenario_id(env) -> str:
-    """The id of a scene env's scene, or a city env's scenario name."""
-    sid = getattr(env, "scenario_id", None)
-    return sid if sid is not None else env.scene.scenario_id
-
-
-class _FixedScene:
-    """The :class:`~magail_sumo.env.scene_pool.PoolCursor` interface over one
-    :class:`SceneSpec` (an explicit bundle folder)."""
-
-    def __init__(self, spec: SceneSpec, make_env) -> None:
-        self._env = make_env(load_spec_scene(spec), spec.bundle)
-        self.new_failures: list = []
-
-    def env_for(self, episode: int):
-        return 0, self._env
-
-    def scan(self) -> int:
-        return max_concurrent_agents(self._env)
-
-    def close(self) -> None:
-        self._env.close()
-
-
-class SlotWorker:
-    """The env of a worker's scene(s) with its slot bookkeeping (runs in the worker).
-
-    :param source: a :class:`SceneSpec` (one scene) or a :class:`PoolSpec` (a shard).
-    :param slots: slot count (None: from the scene(s), see the module docs).
-    """
-
-    def __init__(self, source: SceneSpec | PoolSpec, config: EnvConfig, seed: int,
-                 slots: int | None) -> None:
-        from .driving_env import SumoDrivingEnv
-
-        def make_env(scene, bundle):
-            return SumoDrivingEnv(scene, bundle, config)
-
-        if isinstance(source, PoolSpec):
-            from .scene_pool import PoolCursor
-
-            self.cursor = PoolCursor(source.refs, source.networks, seed, make_env, config,
-                                     source.cache, source.convert_budget_s, source.city)
-        else:
-            self.cursor = _FixedScene(source, make_env)
-        self.config = config
-        self.slots = slots or self.cursor.scan()
-        from magail_sumo.sensors.observation import observation_bounds
-
-        self.dim = int(observation_bounds(config.observation)[0].shape[0])
-        self.base_seed = seed
-        self.episode = -1
-        self.env = self.cursor.env_for(0)[1]
-        self.names: list[str | None] = [None] * self.slots
-        self.slot_of: dict[str, int] = {}  #: agent name -> its slot (the agents in slots)
-
-    def hello(self) -> dict:
-        import socket
-
-        agents = list(self.env.possible_agents)
-        return {"slots": self.slots, "dim": self.dim, "host": socket.gethostname(),
-                "pid": os.getpid(), "possible_agents": agents if len(agents) <= 4096 else []}
-
-    def handle(self, cmd: str, arg: Any) -> Any:
-        if cmd == "step":
-            return self.step(arg)
-        if cmd == "reset":
-            return self.reset()
-        if cmd == "restore":
-            return self.restore(*arg)
-        if cmd == "call":
-            name, args, kwargs = arg
-            return getattr(self.env, name)(*args, **kwargs)
-        if cmd == "getattr":
-            return getattr(self.env, arg)
-        raise ValueError(f"unknown command {cmd!r}")
-
-    def _assign(self, obs: dict[str, np.ndarray], packet: dict) -> None:
-        slot_of, names = self.slot_of, self.names
-        for name in self.env.agents:
-            if name in slot_of:
-                continue
-            try:
-                k = names.index(None)
-            except ValueError:
-                raise VecEnvWorkerError(f"{_scenario_id(self.env)}: more than {self.slots} "
-                                        "agents alive at once") from None
-            names[k] = name
-            slot_of[name] = k
-            packet["dones"][k] = True  # slot re-assignment = episode start of the slot
-        if slot_of:
-            ks = np.fromiter(slot_of.values(), np.int64, len(slot_of))
-            packet["obs"][ks] = np.stack([obs[n] for n in slot_of])
-            st = self.env.agent_states()  # the live agents = the agents in slots
-            ks = np.fromiter((slot_of[n] for n in st.names), np.int64, len(st.names))
-            packet["pos"][ks] = np.stack([st.state.x, st.state.y, st.state.yaw], axis=1)
-
-    def _packet(self) -> dict:
-        return {"obs": np.zeros((self.slots, self.dim), np.float32),
-                "pos": np.zeros((self.slots, 3), np.float32),
-                "dones": np.zeros(self.slots, bool), "infos": {}, "episodes": 0,
-                "agent_steps": 0, "skipped": []}
-
-    def _active(self) -> np.ndarray:
-        active = np.zeros(self.slots, bool)
-        active[list(self.slot_of.values())] = True
-        return active
-
-    def _reset(self, packet: dict) -> None:
-        self.episode += 1
-        self.names = [None] * self.slots
-        self.slot_of = {}
-        _, env = self.cursor.env_for(self.episode)
-        if env is not self.env:
-            self.env.close()
-            self.env = env
-        cfg = self.config
-        options = None
-        if cfg.start_window == "random" and hasattr(self.env, "scene"):  # not a city
-            options = {"start_step": draw_start(cfg, self.env.scene.num_steps,
-                                                episode_rng(self.base_seed, self.episode))}
-        obs, _ = self.env.reset(seed=self.base_seed + self.episode, options=options)
-        self._assign(obs, packet)
-
-    def _finish(self, packet: dict) -> dict:
-        packet["active"] = self._active()
-        packet["episode"] = self.episode
-        packet["scenario_id"] = _scenario_id(self.env)
-        packet["skipped"] = [(s.what, s.reason) for s in self.cursor.new_failures]
-        self.cursor.new_failures.clear()
-        return packet
-
-    def reset(self) -> dict:
-        self.episode = -1
-        packet = self._packet()
-        self._reset(packet)
-        packet["dones"][:] = False
-        return self._finish(packet)
-
-    def step(self, actions: np.ndarray) -> dict:
-        actions = np.asarray(actions, np.float32).reshape(self.slots, 2)
-        packet = self._packet()
-        acts = {n: actions[k] for n, k in self.slot_of.items()}
-        packet["agent_steps"] = len(acts)
-        obs, _, terms, truncs, infos = self.env.step(acts)
-        for name, k in list(self.slot_of.items()):
-            if not (terms.get(name) or truncs.get(name)):
-                continue
-            info = infos[name]
-            packet["dones"][k] = True
-            packet["infos"][k] = {"terminal_observation": np.asarray(obs[name], np.float32),
-                                  "TimeLimit.truncated": bool(truncs[name] and not terms[name]),
-                                  "reason": info.get("reason"), "agent": name,
-                                  "events": info.get("events", {})}
-            self.names[k] = None
-            del self.slot_of[name]
-        if not self.env.agents:
-            self._reset(packet)
-            packet["episodes"] = 1
-        else:
-            self._assign(obs, packet)
-        return self._finish(packet)
-
-    def restore(self, episode: int, actions: Sequence[np.ndarray]) -> dict:
-        """Reset to ``episode`` and replay ``actions`` (the actions since that episode's reset):
-        the state the vector env logged (:meth:`MultiSceneVecEnv.get_state`)."""
-        self.episode = episode - 1
-        packet = self._packet()
-        self._reset(packet)
-        skipped = list(self.cursor.new_failures)
-        for a in actions:
-            packet = self.step(a)
-        self.cursor.new_failures[:0] = skipped
-        return self._finish(packet)
-
-    def close(self) -> None:
-        self.env.close()
-        self.cursor.close()
-
-
-def _make_worker(source, config: EnvConfig, seed: int, slots: int | None) -> SlotWorker:
-    return SlotWorker(source, config, seed, slots)
 
 
 # ---------------------------------------------------------------------------------- parent side
@@ -461,7 +203,7 @@ class MultiSceneVecEnv(VecEnv):
         slots = None if self._slots_asked is None else self._slots_asked[k]
         if hasattr(self, "slots"):  # a replacement keeps the layout
             slots = self.slots[k]
-        h = self._handle_cls(f"scene {spec.name}", _make_worker,
+        h = self._handle_cls(f"scene {spec.name}", make_worker,
                              (spec, self.config, self.seed_base + SEED_STRIDE * k, slots),
                              self._backend_opts)
         h.start()

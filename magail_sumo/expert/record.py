@@ -33,7 +33,7 @@ import numpy as np
 
 from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
-from magail_sumo.env.vec_env import SceneSpec, load_spec_scene
+from magail_sumo.env.slot_worker import SceneSpec, load_spec_scene
 from magail_sumo.outputs import (NameRegistry, atomic_path, claim_output_dir, inside, printable,
                                  safe_name, write_text)
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
