@@ -196,3 +196,63 @@ def test_seed_action_layout_expert_replay(bundles):
         worst = max(worst, float(err.max(initial=0.0)))
     env.close()
     assert worst < 0.2
+
+
+def _episodes(env, seeds, actions_seed: int = 0):
+    """Every output of a few random-window episodes under seeded random actions."""
+    rng = np.random.default_rng(actions_seed)
+    out = []
+    for seed in seeds:
+        obs, infos = env.reset(seed=seed)
+        out.append((env.start, obs, infos))
+        while env.agents:
+            acts = {a: rng.uniform(-0.6, 0.6, 2).astype(np.float32) for a in sorted(env.agents)}
+            out.append(env.step(acts))
+    return out
+
+
+def _same(a, b, where="") -> None:
+    if isinstance(a, dict):
+        assert list(a) == list(b), where
+        for k in a:
+            _same(a[k], b[k], f"{where}/{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and np.array_equal(a, b), where
+    else:
+        assert a == b, where
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("sid", SCENES)
+def test_episodes_without_the_sumo_mirror_are_the_same(bundles, sid):
+    """``sumo_mirror: false`` (background log) plays the same episodes bit for bit —
+    observations, terminations, truncations and infos, collisions and off-road included — while
+    SUMO never starts."""
+    cfg = dict(controlled="all", start_window="random", max_steps=40,
+               terminate_on=("collision", "off_road"))
+    runs = []
+    for mirror in (True, False):
+        scene, bundle = bundles[sid]
+        env = SumoDrivingEnv(scene, bundle,
+                             EnvConfig(**cfg, sumo_mirror=mirror))
+        try:
+            runs.append(_episodes(env, seeds=(0, 1, 2)))
+            events = sum(bool(i.get("reason")) for st in runs[-1][1:] if len(st) == 5
+                         for i in st[4].values())
+            if not mirror:
+                assert type(env._session).__name__ == "_NoMirror"
+        finally:
+            env.close()
+    _same(runs[0], runs[1])
+    assert events > 0  # agents did end on events and at the end of their tracks
+
+
+def test_sumo_mirror_is_needed_with_sumo_background():
+    from magail_sumo.config import FieldError
+
+    with pytest.raises(FieldError, match="sumo_mirror"):
+        EnvConfig(background="sumo", sumo_mirror=False)

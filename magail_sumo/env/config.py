@@ -60,6 +60,14 @@ class EnvConfig:
         each in ``sumo-gui``; :mod:`magail_sumo.sim.fcd`); None: none.
     :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
         (``<scenario>-<pid>-ep<k>.fcd.xml``); 0: none.
+    :param sumo_mirror: with ``background: log``, mirror the episode in SUMO (the agents and
+        the log-replayed vehicles placed there each step, as :class:`~magail_sumo.env.
+        driving_env.SumoDrivingEnv` always did). Nothing an agent observes, no event and no
+        info reads SUMO then (the log and the bicycle model drive everything, the sensors,
+        collisions and red lights work on the recorded map and signals), so ``false`` runs
+        the same episodes, bit for bit (``tests/test_env.py``), without starting or stepping
+        SUMO: for training throughput. Must stay ``true`` with ``background: sumo``, whose
+        vehicles SUMO drives.
     """
 
     controlled: str | int = "all"
@@ -79,6 +87,7 @@ class EnvConfig:
     action_layout: str = "accel_steer"
     fcd_dir: str | None = None
     fcd_every: int = 0
+    sumo_mirror: bool = True
 
     def __post_init__(self) -> None:
         check(self.action_layout in ACTION_LAYOUTS, "action_layout",
@@ -90,6 +99,10 @@ class EnvConfig:
               f"{show(self.controlled)}")
         check(self.background in ("log", "sumo"), "background",
               f"must be 'log' or 'sumo', got {show(self.background)}")
+        check(isinstance(self.sumo_mirror, bool), "sumo_mirror",
+              f"must be true or false, got {show(self.sumo_mirror)}")
+        check(self.sumo_mirror or self.background == "log", "sumo_mirror",
+              "must be true with background: sumo (SUMO drives the background vehicles)")
         bad = set(self.terminate_on) - set(EVENTS)
         check(not bad, "terminate_on", f"unknown events {sorted(bad)} (events: {list(EVENTS)})")
         check(isinstance(self.fcd_every, int) and not isinstance(self.fcd_every, bool)

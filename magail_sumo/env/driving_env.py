@@ -70,6 +70,27 @@ def _median_valid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.nan_to_num(out)
 
 
+class _NoMirror:
+    """The session of an episode without the SUMO mirror (``EnvConfig.sumo_mirror: false``):
+    SUMO is neither started nor stepped, so no vehicle enters or leaves it; moving or removing
+    one is nothing to do."""
+
+    def step(self) -> tuple[list[str], list[str]]:
+        return [], []
+
+    def move(self, *args, **kwargs) -> None:
+        pass
+
+    def remove(self, vid: str) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+_NO_MIRROR = _NoMirror()
+
+
 class SumoDrivingEnv(FleetEnv):
     """Multi-agent driving in a recorded scene co-simulated with SUMO (module doc).
 
@@ -120,9 +141,10 @@ class SumoDrivingEnv(FleetEnv):
         self._prev_table: tuple[int, np.ndarray] | None = None  # (last step, log_prev_actions)
         self._row_of_sumo = dict(zip(self.bundle.sumo_ids, self.bundle.sumo_rows.tolist()))
         self.suite = SensorSuite(scene, cfg.observation)
-        #: recorded routes for the route-command feature (``observation.command``)
+        #: recorded routes for the route-command and route look-ahead features
+        #: (``observation.command``, ``observation.route_points``)
         self._commands = RouteCommands.build(tr, cfg.observation.command_lookahead) \
-            if cfg.observation.command else None
+            if cfg.observation.command or cfg.observation.route_points else None
         self.stop_lines = StopLines.build(scene)
         low, high = observation_bounds(cfg.observation)
         self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
@@ -235,10 +257,13 @@ class SumoDrivingEnv(FleetEnv):
         every = cfg.fcd_every
         if cfg.fcd_dir is not None and every > 0 and self._fcd_episode % every == 0:
             self._start_auto_fcd()
-        self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
-            seed=cfg.sumo_seed + (seed or 0)))
-        self._session.start()
-        self._obstacles = Obstacles(
+        if not cfg.sumo_mirror:  # nothing of a log-background episode reads SUMO
+            self._session = _NO_MIRROR
+        else:
+            self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
+                seed=cfg.sumo_seed + (seed or 0)))
+            self._session.start()
+        self._obstacles = None if not cfg.sumo_mirror else Obstacles(
             self._session, [str(int(i)) for i in self.scene.tracks.id[self._obstacle_rows]],
             self._length[self._obstacle_rows], self._width[self._obstacle_rows],
             kinds=self.scene.tracks.type[self._obstacle_rows]) \
@@ -284,6 +309,8 @@ class SumoDrivingEnv(FleetEnv):
     def _push(self) -> None:
         """Step stage 3: place the live agents in SUMO at their poses, the log-replayed
         background and the obstacles at their recorded poses of log step t + 1."""
+        if self._session is _NO_MIRROR:
+            return
         sess, f = self._session, self.fleet
         nxt = self.t + 1
         ids: list[str] = []
@@ -413,10 +440,15 @@ class SumoDrivingEnv(FleetEnv):
         f = self.fleet
         world = self._world(agents)
         rows = self._ctrl[agents]
-        cmd = None if self._commands is None else \
-            self._commands.commands(rows, f.x[agents], f.y[agents])
+        ob = self.config.observation
+        cmd = route = None
+        if ob.command:
+            cmd = self._commands.commands(rows, f.x[agents], f.y[agents])
+        if ob.route_points:
+            route = self._commands.ahead(rows, f.x[agents], f.y[agents], f.yaw[agents],
+                                         ob.route_points)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
-                       f.dest[agents], f.dest_yaw[agents], cmd)
+                       f.dest[agents], f.dest_yaw[agents], cmd, route)
         obs = self.suite.observe(world[0], ego, self.t, lanes)
         self.sensor_time += time.perf_counter() - clock
         return {f.names[k]: obs[i] for i, k in enumerate(agents)}, world

@@ -77,6 +77,8 @@ class EgoState:
     :param command: (A, 3) route-command one-hot (:mod:`magail_sumo.sensors.command`), used
         with ``ObservationConfig.command``; None: ``straight`` for every agent (an env without
         recorded routes, e.g. a city).
+    :param route: (A, 2·P) route look-ahead, x and y (m, ego frame) of each of the P
+        ``ObservationConfig.route_points``, used with them; None: zeros (no recorded routes).
     """
 
     index: np.ndarray
@@ -85,6 +87,7 @@ class EgoState:
     destination: np.ndarray
     destination_yaw: np.ndarray
     command: np.ndarray | None = None
+    route: np.ndarray | None = None
 
 
 class SensorMaps:
@@ -172,7 +175,8 @@ def bounded(n: int, low: float, high: float) -> tuple[np.ndarray, np.ndarray]:
 SENSORS: dict[str, type[Sensor]] = {}
 
 #: layouts by name: the ordered sensor names of the observation vector (``ObservationConfig.
-#: layout``; the route command is appended with ``ObservationConfig.command``)
+#: layout``; the route command is appended with ``ObservationConfig.command``, the route
+#: look-ahead with ``ObservationConfig.route_points``)
 LAYOUTS: dict[str, tuple[str, ...]] = {
     "ego": ("ego", "lane", "lidar", "side", "lane_line", "light", "destination"),
     "seed": ("seed_pose", "lidar", "side", "lane_line", "light", "seed_destination"),
@@ -207,10 +211,11 @@ def sensor_class(name: str) -> type[Sensor]:
 
 def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
-    route command when ``config.command``)."""
+    route command when ``config.command``, the route look-ahead when ``config.route_points``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
         raise KeyError(f"unknown observation layout {config.layout!r} (known: "
                        f"{', '.join(LAYOUTS)})") from None
-    return layout + (("command",) if config.command else ())
+    return layout + (("command",) if config.command else ()) + \
+        (("route",) if config.route_points else ())

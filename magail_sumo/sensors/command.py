@@ -10,6 +10,11 @@ of the recorded headings gives ``left`` when ``Δ > TURN``, ``right`` when ``Δ 
 ``straight`` otherwise. With the default 30 m lookahead this is the manoeuvre through the next
 junction a vehicle approaches or is in (WOMD maps carry no reliable junction flag, so the
 junction is where the route turns). Vectorised over all agents of a step ((A, T) arrays).
+
+The route look-ahead (the optional ``route`` observation feature, ``ObservationConfig.
+route_points``) reads the same routes: :meth:`RouteCommands.ahead` gives the route's position
+``d`` m along it past the progress point (linear between recorded states; the route's last
+valid state when the route ends sooner), in the agent's ego frame.
 """
 
 from __future__ import annotations
@@ -48,6 +53,9 @@ class RouteCommands:
     :param heading: (N, T) recorded headings (rad).
     :param arc: (N, T) distance along the route from its first valid state (m; NaN invalid).
     :param lookahead: route distance ahead at which the turn is read (m).
+    :param fx, fy, farc: x, y and arc with each invalid entry replaced by the last valid one
+        before it (the first valid one before any): non-decreasing ``farc``, for
+        :meth:`ahead`.
     """
 
     x: np.ndarray
@@ -55,6 +63,9 @@ class RouteCommands:
     heading: np.ndarray
     arc: np.ndarray
     lookahead: float
+    fx: np.ndarray
+    fy: np.ndarray
+    farc: np.ndarray
 
     @classmethod
     def build(cls, tracks, lookahead: float = 30.0) -> "RouteCommands":
@@ -66,17 +77,56 @@ class RouteCommands:
         yf = _fill_forward(y, valid)
         seg = np.hypot(np.diff(xf, axis=1), np.diff(yf, axis=1))
         arc = np.concatenate([np.zeros((x.shape[0], 1)), np.nancumsum(seg, axis=1)], axis=1)
+        farc = arc.copy()
         arc = np.where(valid, arc, np.nan)
-        return cls(x, y, np.asarray(tracks.heading, np.float64), arc, float(lookahead))
+        return cls(x, y, np.asarray(tracks.heading, np.float64), arc, float(lookahead),
+                   xf, yf, farc)
+
+    def _progress(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(A,) index of the recorded state of track ``rows`` nearest to (x, y)."""
+        d = np.hypot(self.x[rows] - np.asarray(x, np.float64)[:, None],
+                     self.y[rows] - np.asarray(y, np.float64)[:, None])
+        return np.argmin(np.where(np.isnan(d), np.inf, d), axis=1)
+
+    def ahead(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+              distances) -> np.ndarray:
+        """(A, 2·P) float32 route look-ahead of agents on track ``rows`` at poses (x, y, yaw)
+        (m, rad; scene frame): for each of the P ``distances`` (m), the ego-frame x, y (m) of
+        the recorded route ``distance`` m past the agent's progress point (its recorded state
+        nearest to (x, y)); the route's last valid state where the route ends sooner."""
+        rows = np.asarray(rows, np.int64)
+        dist = np.asarray(distances, np.float64)
+        if rows.size == 0:
+            return np.zeros((0, 2 * dist.size), np.float32)
+        a = np.arange(rows.size)
+        at = self._progress(rows, x, y)
+        farc, fx, fy = self.farc[rows], self.fx[rows], self.fy[rows]
+        target = farc[a, at][:, None] + dist[None, :]  # (A, P)
+        t = farc.shape[1]
+        j = (farc[:, None, :] <= target[:, :, None]).sum(axis=2) - 1  # last state not past it
+        j = np.clip(j, 0, t - 1)
+        k = np.minimum(j + 1, t - 1)
+        ai = a[:, None]
+        span = farc[ai, k] - farc[ai, j]
+        frac = np.where(span > 0, (target - farc[ai, j]) / np.where(span > 0, span, 1.0), 0.0)
+        frac = np.clip(frac, 0.0, 1.0)  # past the route's end: its last state
+        px = fx[ai, j] + frac * (fx[ai, k] - fx[ai, j])
+        py = fy[ai, j] + frac * (fy[ai, k] - fy[ai, j])
+        dx = px - np.asarray(x, np.float64)[:, None]
+        dy = py - np.asarray(y, np.float64)[:, None]
+        c = np.cos(np.asarray(yaw, np.float64))[:, None]
+        sn = np.sin(np.asarray(yaw, np.float64))[:, None]
+        out = np.empty((rows.size, dist.size, 2), np.float32)
+        out[:, :, 0] = c * dx + sn * dy
+        out[:, :, 1] = -sn * dx + c * dy
+        return out.reshape(rows.size, 2 * dist.size)
 
     def commands(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(A, 3) float32 one-hot commands of agents on track ``rows`` at positions (x, y)."""
         rows = np.asarray(rows, np.int64)
         if rows.size == 0:
             return np.zeros((0, len(COMMANDS)), np.float32)
-        d = np.hypot(self.x[rows] - np.asarray(x, np.float64)[:, None],
-                     self.y[rows] - np.asarray(y, np.float64)[:, None])
-        at = np.argmin(np.where(np.isnan(d), np.inf, d), axis=1)
+        at = self._progress(rows, x, y)
         arc = self.arc[rows]
         a = np.arange(rows.size)
         goal = arc[a, at] + self.lookahead

@@ -43,6 +43,12 @@ class ObservationConfig:
         data and checkpoints keep their 113 values).
     :param command_lookahead: route distance (m) ahead of the agent at which the command reads
         the route's turn.
+    :param route_points: route look-ahead: distances (m, increasing, > 0) along the agent's
+        recorded route ahead of its progress point at which the route's position is appended
+        in the ego frame, as ``route_x_<d>``, ``route_y_<d>`` (m) per distance ``d``
+        (:meth:`magail_sumo.sensors.command.RouteCommands.ahead`); empty (the default): none.
+        The route is the recorded path (as the route command's and SUMO's routes), so this is
+        navigation intent from the log, not a prediction of the policy's own.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -52,6 +58,7 @@ class ObservationConfig:
     lane_cell: float = 10.0
     command: bool = False
     command_lookahead: float = 30.0
+    route_points: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
@@ -60,3 +67,7 @@ class ObservationConfig:
         if not (np.isfinite(self.command_lookahead) and self.command_lookahead > 0):
             raise ValueError(f"observation command_lookahead must be > 0 m, got "
                              f"{self.command_lookahead!r}")
+        pts = np.asarray(self.route_points, np.float64)
+        if pts.size and not (np.isfinite(pts).all() and pts[0] > 0 and np.all(np.diff(pts) > 0)):
+            raise ValueError(f"observation route_points must be increasing distances > 0 m, "
+                             f"got {list(self.route_points)!r}")

@@ -26,6 +26,8 @@ index (defaults)      quantity
 111, 112              route direction: cos, sin of the destination heading in the ego frame
 113 .. 115            (``command: true`` only) route command at the next junction, one-hot
                       left / straight / right (:mod:`magail_sumo.sensors.command`)
+then 2 per distance   (``route_points`` only) route look-ahead: ego-frame x, y (m) of the
+                      recorded route that many m ahead (``route_x_<d>``, ``route_y_<d>``)
 ====================  ======================================================================
 
 Layout ``"seed"`` (108 values with the defaults, the seed project's vector): position x, y
@@ -44,8 +46,9 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 (:data:`~magail_sumo.sensors.base.LAYOUTS`) lists the units in order — ``ego``: ``ego``,
 ``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``seed``:
 ``seed_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``seed_destination``; then
-``command`` with ``command: true``. The suite is built from a road map and a light source
-(:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)`` for a recorded scene).
+``command`` with ``command: true`` and ``route`` with ``route_points``. The suite is built from
+a road map and a light source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)``
+for a recorded scene).
 """
 
 from __future__ import annotations

@@ -20,8 +20,10 @@ history of all objects through the rollout's ``begin(scene, env)`` hook).
 
 Evaluation drives the env with the default observation layout and bicycle limits; a checkpoint
 trained with other ones is refused with a one-line error naming the difference (its actions and
-observations would mean something else there). The action layout is the checkpoint's: the
-policy's ``action_layout`` attribute makes evaluation build its env with it.
+observations would mean something else there). The action layout and the recorded-route
+features (route command, route look-ahead: ``observation.command``, ``command_lookahead``,
+``route_points``) are the checkpoint's: the policy's ``action_layout`` and ``observation``
+attributes make evaluation build its env with them.
 
 SAC checkpoints (``algorithm: sac`` / ``sac_gail``; the checkpoint's recorded algorithm picks
 the loader) load as :class:`~magail_sumo.training.sac.SacCheckpointPolicy`: the command-branched
@@ -39,6 +41,7 @@ import torch
 
 from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
+from magail_sumo.sensors.config import ObservationConfig
 
 from .trainer import CheckpointError, checkpoint_config, load_checkpoint, load_policy
 
@@ -124,11 +127,20 @@ def load_checkpoint_policy(path: str | Path, seed: int = 0,
                                     **({} if target is None else {"target": target}))
 
 
+def route_observation(trained: EnvConfig) -> ObservationConfig:
+    """Evaluation's observation for a policy trained in ``trained``: the default one with the
+    policy's recorded-route features (route command and look-ahead)."""
+    ob = trained.observation
+    return ObservationConfig(command=ob.command, command_lookahead=ob.command_lookahead,
+                             route_points=ob.route_points)
+
+
 def _target(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
     """The env a checkpoint trained in ``trained`` drives: ``target``, or evaluation's (the
-    defaults) with the policy's action layout (the policy's ``action_layout`` attribute makes
-    evaluation build its env so)."""
-    return target or EnvConfig(action_layout=trained.action_layout)
+    defaults) with the policy's action layout and route features (the policy's
+    ``action_layout`` and ``observation`` attributes make evaluation build its env so)."""
+    return target or EnvConfig(action_layout=trained.action_layout,
+                               observation=route_observation(trained))
 
 
 def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
@@ -142,8 +154,10 @@ def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = Fal
     policy, cfg = load_policy(path, device="cpu")
     check_env_compatible(path, cfg.env, _target(cfg.env, target))
     low, _ = observation_bounds(cfg.env.observation)
-    return CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
-                            deterministic=deterministic, action_layout=cfg.env.action_layout)
+    pol = CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
+                           deterministic=deterministic, action_layout=cfg.env.action_layout)
+    pol.observation = route_observation(cfg.env)
+    return pol
 
 
 def load_sac_checkpoint_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
