@@ -189,3 +189,19 @@ def test_cli_seed_overrides_the_config(setup, tmp_path):
     assert main(["train", "--config", str(path), "--seed", "7", "--run-dir", str(run)]) == 0
     assert yaml.safe_load((run / "config.yaml").read_text())["seed"] == 7
     assert load_checkpoint(run / "checkpoints" / "latest.pt")["config"]["seed"] == 7
+
+
+@pytest.mark.sumo
+def test_training_without_the_sumo_mirror_is_the_same(setup, tmp_path):
+    """``env.sumo_mirror: false`` (log background: SUMO skipped) trains to the same checkpoint,
+    tensor for tensor, on random windows of a real scene."""
+    root, cfg = setup
+    base = replace(cfg, updates=2, env=replace(cfg.env, start_window="random", max_steps=20))
+    runs = [train(replace(base, env=replace(base.env, sumo_mirror=m)), run_dir=tmp_path / str(m),
+                  log=lambda s: None) for m in (True, False)]
+    a, b = (load_checkpoint(r / "checkpoints" / "latest.pt") for r in runs)
+    assert a["num_timesteps"] == b["num_timesteps"] > 0
+    for key in ("policy", "discriminator"):
+        assert a[key].keys() == b[key].keys()
+        for k in a[key]:
+            assert torch.equal(torch.as_tensor(a[key][k]), torch.as_tensor(b[key][k])), (key, k)
