@@ -11,7 +11,16 @@ same vehicles moved each step; the share of env step time spent in sensors and o
   with zero actions (events reported, nobody terminated); floor: every vehicle moved to its own
   SUMO pose each step.
 
+* ``windows``: training's episodes — random 80-step windows (start >= 10, the log before as
+  history), every route vehicle controlled, expert actions — on the bundled scene and two 20 s
+  ScenarioNet scenes (``data/scenarionet/``), timed whole (``reset`` included: SUMO's start and
+  the history steps before the window), with the SUMO mirror (the default) and without
+  (``EnvConfig.sumo_mirror=False``: the same episodes without SUMO). The two variants alternate
+  ``--repeats`` times over the same seeded windows; rows give the median agent-steps/s of each
+  and their ratio.
+
     python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
+        [--repeats R]
 """
 
 from __future__ import annotations
@@ -36,6 +45,11 @@ from magail_sumo.workers import run_one  # noqa: E402
 
 SCENE = "637f20cafde22ff8"
 CITY = "ingolstadt21"
+WINDOWS = "windows"
+#: scenes of the ``windows`` measurement: the bundled TFRecord and two 20 s ScenarioNet scenes
+WINDOW_SCENES = (ROOT / "data" / "womd" / f"{SCENE}.tfrecord",
+                 ROOT / "data" / "scenarionet" / "b36a6d0bc9e525bc.pkl",
+                 ROOT / "data" / "scenarionet" / "7b24d74b506c94ce.pkl")
 
 
 def run_env(env: SumoDrivingEnv, episodes: int) -> tuple[float, int, float, int]:
@@ -151,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object per scenario")
     ap.add_argument("--episodes", type=int, default=3)
-    ap.add_argument("--scenario", default="all", choices=[SCENE, CITY, "all"])
+    ap.add_argument("--scenario", default="all", choices=[SCENE, CITY, WINDOWS, "all"])
+    ap.add_argument("--repeats", type=int, default=3, help="repeats of the windows measurement")
     ap.add_argument("--warmup", type=float, default=1200.0, help="city warm-up (s of SUMO time)")
     ap.add_argument("--city-steps", type=int, default=100, help="0.1-s steps per city episode")
     args = ap.parse_args(argv)
@@ -160,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         results.append(run_scene(args))
     if args.scenario in (CITY, "all"):
         results.append(run_city(args))
+    if args.scenario in (WINDOWS, "all"):
+        results.extend(run_windows(args))
     for out in results:
         if args.json:
             print(json.dumps(out))
@@ -196,6 +213,55 @@ def run_scene(args) -> dict:
         "env_steps_per_s": round(args.episodes * (scene.num_steps - 1) / secs, 1),
     }
     return out
+
+
+def _window_episodes(env: SumoDrivingEnv, episodes: int) -> tuple[float, int]:
+    """(seconds of reset + steps, agent-steps) of ``episodes`` seeded random windows."""
+    total, agent_steps = 0.0, 0
+    for ep in range(episodes):
+        t0 = time.perf_counter()
+        env.reset(seed=ep)
+        while env.agents:
+            acts = expert_actions(env)
+            agent_steps += len(acts)
+            env.step(acts)
+        total += time.perf_counter() - t0
+    return total, agent_steps
+
+
+def run_windows(args) -> list[dict]:
+    from converters import find_scene
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in WINDOW_SCENES:
+            scene = find_scene(f, None)
+            rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
+            if rep.status != "ok":
+                raise SystemExit(f"{f}: conversion failed: {rep.reason}")
+            envs = {m: SumoDrivingEnv(scene, Path(tmp) / scene.scenario_id, EnvConfig(
+                controlled="all", terminate_on=(), limits=REPLAY_LIMITS, start_window="random",
+                max_steps=80, min_history=10, sumo_mirror=m)) for m in (True, False)}
+            rates: dict[bool, list[float]] = {True: [], False: []}
+            steps = 0
+            for m in (True, False):
+                _window_episodes(envs[m], 1)  # warm-up: numba kernels, files cached
+            for _ in range(args.repeats):
+                for m in (True, False):
+                    secs, steps = _window_episodes(envs[m], args.episodes)
+                    rates[m].append(steps / secs)
+            for env in envs.values():
+                env.close()
+            on, off = (float(np.median(rates[m])) for m in (True, False))
+            rows.append({"scene": scene.scenario_id, "measure": WINDOWS,
+                         "log_steps": scene.num_steps, "episodes": args.episodes,
+                         "agent_steps": steps,
+                         "agent_steps_per_s_mirror": round(on, 1),
+                         "agent_steps_per_s_no_mirror": round(off, 1),
+                         "runs_mirror": [round(r, 1) for r in rates[True]],
+                         "runs_no_mirror": [round(r, 1) for r in rates[False]],
+                         "speedup": round(off / on, 2)})
+    return rows
 
 
 if __name__ == "__main__":
