@@ -304,7 +304,8 @@ class SumoCityEnv(FleetEnv):
                       np.concatenate([f.y[agents], v.y[bg]]),
                       np.concatenate([f.yaw[agents], v.yaw[bg]]),
                       np.concatenate([f.length[agents], v.length[bg]]),
-                      np.concatenate([f.width[agents], v.width[bg]]))
+                      np.concatenate([f.width[agents], v.width[bg]]),
+                      np.concatenate([f.speed[agents], v.speed[bg]]))
         return boxes, f.names_of(agents) + [v.ids[i] for i in bg]
 
     def _next_lights(self, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -418,17 +418,19 @@ class SumoDrivingEnv(FleetEnv):
         yaws = [f.yaw[agents], tr.heading[lr, t].astype(np.float64)]
         ls = [f.length[agents], tr.length[lr, t].astype(np.float64)]
         ws = [f.width[agents], tr.width[lr, t].astype(np.float64)]
+        hd = tr.heading[lr, t].astype(np.float64)
+        vs = [f.speed[agents], tr.vx[lr, t] * np.cos(hd) + tr.vy[lr, t] * np.sin(hd)]
         ids = [tr.id[rows], tr.id[lr]]
         if self.config.background == "sumo":
             if self._sumo_bg is None:
                 v = self._session.vehicles()
                 sel = [i for i, vid in enumerate(v.ids) if not self._is_ctrl[self._row_of_sumo[vid]]]
                 self._sumo_bg = (v.x[sel], v.y[sel], v.yaw[sel], v.length[sel], v.width[sel],
-                                 tr.id[[self._row_of_sumo[v.ids[i]] for i in sel]])
-            for lst, arr in zip((xs, ys, yaws, ls, ws, ids), self._sumo_bg):
+                                 v.speed[sel], tr.id[[self._row_of_sumo[v.ids[i]] for i in sel]])
+            for lst, arr in zip((xs, ys, yaws, ls, ws, vs, ids), self._sumo_bg):
                 lst.append(np.asarray(arr))
         cat = lambda p: np.concatenate(p).astype(np.float64)  # noqa: E731
-        return Boxes(cat(xs), cat(ys), cat(yaws), cat(ls), cat(ws)), np.concatenate(ids)
+        return Boxes(cat(xs), cat(ys), cat(yaws), cat(ls), cat(ws), cat(vs)), np.concatenate(ids)
 
     def _observe(self, agents: np.ndarray, lanes=None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, np.ndarray]]:

@@ -44,6 +44,8 @@ class Boxes:
 
     :param x, y: box centre (m, scene frame). :param yaw: heading (rad, scene frame).
     :param length, width: box size (m).
+    :param speed: signed speed along the heading (m/s), for sensors that read motion (the
+        leader sensor); None: unknown (such sensors then read every road user as still).
     """
 
     x: np.ndarray
@@ -51,6 +53,7 @@ class Boxes:
     yaw: np.ndarray
     length: np.ndarray
     width: np.ndarray
+    speed: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.x.shape[0])
@@ -211,11 +214,12 @@ def sensor_class(name: str) -> type[Sensor]:
 
 def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
-    route command when ``config.command``, the route look-ahead when ``config.route_points``)."""
+    route command when ``config.command``, the route look-ahead when ``config.route_points``,
+    the leader when ``config.leader``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
         raise KeyError(f"unknown observation layout {config.layout!r} (known: "
                        f"{', '.join(LAYOUTS)})") from None
     return layout + (("command",) if config.command else ()) + \
-        (("route",) if config.route_points else ())
+        (("route",) if config.route_points else ()) + (("leader",) if config.leader else ())

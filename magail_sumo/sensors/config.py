@@ -49,6 +49,11 @@ class ObservationConfig:
         (:meth:`magail_sumo.sensors.command.RouteCommands.ahead`); empty (the default): none.
         The route is the recorded path (as the route command's and SUMO's routes), so this is
         navigation intent from the log, not a prediction of the policy's own.
+    :param leader: append the leader sensor (:mod:`magail_sumo.sensors.units.leader`):
+        ``leader_gap`` (m) and ``leader_closing`` (m/s) to the nearest road user ahead in the
+        agent's path; off by default.
+    :param leader_range: how far ahead the leader sensor looks (m); its gap reads this when
+        nobody is ahead.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -59,6 +64,8 @@ class ObservationConfig:
     command: bool = False
     command_lookahead: float = 30.0
     route_points: tuple[float, ...] = ()
+    leader: bool = False
+    leader_range: float = 50.0
 
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
@@ -67,6 +74,9 @@ class ObservationConfig:
         if not (np.isfinite(self.command_lookahead) and self.command_lookahead > 0):
             raise ValueError(f"observation command_lookahead must be > 0 m, got "
                              f"{self.command_lookahead!r}")
+        if not (np.isfinite(self.leader_range) and self.leader_range > 0):
+            raise ValueError(f"observation leader_range must be > 0 m, got "
+                             f"{self.leader_range!r}")
         pts = np.asarray(self.route_points, np.float64)
         if pts.size and not (np.isfinite(pts).all() and pts[0] > 0 and np.all(np.diff(pts) > 0)):
             raise ValueError(f"observation route_points must be increasing distances > 0 m, "

@@ -28,6 +28,9 @@ index (defaults)      quantity
                       left / straight / right (:mod:`magail_sumo.sensors.command`)
 then 2 per distance   (``route_points`` only) route look-ahead: ego-frame x, y (m) of the
                       recorded route that many m ahead (``route_x_<d>``, ``route_y_<d>``)
+then 2                (``leader: true`` only) ``leader_gap`` (m), ``leader_closing`` (m/s)
+                      to the road user ahead in the agent's path
+                      (:mod:`magail_sumo.sensors.units.leader`)
 ====================  ======================================================================
 
 Layout ``"seed"`` (108 values with the defaults, the seed project's vector): position x, y
@@ -46,7 +49,8 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 (:data:`~magail_sumo.sensors.base.LAYOUTS`) lists the units in order — ``ego``: ``ego``,
 ``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``seed``:
 ``seed_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``seed_destination``; then
-``command`` with ``command: true`` and ``route`` with ``route_points``. The suite is built from
+``command`` with ``command: true``, ``route`` with ``route_points`` and ``leader`` with
+``leader: true``. The suite is built from
 a road map and a light source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)``
 for a recorded scene).
 """

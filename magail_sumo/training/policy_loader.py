@@ -20,10 +20,11 @@ history of all objects through the rollout's ``begin(scene, env)`` hook).
 
 Evaluation drives the env with the default observation layout and bicycle limits; a checkpoint
 trained with other ones is refused with a one-line error naming the difference (its actions and
-observations would mean something else there). The action layout and the recorded-route
-features (route command, route look-ahead: ``observation.command``, ``command_lookahead``,
-``route_points``) are the checkpoint's: the policy's ``action_layout`` and ``observation``
-attributes make evaluation build its env with them.
+observations would mean something else there). The action layout and the optional
+observation features (route command, route look-ahead, leader: ``observation.command``,
+``command_lookahead``, ``route_points``, ``leader``, ``leader_range``) are the checkpoint's:
+the policy's ``action_layout`` and ``observation`` attributes make evaluation build its env
+with them.
 
 SAC checkpoints (``algorithm: sac`` / ``sac_gail``; the checkpoint's recorded algorithm picks
 the loader) load as :class:`~magail_sumo.training.sac.SacCheckpointPolicy`: the command-branched
@@ -127,20 +128,21 @@ def load_checkpoint_policy(path: str | Path, seed: int = 0,
                                     **({} if target is None else {"target": target}))
 
 
-def route_observation(trained: EnvConfig) -> ObservationConfig:
+def policy_observation(trained: EnvConfig) -> ObservationConfig:
     """Evaluation's observation for a policy trained in ``trained``: the default one with the
-    policy's recorded-route features (route command and look-ahead)."""
+    policy's optional features (route command, route look-ahead, leader)."""
     ob = trained.observation
     return ObservationConfig(command=ob.command, command_lookahead=ob.command_lookahead,
-                             route_points=ob.route_points)
+                             route_points=ob.route_points, leader=ob.leader,
+                             leader_range=ob.leader_range)
 
 
 def _target(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
     """The env a checkpoint trained in ``trained`` drives: ``target``, or evaluation's (the
-    defaults) with the policy's action layout and route features (the policy's
+    defaults) with the policy's action layout and optional features (the policy's
     ``action_layout`` and ``observation`` attributes make evaluation build its env so)."""
     return target or EnvConfig(action_layout=trained.action_layout,
-                               observation=route_observation(trained))
+                               observation=policy_observation(trained))
 
 
 def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
@@ -156,7 +158,7 @@ def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = Fal
     low, _ = observation_bounds(cfg.env.observation)
     pol = CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
                            deterministic=deterministic, action_layout=cfg.env.action_layout)
-    pol.observation = route_observation(cfg.env)
+    pol.observation = policy_observation(cfg.env)
     return pol
 
 
