@@ -72,17 +72,12 @@ def _median_valid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 class _NoMirror:
     """The session of an episode without the SUMO mirror (``EnvConfig.sumo_mirror: false``):
-    SUMO is neither started nor stepped, so no vehicle enters or leaves it; moving or removing
-    one is nothing to do."""
+    SUMO is neither started nor stepped, so no vehicle ever enters or leaves it. Nothing is
+    moved (:meth:`SumoDrivingEnv._push` returns at once) and, as no vehicle is in SUMO, nothing
+    is removed: stepping and closing are all an episode asks of it."""
 
     def step(self) -> tuple[list[str], list[str]]:
         return [], []
-
-    def move(self, *args, **kwargs) -> None:
-        pass
-
-    def remove(self, vid: str) -> None:
-        pass
 
     def close(self) -> None:
         pass
