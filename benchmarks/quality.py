@@ -98,8 +98,11 @@ def parse_policies(items: list[str]) -> dict[str, str]:
 
 def training_scenes(spec: str) -> list[str] | None:
     """The scene files a checkpoint policy's training config names (None: not a checkpoint)."""
+    from magail_sumo.agents.registry import GUARDED
     from magail_sumo.pretrained import is_pretrained_spec, resolve
 
+    while spec.startswith(GUARDED):  # the same policy behind the gap guard
+        spec = spec[len(GUARDED):]
     if is_pretrained_spec(spec):
         path = resolve(spec).checkpoint
     elif spec.endswith(".pt") and Path(spec).is_file():
@@ -190,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--policy", action="append", default=[], metavar="NAME=SPEC",
                     help="a policy to score (repeatable); SPEC: anything magail-sumo evaluate "
-                         "--policy takes (checkpoint, pretrained[:NAME], random, module:factory)")
+                         "--policy takes (checkpoint, pretrained[:NAME], random, module:factory, "
+                         "guarded:SPEC)")
     ap.add_argument("--baselines", nargs="*", default=list(DEFAULT_BASELINES),
                     metavar="B", help="baselines (default: logreplay constvel sumo; none: "
                                       "give the flag alone)")

@@ -78,3 +78,20 @@ def roll_random(venv, steps: int, seed: int = 0, hook=None) -> list:
             hook(t, venv)
         out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32))[0])
     return out
+
+
+def tiny_checkpoint(path, env: dict):
+    """A 0-update PPO checkpoint file ``path`` of a tiny policy trained in env settings ``env``
+    (a config dict): for tests of what a checkpoint carries into evaluation."""
+    import torch
+
+    from magail_sumo.config import from_dict, to_dict
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import CHECKPOINT_FORMAT, make_policy
+
+    cfg = from_dict(TrainConfig, {"seed": 1, "env": env,
+                                  "policy": {"actor_hidden": [8], "critic_hidden": [8]}})
+    torch.manual_seed(1)
+    torch.save({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+                "policy": make_policy(cfg).state_dict()}, path)
+    return path

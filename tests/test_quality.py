@@ -92,9 +92,14 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
     split = load_split(SPLIT)
     assert trained and trained <= {scene_stem(f) for f in split.train}
     assert not trained & {scene_stem(f) for f in split.test}
-    low, high = observation_bounds(EnvConfig().observation)
+    # the evaluation layout with the policy's optional features (the default: the leader
+    # sensor), and the gap guard it was trained behind
+    policy = rl.make_policy("pretrained", 7)
+    low, high = observation_bounds(getattr(policy, "observation", EnvConfig().observation))
+    assert low.shape == (policy.obs_dim,)
+    assert getattr(policy, "guard", None) is None or policy.guard.on
     obs = {str(k): np.clip(np.zeros_like(low), low, high) for k in range(5)}
-    a1 = rl.make_policy("pretrained", 7).act(obs)
+    a1 = policy.act(obs)
     a2 = rl.make_policy("pretrained", 7).act(dict(reversed(list(obs.items()))))
     for k in obs:
         assert a1[k].shape == (2,) and np.all(np.abs(a1[k]) <= 1.0)

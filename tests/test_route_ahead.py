@@ -7,9 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
-from conftest import ROOT, WOMD_DIR
+from conftest import ROOT, WOMD_DIR, tiny_checkpoint
 from magail_sumo.sensors.command import RouteCommands
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 
@@ -80,17 +79,7 @@ def test_env_observes_the_recorded_route_ahead():
 
 
 def _route_checkpoint(tmp_path):
-    from magail_sumo.config import from_dict, to_dict
-    from magail_sumo.training.config import TrainConfig
-    from magail_sumo.training.trainer import CHECKPOINT_FORMAT, make_policy
-
-    cfg = from_dict(TrainConfig, {"seed": 1, "env": {"observation": {"route_points": list(POINTS)}},
-                                  "policy": {"actor_hidden": [8], "critic_hidden": [8]}})
-    torch.manual_seed(1)
-    ckpt = tmp_path / "route.pt"
-    torch.save({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
-                "policy": make_policy(cfg).state_dict()}, ckpt)
-    return ckpt
+    return tiny_checkpoint(tmp_path / "route.pt", {"observation": {"route_points": list(POINTS)}})
 
 
 @pytest.mark.sumo

@@ -32,6 +32,8 @@ class Policy(Protocol):
     * ``action_layout``: the order of its actions (:data:`~magail_sumo.sim.dynamics.
       ACTION_LAYOUTS`) when not the default ``"accel_steer"`` (a checkpoint trained with the
       seed's ``"steer_throttle"``); the env is built with it.
+    * ``guard``: a :class:`~magail_sumo.env.guard.GuardConfig` the env drives its actions
+      through (a checkpoint trained behind the gap guard).
     """
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...

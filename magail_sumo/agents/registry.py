@@ -29,6 +29,9 @@ from .random_policy import RandomPolicy
 #: methods that are no env policy: whole-trajectory models (evaluation runs them itself)
 BASELINES = ("logreplay", "constvel", "sumo")
 BUILTIN_POLICIES = ("random",)
+#: ``make_policy`` spec prefix: the policy that follows, driven through the gap guard
+#: (:mod:`magail_sumo.env.guard`, default settings) in evaluation
+GUARDED = "guarded:"
 
 Loader = Union[Callable[..., Policy], str]
 
@@ -104,7 +107,10 @@ def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
     """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
     shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
     another registry folder), a checkpoint file with a registered loader
-    (:data:`POLICY_LOADERS`), or ``package.module:factory`` (``factory(seed) -> Policy``).
+    (:data:`POLICY_LOADERS`), or ``package.module:factory`` (``factory(seed) -> Policy``);
+    ``guarded:SPEC`` is the policy of ``SPEC`` with a ``guard`` (the gap guard's defaults,
+    :class:`~magail_sumo.env.guard.GuardConfig`), so evaluation drives it through the guard
+    whatever it was trained with.
 
     :param seed: the policy's seed (evaluation passes its rollout seed).
     :param deterministic: passed to a checkpoint loader that takes it (a training checkpoint
@@ -112,6 +118,16 @@ def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
         factories ignore it.
     :raises PolicyError: an unusable spec, or a loader / factory that fails (one line).
     """
+    if spec.startswith(GUARDED):
+        from magail_sumo.env.guard import GuardConfig
+
+        inner = make_policy(spec[len(GUARDED):], seed, deterministic)
+        try:
+            inner.guard = GuardConfig(kind="gap")
+        except AttributeError:
+            raise PolicyError(f"{spec}: the policy takes no attributes, so it cannot be "
+                              "guarded") from None
+        return inner
     if spec == "random":
         return RandomPolicy(seed)
     from magail_sumo.pretrained import is_pretrained_spec, resolve as resolve_pretrained
@@ -173,9 +189,12 @@ def method_name(spec: str) -> str:
     built-ins; for a checkpoint in a run's ``checkpoints/`` folder the run folder's name
     (``runs/magail/checkpoints/latest.pt`` -> ``magail``; another file there -> ``magail-<stem>``,
     e.g. ``magail-update_000020``); another file's stem; a factory's name; for
-    ``pretrained:NAME`` the registry name ``NAME`` (``pretrained``: the default's name)."""
+    ``pretrained:NAME`` the registry name ``NAME`` (``pretrained``: the default's name); for
+    ``guarded:SPEC`` SPEC's name with ``-guarded``."""
     if spec in BASELINES + BUILTIN_POLICIES:
         return spec
+    if spec.startswith(GUARDED):
+        return f"{method_name(spec[len(GUARDED):])}-guarded"
     from magail_sumo.pretrained import PretrainedError, is_pretrained_spec, name_of
 
     if is_pretrained_spec(spec):

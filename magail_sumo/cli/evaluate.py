@@ -24,7 +24,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--policy", required=True, metavar="POLICY",
                    help="logreplay | constvel | sumo | random | pretrained[:NAME] (a shipped "
                         "policy; $MAGAIL_SUMO_PRETRAINED_DIR: another registry folder) | "
-                        "CHECKPOINT | module:factory")
+                        "CHECKPOINT | module:factory | guarded:POLICY (that policy driven "
+                        "through the gap guard)")
     p.add_argument("--name", metavar="NAME",
                    help="method name of the policy in the rollouts, manifest and report "
                         "(default: the built-in's name; pretrained:NAME: NAME; a checkpoint "

@@ -50,6 +50,7 @@ from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
 from .actions import ACTION_COUNTS
+from .guard import GuardConfig
 from .fleet import Fleet, resized
 from .step import END_OF_EPISODE, FleetEnv
 
@@ -74,6 +75,7 @@ class CityEnvConfig:
         slots for training); a vehicle chosen to be an agent while the cap is reached is
         SUMO-driven until a place frees, then joins mid-trip (first come, first served), so
         the city keeps ``max_agents`` agents while its demand allows.
+    :param guard: the gap guard on the agents' accelerations (:mod:`magail_sumo.env.guard`).
     """
 
     control_fraction: float = 1.0
@@ -88,6 +90,7 @@ class CityEnvConfig:
     sumo_seed: int = 0
     action_layout: str = "accel_steer"
     max_agents: int | None = None
+    guard: GuardConfig = field(default_factory=GuardConfig)
 
     @classmethod
     def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
@@ -100,7 +103,7 @@ class CityEnvConfig:
                    observation=env.observation, limits=env.limits, lane_width=env.lane_width,
                    off_road_margin=env.off_road_margin,
                    destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
-                   action_layout=env.action_layout, max_agents=max_agents)
+                   action_layout=env.action_layout, max_agents=max_agents, guard=env.guard)
 
     def __post_init__(self) -> None:
         if self.max_agents is not None and self.max_agents < 1:
@@ -160,6 +163,7 @@ class SumoCityEnv(FleetEnv):
         self.sumo_args = tuple(sumo_args)
         self.config = cfg = config or CityEnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
+        self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
         net_file, vehicle_ids = _scenario_files(self.sumocfg)
         self.net_file = net_file
         #: FCD recorder (:meth:`record_fcd`), None when not recording
@@ -220,6 +224,7 @@ class SumoCityEnv(FleetEnv):
         self.fleet = Fleet.empty(n_max)
         #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
+        self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()

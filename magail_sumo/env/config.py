@@ -12,6 +12,8 @@ from magail_sumo.config import check, check_positive, show
 from magail_sumo.sensors.observation import ObservationConfig
 from magail_sumo.sim.dynamics import ACTION_LAYOUTS, BicycleLimits
 
+from .guard import GuardConfig
+
 #: Event names, in the order the first one found becomes ``infos[agent]["reason"]``.
 EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination", "end_of_life")
 #: named controlled sets (``EnvConfig.controlled``; an int K is the other choice)
@@ -21,6 +23,8 @@ CONTROLLED: tuple[str, ...] = ("all", "sdc", "tracks_to_predict", "scored")
 #: 7.4 MiB), and a rebuild re-reads the scene file and its bundle (20 to 100 ms), so a shard of up
 #: to this many scenes builds each once
 SCENE_CACHE = 16
+#: ``EnvConfig.off_road_rule`` choices
+OFF_ROAD_RULES: tuple[str, ...] = ("lane", "road_edge")
 #: ``EnvConfig.start_window`` choices
 START_WINDOWS: tuple[str, ...] = ("fixed", "random")
 
@@ -40,7 +44,12 @@ class EnvConfig:
         reported in infos. ``end_of_life`` (the last recorded step of the agent's track) and
         the end of the scene always truncate.
     :param lane_width: nominal lane width for off-road and red-light rules (m).
+    :param off_road_rule: ``"lane"`` (the box centre far from every lane centre line) or
+        ``"road_edge"`` (a box corner beyond the road edges: WOSAC's off-road test, the lane
+        rule in scenes without road edges) (:mod:`magail_sumo.env.events`).
     :param off_road_margin: tolerance added to half the lane width for off-road (m).
+    :param off_road_edge_margin: with ``off_road_rule: road_edge``, how far (m) a corner may
+        lie beyond the road edge (0: WOSAC's test).
     :param destination_radius: distance to the last recorded position that counts as reached (m).
     :param start_window: where episodes start: ``"fixed"`` (at ``start_step``) or
         ``"random"`` (each episode at a step drawn uniformly from the window starts,
@@ -68,6 +77,8 @@ class EnvConfig:
         the same episodes, bit for bit (``tests/test_env.py``), without starting or stepping
         SUMO: for training throughput. Must stay ``true`` with ``background: sumo``, whose
         vehicles SUMO drives.
+    :param guard: the gap guard on the agents' accelerations (:mod:`magail_sumo.env.guard`;
+        off by default).
     """
 
     controlled: str | int = "all"
@@ -76,7 +87,9 @@ class EnvConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     limits: BicycleLimits = field(default_factory=BicycleLimits)
     lane_width: float = 3.7
+    off_road_rule: str = "lane"
     off_road_margin: float = 1.0
+    off_road_edge_margin: float = 0.0
     destination_radius: float = 2.0
     start_window: str = "fixed"
     min_history: int = 10
@@ -88,6 +101,7 @@ class EnvConfig:
     fcd_dir: str | None = None
     fcd_every: int = 0
     sumo_mirror: bool = True
+    guard: GuardConfig = field(default_factory=GuardConfig)
 
     def __post_init__(self) -> None:
         check(self.action_layout in ACTION_LAYOUTS, "action_layout",
@@ -110,6 +124,11 @@ class EnvConfig:
               f"must be an int >= 0 (0: no recording), got {show(self.fcd_every)}")
         check(self.fcd_dir is None or (isinstance(self.fcd_dir, str) and self.fcd_dir != ""),
               "fcd_dir", f"must be a folder name or null, got {show(self.fcd_dir)}")
+        check(self.off_road_rule in OFF_ROAD_RULES, "off_road_rule",
+              f"must be one of {list(OFF_ROAD_RULES)}, got {show(self.off_road_rule)}")
+        check(isinstance(self.off_road_edge_margin, (int, float))
+              and math.isfinite(self.off_road_edge_margin), "off_road_edge_margin",
+              f"must be a number (m), got {show(self.off_road_edge_margin)}")
         check_positive(self, "lane_width")
         check_positive(self, "off_road_margin", "destination_radius", "start_step",
                        allow_zero=True)

@@ -54,7 +54,7 @@ from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoS
 from .actions import ACTION_COUNTS
 from .bundle import SceneBundle
 from .config import EVENTS, EnvConfig, draw_start, window_starts
-from .events import StopLines
+from .events import RoadEdgeRule, StopLines
 from .fleet import AgentStates, Fleet
 from .outcomes import StepDicts
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
@@ -109,6 +109,7 @@ class SumoDrivingEnv(FleetEnv):
         self.bundle = SceneBundle.load(scene, bundle)
         self.config = cfg = config or EnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
+        self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
         self.render_mode = render_mode
         self.dt = STEP_LENGTH
         tr = scene.tracks
@@ -141,6 +142,9 @@ class SumoDrivingEnv(FleetEnv):
         self._commands = RouteCommands.build(tr, cfg.observation.command_lookahead) \
             if cfg.observation.command or cfg.observation.route_points else None
         self.stop_lines = StopLines.build(scene)
+        #: WOSAC's off-road test (``off_road_rule: road_edge`` in a scene with road edges)
+        self._edges = RoadEdgeRule.build(scene, cfg.off_road_edge_margin, self._length,
+                                         self._width) if cfg.off_road_rule == "road_edge" else None
         low, high = observation_bounds(cfg.observation)
         self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
         act = (dynamics.ACTION_SIZE,)
@@ -269,6 +273,7 @@ class SumoDrivingEnv(FleetEnv):
                                   self._dest[ctrl], self._dest_yaw[ctrl])
         #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
+        self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
         self._bg_in_sumo: set[str] = set()  # background vehicles in SUMO
         self._sumo_bg = None
         self.sensor_time = 0.0
@@ -462,6 +467,14 @@ class SumoDrivingEnv(FleetEnv):
         """Crossed the stop line of a red signal during the step (:class:`StopLines`)."""
         return self.stop_lines.red_crossings(self.t - 1, p0, self.fleet.position(act),
                                              self.config.lane_width)
+
+    def _off_road(self, act: np.ndarray, stepped: np.ndarray, lanes) -> np.ndarray:
+        """Off-road by the road edges (``off_road_rule: road_edge``), else by the lanes."""
+        if self._edges is None:
+            return super()._off_road(act, stepped, lanes)
+        f = self.fleet
+        return self._edges.off_road(self._ctrl[act], self.t, f.x[act], f.y[act], f.yaw[act],
+                                    f.length[act], f.width[act])
 
     def _more_events(self, act: np.ndarray) -> dict[str, np.ndarray]:
         """``end_of_life``: the agent's track has no later recorded step."""

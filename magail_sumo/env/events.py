@@ -2,8 +2,13 @@
 
 Rules (scene frame, metres):
 
-* **off-road**: the box centre lies farther than ``lane_width / 2 + margin`` from every lane
-  centre line of the scene map (WOMD lanes carry no width, so one nominal width is used);
+* **off-road** (``EnvConfig.off_road_rule``): ``"lane"``: the box centre lies farther than
+  ``lane_width / 2 + margin`` from every lane centre line of the scene map (WOMD lanes carry no
+  width, so one nominal width is used); ``"road_edge"`` (:class:`RoadEdgeRule`): a corner of
+  the box lies more than ``off_road_edge_margin`` beyond the road edges, WOSAC's off-road test
+  (the signed distance of :mod:`magail_sumo.evaluation.realism.map_features`, positive
+  off-road), while the agent's recorded pose at that step does not (parked off the road in
+  the log is not off-road), in scenes whose map has road edges (the lane rule elsewhere);
 * **red-light violation**: during the step the box centre crosses a signalled stop line — the
   line through a signal record's stop point, normal to the start direction of its lane, within
   ``lane_width / 2`` of the stop point — and every signal record at that stop line is red at the
@@ -25,6 +30,82 @@ from magail_sumo.sensors.traffic_lights import LIGHT_CODES, RED
 def off_road(lane_distance: np.ndarray, lane_width: float, margin: float) -> np.ndarray:
     """(A,) bool: lane-centre distance (m) beyond half the lane width plus the margin."""
     return np.asarray(lane_distance) > 0.5 * lane_width + margin
+
+
+@dataclass(frozen=True)
+class RoadEdgeRule:
+    """WOSAC's off-road test for the env (module doc), built once per scene.
+
+    An agent is off-road when a corner of its box lies beyond the road edges by more than the
+    margin **while its recorded pose at that step does not** (a vehicle parked off the road in
+    the log is not flagged for staying there: WOSAC scores an agent's off-road indication
+    against its log's). At steps its track is not recorded, its nearest earlier recorded step
+    stands in (else its first).
+
+    :param segments: the scene's road-edge segments
+        (:func:`~magail_sumo.evaluation.realism.map_features.road_edge_segments`).
+    :param z: (N,) each track's median recorded box bottom (z less half the height, m):
+        the env is 2-D, and z only picks the road level where edges overlap.
+    :param log_off: (N, T) the recorded pose of track n at step t is off-road (filled as
+        above).
+    :param margin: tolerance (m) beyond the edge before a corner counts as off-road.
+    """
+
+    segments: object
+    z: np.ndarray
+    log_off: np.ndarray
+    margin: float
+
+    @classmethod
+    def build(cls, scene: Scene, margin: float, length: np.ndarray, width: np.ndarray
+              ) -> "RoadEdgeRule | None":
+        """The rule of ``scene`` (``length, width``: (N,) each track's box size, m); None
+        when its map has no road edge (nuScenes pickles)."""
+        # imported here: only envs that use the rule load the metric's kernels
+        from magail_sumo.evaluation.realism.map_features import (has_road_edges,
+                                                                 road_edge_segments)
+
+        if not has_road_edges(scene):
+            return None
+        tr = scene.tracks
+        n, t_steps = tr.valid.shape
+        z = np.where(tr.valid, tr.z - tr.height / 2, np.nan)  # the box's bottom, as WOSAC
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(z, axis=1) if t_steps else np.zeros(n)
+        rule = cls(road_edge_segments(scene), np.nan_to_num(med).astype(np.float32),
+                   np.zeros((n, t_steps), bool), margin)
+        r, t = np.nonzero(tr.valid)
+        off = rule.corners_off(r, tr.x[r, t], tr.y[r, t], tr.heading[r, t], length[r],
+                               width[r])
+        # forward fill over unrecorded steps (back fill before the first recorded one)
+        idx = np.where(tr.valid, np.arange(t_steps)[None, :], -1)
+        last = np.maximum.accumulate(idx, axis=1)
+        first = np.argmax(tr.valid, axis=1)[:, None]
+        src = np.where(last >= 0, last, first)
+        rec = np.zeros((n, t_steps), bool)
+        rec[r, t] = off
+        rule.log_off[:] = np.take_along_axis(rec, src, axis=1)
+        return rule
+
+    def corners_off(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+                    length: np.ndarray, width: np.ndarray) -> np.ndarray:
+        """(A,) bool: a box corner of track rows ``rows`` at the given poses lies beyond the
+        road edge by more than the margin (whatever the log did)."""
+        from magail_sumo.evaluation.realism.interaction import box_corners
+        from magail_sumo.evaluation.realism.map_features import signed_distance_to_road_edge
+
+        if len(rows) == 0:
+            return np.zeros(0, bool)
+        cx, cy = box_corners(*(np.asarray(v, np.float64) for v in (x, y, yaw, length, width)))
+        cz = np.broadcast_to(self.z[rows][:, None], cx.shape)
+        pts = np.stack([cx, cy, cz], -1).astype(np.float32)
+        return signed_distance_to_road_edge(pts, self.segments).max(1) > self.margin
+
+    def off_road(self, rows: np.ndarray, t: int, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+                 length: np.ndarray, width: np.ndarray) -> np.ndarray:
+        """(A,) bool: track rows ``rows`` at the given poses at step ``t`` are off-road where
+        their log is not (class doc)."""
+        return self.corners_off(rows, x, y, yaw, length, width) & ~self.log_off[rows, t]
 
 
 def reached(x: np.ndarray, y: np.ndarray, destination: np.ndarray, radius: float) -> np.ndarray:

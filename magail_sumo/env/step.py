@@ -7,17 +7,20 @@
 
 1. **clean actions** — the action dict to a clean (A, 2) array over the live agents
    (:func:`~magail_sumo.env.actions.checked_actions`), counting what was fixed;
-2. **dynamics** — the live agents move one step by the bicycle model
+2. **guard** — with ``guard.kind: gap``, accelerations that would leave an agent unable to
+   stop behind its leader are lowered (:mod:`~magail_sumo.env.guard`; hook ``_world``: the
+   road users at the step's start);
+3. **dynamics** — the live agents move one step by the bicycle model
    (:meth:`~magail_sumo.env.fleet.Fleet.drive`);
-3. **push to SUMO** — the env places its SUMO vehicles for the next step (hook ``_push``);
-4. **SUMO step** — SUMO advances one step (hook ``_sumo_step``: the env's bookkeeping of who
+4. **push to SUMO** — the env places its SUMO vehicles for the next step (hook ``_push``);
+5. **SUMO step** — SUMO advances one step (hook ``_sumo_step``: the env's bookkeeping of who
    entered and left SUMO);
-5. **joins** — new agents (hook ``_join``: from the log, or from SUMO's departures);
-6. **observe** — observations of the stepped agents and joiners (hook ``_observe``), with one
+6. **joins** — new agents (hook ``_join``: from the log, or from SUMO's departures);
+7. **observe** — observations of the stepped agents and joiners (hook ``_observe``), with one
    lane query shared by the sensors and the off-road rule;
-7. **events** — collision (oriented-box overlap with any other road user), off-road,
+8. **events** — collision (oriented-box overlap with any other road user), off-road,
    red-light (hook ``_red_light``), destination, plus env-specific ones (hook ``_more_events``);
-8. **outcomes** — terminations, truncations and infos
+9. **outcomes** — terminations, truncations and infos
    (:class:`~magail_sumo.env.outcomes.StepDicts`; hook ``_time_up``: who is out of time and
    why); agents that left are taken out of SUMO.
 
@@ -42,10 +45,13 @@ from typing import Any, Sequence
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from magail_sumo.sensors.units.leader import nearest_ahead
+
 from .actions import checked_actions, count_actions
 from .collision import first_overlap
 from .events import off_road, reached
 from .fleet import AgentStates, Fleet
+from .guard import guarded
 from .outcomes import StepDicts
 
 #: truncation reason of an agent still live when the episode's time is up (both envs)
@@ -59,10 +65,10 @@ class FleetEnv(ParallelEnv):
 
     A subclass sets, in ``reset``: :attr:`fleet`, ``_session`` (the running
     :class:`~magail_sumo.sim.session.SumoSession`), ``t`` and ``_end`` (the last step of the
-    episode: it ends when ``t >= _end``), ``action_counts``, ``sensor_time``; and it implements
-    the hooks ``_push``, ``_sumo_step``, ``_join``, ``_observe``, ``_red_light``,
-    ``_time_up``, ``_road_user`` (and, when it has some, ``_before_move``, ``_more_events``,
-    ``_after_step``, ``_agent_rows``).
+    episode: it ends when ``t >= _end``), ``action_counts``, ``guarded``, ``sensor_time``;
+    and it implements the hooks ``_push``, ``_sumo_step``, ``_join``, ``_observe``,
+    ``_red_light``, ``_time_up``, ``_road_user``, ``_world`` (and, when it has some,
+    ``_before_move``, ``_off_road``, ``_more_events``, ``_after_step``, ``_agent_rows``).
     """
 
     #: event names in the order the first one found becomes the reason
@@ -79,6 +85,7 @@ class FleetEnv(ParallelEnv):
         clean = self._clean_actions(actions, act)
         p0 = self.fleet.position(act)
         ctx = self._before_move(act)
+        clean = self._guard(act, clean)
         self._dynamics(act, clean)
         self._push()
         departed, arrived = self._sumo_step()
@@ -103,8 +110,23 @@ class FleetEnv(ParallelEnv):
         count_actions(self.action_counts, actions, f.index, nonfinite, outside, missing, extra)
         return clean
 
+    def _guard(self, act: np.ndarray, clean: np.ndarray) -> np.ndarray:
+        """Stage 2: ``clean`` with the gap guard's caps (unchanged when it is off); counts the
+        lowered accelerations in ``guarded``."""
+        cfg, f = self.config, self.fleet
+        g = cfg.guard
+        if not g.on or act.size == 0:
+            return clean
+        boxes, _ = self._world(act)
+        gap, along, found = nearest_ahead(boxes, np.arange(act.size), f.x[act], f.y[act],
+                                          f.yaw[act], g.range, oriented=True)
+        out, lowered = guarded(clean, f.speed[act], gap, along, found, g, cfg.limits,
+                               cfg.action_layout, self.dt)
+        self.guarded += int(lowered.sum())
+        return out
+
     def _dynamics(self, act: np.ndarray, clean: np.ndarray) -> None:
-        """Stage 2: the bicycle model moves rows ``act``."""
+        """Stage 3: the bicycle model moves rows ``act``."""
         cfg = self.config
         self.fleet.drive(act, clean, cfg.limits, cfg.action_layout, self.dt)
 
@@ -118,13 +140,13 @@ class FleetEnv(ParallelEnv):
 
     def _events(self, act: np.ndarray, stepped: np.ndarray, p0: np.ndarray, boxes, lanes,
                 ctx) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """Stage 7: event name -> (A,) bool of the stepped rows ``act`` (at world rows
+        """Stage 8: event name -> (A,) bool of the stepped rows ``act`` (at world rows
         ``stepped``), and (A,) world row of the first box each overlaps (-1: none)."""
         cfg, f = self.config, self.fleet
         other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, stepped)
         flags = {
             "collision": other >= 0,
-            "off_road": off_road(lanes.distance[stepped], cfg.lane_width, cfg.off_road_margin),
+            "off_road": self._off_road(act, stepped, lanes),
             "red_light": self._red_light(act, p0, ctx),
             "destination": reached(f.x[act], f.y[act], f.dest[act], cfg.destination_radius),
         }
@@ -133,7 +155,7 @@ class FleetEnv(ParallelEnv):
 
     def _outcomes(self, act: np.ndarray, joiners: np.ndarray, flags: dict[str, np.ndarray],
                   other: np.ndarray, ids, arrived: Sequence[str]) -> StepDicts:
-        """Stage 8: the step's dicts; agents that left become inactive and leave SUMO."""
+        """Stage 9: the step's dicts; agents that left become inactive and leave SUMO."""
         cfg, f = self.config, self.fleet
         end = self.t >= self._end
         time_up, why = self._time_up(act, flags, end, arrived)
@@ -170,19 +192,19 @@ class FleetEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ hooks each env implements
     def _push(self) -> None:
-        """Stage 3: place the env's SUMO vehicles (live agents first) for the next step."""
+        """Stage 4: place the env's SUMO vehicles (live agents first) for the next step."""
         raise NotImplementedError
 
     def _sumo_step(self) -> tuple[list[str], list[str]]:
-        """Stage 4: step SUMO (and ``t``); (departed ids, arrived ids) of that step."""
+        """Stage 5: step SUMO (and ``t``); (departed ids, arrived ids) of that step."""
         raise NotImplementedError
 
     def _join(self, departed: list[str]) -> np.ndarray:
-        """Stage 5: rows that become agents now (sorted, joined and active)."""
+        """Stage 6: rows that become agents now (sorted, joined and active)."""
         raise NotImplementedError
 
     def _observe(self, agents: np.ndarray, lanes=None) -> tuple[dict, tuple[Any, Any]]:
-        """Stage 6: observations of rows ``agents`` (sorted) by name, and the world:
+        """Stage 7: observations of rows ``agents`` (sorted) by name, and the world:
         (boxes of the agents, in order, then every other road user; the boxes' ids)."""
         raise NotImplementedError
 
@@ -200,6 +222,11 @@ class FleetEnv(ParallelEnv):
         """The name of world box ``j`` (``collided_with``)."""
         raise NotImplementedError
 
+    def _world(self, agents: np.ndarray) -> tuple[Any, Any]:
+        """Boxes (:class:`~magail_sumo.sensors.base.Boxes`, with speeds) of rows ``agents``
+        (first, in order) and of every other road user at the current step, and their ids."""
+        raise NotImplementedError
+
     def _record_fcd(self) -> None:
         """Add the step's poses to the env's FCD recording, if any."""
         raise NotImplementedError
@@ -208,6 +235,11 @@ class FleetEnv(ParallelEnv):
     def _before_move(self, act: np.ndarray) -> Any:
         """What the events need from before the step besides the positions (none here)."""
         return None
+
+    def _off_road(self, act: np.ndarray, stepped: np.ndarray, lanes) -> np.ndarray:
+        """(A,) bool: the stepped rows ``act`` are off-road (here: the lane rule)."""
+        cfg = self.config
+        return off_road(lanes.distance[stepped], cfg.lane_width, cfg.off_road_margin)
 
     def _more_events(self, act: np.ndarray) -> dict[str, np.ndarray]:
         """Env-specific events of the stepped rows ``act`` (none here)."""

@@ -172,11 +172,14 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     from magail_sumo.env.config import EnvConfig
 
     st = job.settings
-    cfg = CityEnvConfig.from_env(EnvConfig(), max_agents=st.max_agents,
+    policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic)
+    # the env the policy needs: its optional features, action layout and gap guard
+    extra = {k: getattr(policy, k) for k in ("observation", "action_layout", "guard")
+             if hasattr(policy, k)}
+    cfg = CityEnvConfig.from_env(EnvConfig(**extra), max_agents=st.max_agents,
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
                                  max_steps=st.steps)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
-    policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic)
     state = env.warm_state()
     if state is not None:
         shutil.copyfile(state, job.state_copy)

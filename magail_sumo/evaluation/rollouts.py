@@ -14,8 +14,8 @@ sim-agent set). Methods:
   :func:`magail_sumo.agents.make_policy`): drives every route vehicle and cyclist through
   :class:`~magail_sumo.env.SumoDrivingEnv` (bicycle model, SUMO co-simulation, no event
   terminates an agent; :func:`magail_sumo.agents.rollout`), built with the policy's
-  ``observation`` and ``action_layout`` when it names them. Each rollout builds its
-  policy with the rollout seed; a training checkpoint samples its actions from that seed
+  ``observation``, ``action_layout`` and gap ``guard`` when it names them. Each rollout builds
+  its policy with the rollout seed; a training checkpoint samples its actions from that seed
   (``deterministic=True``: the tanh of the Gaussian mean, the same in every rollout).
 
 Objects a method does not move (pedestrians, objects SUMO does not carry, vehicles not yet
@@ -95,8 +95,8 @@ def _as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
 def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
                     counts: dict[str, int] | None = None) -> tuple[np.ndarray, ...]:
     """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv (with the
-    policy's ``observation`` config and ``action_layout`` when it has them, e.g. a SAC
-    policy's route command), by :func:`magail_sumo.agents.rollout`. Each agent's simulated
+    policy's ``observation`` config, ``action_layout`` and ``guard`` when it has them, e.g. a
+    SAC policy's route command), by :func:`magail_sumo.agents.rollout`. Each agent's simulated
     state at a step is the one the env reports after it (``infos[agent]["state"]``).
 
     :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
@@ -106,7 +106,7 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     cur = scene.current_time_index
-    extra = {k: getattr(policy, k) for k in ("observation", "action_layout")
+    extra = {k: getattr(policy, k) for k in ("observation", "action_layout", "guard")
              if hasattr(policy, k)}
     env = SumoDrivingEnv(scene, bundle_dir, EnvConfig(
         controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=(), **extra))

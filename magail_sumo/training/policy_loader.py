@@ -139,10 +139,11 @@ def policy_observation(trained: EnvConfig) -> ObservationConfig:
 
 def _target(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
     """The env a checkpoint trained in ``trained`` drives: ``target``, or evaluation's (the
-    defaults) with the policy's action layout and optional features (the policy's
-    ``action_layout`` and ``observation`` attributes make evaluation build its env so)."""
+    defaults) with the policy's action layout, optional features and gap guard (the policy's
+    ``action_layout``, ``observation`` and ``guard`` attributes make evaluation build its env
+    so)."""
     return target or EnvConfig(action_layout=trained.action_layout,
-                               observation=policy_observation(trained))
+                               observation=policy_observation(trained), guard=trained.guard)
 
 
 def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
@@ -159,6 +160,8 @@ def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = Fal
     pol = CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
                            deterministic=deterministic, action_layout=cfg.env.action_layout)
     pol.observation = policy_observation(cfg.env)
+    if cfg.env.guard.on:
+        pol.guard = cfg.env.guard  # trained behind the gap guard: evaluation keeps it
     return pol
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..base import Sensor, SensorInput, register
+from ..base import Boxes, Sensor, SensorInput, register
 
 
 @register
@@ -34,26 +34,52 @@ class Leader(Sensor):
                 np.array([config.leader_range, np.inf], np.float32))
 
     def read(self, inp: SensorInput) -> np.ndarray:
-        b, rng = inp.boxes, float(self.config.leader_range)
-        n, a = len(b), len(inp)
-        out = np.zeros((a, 2), np.float32)
+        rng = float(self.config.leader_range)
+        out = np.zeros((len(inp), 2), np.float32)
         out[:, 0] = rng
-        if a == 0 or n <= 1:
-            return out
-        c, s = np.cos(inp.yaw)[:, None], np.sin(inp.yaw)[:, None]
-        dx = b.x[None, :] - inp.x[:, None]
-        dy = b.y[None, :] - inp.y[:, None]
-        ex, ey = c * dx + s * dy, -s * dx + c * dy
-        idx = inp.index
-        gap = ex - 0.5 * (b.length[None, :] + b.length[idx][:, None])
-        ahead = (ex > 0) & (np.abs(ey) < 0.5 * (b.width[None, :] + b.width[idx][:, None])) & \
-            (gap < rng)
-        ahead[np.arange(a), idx] = False
-        gap = np.where(ahead, gap, np.inf)
-        j = np.argmin(gap, axis=1)
-        found = np.isfinite(gap[np.arange(a), j])
-        speed = np.zeros(n) if b.speed is None else np.asarray(b.speed, np.float64)
-        along = speed[j] * np.cos(np.asarray(b.yaw, np.float64)[j] - inp.yaw)
-        out[found, 0] = gap[np.arange(a), j][found]
-        out[found, 1] = (inp.ego.speed[found] - along[found])
+        gap, along, found = nearest_ahead(inp.boxes, inp.index, inp.x, inp.y, inp.yaw, rng)
+        out[found, 0] = gap[found]
+        out[found, 1] = inp.ego.speed[found] - along[found]
         return out
+
+
+def nearest_ahead(b: Boxes, index: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+                  rng: float, oriented: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each agent's leader among boxes ``b`` (module doc): (A,) gap (m; ``inf`` without one),
+    the leader's speed along the agent's heading (m/s; 0 without one) and whether it has one.
+
+    :param index: (A,) the agents' own rows of ``b`` (never their own leader).
+    :param x, y, yaw: (A,) the agents' poses (scene frame). :param rng: farthest gap (m).
+    :param oriented: take the other box's extents along the agent's axes from its heading
+        (half extents ``|cos d|·l/2 + |sin d|·w/2`` along and ``|sin d|·l/2 + |cos d|·w/2``
+        across, ``d`` the heading difference), so a crossing vehicle blocks the path with its
+        length (the gap guard); False: its length along and its width across, as the leader
+        sensor reads it.
+    """
+    n, a = len(b), len(index)
+    gap_out, along_out = np.full(a, np.inf), np.zeros(a)
+    if a == 0 or n <= 1:
+        return gap_out, along_out, np.zeros(a, bool)
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    dx = b.x[None, :] - x[:, None]
+    dy = b.y[None, :] - y[:, None]
+    ex, ey = c * dx + s * dy, -s * dx + c * dy
+    if oriented:
+        d = np.asarray(b.yaw, np.float64)[None, :] - yaw[:, None]
+        cd, sd = np.abs(np.cos(d)), np.abs(np.sin(d))
+        along = cd * b.length[None, :] + sd * b.width[None, :]
+        across = sd * b.length[None, :] + cd * b.width[None, :]
+    else:
+        along, across = b.length[None, :], b.width[None, :]
+    gap = ex - 0.5 * (along + b.length[index][:, None])
+    ahead = (ex > 0) & (np.abs(ey) < 0.5 * (across + b.width[index][:, None])) & (gap < rng)
+    ahead[np.arange(a), index] = False
+    gap = np.where(ahead, gap, np.inf)
+    j = np.argmin(gap, axis=1)
+    best = gap[np.arange(a), j]
+    found = np.isfinite(best)
+    speed = np.zeros(n) if b.speed is None else np.asarray(b.speed, np.float64)
+    along = speed[j] * np.cos(np.asarray(b.yaw, np.float64)[j] - yaw)
+    gap_out[found], along_out[found] = best[found], along[found]
+    return gap_out, along_out, found
