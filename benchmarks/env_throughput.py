@@ -18,6 +18,9 @@ same vehicles moved each step; the share of env step time spent in sensors and o
   (``EnvConfig.sumo_mirror=False``: the same episodes without SUMO). The two variants alternate
   ``--repeats`` times over the same seeded windows; rows give the median agent-steps/s of each
   and their ratio.
+* ``guard_edge`` (only by name, not in ``all``): the same windows without the SUMO mirror, with
+  and without the gap guard and the road-edge off-road rule (``EnvConfig.guard``,
+  ``off_road_rule: road_edge``): what the two cost.
 
     python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
         [--repeats R]
@@ -40,12 +43,16 @@ sys.path.insert(0, str(ROOT))
 from converters import load_scene  # noqa: E402
 from converters.sumo.scenario import ConvertOptions, convert_scene  # noqa: E402
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions  # noqa: E402
+from magail_sumo.env.guard import GuardConfig  # noqa: E402
 from magail_sumo.sim.session import SessionConfig, SumoSession  # noqa: E402
 from magail_sumo.workers import run_one  # noqa: E402
 
 SCENE = "637f20cafde22ff8"
 CITY = "ingolstadt21"
 WINDOWS = "windows"
+#: the windows measure of the gap guard and the road-edge off-road rule (both on vs both off,
+#: without the SUMO mirror)
+GUARD_EDGE = "guard_edge"
 #: scenes of the ``windows`` measurement: the bundled TFRecord and two 20 s ScenarioNet scenes
 WINDOW_SCENES = (ROOT / "data" / "womd" / f"{SCENE}.tfrecord",
                  ROOT / "data" / "scenarionet" / "b36a6d0bc9e525bc.pkl",
@@ -165,7 +172,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object per scenario")
     ap.add_argument("--episodes", type=int, default=3)
-    ap.add_argument("--scenario", default="all", choices=[SCENE, CITY, WINDOWS, "all"])
+    ap.add_argument("--scenario", default="all", choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, "all"],
+                    help=f"{WINDOWS}: with vs without the SUMO mirror; {GUARD_EDGE}: with vs "
+                         "without the gap guard and the road-edge off-road rule (all: every "
+                         f"one but {GUARD_EDGE})")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the windows measurement")
     ap.add_argument("--warmup", type=float, default=1200.0, help="city warm-up (s of SUMO time)")
     ap.add_argument("--city-steps", type=int, default=100, help="0.1-s steps per city episode")
@@ -177,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         results.append(run_city(args))
     if args.scenario in (WINDOWS, "all"):
         results.extend(run_windows(args))
+    if args.scenario == GUARD_EDGE:
+        results.extend(run_windows(args, GUARD_EDGE))
     for out in results:
         if args.json:
             print(json.dumps(out))
@@ -229,38 +241,52 @@ def _window_episodes(env: SumoDrivingEnv, episodes: int) -> tuple[float, int]:
     return total, agent_steps
 
 
-def run_windows(args) -> list[dict]:
+#: the windows measures: name -> (variant A, variant B) of EnvConfig settings, each a
+#: (label, overrides) pair; both play the same seeded windows, alternating
+WINDOW_VARIANTS = {
+    WINDOWS: (("mirror", {"sumo_mirror": True}), ("no_mirror", {"sumo_mirror": False})),
+    GUARD_EDGE: (("plain", {"sumo_mirror": False}),
+                 ("guard_edge", {"sumo_mirror": False, "off_road_rule": "road_edge",
+                                 "guard": GuardConfig(kind="gap")})),
+}
+
+
+def run_windows(args, measure: str = WINDOWS) -> list[dict]:
+    """Training's random 80-step windows (reset included, expert actions) of the window scenes
+    under the two env variants of ``measure`` (:data:`WINDOW_VARIANTS`); medians of the
+    repeats."""
     from converters import find_scene
 
     rows = []
+    (la, ca), (lb, cb) = WINDOW_VARIANTS[measure]
     with tempfile.TemporaryDirectory() as tmp:
         for f in WINDOW_SCENES:
             scene = find_scene(f, None)
             rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
             if rep.status != "ok":
                 raise SystemExit(f"{f}: conversion failed: {rep.reason}")
-            envs = {m: SumoDrivingEnv(scene, Path(tmp) / scene.scenario_id, EnvConfig(
+            envs = {lab: SumoDrivingEnv(scene, Path(tmp) / scene.scenario_id, EnvConfig(
                 controlled="all", terminate_on=(), limits=REPLAY_LIMITS, start_window="random",
-                max_steps=80, min_history=10, sumo_mirror=m)) for m in (True, False)}
-            rates: dict[bool, list[float]] = {True: [], False: []}
+                max_steps=80, min_history=10, **over)) for lab, over in ((la, ca), (lb, cb))}
+            rates: dict[str, list[float]] = {la: [], lb: []}
             steps = 0
-            for m in (True, False):
-                _window_episodes(envs[m], 1)  # warm-up: numba kernels, files cached
+            for lab in (la, lb):
+                _window_episodes(envs[lab], 1)  # warm-up: numba kernels, files cached
             for _ in range(args.repeats):
-                for m in (True, False):
-                    secs, steps = _window_episodes(envs[m], args.episodes)
-                    rates[m].append(steps / secs)
+                for lab in (la, lb):
+                    secs, steps = _window_episodes(envs[lab], args.episodes)
+                    rates[lab].append(steps / secs)
             for env in envs.values():
                 env.close()
-            on, off = (float(np.median(rates[m])) for m in (True, False))
-            rows.append({"scene": scene.scenario_id, "measure": WINDOWS,
+            a, b = (float(np.median(rates[lab])) for lab in (la, lb))
+            rows.append({"scene": scene.scenario_id, "measure": measure,
                          "log_steps": scene.num_steps, "episodes": args.episodes,
                          "agent_steps": steps,
-                         "agent_steps_per_s_mirror": round(on, 1),
-                         "agent_steps_per_s_no_mirror": round(off, 1),
-                         "runs_mirror": [round(r, 1) for r in rates[True]],
-                         "runs_no_mirror": [round(r, 1) for r in rates[False]],
-                         "speedup": round(off / on, 2)})
+                         f"agent_steps_per_s_{la}": round(a, 1),
+                         f"agent_steps_per_s_{lb}": round(b, 1),
+                         f"runs_{la}": [round(r, 1) for r in rates[la]],
+                         f"runs_{lb}": [round(r, 1) for r in rates[lb]],
+                         "speedup": round(b / a, 2)})
     return rows
 
 
