@@ -61,11 +61,14 @@ def test_guard_config_refusals():
     from magail_sumo.config import ConfigError, from_dict
     from magail_sumo.env import EnvConfig
 
-    with pytest.raises(ValueError, match="guard.kind"):
+    with pytest.raises(ValueError, match=r"^kind: must be one of"):
         GuardConfig(kind="krauss")
-    with pytest.raises(ValueError, match="guard.tau"):
+    with pytest.raises(ValueError, match=r"^tau: must be >= 0"):
         GuardConfig(kind="gap", tau=-1.0)
-    with pytest.raises(ConfigError, match="guard.decel"):
+    with pytest.raises(ValueError, match=r"^range: must be a finite number"):
+        GuardConfig(kind="gap", range=float("inf"))
+    # a config file's error names the dotted key once
+    with pytest.raises(ConfigError, match=r"^guard\.decel: must be > 0"):
         from_dict(EnvConfig, {"guard": {"kind": "gap", "decel": 0}})
     cfg = from_dict(EnvConfig, {"guard": {"kind": "gap", "tau": 0.8}})
     assert cfg.guard.on and cfg.guard.tau == 0.8 and not EnvConfig().guard.on

@@ -15,7 +15,7 @@ Add an agent: a module here with a class that has ``act(observations)``; a train
 registers its checkpoint loader (:func:`register_checkpoint_loader`).
 """
 
-from .base import Policy, PolicyError
+from .base import Policy, PolicyError, env_settings
 from .constant_velocity import ConstantVelocityPolicy
 from .log_replay import LogReplayPolicy
 from .random_policy import RandomPolicy
@@ -24,7 +24,7 @@ from .registry import (BASELINES, BUILTIN_POLICIES, CHECKPOINT_LOADERS, POLICY_L
                        register_checkpoint_loader)
 from .rollout import Step, rollout
 
-__all__ = ["BASELINES", "BUILTIN_POLICIES", "CHECKPOINT_LOADERS", "ConstantVelocityPolicy",
+__all__ = ["env_settings", "BASELINES", "BUILTIN_POLICIES", "CHECKPOINT_LOADERS", "ConstantVelocityPolicy",
            "LogReplayPolicy", "POLICY_LOADERS", "Policy", "PolicyError", "RandomPolicy", "Step",
            "load_training_checkpoint",
            "make_policy", "method_name", "register_checkpoint_loader", "rollout"]

@@ -37,3 +37,13 @@ class Policy(Protocol):
     """
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+
+#: the optional :class:`Policy` attributes that are env settings (``EnvConfig`` fields)
+ENV_SETTINGS = ("observation", "action_layout", "guard")
+
+
+def env_settings(policy) -> dict:
+    """The ``EnvConfig`` fields ``policy`` names (:data:`ENV_SETTINGS` it has): evaluation
+    builds the policy's env with them."""
+    return {k: getattr(policy, k) for k in ENV_SETTINGS if hasattr(policy, k)}

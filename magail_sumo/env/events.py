@@ -91,15 +91,17 @@ class RoadEdgeRule:
                     length: np.ndarray, width: np.ndarray) -> np.ndarray:
         """(A,) bool: a box corner of track rows ``rows`` at the given poses lies beyond the
         road edge by more than the margin (whatever the log did)."""
-        from magail_sumo.evaluation.realism.interaction import box_corners
-        from magail_sumo.evaluation.realism.map_features import signed_distance_to_road_edge
+        from magail_sumo.evaluation.realism.map_features import distance_to_road_edge
 
         if len(rows) == 0:
             return np.zeros(0, bool)
-        cx, cy = box_corners(*(np.asarray(v, np.float64) for v in (x, y, yaw, length, width)))
-        cz = np.broadcast_to(self.z[rows][:, None], cx.shape)
-        pts = np.stack([cx, cy, cz], -1).astype(np.float32)
-        return signed_distance_to_road_edge(pts, self.segments).max(1) > self.margin
+        # the metric's (batch, object, step) layout: one batch, one step; z is already the
+        # box's bottom, so height 0
+        pose = [np.asarray(v, np.float64)[None, :, None] for v in (x, y, self.z[rows], yaw)]
+        size = [np.asarray(v, np.float64)[:, None] for v in (length, width)]
+        d = distance_to_road_edge(*pose[:3], pose[3], *size, np.zeros_like(size[0]),
+                                  np.ones(pose[0].shape, bool), self.segments)
+        return d[0, :, 0] > self.margin
 
     def off_road(self, rows: np.ndarray, t: int, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
                  length: np.ndarray, width: np.ndarray) -> np.ndarray:

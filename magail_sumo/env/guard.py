@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magail_sumo.config import check, show
+from magail_sumo.config import check, check_positive, show
 from magail_sumo.sim.dynamics import BicycleLimits, denormalise, normalise
 
 #: ``GuardConfig.kind`` choices
@@ -59,15 +59,15 @@ class GuardConfig:
     range: float = 50.0
 
     def __post_init__(self) -> None:
-        check(self.kind in GUARD_KINDS, "guard.kind",
+        # plain keys: from_dict names the dotted path (env.guard.decel)
+        check(self.kind in GUARD_KINDS, "kind",
               f"must be one of {list(GUARD_KINDS)}, got {show(self.kind)}")
-        for name, low, strict in (("decel", 0.0, True), ("tau", 0.0, False),
-                                  ("min_gap", 0.0, False), ("range", 0.0, True)):
+        for name in ("decel", "tau", "min_gap", "range"):
             v = getattr(self, name)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
-                and (v > low if strict else v >= low)
-            check(ok, f"guard.{name}", f"must be a number {'>' if strict else '>='} {low:g}, "
-                  f"got {show(v)}")
+            check(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
+                  name, f"must be a finite number, got {show(v)}")
+        check_positive(self, "decel", "range")
+        check_positive(self, "tau", "min_gap", allow_zero=True)
 
     @property
     def on(self) -> bool:

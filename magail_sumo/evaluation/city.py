@@ -47,6 +47,7 @@ import shutil
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+from magail_sumo.agents import env_settings
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.rollouts import (BASELINES, DEFAULT_TIMEOUT_S, EvaluationError,
                                              log, make_policy, method_name, previous_manifest,
@@ -174,9 +175,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     st = job.settings
     policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic)
     # the env the policy needs: its optional features, action layout and gap guard
-    extra = {k: getattr(policy, k) for k in ("observation", "action_layout", "guard")
-             if hasattr(policy, k)}
-    cfg = CityEnvConfig.from_env(EnvConfig(**extra), max_agents=st.max_agents,
+    cfg = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)), max_agents=st.max_agents,
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
                                  max_steps=st.steps)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))

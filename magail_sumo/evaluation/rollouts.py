@@ -42,7 +42,8 @@ import numpy as np
 # policies live in magail_sumo.agents; names kept importable from here for the city evaluation,
 # the report, benchmarks and tests
 from magail_sumo.agents import (BASELINES, BUILTIN_POLICIES, POLICY_LOADERS, Policy,
-                                PolicyError, RandomPolicy, make_policy, method_name, rollout)
+                                PolicyError, RandomPolicy, env_settings, make_policy, method_name,
+                                rollout)
 from magail_sumo.agents import constant_velocity as _cv
 from magail_sumo.agents.constant_velocity import Track as _Track
 from magail_sumo.agents.constant_velocity import current_state as _current_state
@@ -106,10 +107,9 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     cur = scene.current_time_index
-    extra = {k: getattr(policy, k) for k in ("observation", "action_layout", "guard")
-             if hasattr(policy, k)}
     env = SumoDrivingEnv(scene, bundle_dir, EnvConfig(
-        controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=(), **extra))
+        controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=(),
+        **env_settings(policy)))
     track = _Track.empty(len(ids), N_STEPS)
 
     def keep(step) -> None:

@@ -68,12 +68,12 @@ def nearest_ahead(b: Boxes, index: np.ndarray, x: np.ndarray, y: np.ndarray, yaw
     if oriented:
         d = np.asarray(b.yaw, np.float64)[None, :] - yaw[:, None]
         cd, sd = np.abs(np.cos(d)), np.abs(np.sin(d))
-        along = cd * b.length[None, :] + sd * b.width[None, :]
-        across = sd * b.length[None, :] + cd * b.width[None, :]
+        ext_along = cd * b.length[None, :] + sd * b.width[None, :]
+        ext_across = sd * b.length[None, :] + cd * b.width[None, :]
     else:
-        along, across = b.length[None, :], b.width[None, :]
-    gap = ex - 0.5 * (along + b.length[index][:, None])
-    ahead = (ex > 0) & (np.abs(ey) < 0.5 * (across + b.width[index][:, None])) & (gap < rng)
+        ext_along, ext_across = b.length[None, :], b.width[None, :]
+    gap = ex - 0.5 * (ext_along + b.length[index][:, None])
+    ahead = (ex > 0) & (np.abs(ey) < 0.5 * (ext_across + b.width[index][:, None])) & (gap < rng)
     ahead[np.arange(a), index] = False
     gap = np.where(ahead, gap, np.inf)
     j = np.argmin(gap, axis=1)
