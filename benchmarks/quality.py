@@ -208,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
                          "skipped")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--rollouts", type=int, default=32)
+    ap.add_argument("--noise-scale", type=float, default=None, metavar="K",
+                    help="evaluate --noise-scale for every policy (default: each policy's own)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--timeout-s", default="1800", help="evaluate / convert --timeout-s")
     ap.add_argument("--out", type=Path, help="output folder (default: a temporary one)")
@@ -302,7 +304,8 @@ def main(argv: list[str] | None = None) -> int:
         if baselines:
             runs.append(["--policy", baselines[0], "--baselines", ",".join(baselines[1:]) or
                          "none"])
-        runs += [["--policy", spec, "--name", name, "--baselines", "none"]
+        scale = [] if args.noise_scale is None else ["--noise-scale", str(args.noise_scale)]
+        runs += [["--policy", spec, "--name", name, "--baselines", "none", *scale]
                  for name, spec in policies.items()]
         for run in [] if args.reuse else runs:
             if cli(["evaluate", *run, *common, "--seed", str(seed), "--out", str(folder)]):

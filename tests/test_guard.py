@@ -166,3 +166,34 @@ def test_quality_knows_what_a_guarded_policy_trained_on():
     assert quality.training_scenes("guarded:pretrained") == quality.training_scenes("pretrained")
     assert quality.training_scenes("guarded:pretrained")
     assert quality.training_scenes("guarded:random") is None
+
+
+@pytest.mark.sumo
+def test_training_logs_what_the_guard_did(tmp_path):
+    """A run behind the guard reports, each update, the share of agent-steps the guard slowed
+    and the shares of agent episodes ended by collision / off-road; the vector env's totals
+    agree with the events the workers reported."""
+    from magail_sumo.config import from_dict
+    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.expert import record_expert
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import train
+
+    scene = str(WOMD_DIR / f"{SID}.tfrecord")
+    nets = ROOT / "networks"
+    record_expert(scene_specs([scene], nets), tmp_path / "expert")
+    cfg = from_dict(TrainConfig, {
+        "seed": 0, "expert_dir": str(tmp_path / "expert"), "out_dir": str(tmp_path / "runs"),
+        "updates": 2, "bc": {"epochs": 0},
+        "env": {"max_steps": 40, "sumo_mirror": False, "guard": {"kind": "gap"}},
+        "scenes": {"files": [scene], "networks": str(nets)},
+        "policy": {"actor_hidden": [16], "critic_hidden": [16]},
+        "ppo": {"n_steps": 64, "batch_size": 64, "n_epochs": 1},
+        "discriminator": {"epochs": 1, "batch_size": 64}})
+    lines: list[str] = []
+    train(cfg, run_dir=tmp_path / "run", log=lines.append)
+    updates = [s for s in lines if s.startswith("update ")]
+    assert len(updates) == 2
+    assert all("guard slowed" in s and "collision" in s for s in updates), updates
+    shares = [float(s.split("guard slowed ")[1].split("%")[0]) for s in updates]
+    assert all(0.0 < x < 100.0 for x in shares), updates

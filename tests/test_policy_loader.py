@@ -188,3 +188,53 @@ def test_evaluate_seeded_sampling_and_deterministic(checkpoint, monkeypatch):
     old = got[legacy]
     assert all(np.array_equal(getattr(old, n)[0], getattr(mean, n)[0])
                for n in ("x", "y", "heading"))
+
+
+@pytest.mark.sumo
+def test_noise_scale_scales_the_sampled_noise(checkpoint, tmp_path, monkeypatch):
+    """``noise_scale`` k samples ``tanh(mu + k·sigma·eps)`` with the same draws: 0 gives the
+    mean action, and the pre-tanh offset from the mean grows linearly in k; a pretrained card's
+    ``sampling.noise_scale`` is the default, ``--noise-scale`` overrides it and the manifest
+    records the one used; a policy without sampling noise, a negative or non-finite scale is
+    refused."""
+    from magail_sumo import pretrained
+    from magail_sumo.agents import PolicyError
+
+    _, ckpt = checkpoint
+    rng = np.random.default_rng(3)
+    pol = rl.make_policy(str(ckpt), seed=0)
+    obs = {str(k): rng.normal(size=pol.obs_dim).astype(np.float32) for k in range(6)}
+    mean = rl.make_policy(str(ckpt), seed=0, deterministic=True).act(obs)
+
+    def offsets(k):
+        a = rl.make_policy(str(ckpt), seed=4, noise_scale=k).act(obs)
+        return np.stack([np.arctanh(a[n]) - np.arctanh(mean[n]) for n in obs])
+
+    assert np.abs(offsets(0.0)).max() < 1e-5
+    one, half = offsets(1.0), offsets(0.5)
+    assert np.abs(one).max() > 0.05
+    assert np.allclose(half, 0.5 * one, atol=1e-4)
+    assert np.array_equal(rl.make_policy(str(ckpt), seed=4, noise_scale=1.0).act(obs)["0"],
+                          rl.make_policy(str(ckpt), seed=4).act(obs)["0"])
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(PolicyError, match="noise scale must be a finite number >= 0"):
+            rl.make_policy(str(ckpt), seed=0, noise_scale=bad)
+    with pytest.raises(PolicyError, match="RandomPolicy has no sampling noise to scale"):
+        rl.make_policy("random", seed=0, noise_scale=0.5)
+    assert isinstance(rl.make_policy("random", seed=0, noise_scale=1.0), rl.RandomPolicy)
+
+    # a pretrained card's sampling.noise_scale is the default; an explicit one overrides it
+    reg = tmp_path / "registry"
+    pretrained.export(ckpt, "calm", reg, noise_scale=0.25, noise_note="picked on train scenes")
+    monkeypatch.setenv(pretrained.ENV_VAR, str(reg))
+    assert rl.make_policy("pretrained:calm", seed=0).noise_scale == 0.25
+    assert rl.make_policy("guarded:pretrained:calm", seed=0).noise_scale == 0.25
+    assert rl.make_policy("pretrained:calm", seed=0, noise_scale=1.0).noise_scale == 1.0
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--policy", "pretrained:calm", "--scenes", SCENE, "--rollouts",
+                 "1", "--baselines", "none", "--networks", str(checkpoint[0] / "nets"),
+                 "--out", str(out), "--noise-scale", "0.5"]) == 0
+    assert json.loads((out / "manifest.json").read_text())["noise_scale"] == 0.5
+    assert main(["report", str(out)]) == 0
+    assert "policy under test: calm (sampled actions, noise scale 0.5)" in \
+        (out / "report" / "report.md").read_text()

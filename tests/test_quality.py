@@ -98,6 +98,8 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
     low, high = observation_bounds(getattr(policy, "observation", EnvConfig().observation))
     assert low.shape == (policy.obs_dim,)
     assert getattr(policy, "guard", None) is None or policy.guard.on
+    # it samples with the noise scale its card gives (chosen on train scenes), else 1
+    assert policy.noise_scale == (card.get("sampling") or {}).get("noise_scale", 1.0)
     obs = {str(k): np.clip(np.zeros_like(low), low, high) for k in range(5)}
     a1 = policy.act(obs)
     a2 = rl.make_policy("pretrained", 7).act(dict(reversed(list(obs.items()))))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
 from pathlib import Path
 from typing import Callable, Union
 
@@ -103,7 +104,8 @@ def _takes(loader: Callable, keyword: str) -> bool:
                or p.kind == p.VAR_KEYWORD for p in params)
 
 
-def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
+def make_policy(spec: str, seed: int, deterministic: bool = False,
+                noise_scale: float | None = None) -> Policy:
     """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
     shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
     another registry folder), a checkpoint file with a registered loader
@@ -116,8 +118,15 @@ def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
     :param deterministic: passed to a checkpoint loader that takes it (a training checkpoint
         then acts with the tanh of its Gaussian mean instead of sampling); ``random`` and
         factories ignore it.
+    :param noise_scale: the scale of a sampling policy's Gaussian noise (its ``noise_scale``
+        attribute: a checkpoint policy samples ``tanh(mu + noise_scale * sigma * eps)``);
+        None: the policy's own (1, or the ``sampling.noise_scale`` a pretrained policy's card
+        gives). A policy without one is refused unless the scale is 1.
     :raises PolicyError: an unusable spec, or a loader / factory that fails (one line).
     """
+    if noise_scale is not None:
+        check_noise_scale(noise_scale)
+        return _scaled(spec, make_policy(spec, seed, deterministic), noise_scale)
     if spec.startswith(GUARDED):
         from magail_sumo.env.guard import GuardConfig
 
@@ -137,7 +146,9 @@ def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
         loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
         if loader is None:  # only if a caller unregistered ".pt"
             raise PolicyError(f"{spec}: no policy loader for '.pt' checkpoints")
-        return _checkpoint_policy(spec, loader, entry.checkpoint, seed, deterministic)
+        policy = _checkpoint_policy(spec, loader, entry.checkpoint, seed, deterministic)
+        scale = card_noise_scale(entry)
+        return policy if scale is None else _scaled(spec, policy, scale)
     path = Path(spec)
     if path.is_file():
         loader = POLICY_LOADERS.get(path.suffix)
@@ -155,6 +166,40 @@ def make_policy(spec: str, seed: int, deterministic: bool = False) -> Policy:
         return _built(spec, factory, seed)
     raise PolicyError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
                       "pretrained[:NAME], a checkpoint file or a module:factory spec")
+
+
+def check_noise_scale(scale: float, what: str = "noise scale") -> float:
+    """``scale`` as a float, refused (:class:`PolicyError`) unless finite and >= 0."""
+    try:
+        value = float(scale)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not math.isfinite(value) or value < 0:
+        raise PolicyError(f"{what} must be a finite number >= 0, got {scale!r}")
+    return value
+
+
+def card_noise_scale(entry) -> float | None:
+    """The noise scale a pretrained policy's card asks evaluation to sample with
+    (``"sampling": {"noise_scale": k}``), None when it gives none."""
+    sampling = entry.card.get("sampling")
+    if sampling is None:
+        return None
+    if not isinstance(sampling, dict) or "noise_scale" not in sampling:
+        raise PolicyError(f"pretrained:{entry.name}: card's \"sampling\" must be an object "
+                          "with \"noise_scale\"")
+    return check_noise_scale(sampling["noise_scale"],
+                             f"pretrained:{entry.name}: card's sampling.noise_scale")
+
+
+def _scaled(spec: str, policy: Policy, scale: float) -> Policy:
+    """``policy`` sampling with noise scale ``scale`` (refused if it has no noise to scale)."""
+    if hasattr(policy, "noise_scale"):
+        policy.noise_scale = float(scale)
+    elif scale != 1.0:
+        raise PolicyError(f"policy {spec}: {type(policy).__name__} has no sampling noise to "
+                          f"scale (noise scale {scale:g})")
+    return policy
 
 
 def _checkpoint_policy(spec: str, loader: Loader, path: Path, seed: int,

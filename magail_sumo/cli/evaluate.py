@@ -67,6 +67,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--deterministic", action="store_true",
                    help="a checkpoint policy acts with the tanh of its Gaussian mean, the same "
                         "in every rollout (default: it samples its actions, seeded per rollout)")
+    p.add_argument("--noise-scale", type=float, default=None, metavar="K",
+                   help="a sampling policy draws tanh(mu + K*sigma*eps): K < 1 samples closer "
+                        "to its mean (default: the policy's own, 1 or the sampling.noise_scale "
+                        "of a pretrained policy's card)")
     p.add_argument("--workers", type=int, default=2, metavar="N",
                    help="worker processes for SUMO rollouts")
     p.add_argument("--timeout-s", type=timeout_s, default=1800.0, metavar="S",
@@ -88,10 +92,11 @@ def run(args: argparse.Namespace) -> int:
         city = CitySettings(steps=args.city_steps, warmup_s=args.city_warmup_s,
                             max_agents=args.city_max_agents,
                             control_fraction=args.city_control_fraction, seed=args.seed,
-                            deterministic=args.deterministic, timeout_s=args.timeout_s)
+                            deterministic=args.deterministic, noise_scale=args.noise_scale,
+                            timeout_s=args.timeout_s)
         for f in args.city:
             check_sumocfg(f)
-        check_policy(args.policy, args.deterministic)
+        check_policy(args.policy, args.deterministic, args.noise_scale)
     clock = time.perf_counter()
     done, errors = 0, 0
     with _one_line_os_errors(args.out):
@@ -119,7 +124,8 @@ def _scenes(args: argparse.Namespace) -> tuple[int, int]:
                    baselines=base, seed=args.seed, workers=args.workers,
                    networks=args.networks, submission=args.export_submission,
                    timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
-                   name=args.name, deterministic=args.deterministic)
+                   name=args.name, deterministic=args.deterministic,
+                   noise_scale=args.noise_scale)
     return len(res.done), len(res.errors)
 
 

@@ -209,7 +209,7 @@ class SlotWorker:
         return {"obs": np.zeros((self.slots, self.dim), np.float32),
                 "pos": np.zeros((self.slots, 3), np.float32),
                 "dones": np.zeros(self.slots, bool), "infos": {}, "episodes": 0,
-                "agent_steps": 0, "skipped": []}
+                "agent_steps": 0, "guarded": 0, "skipped": []}
 
     def _active(self) -> np.ndarray:
         active = np.zeros(self.slots, bool)
@@ -252,7 +252,9 @@ class SlotWorker:
         packet = self._packet()
         acts = {n: actions[k] for n, k in self.slot_of.items()}
         packet["agent_steps"] = len(acts)
+        guarded = getattr(self.env, "guarded", 0)
         obs, _, terms, truncs, infos = self.env.step(acts)
+        packet["guarded"] = getattr(self.env, "guarded", 0) - guarded  # before a reset zeroes it
         for name, k in list(self.slot_of.items()):
             if not (terms.get(name) or truncs.get(name)):
                 continue

@@ -37,6 +37,7 @@ and a replaced worker continues exactly where the lost one was.
 from __future__ import annotations
 
 import os
+from collections import Counter
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -187,6 +188,10 @@ class MultiSceneVecEnv(VecEnv):
         self.prev_slot_pos = np.zeros((n, 3), np.float32)
         self.agent_steps = 0  #: agent-steps stepped so far (active slots only)
         self.episodes = 0  #: scene episodes finished so far
+        #: agent-steps whose acceleration the gap guard lowered so far (``env.guard``)
+        self.guarded = 0
+        #: agent episodes ended so far, by reason (``collision``, ``off_road``, ``horizon``…)
+        self.end_reasons: Counter[str] = Counter()
         #: scenario id each worker plays now
         self.worker_scene: list[str] = ["" for _ in self.specs]
         # per worker: its episode index and the actions since that episode's reset (the state
@@ -322,6 +327,9 @@ class MultiSceneVecEnv(VecEnv):
             if step:
                 self.agent_steps += p["agent_steps"]
                 self.episodes += p["episodes"]
+                self.guarded += p.get("guarded", 0)
+                self.end_reasons.update(str(i["reason"]) for i in p["infos"].values()
+                                        if i.get("reason"))
             self._episode[k] = p["episode"]
             self.worker_scene[k] = p["scenario_id"]
             for what, reason in p["skipped"]:

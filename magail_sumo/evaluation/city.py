@@ -84,6 +84,8 @@ class CitySettings:
     :param seed: SUMO's seed in both runs and the agent choice; the policy gets
         ``rollout_seed(seed, 0)``.
     :param deterministic: a checkpoint policy acts with its mean action.
+    :param noise_scale: a sampling policy's noise scale (None: the policy's own; see
+        :func:`~magail_sumo.agents.make_policy`).
     :param timeout_s: seconds each run may take (None: no limit).
     """
 
@@ -93,6 +95,7 @@ class CitySettings:
     control_fraction: float = 1.0
     seed: int = 0
     deterministic: bool = False
+    noise_scale: float | None = None
     timeout_s: float | None = DEFAULT_TIMEOUT_S
 
     def __post_init__(self) -> None:
@@ -156,13 +159,14 @@ def check_sumocfg(path: str | Path) -> Path:
     return path
 
 
-def check_policy(spec: str, deterministic: bool = False) -> None:
+def check_policy(spec: str, deterministic: bool = False,
+                 noise_scale: float | None = None) -> None:
     """Refuse a spec that cannot drive a city (a baseline, an unusable policy) up front."""
     if spec in BASELINES:
         raise EvaluationError(f"--policy {spec}: a city needs a driving policy (random, "
                               "pretrained[:NAME], a checkpoint or module:factory); SUMO's "
                               "default drivers run alongside as method 'sumo'")
-    make_policy(spec, 0, deterministic)
+    make_policy(spec, 0, deterministic, noise_scale)
 
 
 def run_policy(job: PolicyJob) -> PolicyRun:
@@ -173,7 +177,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     from magail_sumo.env.config import EnvConfig
 
     st = job.settings
-    policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic)
+    policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic, st.noise_scale)
     # the env the policy needs: its optional features, action layout and gap guard
     cfg = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)), max_agents=st.max_agents,
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
@@ -261,7 +265,7 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
 
     st = settings or CitySettings()
     out = Path(out)
-    check_policy(policy, st.deterministic)
+    check_policy(policy, st.deterministic, st.noise_scale)
     method = name if name is not None else method_name(policy)
     if not method.strip() or not method.isprintable() or len(method) > 100:
         raise EvaluationError(f"--name {printable(method)!r}: must be a non-empty printable "

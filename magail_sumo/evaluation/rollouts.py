@@ -137,12 +137,13 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
 def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
              bundle_dir: str | Path | None = None,
              action_counts: dict[str, int] | None = None,
-             deterministic: bool = False) -> ScenarioRollouts:
+             deterministic: bool = False, noise_scale: float | None = None
+             ) -> ScenarioRollouts:
     """Rollouts ``rollouts`` (indices) of one method on one scene, in this process.
 
     SUMO methods run one simulation after another here; callers batch them in fresh worker
     processes (:func:`run_batches`). Rollout ``r`` builds its policy with
-    ``make_policy(method, rollout_seed(seed, r), deterministic)``.
+    ``make_policy(method, rollout_seed(seed, r), deterministic, noise_scale)``.
 
     :param action_counts: a policy's fixed-up actions (the env's ``action_counts``: missing,
         unknown, non-finite, clipped) are added to it; they are also logged once.
@@ -169,7 +170,8 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
             x, y, yaw = sumo_rollout(scene, Path(bundle_dir), s, ids, N_STEPS)
         else:
             x, y, yaw = _policy_rollout(scene, Path(bundle_dir),
-                                        make_policy(method, s, deterministic), s, counts)
+                                        make_policy(method, s, deterministic, noise_scale),
+                                        s, counts)
         xs.append(x)
         ys.append(y)
         yaws.append(yaw)
@@ -191,6 +193,8 @@ class Batch:
 
     :param spec: method name or policy spec (see :func:`make_policy`).
     :param deterministic: a checkpoint policy acts deterministically (see :func:`make_policy`).
+    :param noise_scale: its sampling noise's scale (None: the policy's own; see
+        :func:`make_policy`).
     """
 
     scene_file: str
@@ -200,6 +204,7 @@ class Batch:
     rollouts: tuple[int, ...]
     seed: int
     deterministic: bool = False
+    noise_scale: float | None = None
 
 
 def _load(scene_file: str, scenario_id: str) -> Scene:
@@ -214,7 +219,7 @@ def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
     scene = _load(batch.scene_file, batch.scenario_id)
     counts: dict[str, int] = {}
     ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts,
-                  batch.deterministic)
+                  batch.deterministic, batch.noise_scale)
     return batch, ro, counts
 
 
@@ -497,7 +502,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
              baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
              networks: str | Path | None = None, submission: str | Path | None = None,
              timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0,
-             name: str | None = None, deterministic: bool = False) -> EvaluationResult:
+             name: str | None = None, deterministic: bool = False,
+             noise_scale: float | None = None) -> EvaluationResult:
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
     ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``; with
     ``fcd_rollouts`` > 0 the first that many rollouts of every scene and method also as SUMO
@@ -516,6 +522,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     :param deterministic: a checkpoint policy acts with the tanh of its Gaussian mean (every
         rollout alike) instead of sampling its actions with the rollout seed (the default);
         recorded in the manifest.
+    :param noise_scale: a sampling policy's noise scale (``tanh(mu + k·sigma·eps)``; None: the
+        policy's own, 1 or a pretrained card's); the one used is recorded in the manifest.
     :raises EvaluationError: an unknown baseline, an unusable policy spec, bad counts or a
         name that is empty, not printable or another method's.
     """
@@ -530,8 +538,10 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     bad = [b for b in baselines if b not in BASELINES]
     if bad:
         raise EvaluationError(f"unknown baseline {bad[0]} (known: {', '.join(BASELINES)})")
-    if policy not in BASELINES:
-        make_policy(policy, seed, deterministic)  # fail early on an unusable spec
+    scale = None  # the noise scale the policy samples with (manifest)
+    if policy not in BASELINES:  # fail early on an unusable spec
+        scale = getattr(make_policy(policy, seed, deterministic, noise_scale), "noise_scale",
+                        None)
     specs = list(dict.fromkeys([policy, *baselines]))
     names = {s: method_name(s) for s in specs}
     if name is not None:
@@ -598,7 +608,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     for sid, (f, sc, bdir) in scenes.items():
         for s in specs:
             if needs_worker(s):
-                batches += [Batch(f, sid, str(bdir), s, c, seed, deterministic)
+                batches += [Batch(f, sid, str(bdir), s, c, seed, deterministic, noise_scale)
                             for c in chunks(n_rollouts, size)]
             else:
                 try:
@@ -645,7 +655,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                    for sid, (f, sc, b) in scenes.items()],
         "methods": [names[s] for s in specs], "policy": names[policy], "policy_spec": policy,
         "baselines": [names[b] for b in baselines], "rollouts": n_rollouts, "steps": N_STEPS,
-        "seed": seed, "deterministic": bool(deterministic), "versions": versions(),
+        "seed": seed, "deterministic": bool(deterministic), "noise_scale": scale,
+        "versions": versions(),
         # actions the policy did not give (agents coasted), gave for unknown agents, or gave
         # non-finite / outside [-1, 1] (fixed up by the env), per scene and method
         "action_fixes": [{"scenario_id": sid, "method": names[s], **c}

@@ -9,7 +9,9 @@ argument replaces it) holding, per policy ``NAME``:
 * ``NAME.json`` — its card, a JSON object: ``name``, ``description``, ``checkpoint`` (``file``,
   ``sha256`` of ``NAME.pt``, ``source``, ``update``), ``config`` (the training config),
   ``split`` (the split file and its ``train`` / ``test`` files, or null) and ``figures`` (e.g.
-  the rows of ``benchmarks/quality.py --json``, or null).
+  the rows of ``benchmarks/quality.py --json``, or null), and optionally ``sampling``
+  (``{"noise_scale": k, "note": how k was chosen}``: evaluation samples the policy with noise
+  scale ``k`` unless ``--noise-scale`` says otherwise; absent or null: 1).
 
 and one ``index.json``, ``{"default": NAME}`` (or ``null``): the policy ``pretrained`` alone
 means. ``NAME`` is a file name of ``[A-Za-z0-9._-]`` (not starting with ``.``) and not the name
@@ -163,14 +165,16 @@ def resolve(spec: str, root: str | PathLike | None = None) -> Pretrained:
 
 def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = None, *,
            description: str = "", split: str | PathLike | None = None,
-           figures: Any = None, make_default: bool = False) -> Pretrained:
+           figures: Any = None, make_default: bool = False,
+           noise_scale: float | None = None, noise_note: str = "") -> Pretrained:
     """Add a training checkpoint to a registry folder as ``NAME.pt`` + ``NAME.json``.
 
     The checkpoint is read safely and written back with only the policy, the run config and
     the update count (what evaluation loads; no optimiser, discriminator or RNG state). With
     ``split`` (a split file, :mod:`magail_sumo.evaluation.split`) the card records it, and a
     checkpoint whose config trains on one of its test scenes (same file name stem) is refused.
-    ``make_default`` names it in ``index.json``. Files are written atomically.
+    ``make_default`` names it in ``index.json``. ``noise_scale`` (with ``noise_note``, how it
+    was chosen) is the card's ``sampling``. Files are written atomically.
     """
     import torch
 
@@ -203,6 +207,11 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
             "checkpoint": {"file": ckpt.name, "sha256": sha256(ckpt),
                            "source": str(checkpoint), "update": state["update"]},
             "config": state["config"], "split": split_rec, "figures": figures}
+    if noise_scale is not None:
+        from magail_sumo.agents.registry import check_noise_scale
+
+        card["sampling"] = {"noise_scale": check_noise_scale(noise_scale, "--noise-scale"),
+                            "note": noise_note}
     write_text(d / f"{name}.json", json.dumps(card, indent=2) + "\n")
     if make_default:
         write_text(d / INDEX, json.dumps({"default": name}, indent=2) + "\n")

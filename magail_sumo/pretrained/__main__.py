@@ -3,7 +3,7 @@
     python -m magail_sumo.pretrained list [--dir DIR]
     python -m magail_sumo.pretrained export RUN/checkpoints/latest.pt --name NAME
         [--description TEXT] [--split configs/splits/womd14.yaml] [--figures FILE.json]
-        [--default] [--dir DIR]
+        [--default] [--noise-scale K [--noise-note TEXT]] [--dir DIR]
 """
 
 from __future__ import annotations
@@ -31,6 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--figures", help="a JSON file of figures for the card (e.g. "
                                       "benchmarks/quality.py --json output)")
     ex.add_argument("--default", action="store_true", help="make it the default (index.json)")
+    ex.add_argument("--noise-scale", type=float, help="the noise scale evaluation samples it "
+                                                      "with (card's sampling; default 1)")
+    ex.add_argument("--noise-note", default="", help="how that noise scale was chosen")
     for p in (ls, ex):
         p.add_argument("--dir", help="registry folder (default: $MAGAIL_SUMO_PRETRAINED_DIR or "
                                      "the package's folder)")
@@ -47,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
             with open(args.figures, encoding="utf-8") as fh:
                 figures = json.load(fh)
         entry = export(args.checkpoint, args.name, args.dir, description=args.description,
-                       split=args.split, figures=figures, make_default=args.default)
+                       split=args.split, figures=figures, make_default=args.default,
+                       noise_scale=args.noise_scale, noise_note=args.noise_note)
         print(f"{entry.checkpoint} (+ {entry.checkpoint.with_suffix('.json').name})")
         return 0
     except (MagailSumoError, OSError, ValueError) as exc:

@@ -312,7 +312,8 @@ def train_gail(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
                 + (f", D loss {st.loss:.3f} acc expert {st.expert_accuracy:.2f} policy "
                    f"{st.policy_accuracy:.2f}" if st else "")
                 + (f", speed {sp:.2f} m/s (expert {run.disc_callback.expert_speed:.2f})"
-                   if (sp := run.disc_callback.last_speed) is not None else ""))
+                   if (sp := run.disc_callback.last_speed) is not None else "")
+                + _rates_text(run.disc_callback.last_rates, cfg.env.guard.on))
             if run.venv.restarts:
                 run.model.logger.record("workers/restarts", run.venv.restarts)
             run.model.logger.dump(run.model.num_timesteps)
@@ -323,3 +324,13 @@ def train_gail(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
     finally:
         run.close()
     return run_dir
+
+
+def _rates_text(rates: dict[str, float], guard: bool) -> str:
+    """The update line's outcome shares: agent episodes ended by collision / off-road (of the
+    rollout's ended ones) and, behind the gap guard, the agent-steps it slowed."""
+    text = "".join(f", {k[4:].replace('_', '-')} {rates[k]:.1%}"
+                   for k in ("end_collision", "end_off_road") if k in rates)
+    if guard and "guarded_frac" in rates:
+        text += f", guard slowed {rates['guarded_frac']:.1%} of agent-steps"
+    return text

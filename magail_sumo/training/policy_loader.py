@@ -7,9 +7,11 @@ The loaders here are registered by algorithm in :data:`magail_sumo.agents.CHECKP
 checkpoint's algorithm. The policy is the checkpoint's SB3 actor
 (with its observation normaliser, stored in the policy's state dict), each vehicle acting from its
 own observation with normalised ``[accel, steer]`` in [-1, 1]²: by default a sample of the
-policy, ``a = tanh(mu(o) + sigma ⊙ eps)`` with ``eps ~ N(0, I)`` drawn from the policy's own
+policy, ``a = tanh(mu(o) + k·sigma ⊙ eps)`` with ``eps ~ N(0, I)`` drawn from the policy's own
 ``torch.Generator`` seeded with the rollout seed (agents served in sorted-name order, so a
-rollout is reproducible whatever order the env lists them in); deterministically
+rollout is reproducible whatever order the env lists them in) and ``k`` the policy's
+``noise_scale`` (1 by default; ``magail-sumo evaluate --noise-scale``: a sampling temperature
+on the Gaussian's standard deviation); deterministically
 (``magail-sumo evaluate --deterministic``) the tanh of the Gaussian mean, ``a = tanh(mu(o))``. Any checkpoint ``magail-sumo train`` writes works (GAIL / MAGAIL updates and
 behavioural cloning, with an MLP or a transformer critic: the critic is loaded with the policy
 but never evaluated).
@@ -53,13 +55,16 @@ class CheckpointPolicy:
     :param policy: the SB3 policy (eval mode). :param obs_dim: observation size it expects.
     :param seed: seed of the sampling generator (the rollout seed).
     :param deterministic: act with ``tanh(mu(o))`` instead of sampling.
+    :param noise_scale: ``k`` of the module doc: the scale of the sampling noise.
     :param action_layout: the order of its actions (the env config it trained in); evaluation
         builds its env with it.
     """
 
     def __init__(self, policy, obs_dim: int, name: str = "", seed: int = 0,
-                 deterministic: bool = False, action_layout: str = "accel_steer") -> None:
+                 deterministic: bool = False, action_layout: str = "accel_steer",
+                 noise_scale: float = 1.0) -> None:
         self.policy = policy
+        self.noise_scale = float(noise_scale)
         self.action_layout = action_layout
         self.obs_dim = obs_dim
         self.name = name
@@ -87,7 +92,7 @@ class CheckpointPolicy:
             mean, std = gauss.distribution.mean, gauss.distribution.stddev
             eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype,
                               device=mean.device)
-            a = torch.tanh(mean + std * eps)
+            a = torch.tanh(mean + self.noise_scale * std * eps)
         a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
         return dict(zip(names, a))
 
@@ -184,4 +189,6 @@ def load_sac_checkpoint_policy(path: str | Path, seed: int = 0, deterministic: b
     check_env_compatible(path, cfg.env, replace(env, observation=obs))
     pol = load_sac_policy(path, state, replace(cfg, device="cpu"), seed, deterministic)
     pol.action_layout = cfg.env.action_layout
+    if cfg.env.guard.on:
+        pol.guard = cfg.env.guard
     return pol

@@ -32,6 +32,7 @@ per-step computation, up to float rounding.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -345,9 +346,38 @@ class DiscriminatorCallback(BaseCallback):
                               if self._speed_col is not None and len(trainer.expert) else None)
         #: the last rollout's mean policy speed (m/s), None before the first
         self.last_speed: float | None = None
+        #: the vector env's (agent-steps, guarded, end reasons) totals at the last rollout end
+        self._seen: tuple[int, int, Counter] = (0, 0, Counter())
+        #: the last rollout's ``env/*`` rates (``guarded_frac``, ``end_<reason>``) by name
+        self.last_rates: dict[str, float] = {}
 
     def _on_step(self) -> bool:
         return True
+
+    def _on_training_start(self) -> None:
+        base = self.wrapper.base  # a resumed run's env starts from its restored totals
+        self._seen = (base.agent_steps, getattr(base, "guarded", 0),
+                      Counter(getattr(base, "end_reasons", {})))
+
+    def _log_env_rates(self, base) -> None:
+        """``env/guarded_frac``: share of the rollout's agent-steps whose acceleration the gap
+        guard lowered; ``env/end_<reason>``: share of the rollout's ended agent episodes that
+        ended for that reason (collision, off_road, …); from the vector env's running totals."""
+        steps = base.agent_steps - self._seen[0]
+        guarded = getattr(base, "guarded", 0)
+        ends = Counter(getattr(base, "end_reasons", {}))
+        rates: dict[str, float] = {}
+        if steps > 0:
+            rates["guarded_frac"] = (guarded - self._seen[1]) / steps
+        new = ends - self._seen[2]
+        total = sum(new.values())
+        for reason in sorted(set(ends) | set(self._seen[2]) | {"collision", "off_road"}):
+            if total:
+                rates[f"end_{reason}"] = new.get(reason, 0) / total
+        for k, v in rates.items():
+            self.logger.record(f"env/{k}", v)
+        self.last_rates = rates
+        self._seen = (base.agent_steps, guarded, ends)
 
     def _on_rollout_end(self) -> None:
         for k, v in self.wrapper.pop_reward_stats().items():
@@ -355,6 +385,7 @@ class DiscriminatorCallback(BaseCallback):
         base = self.wrapper.base
         self.logger.record("env/agent_steps_total", base.agent_steps)
         self.logger.record("env/scene_episodes_total", base.episodes)
+        self._log_env_rates(base)
         data = self.wrapper.pop_rollout()
         if data is not None and self._speed_col is not None and data.mask.any():
             self.last_speed = float(data.x[..., self._speed_col][data.mask].mean())

@@ -608,14 +608,16 @@ class SacCheckpointPolicy:
     vehicle acts from its own observation (with the route command: :attr:`observation` is the
     observation config the evaluation env must use), sampled from the branched tanh-Gaussian
     with the policy's own generator seeded with the rollout seed (agents in sorted-name order),
-    or ``tanh`` of its mean when deterministic."""
+    ``tanh(mu + noise_scale * sigma * eps)``, or ``tanh`` of its mean when deterministic."""
 
     def __init__(self, model: BranchedSAC, observation: ObservationConfig, name: str = "",
-                 seed: int = 0, deterministic: bool = False) -> None:
+                 seed: int = 0, deterministic: bool = False, noise_scale: float = 1.0) -> None:
         self.model = model.eval()
         self.observation = observation
         self.name = name
         self.deterministic = bool(deterministic)
+        #: the sampling noise's scale (``magail-sumo evaluate --noise-scale``; 1: the policy's)
+        self.noise_scale = float(noise_scale)
         self.generator = torch.Generator().manual_seed(int(seed))
 
     @torch.no_grad()
@@ -628,7 +630,12 @@ class SacCheckpointPolicy:
             raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
                                   f"policy expects {self.model.obs_dim}")
         x = torch.as_tensor(np.concatenate([x, np.zeros((len(names), 1), np.float32)], axis=1))
-        a = self.model.act(x, self.deterministic, self.generator)
+        if self.deterministic:
+            a = self.model.act(x, True)
+        else:  # the draws of BranchedSAC.sample, the noise scaled
+            mu, std = self.model.dist(x)
+            eps = torch.randn(mu.shape, generator=self.generator, dtype=mu.dtype)
+            a = torch.tanh(mu + self.noise_scale * std * eps)
         return dict(zip(names, np.clip(a.numpy().astype(np.float32), -1.0, 1.0)))
 
 

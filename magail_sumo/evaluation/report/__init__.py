@@ -57,15 +57,24 @@ def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
 
 
 def _action_mode(man: dict) -> str:
-    """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled), as
-    the manifest records it; empty for other policies and older manifests."""
+    """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled,
+    with its noise scale when not 1), as the manifest records it; empty for other policies and
+    older manifests."""
+    from magail_sumo.agents.registry import GUARDED
     from magail_sumo.evaluation.rollouts import POLICY_LOADERS
+    from magail_sumo.pretrained import is_pretrained_spec
 
     spec = man.get("policy_spec")
+    while isinstance(spec, str) and spec.startswith(GUARDED):
+        spec = spec[len(GUARDED):]
     if "deterministic" not in man or not isinstance(spec, str) \
-            or Path(spec).suffix not in POLICY_LOADERS:
+            or not (is_pretrained_spec(spec) or Path(spec).suffix in POLICY_LOADERS):
         return ""
-    return " (deterministic actions)" if man["deterministic"] else " (sampled actions)"
+    if man["deterministic"]:
+        return " (deterministic actions)"
+    scale = man.get("noise_scale")
+    return (" (sampled actions)" if not isinstance(scale, (int, float)) or scale == 1
+            else f" (sampled actions, noise scale {scale:g})")
 
 
 def build_report(folder: str | Path, out: str | Path | None = None,
