@@ -166,7 +166,7 @@ def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path):
     cur = scene.current_time_index
     env = SumoDrivingEnv(scene, bundle, EnvConfig(
         controlled="all", start_step=cur, max_steps=rl.N_STEPS, terminate_on=(),
-        action_layout="steer_throttle"))
+        end_of_life=False, action_layout="steer_throttle"))
     policy = agents.make_policy(str(ckpt), rl.rollout_seed(0, 0), deterministic=True)
     col = {int(i): k for k, i in enumerate(ro.object_id)}
     checked = 0

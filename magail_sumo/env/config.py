@@ -79,6 +79,11 @@ class EnvConfig:
         vehicles SUMO drives.
     :param guard: the gap guard on the agents' accelerations (:mod:`magail_sumo.env.guard`;
         off by default).
+    :param end_of_life: an agent ends at the last recorded step of its track (truncation,
+        reason ``end_of_life``: its log has nothing later to imitate); False: it drives on to
+        the end of the episode, as WOSAC simulates every object valid at the current step for
+        all 80 steps (evaluation sets it: an agent removed earlier would vanish from the others'
+        world while its scored trajectory goes on at constant velocity through them).
     """
 
     controlled: str | int = "all"
@@ -102,6 +107,7 @@ class EnvConfig:
     fcd_every: int = 0
     sumo_mirror: bool = True
     guard: GuardConfig = field(default_factory=GuardConfig)
+    end_of_life: bool = True
 
     def __post_init__(self) -> None:
         check(self.action_layout in ACTION_LAYOUTS, "action_layout",
@@ -115,6 +121,8 @@ class EnvConfig:
               f"must be 'log' or 'sumo', got {show(self.background)}")
         check(isinstance(self.sumo_mirror, bool), "sumo_mirror",
               f"must be true or false, got {show(self.sumo_mirror)}")
+        check(isinstance(self.end_of_life, bool), "end_of_life",
+              f"must be true or false, got {show(self.end_of_life)}")
         check(self.sumo_mirror or self.background == "log", "sumo_mirror",
               "must be true with background: sumo (SUMO drives the background vehicles)")
         bad = set(self.terminate_on) - set(EVENTS)

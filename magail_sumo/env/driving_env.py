@@ -477,7 +477,10 @@ class SumoDrivingEnv(FleetEnv):
                                     f.length[act], f.width[act])
 
     def _more_events(self, act: np.ndarray) -> dict[str, np.ndarray]:
-        """``end_of_life``: the agent's track has no later recorded step."""
+        """``end_of_life``: the agent's track has no later recorded step (never with
+        ``config.end_of_life`` off)."""
+        if not self.config.end_of_life:
+            return {"end_of_life": np.zeros(act.size, bool)}
         return {"end_of_life": self.t >= self._last[self._ctrl[act]]}
 
     def _time_up(self, act: np.ndarray, flags: dict[str, np.ndarray], end: bool,

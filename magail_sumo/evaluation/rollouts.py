@@ -109,7 +109,7 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
     cur = scene.current_time_index
     env = SumoDrivingEnv(scene, bundle_dir, EnvConfig(
         controlled="all", start_step=cur, max_steps=N_STEPS, terminate_on=(),
-        **env_settings(policy)))
+        end_of_life=False, **env_settings(policy)))
     track = _Track.empty(len(ids), N_STEPS)
 
     def keep(step) -> None:
