@@ -98,11 +98,10 @@ def parse_policies(items: list[str]) -> dict[str, str]:
 
 def training_scenes(spec: str) -> list[str] | None:
     """The scene files a checkpoint policy's training config names (None: not a checkpoint)."""
-    from magail_sumo.agents.registry import GUARDED
+    from magail_sumo.agents.registry import unguarded
     from magail_sumo.pretrained import is_pretrained_spec, resolve
 
-    while spec.startswith(GUARDED):  # the same policy behind the gap guard
-        spec = spec[len(GUARDED):]
+    spec = unguarded(spec)  # the same policy behind the gap guard
     if is_pretrained_spec(spec):
         path = resolve(spec).checkpoint
     elif spec.endswith(".pt") and Path(spec).is_file():

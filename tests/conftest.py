@@ -80,6 +80,23 @@ def roll_random(venv, steps: int, seed: int = 0, hook=None) -> list:
     return out
 
 
+@pytest.fixture
+def env_configs(monkeypatch) -> list:
+    """The :class:`~magail_sumo.env.EnvConfig` of every ``SumoDrivingEnv`` built while the test
+    runs, in order (e.g. to see what evaluation builds its env with)."""
+    from magail_sumo.env import driving_env
+
+    seen: list = []
+    init = driving_env.SumoDrivingEnv.__init__
+
+    def spy(self, scene, bundle, config=None, render_mode=None):
+        seen.append(config)
+        init(self, scene, bundle, config, render_mode)
+
+    monkeypatch.setattr(driving_env.SumoDrivingEnv, "__init__", spy)
+    return seen
+
+
 def tiny_checkpoint(path, env: dict):
     """A 0-update PPO checkpoint file ``path`` of a tiny policy trained in env settings ``env``
     (a config dict): for tests of what a checkpoint carries into evaluation."""

@@ -52,24 +52,13 @@ def test_agents_end_with_their_log_only_when_asked(end_of_life):
 
 
 @pytest.mark.sumo
-def test_evaluation_keeps_every_sim_agent_to_the_horizon(monkeypatch):
+def test_evaluation_keeps_every_sim_agent_to_the_horizon(scene_637f, env_configs):
     """Evaluation's env has end_of_life off: an agent whose log ends early has a driven
     (not constant-velocity) trajectory to the last step."""
-    from magail_sumo.env import driving_env
     from magail_sumo.evaluation import rollouts as rl
 
-    seen = []
-    init = driving_env.SumoDrivingEnv.__init__
-
-    def spy(self, scene, bundle, config=None, render_mode=None):
-        seen.append(config.end_of_life)
-        init(self, scene, bundle, config, render_mode)
-
-    monkeypatch.setattr(driving_env.SumoDrivingEnv, "__init__", spy)
-    scene, env = _env(True)
-    env.close()
-    ro = rl.simulate(scene, "random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
-    assert seen[-1] is False
+    ro = rl.simulate(scene_637f, "random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
+    assert [c.end_of_life for c in env_configs] == [False]
     a = [int(i) for i in ro.object_id].index(int(EARLY))
     x, y = ro.x[0, a], ro.y[0, a]
     # random accelerations and steering: the path after the log's end (step 16: column 5 on)

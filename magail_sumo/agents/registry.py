@@ -53,6 +53,13 @@ CHECKPOINT_LOADERS: dict[str, Loader] = {
 }
 
 
+def unguarded(spec: str) -> str:
+    """``spec`` without its ``guarded:`` prefixes: the policy the gap guard drives."""
+    while spec.startswith(GUARDED):
+        spec = spec[len(GUARDED):]
+    return spec
+
+
 def register_checkpoint_loader(algorithm: str, loader: Loader) -> None:
     """Make ``loader`` (a callable or ``"module:function"``) load checkpoints of ``algorithm``."""
     CHECKPOINT_LOADERS[algorithm] = loader

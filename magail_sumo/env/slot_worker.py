@@ -252,9 +252,9 @@ class SlotWorker:
         packet = self._packet()
         acts = {n: actions[k] for n, k in self.slot_of.items()}
         packet["agent_steps"] = len(acts)
-        guarded = getattr(self.env, "guarded", 0)
+        guarded = self.env.guarded
         obs, _, terms, truncs, infos = self.env.step(acts)
-        packet["guarded"] = getattr(self.env, "guarded", 0) - guarded  # before a reset zeroes it
+        packet["guarded"] = self.env.guarded - guarded  # before a reset zeroes it
         for name, k in list(self.slot_of.items()):
             if not (terms.get(name) or truncs.get(name)):
                 continue

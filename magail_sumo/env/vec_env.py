@@ -327,7 +327,7 @@ class MultiSceneVecEnv(VecEnv):
             if step:
                 self.agent_steps += p["agent_steps"]
                 self.episodes += p["episodes"]
-                self.guarded += p.get("guarded", 0)
+                self.guarded += p["guarded"]
                 self.end_reasons.update(str(i["reason"]) for i in p["infos"].values()
                                         if i.get("reason"))
             self._episode[k] = p["episode"]

@@ -356,16 +356,14 @@ class DiscriminatorCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         base = self.wrapper.base  # a resumed run's env starts from its restored totals
-        self._seen = (base.agent_steps, getattr(base, "guarded", 0),
-                      Counter(getattr(base, "end_reasons", {})))
+        self._seen = (base.agent_steps, base.guarded, Counter(base.end_reasons))
 
     def _log_env_rates(self, base) -> None:
         """``env/guarded_frac``: share of the rollout's agent-steps whose acceleration the gap
         guard lowered; ``env/end_<reason>``: share of the rollout's ended agent episodes that
         ended for that reason (collision, off_road, …); from the vector env's running totals."""
         steps = base.agent_steps - self._seen[0]
-        guarded = getattr(base, "guarded", 0)
-        ends = Counter(getattr(base, "end_reasons", {}))
+        guarded, ends = base.guarded, Counter(base.end_reasons)
         rates: dict[str, float] = {}
         if steps > 0:
             rates["guarded_frac"] = (guarded - self._seen[1]) / steps

@@ -60,13 +60,12 @@ def _action_mode(man: dict) -> str:
     """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled,
     with its noise scale when not 1), as the manifest records it; empty for other policies and
     older manifests."""
-    from magail_sumo.agents.registry import GUARDED
+    from magail_sumo.agents.registry import unguarded
     from magail_sumo.evaluation.rollouts import POLICY_LOADERS
     from magail_sumo.pretrained import is_pretrained_spec
 
     spec = man.get("policy_spec")
-    while isinstance(spec, str) and spec.startswith(GUARDED):
-        spec = spec[len(GUARDED):]
+    spec = unguarded(spec) if isinstance(spec, str) else spec
     if "deterministic" not in man or not isinstance(spec, str) \
             or not (is_pretrained_spec(spec) or Path(spec).suffix in POLICY_LOADERS):
         return ""
