@@ -59,7 +59,10 @@ def test_shards_and_seeded_order():
     refs = [RecordRef(f"s{i}.pkl") for i in range(7)]
     shards = shard_pool(refs, 3)
     assert [len(s) for s in shards] == [3, 2, 2] and shards[1] == (refs[1], refs[4])
-    assert shard_pool(refs[:2], 5) == [(refs[0],), (refs[1],)]  # never an empty worker
+    # more workers than records: replicas (each worker one record, w mod n); never empty
+    assert shard_pool(refs[:2], 5) == [(refs[0],), (refs[1],), (refs[0],), (refs[1],),
+                                       (refs[0],)]
+    assert shard_pool(refs[:1], 1) == [(refs[0],)] and shard_pool([], 3) == []
     cur = PoolCursor(refs, "nets", seed=5, make_env=None, config=CFG)
     again = PoolCursor(refs, "nets", seed=5, make_env=None, config=CFG)
     orders = [cur.order(e) for e in range(4)]
@@ -166,7 +169,9 @@ def test_worker_with_only_bad_scenes_is_dropped_at_start(pool_dir, tmp_path):
     refs = [RecordRef(str(pool_dir / "broken.pkl")), RecordRef(str(SMALL[0]))]
     venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=0)
     try:
-        assert len(venv.specs) == 1 and venv.skipped[0][0] == str(pool_dir / "broken.pkl")
+        assert venv.skipped[0][0] == str(pool_dir / "broken.pkl")
+        # the 2 workers asked for both play the scene left (replicas with their own seeds)
+        assert [s.refs for s in venv.specs] == [(refs[1],), (refs[1],)]
         venv.reset()
     finally:
         venv.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -129,8 +130,9 @@ def test_bad_config_and_checkpoint(setup, tmp_path, capsys):
 
 @pytest.mark.sumo
 def test_deferred_rewards_equal_per_step_rewards(setup):
-    """Training computes the imitation rewards once per rollout in batched forwards; they are
-    the per-step rewards (frozen discriminator) up to float rounding."""
+    """Training computes the imitation rewards in batched forwards, blocks of steps on a
+    background thread while the workers step and the rest after the rollout; they are the
+    per-step rewards (frozen discriminator) up to float rounding, with or without blocks ahead."""
     from magail_sumo.expert import ExpertDataset
     from magail_sumo.sensors.observation import observation_names
     from magail_sumo.training.trainer import GailRun
@@ -138,27 +140,39 @@ def test_deferred_rewards_equal_per_step_rewards(setup):
     root, cfg = setup
     expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
     got = []
-    for deferred in (True, False):
+    for mode in ("ahead", "after", "per_step"):
         torch.manual_seed(0)
         np.random.seed(0)
         run = GailRun(cfg, expert)
         try:
             run.policy.obs_normalizer.update(torch.as_tensor(expert.s))
-            if not deferred:
+            ahead = []
+            if mode == "ahead":  # blocks of 3 steps (the rollout's n_steps is more)
+                run.wrapper.ahead_steps = 3
+                take = run.wrapper._rewards_of
+                run.wrapper._rewards_of = lambda *a: (ahead.append(
+                    threading.current_thread() is not threading.main_thread()), take(*a))[1]
+            elif mode == "after":
+                run.wrapper.ahead_steps = None
+            else:
                 run.wrapper.deferred = False
                 run.model.rollout_buffer.reward_source = None
             run.run_update()
+            if mode == "ahead":  # every full block ran on the thread, the last after
+                assert len(ahead) == -(-cfg.ppo.n_steps // 3) and all(ahead[:-1])
+                assert not ahead[-1]
             buf = run.model.rollout_buffer
             got.append((buf.rewards.copy(), buf.active.copy(),
                         run.wrapper.pop_reward_stats()))
         finally:
             run.close()
-    (r_def, a_def, s_def), (r_step, a_step, s_step) = got
-    assert np.array_equal(a_def, a_step) and a_def.any()
-    assert np.allclose(r_def, r_step, atol=1e-5) and np.all(r_def[~a_def] == 0)
+    (r_def, a_def, s_def), *others = got
+    for r_other, a_other, s_other in others:
+        assert np.array_equal(a_def, a_other) and a_def.any()
+        assert np.allclose(r_def, r_other, atol=1e-5) and np.all(r_def[~a_def] == 0)
+        assert s_def["agent_steps"] == s_other["agent_steps"]
+        assert s_def["imitation_mean"] == pytest.approx(s_other["imitation_mean"], abs=1e-5)
     assert np.abs(r_def[a_def]).max() > 0
-    assert s_def["agent_steps"] == s_step["agent_steps"]
-    assert s_def["imitation_mean"] == pytest.approx(s_step["imitation_mean"], abs=1e-5)
 
 
 @pytest.mark.sumo
@@ -205,3 +219,27 @@ def test_training_without_the_sumo_mirror_is_the_same(setup, tmp_path):
         assert a[key].keys() == b[key].keys()
         for k in a[key]:
             assert torch.equal(torch.as_tensor(a[key][k]), torch.as_tensor(b[key][k])), (key, k)
+
+
+def test_rollout_forward_evaluates_occupied_slots_only():
+    """A rollout forward over a whole vector-env observation evaluates the occupied slots
+    alone: their mean actions, values and log-probabilities are those of a forward over them,
+    a free slot gets 0; any other batch is evaluated whole."""
+    from magail_sumo.models.policies import TanhGaussianPolicy
+
+    torch.manual_seed(0)
+    obs_space = spaces.Box(-np.inf, np.inf, (7,), np.float32)
+    policy = TanhGaussianPolicy(obs_space, spaces.Box(-1.0, 1.0, (2,), np.float32),
+                                lambda _: 3e-4)
+    mask = np.array([True, False, True, True, False, False])
+    policy.set_scene_layout(np.array([0, 0, 0, 1, 1, 1]), lambda: mask)
+    obs = torch.randn(6, 7)
+    with torch.no_grad():
+        acts, values, logp = policy(obs, deterministic=True)
+        policy.set_scene_layout(None)
+        ref = policy(obs[torch.as_tensor(np.flatnonzero(mask))], deterministic=True)
+        whole = policy(obs, deterministic=True)
+    for got, want in zip((acts, values, logp), ref):
+        torch.testing.assert_close(got[torch.as_tensor(mask)], want)
+        assert torch.all(got[torch.as_tensor(~mask)] == 0)
+    assert torch.all(whole[1][torch.as_tensor(~mask)] != 0)  # no layout: every row evaluated

@@ -23,6 +23,10 @@ worker (:class:`PoolCursor`) plays its records in a seeded order: episode ``e`` 
 worker of one record always plays it). A record that cannot be read or converted is skipped —
 the next one of the order plays instead — and reported once; which records fail is a property
 of the data, so the order stays a pure function of (seed, episode), and exact resume holds.
+With more workers than records (``workers.count`` above the pool's size, e.g. one city scenario
+on every core), worker ``w`` plays record ``w mod n`` alone: replicas of a record run side by
+side, each with its own worker seed, so each plays its own start windows (a recorded scene) or
+its own episodes of the demand (a city: SUMO seed, which vehicles the policy drives).
 
 Bundles are converted on demand, the first time a worker plays a scene, into ``networks/`` and
 reused from then on (:func:`converters.sumo.bundle.ensure_bundle`; a lock file per bundle keeps
@@ -150,8 +154,13 @@ def resolve_pool(entries: Iterable[str], skipped: list[PoolSkip] | None = None
 
 
 def shard_pool(refs: Sequence[RecordRef], workers: int) -> list[tuple[RecordRef, ...]]:
-    """Worker ``w``'s records: ``refs[w::workers]`` (module doc); no empty shard."""
-    workers = max(1, min(workers, len(refs)))
+    """Worker ``w``'s records: ``refs[w::workers]``, or with more workers than records the
+    one record ``refs[w mod n]`` (replicas, module doc); no empty shard."""
+    if not refs:
+        return []
+    workers = max(1, workers)
+    if workers > len(refs):
+        return [(refs[w % len(refs)],) for w in range(workers)]
     return [tuple(refs[w::workers]) for w in range(workers)]
 
 

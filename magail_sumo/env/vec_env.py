@@ -177,6 +177,7 @@ class MultiSceneVecEnv(VecEnv):
         n = int(offsets[-1])
         #: (num_envs,) worker ("scene group") index of each slot
         self.slot_scene = np.repeat(np.arange(len(self.specs)), self.slots)
+        self._slot_scene_list: list[int] = self.slot_scene.tolist()
         #: (num_envs,) slot holds an agent (for the current observation)
         self.slot_active = np.zeros(n, bool)
         #: the mask of the observation before the last step (what the last actions acted on)
@@ -199,6 +200,10 @@ class MultiSceneVecEnv(VecEnv):
         self._episode = [0] * len(self.specs)
         self._ep_actions: list[list[np.ndarray]] = [[] for _ in self.specs]
         self._actions: np.ndarray | None = None
+        #: the step sent by step_async and not yet gathered: its per-worker actions and the
+        #: workers lost while sending it (None: no step in flight)
+        self._step_args: list[np.ndarray] = []
+        self._step_lost: dict[int, str] | None = None
         super().__init__(n, spaces.Box(low, high, dtype=np.float32),
                          spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32))
 
@@ -258,7 +263,12 @@ class MultiSceneVecEnv(VecEnv):
                   ) -> list[Any]:
         """Send ``(cmd, args[i])`` to each worker and collect the answers; a lost worker is
         replaced (up to :attr:`max_restarts` times in a row) and asked again."""
-        from .transport import WorkerFailed, WorkerLost
+        return self._gather(cmd, args, workers, self._send(cmd, args, workers))
+
+    def _send(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None = None
+              ) -> dict[int, str]:
+        """The sending half of :meth:`_exchange`: the workers lost on the way (reason each)."""
+        from .transport import WorkerLost
 
         if self.closed:
             raise VecEnvWorkerError("the vector env is closed")
@@ -269,6 +279,14 @@ class MultiSceneVecEnv(VecEnv):
                 self._handles[k].send(cmd, arg, self.timeout_s)
             except WorkerLost as exc:
                 lost[k] = str(exc)
+        return lost
+
+    def _gather(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None,
+                lost: dict[int, str]) -> list[Any]:
+        """The receiving half of :meth:`_exchange` (``lost``: from :meth:`_send`)."""
+        from .transport import WorkerFailed, WorkerLost
+
+        ks = list(range(len(self.specs))) if workers is None else list(workers)
         out = []
         for k, arg in zip(ks, args):
             tries = 0
@@ -318,8 +336,8 @@ class MultiSceneVecEnv(VecEnv):
         dones = np.concatenate([p["dones"] for p in packets])
         active = np.concatenate([p["active"] for p in packets])
         pos = np.concatenate([p["pos"] for p in packets])
-        infos: list[dict[str, Any]] = [{"slot_active": bool(a), "scene": int(s)}
-                                       for a, s in zip(active, self.slot_scene)]
+        infos: list[dict[str, Any]] = [{"slot_active": a, "scene": s}
+                                       for a, s in zip(active.tolist(), self._slot_scene_list)]
         for k, p in enumerate(packets):
             base = self.scene_slices[k].start
             for j, info in p["infos"].items():
@@ -354,11 +372,18 @@ class MultiSceneVecEnv(VecEnv):
         return obs
 
     def step_async(self, actions: np.ndarray) -> None:
+        """Send the actions: the workers step while the caller goes on until :meth:`step_wait`
+        (e.g. the deferred imitation rewards of earlier steps are computed meanwhile)."""
         self._actions = np.asarray(actions, np.float32).reshape(self.num_envs, 2)
+        self._step_args = [self._actions[s] for s in self.scene_slices]
+        self._step_lost = self._send("step", self._step_args)
 
     def step_wait(self) -> VecEnvStepReturn:
-        acts = [self._actions[s] for s in self.scene_slices]
-        packets = self._exchange("step", acts)
+        acts, lost = self._step_args, self._step_lost
+        self._step_lost = None
+        if lost is None:
+            raise RuntimeError("step_wait without step_async")
+        packets = self._gather("step", acts, None, lost)
         for k, p in enumerate(packets):
             if p["episodes"]:
                 self._ep_actions[k] = []

@@ -178,19 +178,23 @@ class DecomposedDiscriminator(_TokenInput):
         cfg = self.config
         b, v, _ = pos.shape
         pos = pos.to(torch.float32)
-        delta = pos[:, None, :, :2] - pos[:, :, None, :2]  # (B, V_i, V_j, 2): p_j − p_i
-        d = torch.linalg.vector_norm(delta, dim=-1)
+        x, y, yaw = pos[..., 0], pos[..., 1], pos[..., 2]
+        # (B, V_i, V_j) components of p_j − p_i, kept apart: the pairwise tensors are the cost
+        # of this search in a city (V = hundreds), so no (B, V, V, 2) tensor and in-place masks
+        ddx = x[:, None, :] - x[:, :, None]
+        ddy = y[:, None, :] - y[:, :, None]
+        d = torch.sqrt(ddx * ddx + ddy * ddy)
         eye = torch.eye(v, dtype=torch.bool, device=pos.device)
-        ok = mask[:, :, None] & mask[:, None, :] & ~eye & (d <= cfg.radius)
-        d = torch.where(ok, d, torch.full_like(d, math.inf))
+        ok = (mask[:, :, None] & mask[:, None, :]).logical_and_(~eye) \
+            .logical_and_(d <= cfg.radius)
+        d = d.masked_fill_(~ok, math.inf)
         dist, index = torch.topk(d, min(cfg.max_neighbors, v), dim=-1, largest=False,
                                  sorted=True)
         valid = torch.isfinite(dist)
-        rel = torch.gather(delta, 2, index.unsqueeze(-1).expand(-1, -1, -1, 2))  # (B, V, K, 2)
-        yaw = pos[..., 2]
+        relx, rely = torch.gather(ddx, 2, index), torch.gather(ddy, 2, index)  # (B, V, K)
         cos_i, sin_i = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
-        dx = cos_i * rel[..., 0] + sin_i * rel[..., 1]
-        dy = -sin_i * rel[..., 0] + cos_i * rel[..., 1]
+        dx = cos_i * relx + sin_i * rely
+        dy = -sin_i * relx + cos_i * rely
         dyaw = _gather_slots(yaw, index) - yaw[..., None]
         r = cfg.radius
         geometry = torch.stack([dx / r, dy / r, torch.cos(dyaw), torch.sin(dyaw),

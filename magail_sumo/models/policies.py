@@ -8,7 +8,10 @@ shared features extractor is :class:`NormalizedObservation` — a
 stored in the policy's state dict). The actor is an MLP (64-64 tanh by default) applied to each
 vehicle alone, shared by all vehicles. Two critics:
 
-* ``critic="mlp"`` (default): SB3's per-vehicle value MLP (64-64 tanh by default).
+* ``critic="mlp"`` (default): SB3's per-vehicle value MLP (64-64 tanh by default). In a
+  rollout forward over a whole vector-env observation (the slot layout and mask
+  :meth:`TanhGaussianPolicy.set_scene_layout` was given), only the occupied slots are evaluated;
+  a free slot gets action, value and log-probability 0, never used.
 * ``critic="transformer"``: a :class:`~magail_sumo.models.critic.TransformerCritic` — the value
   of a vehicle is computed from the normalised observations (each in its own ego frame, as the
   actor sees them) of *all* vehicles of the same scene at the same step. The policy must then
@@ -142,10 +145,12 @@ class TanhGaussianPolicy(ActorCriticPolicy):
         """log pi(actions | obs) (actions in (-1, 1); for behavioural cloning)."""
         return self.get_distribution(obs).log_prob(actions)
 
-    # ------------------------------------------------------------------ transformer critic
+    # ------------------------------------------------------------------ slot layout
     def set_scene_layout(self, slot_scene: np.ndarray | None,
                          mask_source: Callable[[], np.ndarray] | None = None) -> None:
-        """How rows of a vector-env observation group into scenes (transformer critic only).
+        """How rows of a vector-env observation map to slots and scenes: a rollout forward
+        evaluates the occupied slots only (:meth:`rollout_rows`), and the transformer critic
+        groups them by scene.
 
         :param slot_scene: (n_slots,) scene index of each slot (``MultiSceneVecEnv.slot_scene``);
             None: no layout (every row is a one-vehicle scene).
@@ -175,10 +180,32 @@ class TanhGaussianPolicy(ActorCriticPolicy):
     def _values(self, vf_features: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
         return self.critic(vf_features, group).unsqueeze(-1)
 
+    def rollout_rows(self, obs: torch.Tensor) -> np.ndarray | None:
+        """The rows of ``obs`` holding an agent when ``obs`` is one whole vector-env
+        observation with free slots (the layout and mask :meth:`set_scene_layout` was given);
+        None otherwise (every row is evaluated)."""
+        if self._slot_scene is None or self._mask_source is None:
+            return None
+        if not obs.shape[0] == len(self._slot_scene) > 1:
+            return None
+        active = np.asarray(self._mask_source(), bool)
+        return None if active.all() else np.flatnonzero(active)
+
     def forward(self, obs: torch.Tensor, deterministic: bool = False
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         if self.critic_kind == "mlp":
-            return super().forward(obs, deterministic)
+            rows = self.rollout_rows(obs)
+            if rows is None:
+                return super().forward(obs, deterministic)
+            # a rollout step: only the slots holding an agent are evaluated (and draw noise);
+            # a free slot gets action, value and log-probability 0, never used (the masked
+            # buffer drops free slot-steps, GAE never bootstraps across a re-assignment)
+            n, i = obs.shape[0], torch.as_tensor(rows, device=obs.device)
+            actions, values, log_prob = super().forward(obs[i], deterministic)
+            out = (actions.new_zeros((n, *actions.shape[1:])), values.new_zeros((n, 1)),
+                   log_prob.new_zeros(n))
+            out[0][i], out[1][i], out[2][i] = actions, values, log_prob
+            return out
         group = self.critic_groups(obs)
         pi_features, vf_features = self._features(obs)
         dist = self._get_action_dist_from_latent(self.mlp_extractor.forward_actor(pi_features))

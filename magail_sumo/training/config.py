@@ -114,7 +114,9 @@ class WorkersConfig:
     """The scene workers (one SUMO each) that step the pool.
 
     :param count: number of workers, each owning a shard of the pool (None: the usable cores,
-        at most one per scene). The resolved number is what the run records and resumes with.
+        at most one per scene unless the pool holds a city scenario). More workers than scenes
+        run replicas: each worker one scene, with its own seed (:func:`~magail_sumo.env.
+        scene_pool.shard_pool`). The resolved number is what the run records and resumes with.
     :param backend: ``process`` (local processes, the default) or ``ray`` (Ray actors on a
         cluster; ``pip install -e ".[ray]"``).
     :param ray: Ray options.

@@ -46,6 +46,11 @@ BC_STREAM = 0xBC
 #: env), ``_last_episode_starts`` (which slots begin an episode: GAE cuts there). Everything
 #: else is public API (``num_timesteps``, ``learning_rate``, the policy and its optimiser).
 SB3_RESUME_STATE = ("_n_updates", "_last_obs", "_last_episode_starts")
+#: the deferred imitation rewards are computed every this many rollout steps, while the scene
+#: workers step (between sending the actions and waiting for them), instead of all after the
+#: rollout; the same rewards (the discriminator is fixed during a rollout), off the critical path
+#: (README "Benchmarks": train_throughput.py)
+REWARD_AHEAD_STEPS = 64
 
 
 def torch_threads_callback():
@@ -76,9 +81,10 @@ def torch_threads_callback():
 
 def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
     """The run's scene-pool vector env (:func:`~magail_sumo.env.vec_env.pool_vec_env`) and
-    ``cfg`` with ``workers.count`` resolved (None: the usable cores, at most one per scene)."""
+    ``cfg`` with ``workers.count`` resolved (None: the usable cores, at most one per scene
+    unless the pool holds a city scenario, which replicas play on every core)."""
     from converters.sumo.scenario import claim_networks_dir
-    from magail_sumo.env.scene_pool import resolve_pool
+    from magail_sumo.env.scene_pool import is_city, resolve_pool
     from magail_sumo.env.vec_env import pool_vec_env
 
     from .config import usable_cores
@@ -87,7 +93,9 @@ def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
     refs = resolve_pool(cfg.scenes.files, skipped)
     for s in skipped:
         log(f"scene skipped: {s.what}: {s.reason}")
-    count = cfg.workers.count or min(len(refs), usable_cores())
+    cores = usable_cores()
+    count = cfg.workers.count or (cores if any(is_city(r) for r in refs)
+                                  else min(len(refs), cores))
     cfg = replace(cfg, workers=replace(cfg.workers, count=count))
     w = cfg.workers
     claim_networks_dir(cfg.scenes.networks)
@@ -140,7 +148,9 @@ class GailRun:
             self.reward = AdversarialReward.build(cfg, self.venv, expert, deferred=True)
             self.discriminator = self.reward.discriminator
             self.wrapper, self.disc_trainer = self.reward.env, self.reward.trainer
-            # the reward pass runs after the rollout, while the workers wait, as the updates
+            # the reward pass runs during the rollout, REWARD_AHEAD_STEPS steps at a time while
+            # the workers step; the rest after it, on the update threads
+            self.wrapper.ahead_steps = REWARD_AHEAD_STEPS
             self.wrapper.flush_threads = cfg.torch_threads_update or cfg.torch_threads
             self.model = MaskedPPO(
                 TanhGaussianPolicy, self.wrapper, learning_rate=p.learning_rate,

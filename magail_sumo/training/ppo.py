@@ -71,9 +71,26 @@ class MaskedRolloutBuffer(RolloutBuffer):
     #: grouping (for a transformer critic); None: independent agent-steps
     slot_scene: np.ndarray | None = None
 
+    #: the flattened rollout fields, as torch tensors sharing the arrays' memory (made once per
+    #: rollout by :meth:`get`; minibatches index them instead of copying numpy rows)
+    _SAMPLE_FIELDS = ("observations", "actions", "values", "log_probs", "advantages", "returns")
+
     def reset(self) -> None:
         super().reset()
         self.active = np.zeros((self.buffer_size, self.n_envs), bool)
+        self._tensors: dict[str, torch.Tensor] | None = None
+
+    def _get_samples(self, batch_inds: np.ndarray, env: Any = None) -> RolloutBufferSamples:
+        """SB3's minibatch of flat rows ``batch_inds`` (the same tensors), gathered in torch
+        from the whole rollout converted once (SB3 copies each field's rows through numpy)."""
+        t = self._tensors
+        if t is None:
+            t = self._tensors = {k: torch.as_tensor(self.__dict__[k], device=self.device)
+                                 for k in self._SAMPLE_FIELDS}
+        i = torch.as_tensor(batch_inds, device=self.device)
+        obs, act, val, logp, adv, ret = (t[k].index_select(0, i) for k in self._SAMPLE_FIELDS)
+        return RolloutBufferSamples(obs, act, val.flatten(), logp.flatten(), adv.flatten(),
+                                    ret.flatten())
 
     def add(self, *args: Any, **kwargs: Any) -> None:
         self.active[self.pos] = True if self.mask_source is None else self.mask_source()
@@ -95,9 +112,9 @@ class MaskedRolloutBuffer(RolloutBuffer):
     def get(self, batch_size: int | None = None) -> Generator[RolloutBufferSamples, None, None]:
         assert self.full, "the rollout buffer is not full"
         if not self.generator_ready:
-            for name in ("observations", "actions", "values", "log_probs", "advantages",
-                         "returns"):
+            for name in self._SAMPLE_FIELDS:
                 self.__dict__[name] = self.swap_and_flatten(self.__dict__[name])
+            self._tensors = None
             self.active_flat = self.active.swapaxes(0, 1).reshape(-1)
             self.generator_ready = True
         if self.slot_scene is not None:
@@ -176,14 +193,27 @@ class MaskedPPO(PPO):
         base = self.env.unwrapped if self.env is not None else None
         if base is not None and hasattr(base, "prev_slot_active"):
             self.rollout_buffer.mask_source = lambda: base.prev_slot_active
-        if base is not None and getattr(self.policy, "critic_kind", "mlp") == "transformer":
-            # scene layout of the slots (an env without one: every slot its own scene)
+        if base is not None and hasattr(self.policy, "set_scene_layout"):
+            # scene layout of the slots (an env without one: every slot its own scene) and the
+            # slot mask: rollout forwards evaluate occupied slots only (and the transformer
+            # critic groups them by scene)
             slot_scene = np.asarray(getattr(base, "slot_scene", np.arange(self.n_envs)), np.int64)
             mask = (lambda: base.slot_active) if hasattr(base, "slot_active") else None
             self.policy.set_scene_layout(slot_scene, mask)
-            self.rollout_buffer.slot_scene = slot_scene
+            if getattr(self.policy, "critic_kind", "mlp") == "transformer":
+                self.rollout_buffer.slot_scene = slot_scene
         if getattr(self.env, "deferred", False):
             self.rollout_buffer.reward_source = self.env.flush_rewards
+
+    def _update_info_buffer(self, infos: list[dict[str, Any]],
+                            dones: np.ndarray | None = None) -> None:
+        """SB3's episode / success bookkeeping, over the slots that are done only: an episode
+        summary (a Monitor's ``episode``) and ``is_success`` come with their slot's done, and
+        a step has hundreds of slots (SB3 reads every slot's info at every step)."""
+        if dones is None:
+            return super()._update_info_buffer(infos, dones)
+        done = np.flatnonzero(dones)
+        super()._update_info_buffer([infos[i] for i in done], np.ones(len(done), bool))
 
     def set_learning_rate(self, lr: float) -> None:
         """Constant learning rate ``lr`` from the next update on."""

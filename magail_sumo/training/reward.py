@@ -33,6 +33,7 @@ per-step computation, up to float rounding.
 from __future__ import annotations
 
 from collections import Counter
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,13 +91,21 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         #: deferred mode: per step since the last flush, the scenes kept in rollout_x (indices)
         self._pending: list[np.ndarray] = []
         self._pending_first = 0  # index into rollout_x of the first pending step
+        #: deferred mode: once this many steps are pending, :meth:`step_async` computes their
+        #: rewards while the workers step (None or 0: all at the flush)
+        self.ahead_steps: int | None = None
+        #: the blocks of pending steps computed ahead, in step order: futures of
+        #: (raw rewards, present), on one background thread (torch runs its kernels without the
+        #: GIL, so they overlap the rollout loop and the workers)
+        self._ahead: list[Future] = []
+        self._ahead_pool: ThreadPoolExecutor | None = None
         self.reward_sum = self.reward_sq = 0.0
         self.reward_n = 0
 
     def reset(self) -> np.ndarray:
         obs = self.venv.reset()
         self._last_obs = obs
-        self._pending = []
+        self._pending, self._ahead = [], []
         self._pending_first = len(self.rollout_x)
         return obs
 
@@ -104,9 +113,30 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         """Restore the env (``MultiSceneVecEnv.set_state``); the observation."""
         obs = self.base.set_state(state)
         self._last_obs = obs
-        self._pending = []
+        self._pending, self._ahead = [], []
         self._pending_first = len(self.rollout_x)
         return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        """Send the actions; in deferred mode with :attr:`ahead_steps` pending steps, compute
+        their imitation rewards while the workers step (the discriminator does not change
+        during a rollout, so they are the rewards :meth:`flush_rewards` would give)."""
+        self.venv.step_async(actions)
+        if self.deferred and self.ahead_steps and len(self._pending) >= self.ahead_steps:
+            if self._ahead_pool is None:
+                self._ahead_pool = ThreadPoolExecutor(1, thread_name_prefix="imitation-reward")
+            steps, first = self._pending, self._pending_first
+            self._pending = []
+            self._pending_first = len(self.rollout_x)
+            self._ahead.append(self._ahead_pool.submit(
+                self._rewards_of, steps, first,
+                (self.rollout_x, self.rollout_mask, self.rollout_pos)))
+
+    def close(self) -> None:
+        if self._ahead_pool is not None:
+            self._ahead_pool.shutdown(wait=True, cancel_futures=True)
+            self._ahead_pool = None
+        self.venv.close()
 
     def scene_tokens(self, s: np.ndarray, s_next: np.ndarray, acted: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -183,8 +213,9 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
 
     def flush_rewards(self) -> np.ndarray:
         """Deferred mode: ``c_i`` × the imitation rewards of the steps since the last flush,
-        (steps, num_envs) float32 (0 for free slots), in batched forwards with
-        :attr:`flush_threads` torch threads (the scene workers wait meanwhile); cleared."""
+        (steps, num_envs) float32 (0 for free slots): those :meth:`step_async` computed ahead,
+        and the rest in batched forwards with :attr:`flush_threads` torch threads (the scene
+        workers wait meanwhile); cleared."""
         threads = torch.get_num_threads()
         if self.flush_threads and self.flush_threads != threads:
             torch.set_num_threads(self.flush_threads)
@@ -195,9 +226,23 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
                 torch.set_num_threads(threads)
 
     def _flush_rewards(self) -> np.ndarray:
+        ahead, self._ahead = self._ahead, []
+        blocks = [f.result() for f in ahead]
         steps, first = self._pending, self._pending_first
         self._pending = []
         self._pending_first = len(self.rollout_x)
+        blocks.append(self._rewards_of(steps, first))
+        out = np.concatenate([b[0] for b in blocks])
+        self._add_stats(out[np.concatenate([b[1] for b in blocks])])
+        return self.reward_i_coef * out
+
+    def _rewards_of(self, steps: list[np.ndarray], first: int, recorded: tuple | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """The raw imitation rewards (steps, num_envs) float32 of pending ``steps`` (whose
+        entries start at ``rollout_x[first]``) and where an agent acted (bool), in batched
+        forwards. ``recorded``: the (rollout_x, rollout_mask, rollout_pos) lists to read (None:
+        the current ones); only entries already appended are read, and they never change."""
+        rx, rm, rp = recorded or (self.rollout_x, self.rollout_mask, self.rollout_pos)
         out = np.zeros((len(steps), self.num_envs), np.float32)
         present = np.zeros(out.shape, bool)
         # rollout_x[first + entry[j]] holds the scenes steps[j] of step j (in that order): one
@@ -212,19 +257,18 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
             if not at:
                 continue
             js = np.array([j for j, _ in at])
-            m = np.stack([self.rollout_mask[entry[j]][i] for j, i in at])
+            m = np.stack([rm[entry[j]][i] for j, i in at])
             v = int(m.any(axis=0).nonzero()[0].max()) + 1
             m = m[:, :v]
-            x = np.stack([self.rollout_x[entry[j]][i, :v] for j, i in at])
-            p = np.stack([self.rollout_pos[entry[j]][i, :v] for j, i in at])
+            x = np.stack([rx[entry[j]][i, :v] for j, i in at])
+            p = np.stack([rp[entry[j]][i, :v] for j, i in at])
             per = max(1, self.chunk_tokens // v)
             r = np.concatenate([self.rewards(x[i:i + per], m[i:i + per], p[i:i + per])
                                 for i in range(0, len(at), per)])
             start = self.base.scene_slices[k].start
             out[js, start:start + v] = r
             present[js, start:start + v] = m
-        self._add_stats(out[present])
-        return self.reward_i_coef * out
+        return out, present
 
     def pop_rollout(self) -> SceneSteps | None:
         """The policy scene steps recorded since the last call (padded, with the poses at the
