@@ -77,6 +77,31 @@ def test_sac_model_reads_the_command_from_the_observation():
     assert a.abs().max() <= 1.0 and torch.isfinite(logp).all()
 
 
+
+def test_sac_act_scales_the_sampled_noise():
+    """``act(noise_scale=k)`` is ``tanh(mu + k·std·eps)`` with the draws of :meth:`sample`: 1
+    is ``sample``'s action bit for bit, 0 the mean's tanh (evaluate --noise-scale on a SAC
+    checkpoint)."""
+    torch.manual_seed(1)
+    cols = tuple(NAMES.index(c) for c in COMMAND_NAMES)
+    model = BranchedSAC(F, cols, hidden=(8,))
+    x = torch.as_tensor(np.concatenate([_obs(5, np.full(5, STRAIGHT)), np.zeros((5, 1))], 1),
+                        dtype=torch.float32)
+
+    def act(k: float) -> torch.Tensor:
+        with torch.no_grad():
+            return model.act(x, generator=torch.Generator().manual_seed(7), noise_scale=k)
+
+    with torch.no_grad():
+        sampled = model.sample(x, torch.Generator().manual_seed(7))[0]
+        mu, std = model.dist(x)
+    eps = torch.randn(mu.shape, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(act(1.0), sampled)
+    torch.testing.assert_close(act(0.0), torch.tanh(mu))
+    for k in (0.25, 0.5):
+        torch.testing.assert_close(act(k), torch.tanh(mu + k * std * eps))
+    assert not torch.allclose(act(0.25), act(0.5))
+
 def _fill(buf: ReplayBuffer, n: int, reward: float) -> None:
     buf.add(obs=np.zeros((n, 4)), action=np.zeros((n, 2)), reward=np.full(n, reward),
             next_obs=np.zeros((n, 4)), done=np.zeros(n))

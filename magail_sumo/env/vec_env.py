@@ -199,7 +199,6 @@ class MultiSceneVecEnv(VecEnv):
         # get_state gives and a replaced worker replays)
         self._episode = [0] * len(self.specs)
         self._ep_actions: list[list[np.ndarray]] = [[] for _ in self.specs]
-        self._actions: np.ndarray | None = None
         #: the step sent by step_async and not yet gathered: its per-worker actions and the
         #: workers lost while sending it (None: no step in flight)
         self._step_args: list[np.ndarray] = []
@@ -374,8 +373,8 @@ class MultiSceneVecEnv(VecEnv):
     def step_async(self, actions: np.ndarray) -> None:
         """Send the actions: the workers step while the caller goes on until :meth:`step_wait`
         (e.g. the deferred imitation rewards of earlier steps are computed meanwhile)."""
-        self._actions = np.asarray(actions, np.float32).reshape(self.num_envs, 2)
-        self._step_args = [self._actions[s] for s in self.scene_slices]
+        actions = np.asarray(actions, np.float32).reshape(self.num_envs, 2)
+        self._step_args = [actions[s] for s in self.scene_slices]
         self._step_lost = self._send("step", self._step_args)
 
     def step_wait(self) -> VecEnvStepReturn:

@@ -102,12 +102,18 @@ class BranchedSAC(nn.Module):
         mu, log_std = out[:, :self.act_dim], out[:, self.act_dim:]
         return mu, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX).exp()
 
+    def _pre_tanh(self, x: torch.Tensor, generator: torch.Generator | None,
+                  noise_scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(mean, std, ``u = mean + noise_scale·std·eps``) of rows ``x``, eps ~ N(0, I) drawn
+        from ``generator``."""
+        mu, std = self.dist(x)
+        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+        return mu, std, mu + noise_scale * std * eps
+
     def sample(self, x: torch.Tensor, generator: torch.Generator | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparametrised tanh-Gaussian action (N, act_dim) and its log-density (N,)."""
-        mu, std = self.dist(x)
-        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-        u = mu + std * eps
+        mu, std, u = self._pre_tanh(x, generator)
         a = torch.tanh(u)
         logp = torch.distributions.Normal(mu, std).log_prob(u)
         # tanh change of variables, numerically stable: log(1 - tanh(u)^2)
@@ -115,11 +121,13 @@ class BranchedSAC(nn.Module):
         return a, logp.sum(dim=1)
 
     def act(self, x: torch.Tensor, deterministic: bool = False,
-            generator: torch.Generator | None = None) -> torch.Tensor:
-        """Actions (N, act_dim) in [-1, 1] of rows ``x``: sampled, or tanh of the mean."""
+            generator: torch.Generator | None = None, noise_scale: float = 1.0
+            ) -> torch.Tensor:
+        """Actions (N, act_dim) in [-1, 1] of rows ``x``: sampled (the draws of
+        :meth:`sample`, the noise times ``noise_scale``), or tanh of the mean."""
         if deterministic:
             return torch.tanh(self.dist(x)[0])
-        return self.sample(x, generator)[0]
+        return torch.tanh(self._pre_tanh(x, generator, noise_scale)[2])
 
     def q(self, x: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N,) twin Q values of rows ``x`` and actions ``a``."""

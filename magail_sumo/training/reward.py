@@ -125,12 +125,16 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         if self.deferred and self.ahead_steps and len(self._pending) >= self.ahead_steps:
             if self._ahead_pool is None:
                 self._ahead_pool = ThreadPoolExecutor(1, thread_name_prefix="imitation-reward")
-            steps, first = self._pending, self._pending_first
-            self._pending = []
-            self._pending_first = len(self.rollout_x)
             self._ahead.append(self._ahead_pool.submit(
-                self._rewards_of, steps, first,
+                self._rewards_of, *self._pop_pending(),
                 (self.rollout_x, self.rollout_mask, self.rollout_pos)))
+
+    def _pop_pending(self) -> tuple[list[np.ndarray], int]:
+        """The pending steps and the index of their first entry in rollout_x; cleared."""
+        steps, first = self._pending, self._pending_first
+        self._pending = []
+        self._pending_first = len(self.rollout_x)
+        return steps, first
 
     def close(self) -> None:
         if self._ahead_pool is not None:
@@ -228,10 +232,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
     def _flush_rewards(self) -> np.ndarray:
         ahead, self._ahead = self._ahead, []
         blocks = [f.result() for f in ahead]
-        steps, first = self._pending, self._pending_first
-        self._pending = []
-        self._pending_first = len(self.rollout_x)
-        blocks.append(self._rewards_of(steps, first))
+        blocks.append(self._rewards_of(*self._pop_pending()))
         out = np.concatenate([b[0] for b in blocks])
         self._add_stats(out[np.concatenate([b[1] for b in blocks])])
         return self.reward_i_coef * out
@@ -413,8 +414,8 @@ class DiscriminatorCallback(BaseCallback):
             rates["guarded_frac"] = (guarded - self._seen[1]) / steps
         new = ends - self._seen[2]
         total = sum(new.values())
-        for reason in sorted(set(ends) | set(self._seen[2]) | {"collision", "off_road"}):
-            if total:
+        if total:
+            for reason in sorted(set(ends) | set(self._seen[2]) | {"collision", "off_road"}):
                 rates[f"end_{reason}"] = new.get(reason, 0) / total
         for k, v in rates.items():
             self.logger.record(f"env/{k}", v)

@@ -630,12 +630,7 @@ class SacCheckpointPolicy:
             raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
                                   f"policy expects {self.model.obs_dim}")
         x = torch.as_tensor(np.concatenate([x, np.zeros((len(names), 1), np.float32)], axis=1))
-        if self.deterministic:
-            a = self.model.act(x, True)
-        else:  # the draws of BranchedSAC.sample, the noise scaled
-            mu, std = self.model.dist(x)
-            eps = torch.randn(mu.shape, generator=self.generator, dtype=mu.dtype)
-            a = torch.tanh(mu + self.noise_scale * std * eps)
+        a = self.model.act(x, self.deterministic, self.generator, self.noise_scale)
         return dict(zip(names, np.clip(a.numpy().astype(np.float32), -1.0, 1.0)))
 
 
