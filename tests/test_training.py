@@ -53,6 +53,47 @@ def test_masked_buffer_drops_free_slots():
     assert sorted(got.tolist()) == [0, 1, 3, 12, 13, 20, 23]
 
 
+
+def test_masked_buffer_minibatches_are_sb3s():
+    """The masked buffer gathers its minibatches in torch from the whole rollout; each field is
+    SB3's own rollout buffer's minibatch of the same rows, bit for bit."""
+    from stable_baselines3.common.buffers import RolloutBuffer
+
+    rng = np.random.default_rng(3)
+    spaces_ = (spaces.Box(-1, 1, (3,), np.float32), spaces.Box(-1, 1, (2,), np.float32))
+    ours, sb3 = MaskedRolloutBuffer(5, *spaces_, n_envs=4), RolloutBuffer(5, *spaces_, n_envs=4)
+    for _ in range(5):
+        step = (rng.normal(size=(4, 3)).astype(np.float32), rng.normal(size=(4, 2)),
+                rng.normal(size=4), rng.random(4) < 0.2, torch.randn(4), torch.randn(4))
+        for buf in (ours, sb3):
+            buf.add(*step)
+    for buf in (ours, sb3):
+        buf.compute_returns_and_advantage(torch.ones(4), np.zeros(4))
+    next(ours.get(4)), next(sb3.get(4))  # both flattened
+    rows = np.array([17, 2, 9, 9, 0])
+    for got, want in zip(ours._get_samples(rows), sb3._get_samples(rows)):
+        assert got.dtype == want.dtype and torch.equal(got, want)
+
+
+def test_info_scan_reads_done_slots_only():
+    """MaskedPPO's episode / success bookkeeping keeps what SB3's keeps when, as with a
+    Monitor, summaries come with their slot's done, without reading the other slots."""
+    from collections import deque
+
+    from magail_sumo.training.ppo import MaskedPPO
+
+    class Loud(dict):
+        def get(self, *a):  # a slot whose info must not be read
+            raise AssertionError("read a slot that is not done")
+
+    algo = object.__new__(MaskedPPO)
+    algo.ep_info_buffer, algo.ep_success_buffer = deque(maxlen=10), deque(maxlen=10)
+    infos = [Loud(), {"episode": {"r": 1.0}, "is_success": True}, Loud(),
+             {"is_success": False}]
+    algo._update_info_buffer(infos, np.array([False, True, False, True]))
+    assert list(algo.ep_info_buffer) == [{"r": 1.0}]
+    assert list(algo.ep_success_buffer) == [True, False]
+
 def test_kl_rule():
     assert adapt_learning_rate(1e-3, 0.05, 0.01, 1e-5, 1e-2) == 5e-4
     assert adapt_learning_rate(1e-3, 0.001, 0.01, 1e-5, 1e-2) == pytest.approx(1.5e-3)
