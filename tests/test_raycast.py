@@ -68,10 +68,25 @@ def test_oriented_boxes_own_box_and_grazing_cases():
     assert along[0, 0] == pytest.approx(8.0)
 
 
-def test_grid_refuses_range_beyond_cell():
-    grid = SegmentGrid.build(np.zeros((1, 2)), np.ones((1, 2)), cell=5.0)
-    with pytest.raises(ValueError, match="exceeds the grid cell"):
-        grid.cast(np.zeros((1, 2)), np.zeros((1, 3)), 8.0)
+@pytest.mark.parametrize("cell", [2.5, 6.0, 15.0, 40.0])
+def test_grid_of_any_cell_size_agrees_with_reference(cell):
+    """Cells smaller than the range (several rings visited, the far corners skipped) or larger;
+    long segments listed in many visited cells count once and still give the nearest hit."""
+    rng = np.random.default_rng(7)
+    origins = rng.uniform(-20, 20, (8, 2))
+    b = 30
+    angles = rng.uniform(-np.pi, np.pi, (8, 1)) + np.arange(b)[None] * (2 * np.pi / b)
+    starts = rng.uniform(-35, 35, (50, 2))
+    ends = starts + rng.normal(0, 6, (50, 2))
+    starts[:5], ends[:5] = rng.uniform(-40, 40, (5, 2)), rng.uniform(-40, 40, (5, 2))  # long
+    got = SegmentGrid.build(starts, ends, cell=cell).cast(origins, angles, 15.0)
+    irregular = angles + rng.uniform(0, 0.05, angles.shape)  # the per-beam kernel
+    got_irr = SegmentGrid.build(starts, ends, cell=cell).cast(origins, irregular, 15.0)
+    for a, out in ((angles, got), (irregular, got_irr)):
+        ref = np.array([[reference_distance(origins[i], a[i, j], 15.0, starts, ends)
+                         for j in range(b)] for i in range(8)])
+        np.testing.assert_allclose(out, ref, atol=1e-4)
+        assert (ref < 15.0).sum() > 20
 
 
 def test_real_scene_lidar_and_road_edges_against_reference():

@@ -99,7 +99,7 @@ def _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax, a
     """Fold segment a-b into agent i's readings: every beam, or with evenly spaced beams
     (``uniform``; beam j along angles[i, 0] + j·step) only those inside the segment's span."""
     if uniform:
-        _cast_window(out, i, ox, oy, angles[i, 0], step, full, ax, ay, bx, by)
+        _cast_window(out, i, ox, oy, angles[i, 0], step, full, cosb, sinb, ax, ay, bx, by)
         return
     for j in range(out.shape[1]):
         t = _hit(ox, oy, cosb[i, j], sinb[i, j], ax, ay, bx, by)
@@ -108,7 +108,7 @@ def _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax, a
 
 
 @numba.njit(cache=True, inline="always")
-def _cast_window(out, i, ox, oy, theta0, step, full, ax, ay, bx, by):
+def _cast_window(out, i, ox, oy, theta0, step, full, cosb, sinb, ax, ay, bx, by):
     """Test only the beams whose direction falls inside the segment's angular span as seen
     from the origin (uniformly spaced beams: beam j points along theta0 + j·step)."""
     b = out.shape[1]
@@ -117,8 +117,7 @@ def _cast_window(out, i, ox, oy, theta0, step, full, ax, ay, bx, by):
     span = (a2 - a1 + np.pi) % (2.0 * np.pi) - np.pi
     if abs(span) > np.pi - 1e-6:  # the origin (nearly) lies on the segment: test every beam
         for j in range(b):
-            ang = theta0 + j * step
-            t = _hit(ox, oy, np.cos(ang), np.sin(ang), ax, ay, bx, by)
+            t = _hit(ox, oy, cosb[i, j], sinb[i, j], ax, ay, bx, by)
             if t < out[i, j]:
                 out[i, j] = t
         return
@@ -136,8 +135,7 @@ def _cast_window(out, i, ox, oy, theta0, step, full, ax, ay, bx, by):
                 if jj < 0 or jj >= b:
                     continue
                 j = jj
-            ang = theta0 + j * step
-            t = _hit(ox, oy, np.cos(ang), np.sin(ang), ax, ay, bx, by)
+            t = _hit(ox, oy, cosb[i, j], sinb[i, j], ax, ay, bx, by)
             if t < out[i, j]:
                 out[i, j] = t
         if full:
@@ -170,17 +168,26 @@ def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, se
     out = np.full((a, b), max_range)
     cosb, sinb = np.cos(angles), np.sin(angles)
     r2 = max_range * max_range
+    reach = int(np.ceil(max_range / cell))
+    seen = np.full(starts.shape[0], -1, np.int64)
     for i in range(a):
         ox, oy = origins[i, 0], origins[i, 1]
-        cx = int(np.floor((ox - x0) / cell))
-        cy = int(np.floor((oy - y0) / cell))
-        for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
-            for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
+        fx = (ox - x0) / cell
+        fy = (oy - y0) / cell
+        cx = int(np.floor(fx))
+        cy = int(np.floor(fy))
+        for gx in range(max(cx - reach, 0), min(cx + reach + 1, nx)):
+            dx = 0.0 if gx == cx else ((gx - fx) if gx > cx else (fx - gx - 1.0)) * cell
+            for gy in range(max(cy - reach, 0), min(cy + reach + 1, ny)):
+                dy = 0.0 if gy == cy else ((gy - fy) if gy > cy else (fy - gy - 1.0)) * cell
+                if dx * dx + dy * dy > r2:
+                    continue
                 c = gx * ny + gy
                 for m in range(offsets[c], offsets[c + 1]):
                     k = items[m]
-                    if seg_owner[k] == agent_owner[i]:
+                    if seen[k] == i or seg_owner[k] == agent_owner[i]:
                         continue
+                    seen[k] = i
                     ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
                     if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
                         continue
@@ -232,10 +239,12 @@ def cast(origins: np.ndarray, angles: np.ndarray, max_range: float, starts: np.n
 
 @dataclass(frozen=True)
 class SegmentGrid:
-    """Static segments bucketed in square cells of side ``cell`` (>= the largest sensor range).
+    """Static segments bucketed in square cells of side ``cell`` (any sensor range; the range
+    itself is a good choice).
 
-    A segment is listed in every cell its bounding box overlaps; an agent visits the 3×3 cells
-    around its own, which covers every segment within ``cell`` of it.
+    A segment is listed in every cell its bounding box overlaps; a cast visits, for each agent,
+    the cells that come within ``max_range`` of it and tests each segment found there once (a
+    long segment listed in several of those cells is not tested again).
     """
 
     starts: np.ndarray
@@ -278,12 +287,10 @@ class SegmentGrid:
     def cast(self, origins: np.ndarray, angles: np.ndarray, max_range: float,
              seg_owner: np.ndarray | None = None, agent_owner: np.ndarray | None = None
              ) -> np.ndarray:
-        """(A, B) ray readings against the gridded segments; ``max_range`` <= ``cell``.
+        """(A, B) ray readings against the gridded segments.
 
         :param seg_owner, agent_owner: as in :func:`cast` (an agent skips its own segments).
         """
-        if max_range > self.cell:
-            raise ValueError(f"sensor range {max_range} m exceeds the grid cell {self.cell} m")
         ang = np.ascontiguousarray(angles, np.float64)
         step, full = _uniform(ang)
         so = np.full(self.starts.shape[0], -1, np.int64) if seg_owner is None else \
