@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import types
 from dataclasses import replace
 
 import numpy as np
@@ -214,6 +215,49 @@ def test_deferred_rewards_equal_per_step_rewards(setup):
         assert s_def["agent_steps"] == s_other["agent_steps"]
         assert s_def["imitation_mean"] == pytest.approx(s_other["imitation_mean"], abs=1e-5)
     assert np.abs(r_def[a_def]).max() > 0
+
+
+def test_rollout_loop_is_sb3s_with_actions_sent_before_booking(setup):
+    """MaskedPPO's rollout loop gives SB3's rollout bit for bit, but sends each step's actions
+    before it books the step before (the buffer row of step t is added after step t+1 was
+    sent, while the workers step)."""
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+
+    from magail_sumo.expert import ExpertDataset
+    from magail_sumo.sensors.observation import observation_names
+    from magail_sumo.training.trainer import GailRun
+
+    root, cfg = setup
+    expert = ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
+    got = []
+    for loop in ("ours", "sb3"):
+        torch.manual_seed(0)
+        np.random.seed(0)
+        run = GailRun(cfg, expert)
+        try:
+            run.policy.obs_normalizer.update(torch.as_tensor(expert.s))
+            model, sent, order = run.model, [0], []
+            if loop == "sb3":
+                model.collect_rollouts = types.MethodType(OnPolicyAlgorithm.collect_rollouts, model)
+            send = run.wrapper.step_async
+            run.wrapper.step_async = lambda a: (sent.__setitem__(0, sent[0] + 1), send(a))[1]
+            add = model.rollout_buffer.add
+            model.rollout_buffer.add = lambda *a, **k: (order.append(sent[0]), add(*a, **k))[1]
+            run.run_update()
+            buf = model.rollout_buffer
+            got.append([getattr(buf, f).copy() for f in (
+                "observations", "actions", "rewards", "episode_starts", "values", "log_probs",
+                "advantages", "returns", "active")])
+            n = cfg.ppo.n_steps
+            if loop == "ours":  # row t booked after the actions of t + 1 went out
+                assert order == [min(t + 2, n) for t in range(n)]
+            else:
+                assert order == [t + 1 for t in range(n)]
+        finally:
+            run.close()
+    for a, b in zip(*got):
+        assert np.array_equal(a, b)
+    assert got[0][-1].any() and np.abs(got[0][2]).max() > 0
 
 
 @pytest.mark.sumo

@@ -19,6 +19,12 @@ running count of active slot-steps passes the next multiple of ``batch_size``, s
 hold ``batch_size`` agent-steps give or take one step's agents, and there are as many as with
 independent agent-steps. Free slot-steps still never reach the losses.
 
+The rollout loop (:meth:`MaskedPPO.collect_rollouts`) is SB3's with one reordering: as soon as
+a step's observations arrive, the next actions are computed and sent (``env.step_async``), and
+the step is booked afterwards (episode bookkeeping, timeout bootstrapping, buffer row) while
+the scene workers step. The same draws happen in the same order, so the rollout is SB3's bit
+for bit (tested); only the workers wait less.
+
 The PPO update (:meth:`MaskedPPO.train`) is our own, the algorithm SB3's PPO runs (and bit for
 bit its result without the regulariser below): for ``n_epochs`` passes over the rollout in
 minibatches, with ratio ``rho = exp(log pi(a|s) − log pi_old(a|s))`` and advantages A
@@ -48,7 +54,8 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
-from stable_baselines3.common.utils import explained_variance
+from stable_baselines3.common.utils import explained_variance, obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
 
 from magail_sumo.models.policies import with_scene_groups
 
@@ -204,6 +211,66 @@ class MaskedPPO(PPO):
                 self.rollout_buffer.slot_scene = slot_scene
         if getattr(self.env, "deferred", False):
             self.rollout_buffer.reward_source = self.env.flush_rewards
+
+    def collect_rollouts(self, env: VecEnv, callback: BaseCallback,
+                         rollout_buffer: RolloutBuffer, n_rollout_steps: int) -> bool:
+        """SB3's rollout loop, sending each step's actions before booking the step before it
+        (module doc): same actions, values, rewards and buffer, bit for bit."""
+        assert self._last_obs is not None, "No previous observation was provided"
+        self.policy.set_training_mode(False)
+        n_steps = 0
+        rollout_buffer.reset()
+        if self.use_sde:
+            self.policy.reset_noise(env.num_envs)
+        callback.on_rollout_start()
+        sent = self._act_and_send(env, self._last_obs, n_steps)
+        new_obs = dones = None
+        while n_steps < n_rollout_steps:
+            actions, values, log_probs = sent
+            new_obs, rewards, dones, infos = env.step_wait()
+            self.num_timesteps += env.num_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            n_steps += 1
+            if n_steps < n_rollout_steps:  # the workers step while this step is booked
+                sent = self._act_and_send(env, new_obs, n_steps)
+            self._update_info_buffer(infos, dones)
+            # a truncated agent's return is bootstrapped with the value of its last observation
+            # (SB3 issue #633); done slots only (SB3 reads every slot)
+            for idx in np.flatnonzero(dones).tolist():
+                if infos[idx].get("terminal_observation") is not None \
+                        and infos[idx].get("TimeLimit.truncated", False):
+                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                    with torch.no_grad():
+                        terminal_value = self.policy.predict_values(terminal_obs)[0]
+                    rewards[idx] += self.gamma * terminal_value
+            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts,
+                               values, log_probs)
+            self._last_obs = new_obs
+            self._last_episode_starts = dones
+        with torch.no_grad():
+            values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))
+        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def _act_and_send(self, env: VecEnv, obs: np.ndarray, n_steps: int
+                      ) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+        """The policy's (actions, values, log-probabilities) for ``obs``; the actions, clipped
+        to the action space, are sent to ``env`` (``step_async``)."""
+        if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+            self.policy.reset_noise(env.num_envs)
+        with torch.no_grad():
+            actions, values, log_probs = self.policy(obs_as_tensor(obs, self.device))
+        actions = actions.cpu().numpy()
+        if self.policy.squash_output:
+            clipped = self.policy.unscale_action(actions)
+        else:
+            clipped = np.clip(actions, self.action_space.low, self.action_space.high)
+        env.step_async(clipped)
+        return actions, values, log_probs
 
     def _update_info_buffer(self, infos: list[dict[str, Any]],
                             dones: np.ndarray | None = None) -> None:

@@ -91,6 +91,9 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         #: deferred mode: per step since the last flush, the scenes kept in rollout_x (indices)
         self._pending: list[np.ndarray] = []
         self._pending_first = 0  # index into rollout_x of the first pending step
+        #: deferred mode: the last step's (s, s_next, acted, poses) until the next step_async
+        #: (or a flush) records its tokens: the workers step meanwhile
+        self._raw: tuple | None = None
         #: deferred mode: once this many steps are pending, :meth:`step_async` computes their
         #: rewards while the workers step (None or 0: all at the flush)
         self.ahead_steps: int | None = None
@@ -103,6 +106,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         self.reward_n = 0
 
     def reset(self) -> np.ndarray:
+        self._record_raw()
         obs = self.venv.reset()
         self._last_obs = obs
         self._pending, self._ahead = [], []
@@ -111,6 +115,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
 
     def set_state(self, state) -> np.ndarray:
         """Restore the env (``MultiSceneVecEnv.set_state``); the observation."""
+        self._record_raw()
         obs = self.base.set_state(state)
         self._last_obs = obs
         self._pending, self._ahead = [], []
@@ -122,6 +127,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         their imitation rewards while the workers step (the discriminator does not change
         during a rollout, so they are the rewards :meth:`flush_rewards` would give)."""
         self.venv.step_async(actions)
+        self._record_raw()  # the previous step's tokens, while the workers step
         if self.deferred and self.ahead_steps and len(self._pending) >= self.ahead_steps:
             if self._ahead_pool is None:
                 self._ahead_pool = ThreadPoolExecutor(1, thread_name_prefix="imitation-reward")
@@ -192,23 +198,39 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
             task = np.array(task, np.float32)
             for i in np.flatnonzero(dones):
                 task[i] -= self.penalties.get(infos[i].get("reason"), 0.0)
-        x, mask = self.scene_tokens(self._last_obs, s_next, acted)
-        pos = self.scene_poses(self.base.prev_slot_pos)
-        keep = mask.any(axis=1)
-        if self.deferred:
+        raw = (self._last_obs, s_next, acted, self.base.prev_slot_pos)
+        if self.deferred:  # tokens recorded by the next step_async, after it sent the actions
             rew = (self.reward_t_coef * task).astype(np.float32)
-            self._pending.append(np.flatnonzero(keep))
+            self._raw = raw
         else:
+            x, mask, pos = self._record(*raw)
             r_i = self.rewards(x, mask, pos)[self.base.slot_scene, self.pos_in_scene]
             rew = (self.reward_t_coef * task + self.reward_i_coef * r_i).astype(np.float32)
             self._add_stats(r_i[acted])
         rew[~acted] = 0.0
+        self._last_obs = obs
+        return obs, rew, dones, infos
+
+    def _record(self, s: np.ndarray, s_next: np.ndarray, acted: np.ndarray,
+                slot_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Append one step's scene tokens and poses to the rollout record (scenes with an
+        agent that acted; deferred mode: listed as pending); the step's (x, mask, pos)."""
+        x, mask = self.scene_tokens(s, s_next, acted)
+        pos = self.scene_poses(slot_pos)
+        keep = mask.any(axis=1)
+        if self.deferred:
+            self._pending.append(np.flatnonzero(keep))
         if keep.any():
             self.rollout_x.append(x[keep])
             self.rollout_mask.append(mask[keep])
             self.rollout_pos.append(pos[keep])
-        self._last_obs = obs
-        return obs, rew, dones, infos
+        return x, mask, pos
+
+    def _record_raw(self) -> None:
+        """Record the step :meth:`step_wait` left raw (deferred mode), if any."""
+        raw, self._raw = self._raw, None
+        if raw is not None:
+            self._record(*raw)
 
     def _add_stats(self, ra: np.ndarray) -> None:
         self.reward_sum += float(ra.sum())
@@ -230,6 +252,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
                 torch.set_num_threads(threads)
 
     def _flush_rewards(self) -> np.ndarray:
+        self._record_raw()
         ahead, self._ahead = self._ahead, []
         blocks = [f.result() for f in ahead]
         blocks.append(self._rewards_of(*self._pop_pending()))
@@ -274,6 +297,7 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
     def pop_rollout(self) -> SceneSteps | None:
         """The policy scene steps recorded since the last call (padded, with the poses at the
         step of s), cleared."""
+        self._record_raw()
         if not self.rollout_x:
             return None
         x, m = np.concatenate(self.rollout_x), np.concatenate(self.rollout_mask)
