@@ -21,7 +21,8 @@ def test_fleet_roster_add_grow_and_queries():
     assert not f.active.any() and f.live().size == 0
     f.join(np.array([1]), dynamics.VehicleState(np.array([10.0]), np.array([20.0]),
                                                 np.array([0.5]), np.array([3.0])))
-    assert f.live().tolist() == [1] and f.pose(1) == (10.0, 20.0, 0.5, 3.0)
+    st = f.state(np.array([1]))
+    assert f.live().tolist() == [1] and (st.x[0], st.y[0], st.yaw[0], st.speed[0]) == (10.0, 20.0, 0.5, 3.0)
     assert f.position(np.array([1])).tolist() == [[10.0, 20.0]]
     k = f.add("new", 1.0, 2.0, 0.0, 4.0, 4.5, 1.8)  # grows by doubling, rows kept
     assert k == 2 and f.capacity == 4 and f.names == ["7", "9", "new"] and f.index["new"] == 2
@@ -54,12 +55,39 @@ def test_fleet_drive_is_the_bicycle_step_and_counts_fixes():
     np.testing.assert_array_equal(st.wheelbase, dynamics.WHEELBASE_RATIO * f.length[k])
 
 
+def test_checked_actions_one_stack_and_agent_by_agent_agree():
+    """The usual step (every agent one (2,) array) takes one stack; any other dict is read
+    agent by agent; both give the same clean actions and findings."""
+    from magail_sumo.env.actions import _each_action, _every_action, checked_actions
+
+    names = ["a", "b", "c"]
+    usual = {"a": np.array([0.5, -2.0], np.float32), "b": np.array([np.nan, 0.1]),
+             "c": np.array([1, 0]), "gone": np.zeros(2)}
+    assert _every_action(usual, names) is not None
+    clean, nonfinite, outside, missing, unknown = checked_actions(usual, names)
+    raw, miss, present = _each_action(usual, names)
+    assert np.array_equal(raw, _every_action(usual, names), equal_nan=True)
+    assert present == 3 and not miss.any() and unknown == 1
+    assert clean.tolist() == [[0.5, -1.0], [0.0, 0.1], [1.0, 0.0]]
+    assert nonfinite.tolist() == [False, True, False] and outside.tolist() == [True, False, False]
+    for odd in ({"a": [0.5, -2.0], "b": np.array([np.nan, 0.1]), "c": np.array([[1, 0]])},
+                {"a": np.array([0.5, -2.0]), "b": None, "c": np.array([1.0, 0.0])},
+                {"a": np.array([0.5, -2.0]), "c": np.array([1.0, 0.0])}):
+        assert _every_action(odd, names) is None  # a list, a (1, 2) array, None, absent
+        clean, nonfinite, outside, missing, unknown = checked_actions(odd, names)
+        assert clean[0].tolist() == [0.5, -1.0] and clean[2].tolist() == [1.0, 0.0]
+        assert nonfinite[1] and not nonfinite[[0, 2]].any() and unknown == 0
+        assert missing.tolist() == [False, "b" not in odd or odd["b"] is None, False]
+    with pytest.raises(ValueError, match="action of agent b: expected 2 numbers"):
+        checked_actions({"a": np.zeros(2), "b": np.zeros(3), "c": np.zeros(2)}, names)
+
+
 def test_both_envs_share_the_step():
     from magail_sumo.env import SumoCityEnv, SumoDrivingEnv
 
     for cls in (SumoDrivingEnv, SumoCityEnv):
         assert issubclass(cls, FleetEnv)
-        for stage in ("_clean_actions", "_dynamics", "_events", "_outcomes", "_leave", "_info",
+        for stage in ("_clean_actions", "_dynamics", "_events", "_outcomes", "_leave", "_infos_of",
                       "agent_states"):
             assert getattr(cls, stage) is getattr(FleetEnv, stage), (cls.__name__, stage)
 

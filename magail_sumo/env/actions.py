@@ -32,6 +32,36 @@ def checked_actions(actions: Mapping[str, Any], names: Sequence[str]
 
     :raises ValueError: an action that is not two numbers (naming the agent).
     """
+    given = _every_action(actions, names)
+    if given is not None:  # the usual step: one array per agent, all given
+        raw, missing, present = given, np.zeros(len(names), bool), len(names)
+    else:
+        raw, missing, present = _each_action(actions, names)
+    unknown = len(actions) - present
+    nonfinite = ~np.isfinite(raw).all(axis=1)
+    clean = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
+    outside = (np.abs(clean) > 1.0).any(axis=1)
+    return np.clip(clean, -1.0, 1.0), nonfinite, outside, missing, unknown
+
+
+def _every_action(actions: Mapping[str, Any], names: Sequence[str]) -> np.ndarray | None:
+    """(A, 2) float64 actions of ``names`` in one stack when every agent has a numeric array
+    of shape (2,); None otherwise (:func:`_each_action` then looks at each one)."""
+    try:
+        rows = [actions[n] for n in names]
+    except KeyError:
+        return None
+    if not all(isinstance(v, np.ndarray) and v.shape == (ACTION_SIZE,) and v.dtype.kind in "fiu"
+               for v in rows):
+        return None
+    if not rows:
+        return np.zeros((0, ACTION_SIZE))
+    return np.stack(rows).astype(np.float64)
+
+
+def _each_action(actions: Mapping[str, Any], names: Sequence[str]
+                 ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Agent by agent: (A, 2) actions (NaN where missing), (A,) missing mask, how many given."""
     raw = np.full((len(names), ACTION_SIZE), np.nan)
     missing = np.zeros(len(names), bool)
     present = 0
@@ -48,11 +78,7 @@ def checked_actions(actions: Mapping[str, Any], names: Sequence[str]
             raise ValueError(f"action of agent {name}: expected 2 numbers [accel, steer], got "
                              f"{np.shape(v) if hasattr(v, '__len__') else type(v).__name__}"
                              ) from None
-    unknown = len(actions) - present
-    nonfinite = ~np.isfinite(raw).all(axis=1)
-    clean = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
-    outside = (np.abs(clean) > 1.0).any(axis=1)
-    return np.clip(clean, -1.0, 1.0), nonfinite, outside, missing, unknown
+    return raw, missing, present
 
 
 def count_actions(counts: dict[str, int], actions: Mapping[str, Any], known: Mapping,

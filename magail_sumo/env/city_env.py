@@ -238,7 +238,8 @@ class SumoCityEnv(FleetEnv):
         self.agents = self.fleet.names_of(self.fleet.live())
         obs, _ = self._observe(joiners)
         self._record_fcd()
-        return obs, {a: self._info(self.fleet.index[a], {}, None) for a in self.agents}
+        info = self._infos_of(self.fleet.rows_of(self.agents))
+        return obs, {a: info(i, {}, None) for i, a in enumerate(self.agents)}
 
     @property
     def sumo_time(self) -> float | None:
@@ -321,7 +322,7 @@ class SumoCityEnv(FleetEnv):
         vehicle, names = self._session.api.vehicle, self.fleet.names
         code = np.zeros(agents.size)
         dist = np.full(agents.size, np.inf)
-        for j, k in enumerate(agents):
+        for j, k in enumerate(agents.tolist()):
             try:
                 nxt = vehicle.getNextTLS(names[k])
             except Exception:  # vehicle not (yet) in SUMO

@@ -289,7 +289,8 @@ class SumoDrivingEnv(FleetEnv):
             joiners = self._join()
         self.agents = self.fleet.names_of(joiners)
         obs, _ = self._observe(joiners)
-        infos = {a: self._info(k, {}, None) for a, k in zip(self.agents, joiners)}
+        info = self._infos_of(joiners)
+        infos = {a: info(i, {}, None) for i, a in enumerate(self.agents)}
         self._record_fcd()
         return obs, infos
 
@@ -503,11 +504,12 @@ class SumoDrivingEnv(FleetEnv):
             late = self._join()
             if late.size:
                 more, _ = self._observe(late)
-                for k in late:
+                info = self._infos_of(late)
+                for i, k in enumerate(late):
                     name = f.names[k]
                     obs[name] = more[name]
                     rewards[name], terms[name], truncs[name] = 0.0, False, False
-                    infos[name] = self._info(k, {}, None)
+                    infos[name] = info(i, {}, None)
 
     def _agent_rows(self, k: np.ndarray) -> np.ndarray:
         """Track rows of fleet rows ``k``."""

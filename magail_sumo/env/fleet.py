@@ -135,10 +135,6 @@ class Fleet:
         """(A, 2) box centres of rows ``k`` (m)."""
         return np.stack([self.x[k], self.y[k]], axis=1)
 
-    def pose(self, k: int) -> tuple[float, float, float, float]:
-        """Row ``k``'s ``(x, y, yaw, speed)`` as floats (``infos[agent]["state"]``)."""
-        return (float(self.x[k]), float(self.y[k]), float(self.yaw[k]), float(self.speed[k]))
-
     def wheelbase(self, k: np.ndarray) -> np.ndarray:
         """(A,) wheelbase of rows ``k`` (m; :data:`~magail_sumo.sim.dynamics.WHEELBASE_RATIO`
         of the box length)."""

@@ -50,14 +50,18 @@ class StepDicts:
         trunc = ~term & np.asarray(time_up, bool)
         leaving = term | trunc
         reasons = set(terminate_on) | set(always_reasons)
-        for i, name in enumerate(names):
-            ev = {e: bool(flags[e][i]) for e in events}
-            reason = next((e for e in events if ev[e] and e in reasons), None)
-            if reason is None and trunc[i]:
+        # Python lists: indexing numpy arrays per agent costs several times more
+        columns = [np.asarray(flags[e], bool).tolist() for e in events]
+        ends = [e in reasons for e in events]
+        for i, (name, te, tr, lv) in enumerate(zip(names, term.tolist(), trunc.tolist(),
+                                                   leaving.tolist())):
+            ev = {e: col[i] for e, col in zip(events, columns)}
+            reason = next((e for e, col, end in zip(events, columns, ends) if end and col[i]),
+                          None)
+            if reason is None and tr:
                 reason = truncation_reason[i]
-            self.rewards[name], self.terms[name], self.truncs[name] = \
-                0.0, bool(term[i]), bool(trunc[i])
-            self.infos[name] = info(i, ev, reason if leaving[i] else None)
+            self.rewards[name], self.terms[name], self.truncs[name] = 0.0, te, tr
+            self.infos[name] = info(i, ev, reason if lv else None)
         return leaving
 
     def joined(self, names: Sequence[str], end: bool, end_reason: str,

@@ -160,13 +160,15 @@ class FleetEnv(ParallelEnv):
         end = self.t >= self._end
         time_up, why = self._time_up(act, flags, end, arrived)
         out = StepDicts()
+        info, hit = self._infos_of(act), other.tolist()
         leaving = out.stepped(
             f.names_of(act), flags, self.events, cfg.terminate_on, time_up, why,
-            lambda i, ev, reason: self._info(
-                act[i], ev, reason, self._road_user(ids, other[i]) if other[i] >= 0 else NO_ONE),
+            lambda i, ev, reason: info(
+                i, ev, reason, self._road_user(ids, hit[i]) if hit[i] >= 0 else NO_ONE),
             always_reasons=self.always_reasons)
+        joined = self._infos_of(joiners)
         out.joined(f.names_of(joiners), end, END_OF_EPISODE,
-                   lambda j, reason: self._info(joiners[j], {}, reason))
+                   lambda j, reason: joined(j, {}, reason))
         gone = act[leaving]
         if end:
             gone = np.concatenate([gone, joiners])
@@ -182,13 +184,17 @@ class FleetEnv(ParallelEnv):
                 self._session.remove(f.names[k])
                 f.in_sumo[k] = False
 
-    def _info(self, k: int, events: dict[str, bool], reason: str | None,
-              other: str = NO_ONE) -> dict:
-        """``infos`` of row ``k`` (module doc)."""
-        f = self.fleet
-        return {"step": self.t, "events": events, "reason": reason, "collided_with": other,
-                "nan_actions": int(f.nan_actions[k]), "clipped_actions": int(f.clipped_actions[k]),
-                "state": f.pose(k)}
+    def _infos_of(self, rows: np.ndarray):
+        """``info(i, events, reason, other="")``: the ``infos`` (module doc) of fleet row
+        ``rows[i]``, now; the rows' counts and states are read once, as Python numbers."""
+        f, t = self.fleet, self.t
+        nan, clip = f.nan_actions[rows].tolist(), f.clipped_actions[rows].tolist()
+        state = np.stack([f.x[rows], f.y[rows], f.yaw[rows], f.speed[rows]], axis=1).tolist()
+
+        def info(i: int, events: dict[str, bool], reason: str | None, other: str = NO_ONE):
+            return {"step": t, "events": events, "reason": reason, "collided_with": other,
+                    "nan_actions": nan[i], "clipped_actions": clip[i], "state": tuple(state[i])}
+        return info
 
     # ------------------------------------------------------------------ hooks each env implements
     def _push(self) -> None:
