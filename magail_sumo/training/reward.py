@@ -106,20 +106,19 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         self.reward_n = 0
 
     def reset(self) -> np.ndarray:
-        self._record_raw()
-        obs = self.venv.reset()
-        self._last_obs = obs
-        self._pending, self._ahead = [], []
-        self._pending_first = len(self.rollout_x)
-        return obs
+        return self._begin(self.venv.reset())
 
     def set_state(self, state) -> np.ndarray:
         """Restore the env (``MultiSceneVecEnv.set_state``); the observation."""
+        return self._begin(self.base.set_state(state))
+
+    def _begin(self, obs: np.ndarray) -> np.ndarray:
+        """``obs`` after a reset or a restore: the step left raw is recorded, the pending steps
+        and the blocks computed ahead are dropped."""
         self._record_raw()
-        obs = self.base.set_state(state)
+        self._pop_pending()
+        self._ahead = []
         self._last_obs = obs
-        self._pending, self._ahead = [], []
-        self._pending_first = len(self.rollout_x)
         return obs
 
     def step_async(self, actions: np.ndarray) -> None:
