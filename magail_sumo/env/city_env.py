@@ -68,7 +68,9 @@ class CityEnvConfig:
         scenario's begin time).
     :param max_steps: 0.1-s steps per episode.
     :param terminate_on: events that end an agent (others are only reported in infos).
-    :param lane_width, off_road_margin, destination_radius: event rules (m).
+    :param lane_width: event rule (m).
+    :param off_road_margin: event rule (m).
+    :param destination_radius: event rule (m).
     :param sumo_seed: added to the reset seed to seed SUMO.
     :param action_layout: ``"accel_steer"`` or the seed's ``"steer_throttle"``.
     :param max_agents: at most this many agents alive at once (None: no cap; a fixed number of

@@ -23,10 +23,15 @@ class Tracks(ArrayDataclass):
 
     :param id: (N,) int64 track ids, unique within the scene.
     :param type: (N,) int8 :class:`ObjectType` values.
-    :param x,y,z: (N, T) float64 box centre.
-    :param length,width,height: (N, T) float32 box size.
+    :param x: (N, T) float64 box centre x.
+    :param y: (N, T) float64 box centre y.
+    :param z: (N, T) float64 box centre z.
+    :param length: (N, T) float32 box size along the heading.
+    :param width: (N, T) float32 box size across the heading.
+    :param height: (N, T) float32 box height.
     :param heading: (N, T) float32 yaw.
-    :param vx,vy: (N, T) float32 velocity.
+    :param vx: (N, T) float32 velocity x.
+    :param vy: (N, T) float32 velocity y.
     :param valid: (N, T) bool, whether the state was observed.
     """
 

@@ -33,7 +33,9 @@ class MetricInput:
 
     :param jt: joint trajectories, all sim agents evaluated (``n_eval`` = A).
     :param feat: realism features ``(B, A, T)`` over the simulated steps.
-    :param x, y, heading: (B, A, T) float32 simulated-step poses (m, rad; scene frame).
+    :param x: (B, A, T) float32 simulated-step pose x (m; scene frame).
+    :param y: (B, A, T) float32 simulated-step pose y (m; scene frame).
+    :param heading: (B, A, T) float32 simulated-step heading (rad; scene frame).
     :param valid: (A, T) bool, the log's validity over the simulated steps.
     :param is_vehicle: (A,) bool.
     """
