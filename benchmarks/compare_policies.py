@@ -14,7 +14,8 @@ scenes. Policies: ``constant_velocity`` (zero action: speed and heading held,
 config, observation normaliser fitted on the expert data) and any ``NAME=CHECKPOINT`` (or
 ``NAME=SPEC``, any ``evaluate --policy`` spec). SUMO runs in worker processes (libsumo).
 
-    python benchmarks/compare_policies.py --expert out/expert --config configs/magail.yaml \\
+    python benchmarks/compare_policies.py --expert out/expert \\
+        --config configs/experiments/womd3/magail.yaml \\
         --policy bc=runs/bc/checkpoints/latest.pt --policy magail=runs/m/checkpoints/latest.pt [--json]
 """
 
@@ -83,7 +84,8 @@ def scene_metrics(out: Path, name: str) -> list[dict]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--expert", required=True, help="expert dir (fits the untrained normaliser)")
-    ap.add_argument("--config", default=str(ROOT / "configs" / "magail.yaml"))
+    ap.add_argument("--config",
+                    default=str(ROOT / "configs" / "experiments" / "womd3" / "magail.yaml"))
     ap.add_argument("--policy", action="append", default=[], metavar="NAME=CHECKPOINT")
     ap.add_argument("--scenes", nargs="*", default=[str(s) for s in SCENES])
     ap.add_argument("--networks", default=str(ROOT / "out" / "networks"))

@@ -1,7 +1,8 @@
 """Open-loop prediction quality of a GameFormer checkpoint per level k, on held-out scenes.
 
-Trains nothing. Scores the checkpoint (``magail-sumo train --config configs/gameformer.yaml``)
-on the test scenes of a split (``configs/splits/womd14.yaml``; or ``--scenes FILE...``) with
+Trains nothing. Scores the checkpoint
+(``magail-sumo train --config configs/experiments/womd14/gameformer.yaml``) on the test scenes
+of a split (``configs/splits/womd14.yaml``; or ``--scenes FILE...``) with
 :func:`magail_sumo.evaluation.openloop.evaluate_openloop`: minADE, minFDE, Waymo miss rate at
 3 / 5 / 8 s and their mean, overlap rate of the most likely mode, for level 0..K and for the
 constant-velocity prediction; then the scenes scored. A scene the checkpoint trained on is

@@ -2,9 +2,9 @@
 
 * ``agent_steps_per_s``: agent-steps (active slot-steps) per second of complete PPO updates —
   rollout in the scene workers with imitation rewards, discriminator training, PPO epochs —
-  with a config (default ``configs/magail.yaml``) on its real scenes; the first update is
-  excluded as warm-up, and a config's behavioural-cloning initialisation runs first, untimed,
-  as in training (a BC policy keeps more agents alive per step than an untrained one);
+  with a config (default ``configs/experiments/womd3/magail.yaml``) on its real scenes; the
+  first update is excluded as warm-up, and a config's behavioural-cloning initialisation runs
+  first, untimed, as in training (a BC policy keeps more agents alive per step than an untrained one);
 * ``disc_tokens_per_s``: vehicle tokens per second through the discriminator loss forward +
   backward (GAIL BCE + gradient penalty), expert and policy tokens counted, at the config's
   transformer size and batch.
@@ -30,8 +30,8 @@ the trainer and torch's update threads all need the cores (two update threads on
         [--scenes ENTRY ...] [--torch-threads-update N]
 
 ``--scenes`` trains on other pool entries than the config's, e.g. a city scenario alone
-(``--config configs/city_ingolstadt21.yaml --scenes data/sumo/ingolstadt21``); the expert data
-are recorded from the config's recorded scenes.
+(``--config configs/experiments/city/ingolstadt21.yaml --scenes data/sumo/ingolstadt21``);
+the expert data are recorded from the config's recorded scenes.
 """
 
 from __future__ import annotations
@@ -121,7 +121,8 @@ def main() -> int:
     ap.add_argument("--json", action="store_true", help="one JSON object per row")
     ap.add_argument("--updates", type=int, default=3, help="timed PPO updates per measurement")
     ap.add_argument("--config", type=Path, action="append",
-                    help="training config (repeatable; default configs/magail.yaml)")
+                    help="training config (repeatable; default "
+                         "configs/experiments/womd3/magail.yaml)")
     ap.add_argument("--workers", default=None,
                     help="comma-separated scene-worker counts (default: the config's)")
     ap.add_argument("--backend", default="process", help="comma-separated: process, ray")
@@ -138,7 +139,7 @@ def main() -> int:
                          "config's torch_threads_update; another count changes results)")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
-    configs = args.config or [ROOT / "configs" / "magail.yaml"]
+    configs = args.config or [ROOT / "configs" / "experiments" / "womd3" / "magail.yaml"]
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     workers = [None] if args.workers is None else [int(w) for w in args.workers.split(",")]
     setups = []

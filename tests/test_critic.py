@@ -199,7 +199,8 @@ def test_bad_critic_config_refused(tmp_path):
         load_config(bad, TrainConfig)
     with pytest.raises(ValueError, match="critic: must be"):
         PolicyConfig(critic="gnn")
-    tcritic = load_config(ROOT / "configs" / "magail_tcritic.yaml", TrainConfig)
+    tcritic = load_config(ROOT / "configs" / "experiments" / "womd3" / "magail_tcritic.yaml",
+                          TrainConfig)
     assert tcritic.policy.critic == "transformer"
 
 

@@ -62,8 +62,9 @@ def test_window_config_from_yaml_and_shipped_config(tmp_path):
     p.write_text("env:\n  start_window: random\n  max_steps: null\n")
     with pytest.raises(ConfigError, match=r"c\.yaml: env\.max_steps: must be set"):
         load_config(p, TrainConfig)
-    cfg = load_config(ROOT / "configs" / "magail_windows.yaml", TrainConfig)
-    scratch = load_config(ROOT / "configs" / "magail_scratch.yaml", TrainConfig)
+    womd3 = ROOT / "configs" / "experiments" / "womd3"
+    cfg = load_config(womd3 / "magail_windows.yaml", TrainConfig)
+    scratch = load_config(womd3 / "magail_scratch.yaml", TrainConfig)
     assert (cfg.env.start_window, cfg.env.min_history, cfg.env.max_steps) == ("random", 10, 80)
     assert replace(cfg, env=scratch.env) == scratch  # otherwise magail_scratch.yaml
 

@@ -227,7 +227,8 @@ def test_bc_defaults_off_and_shipped_config():
     assert (p.bc_coef, p.bc_decay, p.bc_batch_size) == (0.0, 1.0, 256)
     from conftest import ROOT
 
-    reg = load_config(ROOT / "configs" / "magail_bcreg.yaml", TrainConfig)
-    base = load_config(ROOT / "configs" / "magail_scratch.yaml", TrainConfig)
+    womd3 = ROOT / "configs" / "experiments" / "womd3"
+    reg = load_config(womd3 / "magail_bcreg.yaml", TrainConfig)
+    base = load_config(womd3 / "magail_scratch.yaml", TrainConfig)
     assert (reg.ppo.bc_coef, reg.ppo.bc_decay) == (0.1, 0.98)
     assert replace(reg, ppo=replace(reg.ppo, bc_coef=0.0, bc_decay=1.0)) == base

@@ -1,4 +1,11 @@
-"""``magail-sumo train``: MAGAIL / GAIL / behavioural-cloning training from a YAML config."""
+"""``magail-sumo train``: MAGAIL / GAIL / behavioural-cloning training from a YAML config.
+
+The config file may extend others (``extends:``, :mod:`magail_sumo.config`); ``--set KEY=VALUE``
+(repeatable) changes one setting for this run, checked as the file's settings are (an unknown
+key or a value out of range is refused naming the key), so that another seed, scene set or
+update budget needs no copy of the file. The run directory records the config with every
+setting resolved.
+"""
 
 from __future__ import annotations
 
@@ -10,17 +17,28 @@ from pathlib import Path
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a driving policy (MAGAIL, GAIL, BC)",
-                       description="Train from a strict YAML config (configs/magail.yaml, "
-                                   "configs/gail_mlp.yaml, configs/bc.yaml); the run directory "
-                                   "gets config.yaml, environment.json, checkpoints/ and tb/.")
+                       description="Train from a strict YAML config (configs/demo.yaml, "
+                                   "configs/experiments/*/*.yaml; configs/README.md), changed "
+                                   "for this run by --set KEY=VALUE; the run directory gets "
+                                   "config.yaml (every setting resolved), environment.json, "
+                                   "checkpoints/ and tb/.")
     p.add_argument("--config", type=Path, metavar="YAML",
                    help="training config (required unless --upgrade-checkpoint)")
     p.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
                    help="continue a run from RUN_DIR/checkpoints/latest.pt")
     p.add_argument("--run-dir", type=Path, default=None, metavar="DIR",
                    help="run directory (default: OUT_DIR/<algorithm>-seed<seed>-<time>)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                   help="change one setting of the config for this run (repeatable, applied in "
+                        "order after the file): KEY a dotted setting name (updates, "
+                        "ppo.learning_rate, env.observation.leader, scenes.split), VALUE read "
+                        "as YAML (5, 0.0003, true, null, '[a.tfrecord, b.pkl]'); checked as "
+                        "the file's settings are, recorded in the run's config.yaml")
     p.add_argument("--seed", type=int, default=None,
-                   help="override the config's seed (recorded in the run's config.yaml)")
+                   help="override the config's seed (the same as --set seed=N)")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the config with every setting resolved (extends, --set and the "
+                        "defaults) as YAML, and exit without training")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier run in --run-dir: removes only what train wrote "
                         "there (a folder train did not write is refused)")
@@ -97,11 +115,15 @@ def run(args: argparse.Namespace) -> int:
     if args.config is None:
         raise MagailSumoError("train: --config is required")
     warnings.filterwarnings("ignore", message=".*mini-batch size.*")
-    cfg = load_config(args.config, TrainConfig)
-    if args.seed is not None:
-        from dataclasses import replace
+    overrides = list(args.overrides) + ([f"seed={args.seed}"] if args.seed is not None else [])
+    cfg = load_config(args.config, TrainConfig, overrides=overrides)
+    if args.print_config:
+        import yaml
 
-        cfg = replace(cfg, seed=args.seed)
+        from magail_sumo.config import to_dict
+
+        print(yaml.safe_dump(to_dict(cfg), sort_keys=False), end="")
+        return 0
     check_train_config(cfg, args.config)  # device, scene files, start_step: before any set-up
     if args.overwrite and args.run_dir is not None and args.resume is None:
         _clear_run_dir(args.run_dir)

@@ -1,4 +1,4 @@
-"""Training configuration (``configs/*.yaml``), loaded strictly by :func:`magail_sumo.config.load_config`.
+"""Training configuration (``configs/``), loaded strictly by :func:`magail_sumo.config.load_config`.
 
 Every hyperparameter of a run lives here; unknown keys, wrong types and values out of range
 (checked in each dataclass's ``__post_init__``) are refused naming the key.
@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from os import PathLike
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
@@ -26,6 +27,14 @@ from .algorithms import REGISTRY as ALGORITHMS  # ``TrainConfig.algorithm`` name
 @dataclass(frozen=True)
 class ScenesConfig:
     """Training scenes: a scene pool (:mod:`magail_sumo.env.scene_pool`).
+
+    In a config file the pool may be taken from a split (:mod:`magail_sumo.splits`):
+    ``scenes: {split: FILE, part: train}`` (``FILE`` relative to the config file that names
+    it, as ``extends``; ``part`` ``train``, the default, or ``test``) stands for ``files``: the
+    part's scene files as the split lists them, after the ``files`` of the same mapping if it
+    has any (``{files: [data/sumo/ingolstadt21], split: ..., part: train}``: a city and the
+    train scenes). It is resolved when the config is loaded (:meth:`expand_config`): the
+    config, and a run's record of it, hold the files.
 
     :param files: pool entries, any number: scene files (WOMD TFRecord files or shards,
         ScenarioNet pickles; every scene of each), globs, ScenarioNet dataset folders, folders of
@@ -46,9 +55,38 @@ class ScenesConfig:
     convert_budget_s: float = 90.0
     pin_workers: bool = False
 
+    #: the keys :meth:`expand_config` replaces by ``files`` (not fields)
+    EXPAND_KEYS = ("split", "part")
+
     def __post_init__(self) -> None:
         check(len(self.files) > 0, "files", "needs at least one scene file")
         check_positive(self, "worker_timeout_s", "convert_budget_s")
+
+    @classmethod
+    def expand_config(cls, data: dict[str, Any], base: Path) -> dict[str, Any]:
+        """The mapping ``data`` of one config file (or override) with ``split`` / ``part``
+        replaced by ``files`` (class doc); ``base`` is the folder of that file.
+        :class:`FieldError` naming ``split`` or ``part`` when the split cannot be used."""
+        if "split" not in data:
+            check("part" not in data, "part", "needs split next to it (the split file)")
+            return data
+        from magail_sumo.splits import PARTS, load_split
+
+        out = dict(data)
+        split, part = out.pop("split"), out.pop("part", "train")
+        check(isinstance(split, str) and bool(split.strip()), "split",
+              f"expected a split file (configs/splits/*.yaml), got {show(split)}")
+        check(isinstance(part, str) and part in PARTS, "part",
+              f"must be one of {', '.join(PARTS)}, got {show(part)}")
+        files = out.get("files", [])
+        check(isinstance(files, list), "files",
+              f"expected a list (the split's files go after it), got {show(files)}")
+        try:
+            scene_split = load_split(base / split)
+        except ConfigError as exc:
+            raise FieldError("split", str(exc)) from None
+        out["files"] = [*files, *getattr(scene_split, part)]
+        return out
 
     @property
     def effective_convert_budget_s(self) -> float:

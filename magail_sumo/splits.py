@@ -1,0 +1,85 @@
+"""Train / test splits of scene files (``configs/splits/*.yaml``): the generalisation protocol.
+
+A split names the scene files a policy may be trained on and the held-out files every quality
+figure is measured on (README, "Generalisation protocol"). It is a strict config
+(:func:`magail_sumo.config.load_config`: unknown or duplicate keys, aliases and wrong types are
+refused) and checked when loaded: both lists non-empty, no file twice, and no test scene that is
+also a training scene — the same path, or a file of the same scene in another format (the same
+file name stem, e.g. ``data/womd/X.tfrecord`` and ``data/scenarionet/X.pkl``).
+
+This module sits low (it imports only :mod:`magail_sumo.config`) so that a training config can
+take its scenes from a split (``scenes: {split: FILE, part: train}``, :class:`~magail_sumo.
+training.config.ScenesConfig`) without importing the evaluation package;
+:mod:`magail_sumo.evaluation.split` re-exports it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+
+from magail_sumo.config import ConfigError, check, load_config
+
+#: the parts of a split
+PARTS: tuple[str, ...] = ("train", "test")
+
+
+def scene_stem(path: str) -> str:
+    """A scene file's name without folder and scene-file extensions (``.tfrecord[.gz]``,
+    ``.pkl``): files of one scene in two formats share it."""
+    name = os.path.basename(os.path.normpath(path))
+    for ext in (".gz", ".tfrecord", ".pkl"):
+        name = name[:-len(ext)] if name.endswith(ext) else name
+    return name
+
+
+@dataclass(frozen=True)
+class SceneSplit:
+    """Scene files for training and for the held-out evaluation.
+
+    :param train: scene files a policy may be trained on (WOMD TFRecords, ScenarioNet pickles;
+        paths relative to the repository root, or absolute).
+    :param test: held-out scene files, never trained on; quality figures are measured here.
+    :param description: free text.
+    """
+
+    train: tuple[str, ...]
+    test: tuple[str, ...]
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        for key in PARTS:
+            files = getattr(self, key)
+            check(len(files) > 0, key, "needs at least one scene file")
+            norm = [os.path.normpath(f) for f in files]
+            dup = next((f for k, f in enumerate(norm) if f in norm[:k]), None)
+            check(dup is None, key, f"{dup} is listed twice")
+        train = {os.path.normpath(f): f for f in self.train}
+        train_stems = {scene_stem(f): f for f in self.train}
+        for f in self.test:
+            check(os.path.normpath(f) not in train, "test", f"{f} is also a training scene")
+            check(scene_stem(f) not in train_stems, "test",
+                  f"{f} is the same scene as training file {train_stems.get(scene_stem(f))}")
+
+    def files(self, which: str, root: str | PathLike = ".") -> list[Path]:
+        """The ``train`` or ``test`` files, relative ones resolved against ``root``.
+
+        :raises ConfigError: ``which`` is neither, or a file does not exist (naming it).
+        """
+        if which not in PARTS:
+            raise ConfigError(f"split part {which!r}: must be 'train' or 'test'")
+        out = []
+        for k, f in enumerate(getattr(self, which)):
+            p = Path(f) if os.path.isabs(f) else Path(root) / f
+            if not p.is_file():
+                raise ConfigError(f"split {which}[{k}]: {f}: no such file (under {root})")
+            out.append(p)
+        return out
+
+
+def load_split(path: str | PathLike) -> SceneSplit:
+    """Read a split file (strict YAML, see the module doc); :class:`ConfigError` naming the
+    file and key otherwise."""
+    return load_config(path, SceneSplit)
