@@ -98,7 +98,7 @@ def parse_policies(items: list[str]) -> dict[str, str]:
 
 def training_scenes(spec: str) -> list[str] | None:
     """The scene files a checkpoint policy's training config names (None: not a checkpoint)."""
-    from magail_sumo.agents.registry import unguarded
+    from magail_sumo.policies import unguarded
     from magail_sumo.pretrained import is_pretrained_spec, resolve
 
     spec = unguarded(spec)  # the same policy behind the gap guard
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from magail_sumo.errors import MagailSumoError
     from magail_sumo.evaluation.rollouts import BASELINES
-    from magail_sumo.evaluation.split import load_split, scene_stem
+    from magail_sumo.splits import load_split, scene_stem
     from magail_sumo.outputs import claim_output_dir
 
     baselines = [b for item in args.baselines for b in item.split(",") if b and b != "none"]

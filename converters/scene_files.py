@@ -13,8 +13,10 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from converters.files import open_regular, path_problem
-from converters.scenarionet.reader import SUMMARY_FILE, iter_scenarionet
-from converters.womd.reader import iter_womd
+from converters.scenarionet.reader import (SUMMARY_FILE, dataset_files, iter_scenarionet,
+                                           load_scenarionet)
+from converters.tfrecord import iter_records
+from converters.womd.reader import iter_womd, parse_record
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.outputs import printable
 from magail_sumo.scene import Scene
@@ -130,9 +132,6 @@ def list_records(path: str | PathLike) -> list[RecordRef]:
     (a TFRecord's framing is walked, a dataset's summary read; a pickle is one record). A
     record whose framing is bad is still listed (reading it gives its error); a file that
     cannot be opened raises :class:`SceneFormatError`."""
-    from converters.scenarionet.reader import dataset_files
-    from converters.tfrecord import iter_records
-
     p = Path(path)
     fmt = detect_format(p)
     if fmt == "scenarionet":
@@ -150,17 +149,11 @@ def list_records(path: str | PathLike) -> list[RecordRef]:
 def read_record(ref: RecordRef) -> Scene:
     """The scene of one record (:class:`SceneFormatError` naming file and record when it
     cannot be read); only that record is parsed."""
-    from converters.scenarionet.reader import load_scenarionet
-    from converters.tfrecord import iter_records
-    from converters.womd.reader import parse_record
-
     p = Path(ref.path)
     fmt = detect_format(p)
     if fmt == "scenarionet":
         return load_scenarionet(p)
     if fmt == "scenarionet-dataset":
-        from converters.scenarionet.reader import dataset_files
-
         files = dataset_files(p)
         if not 0 <= ref.index < len(files):
             raise SceneFormatError(p, ref.index, "no such record")

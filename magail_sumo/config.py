@@ -45,6 +45,7 @@ from typing import Any, Iterable, TypeVar
 import yaml
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import write_text
 
 T = TypeVar("T")
 
@@ -578,8 +579,6 @@ def git_commit(repo: str | PathLike | None = None) -> str | None:
 
 def record_run(run_dir: str | PathLike, config: Any) -> Path:
     """Write ``config.yaml`` and ``environment.json`` (versions, git commit) into ``run_dir``."""
-    from magail_sumo.outputs import write_text
-
     d = Path(run_dir)
     d.mkdir(parents=True, exist_ok=True)
     write_text(d / "config.yaml", yaml.safe_dump(to_dict(config), sort_keys=False))

@@ -1,7 +1,7 @@
 """Train / test splits of scene files (``configs/splits/*.yaml``): the generalisation protocol.
 
 A split names the scene files a policy may be trained on and the held-out files every quality
-figure is measured on (README, "Generalisation protocol"). It is a strict config
+figure is measured on (docs/evaluation-and-realism.md, "Generalisation protocol"). It is a strict config
 (:func:`magail_sumo.config.load_config`: unknown or duplicate keys, aliases and wrong types are
 refused) and checked when loaded: both lists non-empty, no file twice, and no test scene that is
 also a training scene — the same path, or a file of the same scene in another format (the same
@@ -9,8 +9,7 @@ file name stem, e.g. ``data/womd/X.tfrecord`` and ``data/scenarionet/X.pkl``).
 
 This module sits low (it imports only :mod:`magail_sumo.config`) so that a training config can
 take its scenes from a split (``scenes: {split: FILE, part: train}``, :class:`~magail_sumo.
-training.config.ScenesConfig`) without importing the evaluation package;
-:mod:`magail_sumo.evaluation.split` re-exports it.
+training.config.ScenesConfig`) and evaluation reads the same file.
 """
 
 from __future__ import annotations

@@ -30,6 +30,7 @@ from multiprocessing.connection import wait
 from typing import Any, Callable, Iterable, Iterator
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import one_line
 
 #: seconds a worker gets to exit after its answer before it is killed
 _EXIT_GRACE_S = 5.0
@@ -60,8 +61,6 @@ class JobResult:
 
 
 def _one_line(text: str, limit: int = 400) -> str:
-    from magail_sumo.outputs import one_line
-
     return one_line(text, limit)
 
 

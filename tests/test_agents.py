@@ -1,5 +1,5 @@
-"""``magail_sumo.agents`` (issue 11): the policy registry (checkpoint loaders by algorithm, lazy
-entry points: evaluation imports no training code), the one rollout loop, and evaluation's
+"""``magail_sumo.agents`` and ``magail_sumo.policies`` (issue 11): the policy registry (checkpoint
+loaders by algorithm, user ``module:function`` entry points), the one rollout loop, and evaluation's
 policy rollouts taking each agent's pose from the env (a checkpoint trained with the seed's
 ``steer_throttle`` action layout rolls out to the poses the env produced)."""
 
@@ -13,18 +13,19 @@ import pytest
 import torch
 
 from conftest import ROOT, WOMD_DIR
-from magail_sumo import agents
-from magail_sumo.agents import registry
+from magail_sumo import agents, policies
+from magail_sumo.policies import registry
 from magail_sumo.errors import MagailSumoError
 
 SID = "850c48d8bbfa008f"
 
 
-def test_importing_agents_and_evaluation_imports_no_training():
-    code = ("import sys, magail_sumo.agents, magail_sumo.evaluation.rollouts, "
-            "magail_sumo.cli.evaluate; "
-            "bad = sorted(m for m in sys.modules if m.startswith('magail_sumo.training') "
-            "or m in ('torch', 'libsumo')); assert not bad, bad")
+def test_agents_and_the_cli_front_import_no_training():
+    """The agents layer sits below training (no trainer, no torch), and the CLI imports a
+    command's stack only when that command runs (``magail-sumo inspect`` starts fast)."""
+    code = ("import sys, magail_sumo.agents, magail_sumo.cli.main; "
+            "bad = sorted(m for m in sys.modules if m.startswith(('magail_sumo.training', "
+            "'magail_sumo.policies')) or m in ('torch', 'libsumo')); assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
@@ -50,19 +51,19 @@ def test_checkpoint_loaders_by_algorithm(tmp_path, monkeypatch):
     torch.save({"format": "x", "config": {"algorithm": "myalgo"}, "policy": {}, "update": 0},
                ckpt)
     assert registry.checkpoint_algorithm(ckpt) == "myalgo"
-    monkeypatch.setitem(agents.CHECKPOINT_LOADERS, "myalgo", "test_agents:custom_loader")
-    pol = agents.make_policy(str(ckpt), 7, deterministic=True)
+    monkeypatch.setitem(policies.CHECKPOINT_LOADERS, "myalgo", "test_agents:custom_loader")
+    pol = policies.make_policy(str(ckpt), 7, deterministic=True)
     assert isinstance(pol, _Marker) and (pol.seed, pol.deterministic) == (7, True)
-    agents.register_checkpoint_loader("myalgo", custom_loader)
-    assert agents.make_policy(str(ckpt), 3).seed == 3
+    policies.register_checkpoint_loader("myalgo", custom_loader)
+    assert policies.make_policy(str(ckpt), 3).seed == 3
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     assert registry.checkpoint_algorithm(bad) is None
     with pytest.raises(MagailSumoError, match="bad.pt: corrupt or unreadable checkpoint"):
-        agents.make_policy(str(bad), 0)
-    monkeypatch.setitem(agents.CHECKPOINT_LOADERS, "myalgo", "no_such_module:f")
+        policies.make_policy(str(bad), 0)
+    monkeypatch.setitem(policies.CHECKPOINT_LOADERS, "myalgo", "no_such_module:f")
     with pytest.raises(agents.PolicyError, match="run.pt: could not be created"):
-        agents.make_policy(str(ckpt), 0)
+        policies.make_policy(str(ckpt), 0)
 
 
 class _Env:
@@ -136,11 +137,11 @@ def test_checkpoint_brings_its_action_layout(tmp_path):
     """Evaluation's env takes a checkpoint's action layout (the policy's ``action_layout``); a
     caller naming another env is refused."""
     from magail_sumo.env import EnvConfig
-    from magail_sumo.training.policy_loader import load_checkpoint_policy
+    from magail_sumo.policies import load_checkpoint_policy
     from magail_sumo.training.trainer import CheckpointError
 
     ckpt = _seed_layout_checkpoint(tmp_path)
-    assert agents.make_policy(str(ckpt), 0).action_layout == "steer_throttle"
+    assert policies.make_policy(str(ckpt), 0).action_layout == "steer_throttle"
     with pytest.raises(CheckpointError, match="env.action_layout: trained 'steer_throttle'"):
         load_checkpoint_policy(ckpt, target=EnvConfig())
 
@@ -167,7 +168,7 @@ def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path):
     env = SumoDrivingEnv(scene, bundle, EnvConfig(
         controlled="all", start_step=cur, max_steps=rl.N_STEPS, terminate_on=(),
         end_of_life=False, action_layout="steer_throttle"))
-    policy = agents.make_policy(str(ckpt), rl.rollout_seed(0, 0), deterministic=True)
+    policy = policies.make_policy(str(ckpt), rl.rollout_seed(0, 0), deterministic=True)
     col = {int(i): k for k, i in enumerate(ro.object_id)}
     checked = 0
     try:

@@ -11,7 +11,8 @@ import pytest
 
 from converters import find_scene
 from converters.sumo.bundle import (BundleError, BundleLayout, SceneBundle, bundle_folder,
-                                    check_bundle, complete_bundle, ensure_bundle, is_bundle_dir)
+                                    check_bundle, complete_bundle, is_bundle_dir)
+from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.sim.session import SessionConfig, SumoSession
 

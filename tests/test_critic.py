@@ -18,7 +18,7 @@ from magail_sumo.expert import record_expert
 from magail_sumo.models.critic import CriticTransformerConfig, scene_groups
 from magail_sumo.models.policies import TanhGaussianPolicy, with_scene_groups
 from magail_sumo.training.config import PolicyConfig, TrainConfig
-from magail_sumo.training.policy_loader import load_checkpoint_policy
+from magail_sumo.policies import load_checkpoint_policy
 from magail_sumo.training.ppo import MaskedPPO, MaskedRolloutBuffer
 from magail_sumo.training.trainer import load_checkpoint, load_policy, train
 

@@ -258,7 +258,7 @@ def test_closed_loop_evaluate(trained, tmp_path):
 
     from magail_sumo.cli.main import main
     from magail_sumo.evaluation.rollouts import make_policy
-    from magail_sumo.training.gameformer_policy import GameFormerPolicy
+    from magail_sumo.policies import GameFormerPolicy
 
     assert isinstance(make_policy(str(trained), 3), GameFormerPolicy)
     out = tmp_path / "eval"
@@ -271,8 +271,8 @@ def test_closed_loop_evaluate(trained, tmp_path):
 
 
 def test_pt_loader_dispatches_on_the_algorithm(trained):
-    from magail_sumo.training.gameformer_policy import GameFormerPolicy
-    from magail_sumo.training.policy_loader import load_checkpoint_policy
+    from magail_sumo.policies import GameFormerPolicy
+    from magail_sumo.policies import load_checkpoint_policy
 
     pol = load_checkpoint_policy(trained, seed=4, deterministic=True)
     assert isinstance(pol, GameFormerPolicy) and pol.deterministic

@@ -169,7 +169,9 @@ def test_route_without_a_short_synthesised_stretch_when_it_covers_more(converted
     import sumolib
     import xml.etree.ElementTree as ET
 
-    from converters.sumo.quality import COVERAGE, lane_segments, route_covers
+    from converters.sumo.lanes import lane_segments
+    from converters.sumo.quality import COVERAGE
+    from converters.sumo.routes import route_covers
     from converters.sumo.routes import VehicleRoute
 
     scene, folder, rep = converted_7b24

@@ -80,7 +80,7 @@ def test_env_leaders_on_a_real_scene():
 
 def test_evaluation_observes_with_the_policys_leader_sensor():
     from magail_sumo.env import EnvConfig
-    from magail_sumo.training.policy_loader import policy_observation
+    from magail_sumo.policies import policy_observation
 
     ob = policy_observation(EnvConfig(observation=ObservationConfig(leader=True,
                                                                     leader_range=30.0)))

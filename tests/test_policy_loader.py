@@ -22,7 +22,7 @@ from magail_sumo.evaluation import rollouts as rl
 from magail_sumo.expert import record_expert
 from magail_sumo.sim.dynamics import BicycleLimits
 from magail_sumo.training.config import TrainConfig
-from magail_sumo.training.policy_loader import CheckpointPolicy, load_checkpoint_policy
+from magail_sumo.policies import CheckpointPolicy, load_checkpoint_policy
 from magail_sumo.training.trainer import CheckpointError, load_policy, train
 
 SID = "850c48d8bbfa008f"

@@ -81,7 +81,7 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
     checkpoint, it was trained on the split's train scenes only, and it acts (sampled and
     seeded, or deterministic) on observations of the evaluation layout."""
     from magail_sumo.env.config import EnvConfig
-    from magail_sumo.evaluation.split import load_split, scene_stem
+    from magail_sumo.splits import load_split, scene_stem
     from magail_sumo.sensors.observation import observation_bounds
 
     monkeypatch.delenv(pt.ENV_VAR, raising=False)

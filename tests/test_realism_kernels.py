@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from converters import load_scene
-from magail_sumo.evaluation.realism import interaction, log_replay, map_features
+from magail_sumo.evaluation.realism import interaction, log_replay
+from magail_sumo.sensors import road_edge as map_features
 from magail_sumo.evaluation.realism.metrics import _row_features, compute_features, distinct_rows
 from magail_sumo.evaluation.realism.trajectories import joint_trajectories
 from magail_sumo.scene import traffic_light  # the red-light rule's kernels live there

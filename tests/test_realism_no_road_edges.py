@@ -15,7 +15,7 @@ import pytest
 from converters import load_scene
 from magail_sumo.cli.main import main
 from magail_sumo.evaluation.realism import METRIC_FIELDS, log_replay, scenario_metrics
-from magail_sumo.evaluation.realism.map_features import has_road_edges
+from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.evaluation.report.scoring import AGENT_FIELDS, score_pair
 from magail_sumo.evaluation.submission import read_submission, write_submission
 

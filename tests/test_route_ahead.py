@@ -87,14 +87,14 @@ def test_checkpoint_brings_its_route_points_to_evaluation(tmp_path):
     """A policy trained with the route look-ahead is evaluated in an env that computes it (the
     policy's ``observation``); other observation changes are still refused."""
     from converters import load_scene
-    from magail_sumo import agents
+    from magail_sumo import policies
     from magail_sumo.env import EnvConfig
     from magail_sumo.evaluation import rollouts as rl
-    from magail_sumo.training.policy_loader import load_checkpoint_policy
+    from magail_sumo.policies import load_checkpoint_policy
     from magail_sumo.training.trainer import CheckpointError
 
     ckpt = _route_checkpoint(tmp_path)
-    policy = agents.make_policy(str(ckpt), 0)
+    policy = policies.make_policy(str(ckpt), 0)
     assert policy.observation.route_points == POINTS
     assert policy.obs_dim == len(observation_names()) + 2 * len(POINTS)
     with pytest.raises(CheckpointError, match="env.observation.route_points"):

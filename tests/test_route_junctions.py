@@ -13,7 +13,9 @@ import sumolib
 
 from conftest import ROOT, WOMD_DIR
 from converters import load_scene
-from converters.sumo.quality import COVERAGE, lane_segments, on_lanes, route_covers
+from converters.sumo.lanes import lane_segments, on_lanes
+from converters.sumo.quality import COVERAGE
+from converters.sumo.routes import route_covers
 from converters.sumo.routes import _via_edges
 from converters.sumo.scenario import ConvertOptions, convert_scene
 

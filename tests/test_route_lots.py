@@ -14,7 +14,9 @@ import sumolib
 
 from conftest import ROOT
 from converters import load_scene
-from converters.sumo.quality import COVERAGE, lane_segments, route_covers
+from converters.sumo.lanes import lane_segments
+from converters.sumo.quality import COVERAGE
+from converters.sumo.routes import route_covers
 from converters.sumo.routes import PARKED_MOVE, VehicleRoute, moved_distance
 from converters.sumo.scenario import ConvertOptions, convert_scene
 

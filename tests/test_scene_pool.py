@@ -86,7 +86,7 @@ def test_skipped_file_is_not_repeated(tmp_path):
 @pytest.mark.sumo
 def test_agent_bound_covers_every_window(tmp_path):
     from magail_sumo.env.driving_env import SumoDrivingEnv
-    from converters.sumo.bundle import ensure_bundle
+    from converters.sumo.scenario import ensure_bundle
     from magail_sumo.env.vec_env import max_concurrent_agents
 
     for f in SMALL + [SN / "2a1e44d405a6833f.pkl"]:

@@ -7,7 +7,7 @@ import pytest
 from conftest import ROOT
 from converters import iter_scenes
 from magail_sumo.config import ConfigError
-from magail_sumo.evaluation.split import load_split
+from magail_sumo.splits import load_split
 
 WOMD14 = ROOT / "configs" / "splits" / "womd14.yaml"
 TEST_IDS = {"49c341dce1f65cdb", "53e9adfdac0eb822", "eb4b91b10ca94ff2", "8799c31b5be1f312"}

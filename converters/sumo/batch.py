@@ -24,6 +24,7 @@ from typing import Iterable, Iterator
 from converters.scene_files import SceneRecord, iter_scene_records
 from magail_sumo.outputs import NameRegistry, OutputError, atomic_write, printable
 from magail_sumo.scene import Scene
+from magail_sumo.workers import run_jobs
 
 from .bundle import BundleError, bundle_folder, check_bundle
 from .scenario import ConvertOptions, convert_scene, converter_version, options_key
@@ -102,8 +103,6 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
         (:func:`magail_sumo.workers.run_jobs`), killed after ``timeout_s`` seconds (default:
         the options' ``time_budget_s`` plus :data:`KILL_GRACE_S`; None budget: no limit).
     """
-    from magail_sumo.workers import run_jobs
-
     opts = options or ConvertOptions()
     records: Iterator[SceneRecord] = (r for p in inputs for r in iter_scene_records(p))
     if timeout_s is None and opts.time_budget_s is not None:

@@ -1,5 +1,6 @@
 """The converted-bundle layout, defined once: what :func:`.scenario.convert_scene` writes, how a
-complete bundle is recognised, its reader (:class:`SceneBundle`) and :func:`ensure_bundle`.
+complete bundle is recognised, and its reader (:class:`SceneBundle`);
+:func:`.scenario.ensure_bundle` converts a scene whose bundle is missing.
 
 A networks folder ``DIR`` holds one bundle folder per scene, ``DIR/<name>/``, where ``<name>``
 is :func:`magail_sumo.outputs.safe_name` of the scenario id (:func:`bundle_folder`: the id
@@ -28,7 +29,7 @@ import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -36,9 +37,6 @@ from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
                                  read_marker, safe_name, write_text)
 from magail_sumo.scene import Scene
-
-if TYPE_CHECKING:
-    from converters.scene_files import RecordRef
 
 #: the conversion report of a bundle folder
 REPORT_FILE = "conversion.json"
@@ -230,47 +228,3 @@ def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = 
         if bundles and all(_networks_entry(p) for p in entries):
             write_text(d / MARKER, json.dumps({"tools": {}}, indent=1))
     return claim_output_dir(d, "convert", owned)
-
-
-def ensure_bundle(scene: Scene, networks: str | Path, source: RecordRef | None = None,
-                  time_budget_s: float | None = 600.0, *, search: Sequence[str | Path] = (),
-                  claim: bool = False) -> Path:
-    """A complete bundle folder of ``scene``: the first found in ``search`` then ``networks``
-    (:func:`complete_bundle`), else the scene converted once into ``networks`` (SUMO baseline
-    run skipped, ``time_budget_s`` at most) and its new folder returned.
-
-    Safe across processes: a lock file per bundle (``networks/.locks/<name>``) lets one
-    converter at a time in; the others then find the bundle.
-
-    :param source: the scene's :class:`~converters.scene_files.RecordRef`, recorded in
-        ``conversion.json`` (a folder of bundles is then a training scene pool).
-    :param claim: claim ``networks`` (:func:`claim_networks_dir`) before converting into it.
-    :raises BundleError: the conversion failed (one line with its reason).
-    """
-    import fcntl
-
-    from .scenario import ConvertOptions, convert_scene
-
-    sid = scene.scenario_id
-    for root in (*search, networks):
-        if (found := complete_bundle(root, sid)) is not None:
-            return found
-    if claim:
-        claim_networks_dir(networks)
-    networks = Path(networks)
-    name = safe_name(sid)
-    locks = networks / LOCKS
-    locks.mkdir(parents=True, exist_ok=True)
-    with open(locks / name, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            if (found := complete_bundle(networks, sid)) is not None:
-                return found  # converted by another process meanwhile
-            rep = convert_scene(scene, networks, ConvertOptions(
-                baseline=False, time_budget_s=time_budget_s),
-                source=None if source is None else (source.path, source.index))
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-    if rep.status != "ok":
-        raise BundleError(f"scenario {printable(sid)}: conversion failed: {rep.reason}")
-    return bundle_folder(networks, sid)

@@ -11,80 +11,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 
 from magail_sumo.scene import ObjectType, Scene
+from magail_sumo.sim.session import SessionConfig, SumoSession
 
-from .geometry import angle_diff, point_segment
-from .routes import PARKED_MOVE, VehicleRoute, moved_distance
+from .lanes import LaneSegments, on_lanes
+from .routes import PARKED_MOVE, VehicleRoute, moved_distance, route_covers
 from .signals import CHAR_CLASS, STATE_CLASS, SignalPrograms
 
-MARGIN = 0.5  #: m beyond half the lane width
-MAX_ANGLE = np.radians(45.0)
-COVERAGE = 0.9
-
-
-@dataclass(frozen=True)
-class LaneSegments:
-    """All lane segments of a built network: ends (S, 2), half width + margin (S,), heading, edge."""
-
-    a: np.ndarray
-    b: np.ndarray
-    tol: np.ndarray
-    heading: np.ndarray
-    edge: np.ndarray  # (S,) edge id (internal edges start with ':')
-
-
-    @classmethod
-    def from_shapes(cls, lanes: Iterable[tuple[np.ndarray, float, str]]) -> "LaneSegments":
-        """Segments of lanes given as (shape (P, >=2), width m, edge id); shorter shapes skipped."""
-        a, b, tol, edge = [], [], [], []
-        for shape, width, eid in lanes:
-            if len(shape) < 2:
-                continue
-            a.append(shape[:-1, :2])
-            b.append(shape[1:, :2])
-            tol.append(np.full(len(shape) - 1, width / 2 + MARGIN))
-            edge.append(np.full(len(shape) - 1, eid, dtype=object))
-        a_, b_ = np.concatenate(a), np.concatenate(b)
-        d = b_ - a_
-        return cls(a_, b_, np.concatenate(tol), np.arctan2(d[:, 1], d[:, 0]), np.concatenate(edge))
-
-
-def lane_segments(net) -> LaneSegments:
-    """Segments of every lane (internal lanes included) of a sumolib net but the pedestrians'
-    (sidewalks, crossings, walking areas: :func:`.pedestrians.is_walking_lane`)."""
-    from .pedestrians import is_walking_lane
-
-    return LaneSegments.from_shapes(
-        (np.asarray(lane.getShape(), dtype=np.float64), lane.getWidth(), e.getID())
-        for e in net.getEdges(withInternal=True) for lane in e.getLanes()
-        if not is_walking_lane(lane))
-
-
-def on_lanes(seg: LaneSegments, xy: np.ndarray, heading: np.ndarray,
-             mask: np.ndarray | None = None) -> np.ndarray:
-    """(M,) bool: point within tolerance of a segment (of ``mask``) heading within 45°."""
-    a, b, tol, hd = seg.a, seg.b, seg.tol, seg.heading
-    if mask is not None:
-        a, b, tol, hd = a[mask], b[mask], tol[mask], hd[mask]
-    out = np.zeros(len(xy), bool)
-    if not len(a):
-        return out
-    order = np.lexsort((xy[:, 1], xy[:, 0]))  # spatially coherent chunks for the bbox filter
-    slo, shi = np.minimum(a, b) - tol[:, None], np.maximum(a, b) + tol[:, None]
-    for lo in range(0, len(xy), 128):
-        rows = order[lo:lo + 128]
-        p, h = xy[rows], heading[rows]
-        near = np.flatnonzero(np.all((slo <= p.max(axis=0)) & (shi >= p.min(axis=0)), axis=1))
-        if not len(near):
-            continue
-        d, _ = point_segment(p, a[near], b[near])
-        ok = (d <= tol[near][None]) & (angle_diff(h[:, None], hd[near][None]) <= MAX_ANGLE)
-        out[rows] = ok.any(axis=1)
-    return out
+COVERAGE = 0.9  #: share of its states a route must cover (route_rate)
 
 
 def moving_vehicles(scene: Scene) -> np.ndarray:
@@ -109,25 +46,6 @@ def on_network_rate(scene: Scene, seg: LaneSegments, off: np.ndarray | None = No
     if off is not None:
         on &= ~off[idx][v]
     return float(on.mean())
-
-
-def route_covers(scene: Scene, seg: LaneSegments, route: VehicleRoute, net) -> float:
-    """Share of the track's valid states on the route's lanes or its internal lanes."""
-    tr = scene.tracks
-    n = route.track
-    steps = np.flatnonzero(tr.valid[n])
-    names = set(route.edges)
-    for a, b in zip(route.edges[:-1], route.edges[1:]):
-        for c in net.getEdge(a).getOutgoing().get(net.getEdge(b), []):
-            via = c.getViaLaneID()
-            while via:
-                names.add(via.rsplit("_", 1)[0])
-                lane = net.getLane(via)
-                nxt = lane.getOutgoing()
-                via = nxt[0].getViaLaneID() if nxt and nxt[0].getViaLaneID() else ""
-    mask = np.isin(seg.edge, list(names))
-    xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
-    return float(on_lanes(seg, xy, tr.heading[n, steps].astype(np.float64), mask).mean())
 
 
 def route_rate(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net) -> float | None:
@@ -165,8 +83,6 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
     after ``k + 1`` steps the simulation shows log step ``k`` (the signal programs hold their
     first state one extra step to match).
     """
-    from magail_sumo.sim.session import SessionConfig, SumoSession
-
     tr = scene.tracks
     steps = scene.num_steps
     known = {r.id: r for r in routes if not r.parked}

@@ -18,6 +18,7 @@ from sumolib.geomhelper import polygonOffsetWithMinimumDistanceToPoint
 
 from .matching import LaneIndex, match_track
 from .topology import NetworkPlan
+from .lanes import LaneSegments, lane_segments, on_lanes
 
 PARKED_MOVE = 2.0  #: m, tracks moving less than this are parked (see :func:`moved_distance`)
 SPIKE = 1.0  #: m, a one-state jump of a box at least this far is a spike (not motion)
@@ -207,8 +208,6 @@ def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges:
     edge (out of its last edge) in the built network -- netconvert's junction took that part of
     the mapped lane -- the route starts one edge earlier (ends one edge later), through them.
     The edge whose junction lanes carry the most of those states is taken."""
-    from .quality import on_lanes  # quality imports this module
-
     def covered(names: set[str], rows: np.ndarray) -> np.ndarray:
         return on_lanes(seg, xy[rows], heading[rows], np.isin(seg.edge, list(names)))
 
@@ -234,8 +233,6 @@ def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges:
 
 def _route_score(scene: Scene, seg, route: VehicleRoute, net) -> tuple[bool, float]:
     """(connected, share of the track's valid states the route covers): larger is better."""
-    from .quality import route_covers  # quality imports this module
-
     return route.connected, route_covers(scene, seg, route, net)
 
 
@@ -329,8 +326,6 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
 def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bike: LaneIndex,
                  net) -> tuple[list[VehicleRoute], list[dict]]:
     """Routes for every vehicle and cyclist track; the rest listed as unconverted."""
-    from .quality import lane_segments  # quality imports this module
-
     cache: list = []
 
     def seg():
@@ -408,3 +403,22 @@ def write_routes(path: Path, routes: list[VehicleRoute], dt: float, end_time: fl
                          f'until="{end_time + 1:.1f}" parking="true"/>\n')
             fh.write("  </vehicle>\n")
         fh.write("</routes>\n")
+
+
+def route_covers(scene: Scene, seg: LaneSegments, route: VehicleRoute, net) -> float:
+    """Share of the track's valid states on the route's lanes or its internal lanes."""
+    tr = scene.tracks
+    n = route.track
+    steps = np.flatnonzero(tr.valid[n])
+    names = set(route.edges)
+    for a, b in zip(route.edges[:-1], route.edges[1:]):
+        for c in net.getEdge(a).getOutgoing().get(net.getEdge(b), []):
+            via = c.getViaLaneID()
+            while via:
+                names.add(via.rsplit("_", 1)[0])
+                lane = net.getLane(via)
+                nxt = lane.getOutgoing()
+                via = nxt[0].getViaLaneID() if nxt and nxt[0].getViaLaneID() else ""
+    mask = np.isin(seg.edge, list(names))
+    xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+    return float(on_lanes(seg, xy, tr.heading[n, steps].astype(np.float64), mask).mean())

@@ -19,6 +19,7 @@ Recorded driving off the mapped lanes gets synthesised lanes (:mod:`.synthesis`)
 from __future__ import annotations
 
 import errno
+import fcntl
 import json
 import os
 import shutil
@@ -26,22 +27,29 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 from magail_sumo.outputs import OutputError, one_line, printable, safe_name
 from magail_sumo.scene import LaneType, Scene
+from magail_sumo.scene.signal_sanity import checked_signal_sanity
 from magail_sumo.scene.types import STEP_LENGTH
 
-from .bundle import REPORT_FILE, BundleLayout, bundle_folder
-from .bundle import claim_networks_dir  # noqa: F401 - re-exported: callers import it from here
+from .bundle import (LOCKS, REPORT_FILE, BundleError, BundleLayout, bundle_folder,
+                     complete_bundle)
+from .bundle import claim_networks_dir  # re-exported: callers import it from here
 from .matching import build_index
 from .network import build_network
 from .pedestrians import check_built, plan_pedestrians
-from .quality import lane_segments, on_network_rate, route_rate, run_baseline
+from .lanes import lane_segments
+from .quality import on_network_rate, route_rate, run_baseline
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
 from .synthesis import carried_states, synthesize_lanes
 from .topology import TimeBudgetExceeded, plan_network
+from .opendrive import write_opendrive
+
+if TYPE_CHECKING:
+    from converters.scene_files import RecordRef
 
 
 #: Version of the converter's outputs, recorded in ``conversion.json`` (``converter_version``,
@@ -300,8 +308,6 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         write_sumocfg(files.sumocfg, name, additional, end)
         lap("routes")
         if opts.opendrive:
-            from .opendrive import write_opendrive
-
             stage = "opendrive"
             write_opendrive(built.net_file, files.opendrive, timeout_s=remaining())
             lap("opendrive")
@@ -319,7 +325,6 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,
         }
-        from magail_sumo.scene.signal_sanity import checked_signal_sanity
 
         rep.data_quality["signals"] = checked_signal_sanity(scene)
         lap("quality")
@@ -358,3 +363,43 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             rep.status = "failed"
             rep.reason = f"{printable(sid)}: write: {_one_line(exc)}"
     return rep
+
+
+def ensure_bundle(scene: Scene, networks: str | Path, source: RecordRef | None = None,
+                  time_budget_s: float | None = 600.0, *, search: Sequence[str | Path] = (),
+                  claim: bool = False) -> Path:
+    """A complete bundle folder of ``scene``: the first found in ``search`` then ``networks``
+    (:func:`~.bundle.complete_bundle`), else the scene converted once into ``networks`` (SUMO baseline
+    run skipped, ``time_budget_s`` at most) and its new folder returned.
+
+    Safe across processes: a lock file per bundle (``networks/.locks/<name>``) lets one
+    converter at a time in; the others then find the bundle.
+
+    :param source: the scene's :class:`~converters.scene_files.RecordRef`, recorded in
+        ``conversion.json`` (a folder of bundles is then a training scene pool).
+    :param claim: claim ``networks`` (:func:`~.bundle.claim_networks_dir`) before converting into it.
+    :raises BundleError: the conversion failed (one line with its reason).
+    """
+    sid = scene.scenario_id
+    for root in (*search, networks):
+        if (found := complete_bundle(root, sid)) is not None:
+            return found
+    if claim:
+        claim_networks_dir(networks)
+    networks = Path(networks)
+    name = safe_name(sid)
+    locks = networks / LOCKS
+    locks.mkdir(parents=True, exist_ok=True)
+    with open(locks / name, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            if (found := complete_bundle(networks, sid)) is not None:
+                return found  # converted by another process meanwhile
+            rep = convert_scene(scene, networks, ConvertOptions(
+                baseline=False, time_budget_s=time_budget_s),
+                source=None if source is None else (source.path, source.index))
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    if rep.status != "ok":
+        raise BundleError(f"scenario {printable(sid)}: conversion failed: {rep.reason}")
+    return bundle_folder(networks, sid)

@@ -33,7 +33,7 @@ from magail_sumo.scene.types import STEP_LENGTH
 
 from .geometry import length, point_segment, resample, simplify
 from .matching import LaneIndex, Match, match_track
-from .quality import MARGIN, LaneSegments, on_lanes
+from .lanes import LaneSegments, on_lanes
 from .routes import PARKED_MOVE, _piece, moved_distance
 from .topology import ConnectionPlan, EdgePlan, NetworkPlan
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Protocol
 
 import numpy as np
@@ -47,3 +48,14 @@ def env_settings(policy) -> dict:
     """The ``EnvConfig`` fields ``policy`` names (:data:`ENV_SETTINGS` it has): evaluation
     builds the policy's env with them."""
     return {k: getattr(policy, k) for k in ENV_SETTINGS if hasattr(policy, k)}
+
+
+def check_noise_scale(scale: float, what: str = "noise scale") -> float:
+    """``scale`` as a float, refused (:class:`PolicyError`) unless finite and >= 0."""
+    try:
+        value = float(scale)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not math.isfinite(value) or value < 0:
+        raise PolicyError(f"{what} must be a finite number >= 0, got {scale!r}")
+    return value

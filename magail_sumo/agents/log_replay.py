@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from magail_sumo.env.expert import expert_actions
+
 
 class LogReplayPolicy:
     """The expert's actions for the env's live agents, in the env's action layout and limits
@@ -24,8 +26,6 @@ class LogReplayPolicy:
         self.env = env
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        from magail_sumo.env.expert import expert_actions
-
         if self.env is None:
             raise RuntimeError("LogReplayPolicy: call begin(scene, env) before act")
         self.states = self.env.agent_states()

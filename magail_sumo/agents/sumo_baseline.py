@@ -39,8 +39,11 @@ from typing import Collection
 
 import numpy as np
 
+from magail_sumo.env.bundle import SceneBundle
 from magail_sumo.scene import Scene
 from magail_sumo.scene.types import STEP_LENGTH
+from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
+from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
 
 from .constant_velocity import Track, constant_velocity, current_state, fill_constant_velocity
 
@@ -196,10 +199,6 @@ def sumo_rollout(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarray, n_s
                  ) -> tuple[np.ndarray, ...]:
     """One rollout of SUMO's own car-following (module doc) of the agents ``ids`` (track ids)
     over ``n_steps`` steps after the scene's current step; (x, y, yaw), each (A, n_steps)."""
-    from magail_sumo.env.bundle import SceneBundle
-    from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
-    from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
-
     bundle = SceneBundle.load(scene, bundle_dir)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     rows, x0, y0, _, h0, vx0, vy0 = current_state(scene, ids)

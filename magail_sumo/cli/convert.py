@@ -71,6 +71,7 @@ def _line(text: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from converters.sumo.batch import convert_files, write_summary
     from converters.sumo.scenario import ConvertOptions, claim_networks_dir
 

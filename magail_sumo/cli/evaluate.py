@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from magail_sumo.cli.argtypes import bounded, timeout_s
+from magail_sumo.outputs import OutputError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -81,6 +82,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.evaluation.city import CitySettings, check_policy, check_sumocfg
     from magail_sumo.evaluation.rollouts import EvaluationError
 
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         if args.scenes:
             done, errors = _scenes(args)
         if city is not None:
+            # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
             from magail_sumo.evaluation.city import evaluate_city
 
             res = evaluate_city(args.policy, args.city, args.out, city, name=args.name)
@@ -116,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _scenes(args: argparse.Namespace) -> tuple[int, int]:
     """Rollouts of the recorded scenes: (scene/method pairs done, problems)."""
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.evaluation.rollouts import evaluate
 
     base = [] if args.baselines.strip().lower() == "none" else \
@@ -132,8 +136,6 @@ def _scenes(args: argparse.Namespace) -> tuple[int, int]:
 @contextlib.contextmanager
 def _one_line_os_errors(out: Path):
     """A full disk, a read-only folder: one line naming the file, no traceback."""
-    from magail_sumo.outputs import OutputError
-
     try:
         yield
     except OSError as exc:

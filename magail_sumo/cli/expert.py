@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 
 from magail_sumo.cli.argtypes import timeout_s
+from magail_sumo.config import load_config
+from magail_sumo.outputs import OutputError, claim_output_dir, printable
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -31,17 +33,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.env.vec_env import scene_specs
     from magail_sumo.expert import record_expert
 
     observation = limits = None
     if args.config is not None:
-        from magail_sumo.config import load_config
+        # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
         from magail_sumo.training.config import TrainConfig
 
         cfg = load_config(args.config, TrainConfig)
         observation, limits = cfg.env.observation, cfg.env.limits
-    from magail_sumo.outputs import claim_output_dir, printable
 
     # refuse a folder that is not ours before converting anything
     claim_output_dir(args.out, "expert", ["metadata.json"])
@@ -66,7 +68,6 @@ def run(args: argparse.Namespace) -> int:
         meta = record_expert(specs, args.out, observation, limits, workers=args.workers,
                              on_scene=done, on_error=failed, timeout_s=args.timeout_s)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
-        from magail_sumo.outputs import OutputError
 
         raise OutputError(f"{exc.filename or args.out}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None

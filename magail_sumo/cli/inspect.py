@@ -11,6 +11,7 @@ from typing import Any
 from converters.scene_files import iter_scene_records
 from magail_sumo.cli.progress import progress
 from magail_sumo.outputs import printable
+from magail_sumo.scene.signal_sanity import checked_signal_sanity, format_signal_sanity
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -25,8 +26,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def format_text(summary: dict[str, Any], duration: float) -> str:
-    from magail_sumo.scene.signal_sanity import format_signal_sanity
-
     tb = summary["tracks_by_type"]
     mf = summary["map_features"]
     return "\n".join([
@@ -85,8 +84,6 @@ def run(args: argparse.Namespace) -> int:
         scene = rec.scene
         assert scene is not None
         try:
-            from magail_sumo.scene.signal_sanity import checked_signal_sanity
-
             summary = scene.summary()
             summary["signal_sanity"] = checked_signal_sanity(scene)
         except Exception as exc:  # noqa: BLE001 - one scene's failure, not the batch's

@@ -16,6 +16,7 @@ from typing import Sequence
 from magail_sumo import __version__
 from magail_sumo.cli import convert, evaluate, inspect, realism, replay, report, expert, train
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import printable
 
 SUBCOMMANDS = (inspect, convert, replay, realism, evaluate, report, expert, train)
 #: argument names holding a command's input (the first one present names it in errors)
@@ -53,8 +54,6 @@ def _input_of(args: argparse.Namespace) -> str | None:
 def error_line(args: argparse.Namespace, exc: BaseException) -> str:
     """``error: magail-sumo COMMAND: [INPUT: ]problem`` on one line (INPUT for an unexpected
     exception; a :class:`MagailSumoError` names what it is about itself)."""
-    from magail_sumo.outputs import printable
-
     text = " ".join(str(exc).split()) or type(exc).__name__
     if not isinstance(exc, MagailSumoError):  # ours name their file / record / spec already
         text = f"{type(exc).__name__}: {text}"

@@ -10,7 +10,7 @@ from typing import Any
 
 from converters.scene_files import iter_scene_records
 from magail_sumo.evaluation.realism import METRIC_FIELDS, aggregate_metrics, scenario_metrics
-from magail_sumo.evaluation.realism.map_features import has_road_edges
+from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.evaluation.submission import SubmissionError, iter_submission
 from magail_sumo.outputs import printable
 

@@ -9,8 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from converters import load_scene
+from converters.sumo.bundle import BundleLayout, bundle_folder
 from magail_sumo.cli.argtypes import bounded
 from magail_sumo.cli.progress import progress
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import OutputError, atomic_path, printable
 
 POLICIES = ("log", "random")
 MAX_FPS = 100  #: GIF frame durations are whole 10 ms
@@ -23,7 +27,6 @@ def check_writable(out: Path) -> None:
     is made and a temporary file is written there and removed."""
     import tempfile
 
-    from magail_sumo.errors import MagailSumoError
 
     if out.is_dir():
         raise MagailSumoError(f"{out}: is a folder (give a FILE.gif or FILE.mp4)")
@@ -82,6 +85,7 @@ def _write_video_atomic(path: Path, frames: list, fps: int) -> int:
     import contextlib
     import os
 
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.env.video import write_video
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -104,8 +108,7 @@ def _write_fcd(env, path: Path, bundle: Path, temporary: bool):
     (``NAME.net.xml``, ``NAME.tll.xml``) so the config outlives it."""
     import shutil
 
-    from converters.sumo.bundle import BundleLayout
-    from magail_sumo.outputs import atomic_path
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.sim.fcd import replay_paths, write_replay
 
     if not temporary:
@@ -131,18 +134,17 @@ def _umask() -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from converters import load_scene
-    from converters.sumo.bundle import bundle_folder, ensure_bundle
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
+    from converters.sumo.scenario import ensure_bundle
     from magail_sumo.agents import LogReplayPolicy, rollout
     from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv
     from magail_sumo.env.video import FORMATS
-    from magail_sumo.errors import MagailSumoError
-    from magail_sumo.outputs import OutputError, printable
 
     if args.out.suffix.lower() not in FORMATS:
         raise MagailSumoError(f"{args.out}: unsupported video format (use {' or '.join(FORMATS)})")
     check_writable(args.out)
     if args.fcd is not None:
+        # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
         from magail_sumo.sim.fcd import replay_paths
 
         args.fcd = replay_paths(args.fcd)[0]

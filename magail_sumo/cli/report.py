@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from magail_sumo.outputs import OutputError, printable
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="report of a magail-sumo evaluate folder",
@@ -29,8 +31,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.evaluation.report import build_report
-    from magail_sumo.outputs import OutputError, printable
 
     subs: dict[str, list[str]] = {}
     for name, path in args.submission:

@@ -14,6 +14,10 @@ import json
 import sys
 from pathlib import Path
 
+from magail_sumo.config import load_config, to_dict
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import MARKER, read_marker, remove_owned, write_text
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a driving policy (MAGAIL, GAIL, BC)",
@@ -55,8 +59,6 @@ def _clear_run_dir(d: Path) -> None:
     """Remove the earlier run in ``d``: only what ``train`` recorded as its own in the folder's
     marker; :class:`~magail_sumo.outputs.OutputError` (nothing removed) for a folder train did
     not write. Other files stay, and the folder stays marked as a run directory."""
-    from magail_sumo.outputs import MARKER, read_marker, remove_owned, write_text
-
     if not d.is_dir() or not any(d.iterdir()):
         return
     remove_owned(d, "train")
@@ -101,13 +103,13 @@ class _Bars:
 def run(args: argparse.Namespace) -> int:
     import warnings
 
-    from magail_sumo.config import load_config
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.training.config import TrainConfig, check_train_config
     from magail_sumo.training.trainer import train
 
-    from magail_sumo.errors import MagailSumoError
 
     if args.upgrade_checkpoint is not None:
+        # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
         from magail_sumo.training.trainer import upgrade_checkpoint
 
         print(f"upgraded: {upgrade_checkpoint(args.upgrade_checkpoint, trust=args.trust)}")
@@ -120,7 +122,6 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         import yaml
 
-        from magail_sumo.config import to_dict
 
         print(yaml.safe_dump(to_dict(cfg), sort_keys=False), end="")
         return 0

@@ -46,6 +46,7 @@ from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
 from magail_sumo.sim import dynamics
+from magail_sumo.sim.fcd import FcdRecorder, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
@@ -397,8 +398,6 @@ class SumoCityEnv(FleetEnv):
         """Record every vehicle's pose from now on, each step (agents from their bicycle
         state, the others from SUMO), into ``recorder`` (default: a new
         :class:`~magail_sumo.sim.fcd.FcdRecorder`); returns it. Times are episode seconds."""
-        from magail_sumo.sim.fcd import FcdRecorder
-
         self.fcd = recorder if recorder is not None else FcdRecorder(self.dt)
         if self._session is not None:
             self._record_fcd()
@@ -407,8 +406,6 @@ class SumoCityEnv(FleetEnv):
     def write_fcd(self, path: str | Path, recorder=None):
         """Write the recording as SUMO FCD plus a ``.sumocfg`` replaying it on the scenario's
         network in ``sumo-gui`` (:func:`~magail_sumo.sim.fcd.write_replay`)."""
-        from magail_sumo.sim.fcd import write_replay
-
         rec = recorder if recorder is not None else self.fcd
         if rec is None:
             raise RuntimeError("nothing recorded: call record_fcd() first")

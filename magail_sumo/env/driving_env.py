@@ -45,10 +45,13 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
+from converters import load_scene
+from magail_sumo.outputs import safe_name
 from magail_sumo.scene import Scene
 from magail_sumo.sensors.command import RouteCommands
 from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
 from magail_sumo.sim import dynamics
+from magail_sumo.sim.fcd import FcdRecorder, SHAPES, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
 from .actions import ACTION_COUNTS
@@ -59,6 +62,7 @@ from .fleet import AgentStates, Fleet
 from .outcomes import StepDicts
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
 from .step import END_OF_EPISODE, FleetEnv
+from .expert import log_prev_actions
 
 __all__ = ["AgentStates", "SumoDrivingEnv"]
 
@@ -100,8 +104,6 @@ class SumoDrivingEnv(FleetEnv):
     def __init__(self, scene: Scene | str | Path, bundle: str | Path,
                  config: EnvConfig | None = None, render_mode: str | None = None) -> None:
         if not isinstance(scene, Scene):
-            from converters import load_scene
-
             scene = load_scene(scene)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -379,8 +381,6 @@ class SumoDrivingEnv(FleetEnv):
 
     def _log_prev_actions(self, t: int) -> np.ndarray:
         """:func:`~magail_sumo.env.expert.log_prev_actions` covering step ``t`` (cached)."""
-        from .expert import log_prev_actions
-
         if self._prev_table is None or self._prev_table[0] < t:
             # the first need computes up to it (evaluation: the current step), a later one
             # further the whole log
@@ -521,8 +521,6 @@ class SumoDrivingEnv(FleetEnv):
         :class:`~magail_sumo.sim.fcd.FcdRecorder` when None; None stops recording when given
         to ``stop_fcd``); returns it. Write it with :meth:`write_fcd`. Recording starts with
         the current step when an episode is running."""
-        from magail_sumo.sim.fcd import FcdRecorder
-
         self.fcd = recorder if recorder is not None else FcdRecorder(self.dt)
         if self._session is not None:
             self._record_fcd()
@@ -533,8 +531,6 @@ class SumoDrivingEnv(FleetEnv):
         it on this scene's converted network with its signal programs
         (:func:`~magail_sumo.sim.fcd.write_replay`); returns the
         :class:`~magail_sumo.sim.fcd.ReplayFiles`."""
-        from magail_sumo.sim.fcd import write_replay
-
         rec = recorder if recorder is not None else self.fcd
         if rec is None:
             raise RuntimeError("nothing recorded: call record_fcd() first")
@@ -547,7 +543,6 @@ class SumoDrivingEnv(FleetEnv):
         log-driven objects; the same world the sensors see)."""
         if self.fcd is None or self._session is None:
             return
-        from magail_sumo.sim.fcd import SHAPES
 
         tr = self.scene.tracks
         agents = self.fleet.live()
@@ -572,8 +567,6 @@ class SumoDrivingEnv(FleetEnv):
 
     def _start_auto_fcd(self) -> None:
         import os
-
-        from magail_sumo.outputs import safe_name
 
         if self._fcd_auto is not None:
             self._finish_auto_fcd()

@@ -6,7 +6,7 @@ Rules (scene frame, metres):
   ``lane_width / 2 + margin`` from every lane centre line of the scene map (WOMD lanes carry no
   width, so one nominal width is used); ``"road_edge"`` (:class:`RoadEdgeRule`): a corner of
   the box lies more than ``off_road_edge_margin`` beyond the road edges, WOSAC's off-road test
-  (the signed distance of :mod:`magail_sumo.evaluation.realism.map_features`, positive
+  (the signed distance of :mod:`magail_sumo.sensors.road_edge`, positive
   off-road), while the agent's recorded pose at that step does not (parked off the road in
   the log is not off-road), in scenes whose map has road edges (the lane rule elsewhere);
 * **red-light violation**: during the step the box centre crosses a signalled stop line — the
@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magail_sumo.scene import Scene
+from magail_sumo.sensors.road_edge import distance_to_road_edge, has_road_edges, road_edge_segments
 from magail_sumo.sensors.traffic_lights import LIGHT_CODES, RED
 
 
@@ -43,7 +44,7 @@ class RoadEdgeRule:
     stands in (else its first).
 
     :param segments: the scene's road-edge segments
-        (:func:`~magail_sumo.evaluation.realism.map_features.road_edge_segments`).
+        (:func:`~magail_sumo.sensors.road_edge.road_edge_segments`).
     :param z: (N,) each track's median recorded box bottom (z less half the height, m):
         the env is 2-D, and z only picks the road level where edges overlap.
     :param log_off: (N, T) the recorded pose of track n at step t is off-road (filled as
@@ -61,10 +62,6 @@ class RoadEdgeRule:
               ) -> "RoadEdgeRule | None":
         """The rule of ``scene`` (``length, width``: (N,) each track's box size, m); None
         when its map has no road edge (nuScenes pickles)."""
-        # imported here: only envs that use the rule load the metric's kernels
-        from magail_sumo.evaluation.realism.map_features import (has_road_edges,
-                                                                 road_edge_segments)
-
         if not has_road_edges(scene):
             return None
         tr = scene.tracks
@@ -91,8 +88,6 @@ class RoadEdgeRule:
                     length: np.ndarray, width: np.ndarray) -> np.ndarray:
         """(A,) bool: a box corner of track rows ``rows`` at the given poses lies beyond the
         road edge by more than the margin (whatever the log did)."""
-        from magail_sumo.evaluation.realism.map_features import distance_to_road_edge
-
         if len(rows) == 0:
             return np.zeros(0, bool)
         # the metric's (batch, object, step) layout: one batch, one step; z is already the

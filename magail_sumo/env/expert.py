@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from magail_sumo.sim import dynamics
 
-from .driving_env import SumoDrivingEnv
+if TYPE_CHECKING:
+    from .driving_env import SumoDrivingEnv
 
 #: Limits wide enough to replay recorded tracks exactly (use as ``EnvConfig.limits`` for log
 #: replay checks): WOMD tracks carry detection noise that asks for |accel| > 100 m/s² and

@@ -29,13 +29,13 @@ side, each with its own worker seed, so each plays its own start windows (a reco
 its own episodes of the demand (a city: SUMO seed, which vehicles the policy drives).
 
 Bundles are converted on demand, the first time a worker plays a scene, into ``networks/`` and
-reused from then on (:func:`converters.sumo.bundle.ensure_bundle`; a lock file per bundle keeps
+reused from then on (:func:`converters.sumo.scenario.ensure_bundle`; a lock file per bundle keeps
 two workers from converting one scene at once). A worker keeps only its most recent scenes' envs
 (``cache`` of them), so memory does not grow with the pool.
 
 Slots: a city scenario needs ``max_agents`` slots; a worker holding one recorded scene sizes
 its slots exactly (the scene's most concurrent agents,
-:func:`~magail_sumo.env.slot_worker.max_concurrent_agents`); a worker holding several sizes them to
+:func:`max_concurrent_agents`); a worker holding several sizes them to
 the largest :func:`agent_bound` of its scenes, computed from each scene alone when the worker
 starts (no conversion needed): the vehicles and cyclists alive at once that the controlled
 setting can pick.
@@ -53,16 +53,48 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from converters.scene_files import RecordRef, list_records, read_record
-from converters.sumo.bundle import REPORT_FILE, BundleError, ensure_bundle, read_report
+from converters.sumo.bundle import REPORT_FILE, BundleError, read_report
+from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import one_line, printable
+from magail_sumo.scene import ObjectType
 
 from .config import SCENE_CACHE, EnvConfig
+from .city_env import CityEnvConfig, SumoCityEnv
 
 #: SeedSequence stream of the per-pass scene order (apart from the start-window stream)
 POOL_STREAM = 0x5CE4E
 _SCENE_SUFFIXES = (".pkl",)
 _GLOB_CHARS = set("*?[")
+
+
+def max_concurrent_agents(env) -> int:
+    """Upper bound of the number of agents of ``env`` alive at one step (>= 1), over every
+    episode window its config allows (``start_window: random``: over the whole log; never
+    more than K with ``controlled: K``)."""
+    tr = env.scene.tracks
+    row_of = {int(t): k for k, t in enumerate(tr.id.tolist())}
+    rows = np.array([row_of[int(a)] for a in env.possible_agents], np.int64)
+    if rows.size == 0:
+        return 1
+    cfg = env.config
+    t_steps = tr.valid.shape[1]
+    if cfg.start_window == "random":  # every window lies in the log; tracks join no earlier
+        start, end = 0, t_steps - 1
+    else:
+        start = min(cfg.start_step, t_steps - 1)
+        end = t_steps - 1 if cfg.max_steps is None else min(t_steps - 1, start + cfg.max_steps)
+    valid = tr.valid[rows]
+    steps = np.arange(t_steps)
+    join = np.where(valid & (steps[None] >= start), steps[None], t_steps).min(axis=1)
+    last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
+    alive = (steps[None] >= join[:, None]) & (steps[None] <= last[:, None]) & \
+        (steps[None] <= end)
+    most = int(alive.sum(axis=0).max())
+    if not isinstance(cfg.controlled, str):
+        most = min(most, int(cfg.controlled))
+    return max(1, most)
+
 
 
 class ScenePoolError(MagailSumoError):
@@ -169,8 +201,6 @@ def agent_bound(scene, config: EnvConfig) -> int:
     from the scene alone: the vehicles and cyclists (the only objects SUMO routes) between their
     first and last valid step at one step, restricted to the SDC / tracks to predict for those ``controlled`` settings and capped
     at K for ``controlled: K``."""
-    from magail_sumo.scene import ObjectType
-
     tr = scene.tracks
     rows = np.isin(tr.type, [ObjectType.VEHICLE, ObjectType.CYCLIST])
     c = config.controlled
@@ -271,8 +301,6 @@ class PoolCursor:
             return self._envs[k]
         ref = self.refs[k]
         if is_city(ref):
-            from .city_env import CityEnvConfig, SumoCityEnv
-
             env = SumoCityEnv(ref.path, self.city or CityEnvConfig())
         else:
             scene = read_record(ref)
@@ -308,8 +336,6 @@ class PoolCursor:
         """The worker's slot count: exact for one record, else the largest :func:`agent_bound`
         (records that cannot be read are failed here)."""
         if len(self.refs) == 1 and not is_city(self.refs[0]):
-            from .slot_worker import max_concurrent_agents
-
             _, env = self.env_for(0)
             return max_concurrent_agents(env)
         most = 0

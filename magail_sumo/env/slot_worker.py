@@ -23,9 +23,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from converters import find_scene
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sensors.observation import observation_bounds
 
 from .config import SCENE_CACHE, EnvConfig, draw_start
+from .driving_env import SumoDrivingEnv
+from .scene_pool import PoolCursor, max_concurrent_agents
 
 __all__ = ["PoolSpec", "SceneSpec", "SlotWorker", "VecEnvWorkerError", "episode_rng",
            "load_spec_scene", "make_worker", "max_concurrent_agents"]
@@ -51,42 +55,12 @@ class SceneSpec:
 
 def load_spec_scene(spec: SceneSpec):
     """The :class:`~magail_sumo.scene.Scene` a spec names (:func:`converters.find_scene`)."""
-    from converters import find_scene
-
     return find_scene(spec.scene_file, spec.scenario_id)
 
 
 def episode_rng(seed: int, episode: int) -> np.random.Generator:
     """The generator drawing episode ``episode``'s start window of a worker seeded ``seed``."""
     return np.random.default_rng(np.random.SeedSequence([seed % (1 << 64), episode]))
-
-
-def max_concurrent_agents(env) -> int:
-    """Upper bound of the number of agents of ``env`` alive at one step (>= 1), over every
-    episode window its config allows (``start_window: random``: over the whole log; never
-    more than K with ``controlled: K``)."""
-    tr = env.scene.tracks
-    row_of = {int(t): k for k, t in enumerate(tr.id.tolist())}
-    rows = np.array([row_of[int(a)] for a in env.possible_agents], np.int64)
-    if rows.size == 0:
-        return 1
-    cfg = env.config
-    t_steps = tr.valid.shape[1]
-    if cfg.start_window == "random":  # every window lies in the log; tracks join no earlier
-        start, end = 0, t_steps - 1
-    else:
-        start = min(cfg.start_step, t_steps - 1)
-        end = t_steps - 1 if cfg.max_steps is None else min(t_steps - 1, start + cfg.max_steps)
-    valid = tr.valid[rows]
-    steps = np.arange(t_steps)
-    join = np.where(valid & (steps[None] >= start), steps[None], t_steps).min(axis=1)
-    last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
-    alive = (steps[None] >= join[:, None]) & (steps[None] <= last[:, None]) & \
-        (steps[None] <= end)
-    most = int(alive.sum(axis=0).max())
-    if not isinstance(cfg.controlled, str):
-        most = min(most, int(cfg.controlled))
-    return max(1, most)
 
 
 @dataclass(frozen=True)
@@ -141,21 +115,16 @@ class SlotWorker:
 
     def __init__(self, source: SceneSpec | PoolSpec, config: EnvConfig, seed: int,
                  slots: int | None) -> None:
-        from .driving_env import SumoDrivingEnv
-
         def make_env(scene, bundle):
             return SumoDrivingEnv(scene, bundle, config)
 
         if isinstance(source, PoolSpec):
-            from .scene_pool import PoolCursor
-
             self.cursor = PoolCursor(source.refs, source.networks, seed, make_env, config,
                                      source.cache, source.convert_budget_s, source.city)
         else:
             self.cursor = _FixedScene(source, make_env)
         self.config = config
         self.slots = slots or self.cursor.scan()
-        from magail_sumo.sensors.observation import observation_bounds
 
         self.dim = int(observation_bounds(config.observation)[0].shape[0])
         self.base_seed = seed

@@ -46,7 +46,13 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
+from converters import iter_scenes
+from converters.scene_files import RecordRef
+from converters.sumo.bundle import bundle_folder, complete_bundle
+from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import NameRegistry, printable
+from magail_sumo.sensors.observation import observation_bounds
 from magail_sumo.sim.dynamics import ACTION_SIZE
 
 from .config import SCENE_CACHE, EnvConfig
@@ -54,6 +60,8 @@ from .config import SCENE_CACHE, EnvConfig
 # importable from here
 from .slot_worker import (PoolSpec, SceneSpec, SlotWorker, VecEnvWorkerError,  # noqa: F401
                           episode_rng, load_spec_scene, make_worker, max_concurrent_agents)
+from .scene_pool import ScenePoolError, shard_pool
+from .transport import WorkerFailed, WorkerLost, backend_class
 
 SEED_STRIDE = 100_003
 #: per-step cost of a scene worker in units of one agent's cost (SUMO step, log replay, sensor
@@ -120,9 +128,6 @@ class MultiSceneVecEnv(VecEnv):
                  max_restarts: int = 0, log=None) -> None:
         if not scenes:
             raise ValueError("MultiSceneVecEnv needs at least one scene")
-        from magail_sumo.sensors.observation import observation_bounds
-
-        from .transport import backend_class
 
         self.specs = list(scenes)
         self.config = config or EnvConfig()
@@ -230,8 +235,6 @@ class MultiSceneVecEnv(VecEnv):
         return [getattr(h, "proc", None) for h in self._handles]
 
     def _recv(self, k: int) -> Any:
-        from .transport import WorkerFailed, WorkerLost
-
         try:
             return self._handles[k].recv(self.timeout_s)
         except (WorkerLost, WorkerFailed) as exc:
@@ -267,8 +270,6 @@ class MultiSceneVecEnv(VecEnv):
     def _send(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None = None
               ) -> dict[int, str]:
         """The sending half of :meth:`_exchange`: the workers lost on the way (reason each)."""
-        from .transport import WorkerLost
-
         if self.closed:
             raise VecEnvWorkerError("the vector env is closed")
         ks = list(range(len(self.specs))) if workers is None else list(workers)
@@ -283,8 +284,6 @@ class MultiSceneVecEnv(VecEnv):
     def _gather(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None,
                 lost: dict[int, str]) -> list[Any]:
         """The receiving half of :meth:`_exchange` (``lost``: from :meth:`_send`)."""
-        from .transport import WorkerFailed, WorkerLost
-
         ks = list(range(len(self.specs))) if workers is None else list(workers)
         out = []
         for k, arg in zip(ks, args):
@@ -462,17 +461,12 @@ def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
     (``networks/<name>/``, ``name`` = :func:`magail_sumo.outputs.safe_name` of the scenario
     id), converting the scenes that have none yet (baseline run skipped, ``time_budget_s``
     seconds each at most) into ``networks`` once it is claimed
-    (:func:`converters.sumo.bundle.ensure_bundle`). Two scenes whose ids map to one name
+    (:func:`converters.sumo.scenario.ensure_bundle`). Two scenes whose ids map to one name
     are refused (:class:`~magail_sumo.outputs.OutputError`).
 
     :param errors: when given, a scene (or file) that cannot be used is appended here as a
         one-line reason and left out, instead of raising :class:`MagailSumoError`.
     """
-    from converters import iter_scenes
-    from converters.scene_files import RecordRef
-    from converters.sumo.bundle import bundle_folder, complete_bundle, ensure_bundle
-    from magail_sumo.outputs import NameRegistry, printable
-
     networks = Path(networks)
     names = NameRegistry()
     out = []
@@ -520,8 +514,6 @@ def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
     (:class:`~magail_sumo.env.city_env.CityEnvConfig`). A worker none of whose scenes can be used at start-up has its scenes
     reported as skipped (``venv.skipped``) and the pool is sharded again without them.
     ``kwargs`` go to :class:`MultiSceneVecEnv` (timeout, backend, restarts, ...)."""
-    from .scene_pool import ScenePoolError, shard_pool
-
     refs = list(refs)
     skipped: list[tuple[str, str]] = []
     log = log or (lambda msg: None)

@@ -47,7 +47,9 @@ import shutil
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from magail_sumo.agents import env_settings
+from magail_sumo.agents import env_settings, rollout
+from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv, _scenario_files
+from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.rollouts import (BASELINES, DEFAULT_TIMEOUT_S, EvaluationError,
                                              log, make_policy, method_name, previous_manifest,
@@ -57,6 +59,8 @@ from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSu
                                                          summarise)
 from magail_sumo.outputs import (claim_output_dir, inside, one_line, printable, safe_name,
                                  write_text)
+from magail_sumo.sim.session import SessionConfig
+from magail_sumo.workers import run_one
 
 #: method name of SUMO's default drivers
 SUMO_METHOD = "sumo"
@@ -85,7 +89,7 @@ class CitySettings:
         ``rollout_seed(seed, 0)``.
     :param deterministic: a checkpoint policy acts with its mean action.
     :param noise_scale: a sampling policy's noise scale (None: the policy's own; see
-        :func:`~magail_sumo.agents.make_policy`).
+        :func:`~magail_sumo.policies.make_policy`).
     :param timeout_s: seconds each run may take (None: no limit).
     """
 
@@ -148,8 +152,6 @@ class PolicyRun:
 def check_sumocfg(path: str | Path) -> Path:
     """``path`` as a usable city scenario (an existing ``.sumocfg`` naming its net and route
     files); :class:`~magail_sumo.errors.MagailSumoError` naming the file otherwise."""
-    from magail_sumo.env.city_env import _scenario_files
-
     path = Path(path)
     if path.suffix != ".sumocfg":
         raise EvaluationError(f"{path}: --city needs a SUMO scenario's .sumocfg file")
@@ -172,10 +174,6 @@ def check_policy(spec: str, deterministic: bool = False,
 def run_policy(job: PolicyJob) -> PolicyRun:
     """Worker entry point (module level, picklable): the policy drives the city for the
     window (module doc); SUMO writes its outputs into ``job.out_dir``."""
-    from magail_sumo.agents import rollout
-    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
-    from magail_sumo.env.config import EnvConfig
-
     st = job.settings
     policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic, st.noise_scale)
     # the env the policy needs: its optional features, action layout and gap guard
@@ -220,8 +218,6 @@ def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
                   ) -> SumoRunSummary:
     """SUMO's default drivers over the policy run's window, from the same state and with the
     env's SUMO settings (module doc)."""
-    from magail_sumo.sim.session import SessionConfig
-
     sess = SessionConfig()
     extra = ["--step-length", str(sess.step_length), "--time-to-teleport",
              str(sess.time_to_teleport), "--collision.action", sess.collision_action]
@@ -261,8 +257,6 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
     :raises EvaluationError: an unusable spec or setting, a scenario file that is no SUMO
         scenario, a name that is ``sumo``.
     """
-    from magail_sumo.workers import run_one
-
     st = settings or CitySettings()
     out = Path(out)
     check_policy(policy, st.deterministic, st.noise_scale)

@@ -30,6 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from converters import iter_scenes
+from magail_sumo.evaluation.realism.interaction import signed_box_distance
+from magail_sumo.models.gameformer_features import (Frame, build_sample, collate, focal_types,
+                                                    log_future, log_history, map_chunks)
 from magail_sumo.scene import Scene
 
 #: (horizon s, step index into the future, lateral m, longitudinal m)
@@ -98,8 +102,6 @@ def overlaps(scene: Scene, c: int, row: int, x: np.ndarray, y: np.ndarray, h0: f
     """Whether the box of track ``row`` (its size at ``c``, its recorded heading, module doc)
     placed along world-frame path ``x, y`` (steps c+1 ..) overlaps another object's recorded
     box at any step."""
-    from magail_sumo.evaluation.realism.interaction import signed_box_distance
-
     tr = scene.tracks
     steps = np.arange(c + 1, c + 1 + len(x))
     heading = np.where(tr.valid[row, steps], tr.heading[row, steps].astype(np.float64),
@@ -132,8 +134,6 @@ def _scores(scene: Scene, pairs: np.ndarray, frames: np.ndarray, pred: np.ndarra
             best: np.ndarray, future_steps: int) -> dict[str, np.ndarray]:
     """Per-sample metrics of predictions ``pred`` (S, M, T, 2) in each sample's frame, the most
     likely mode ``best`` (S,)."""
-    from magail_sumo.models.gameformer_features import Frame, log_future
-
     tr = scene.tracks
     gts, valids, heads, speeds = [], [], [], []
     for (c, r), fr in zip(pairs, frames):
@@ -168,10 +168,6 @@ def evaluate_openloop(model, cfg, scene_files: list[str | Path], batch_size: int
     :returns: ``{"levels": {"level0": {metric: mean}, ...}, "constvel": {...}, "samples": S,
         "scenes": [scenario ids], "per_scene": [...]}``.
     """
-    from converters import iter_scenes
-    from magail_sumo.models.gameformer_features import (build_sample, collate, focal_types,
-                                                        log_history, map_chunks)
-
     g = cfg.gameformer
     f = g.model.future_steps
     levels = g.model.levels + 1

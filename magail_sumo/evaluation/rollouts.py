@@ -11,7 +11,7 @@ sim-agent set). Methods:
   other sim agent moves at constant velocity and is an obstacle SUMO's drivers brake for
   (:mod:`magail_sumo.agents.sumo_baseline` has the details).
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see
-  :func:`magail_sumo.agents.make_policy`): drives every route vehicle and cyclist through
+  :func:`magail_sumo.policies.make_policy`): drives every route vehicle and cyclist through
   :class:`~magail_sumo.env.SumoDrivingEnv` (bicycle model, SUMO co-simulation, no event
   terminates an agent; :func:`magail_sumo.agents.rollout`), built with the policy's
   ``observation``, ``action_layout`` and gap ``guard`` when it names them. Each rollout builds
@@ -39,22 +39,31 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-# policies live in magail_sumo.agents; names kept importable from here for the city evaluation,
-# the report, benchmarks and tests
-from magail_sumo.agents import (BASELINES, BUILTIN_POLICIES, POLICY_LOADERS, Policy,
-                                PolicyError, RandomPolicy, env_settings, make_policy, method_name,
-                                rollout)
+from converters.scene_files import find_scene, iter_scene_records
+from converters.sumo.bundle import BundleLayout
+from converters.sumo.scenario import ensure_bundle
+from magail_sumo.agents import Policy, PolicyError, RandomPolicy, env_settings, rollout
 from magail_sumo.agents import constant_velocity as _cv
 from magail_sumo.agents.constant_velocity import Track as _Track
 from magail_sumo.agents.constant_velocity import current_state as _current_state
 from magail_sumo.agents.constant_velocity import fill_constant_velocity
+from magail_sumo.agents.sumo_baseline import sumo_rollout
+from magail_sumo.config import environment_versions
+from magail_sumo.env import EnvConfig, SumoDrivingEnv
+from magail_sumo.env.actions import action_summary
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
+from magail_sumo.evaluation.realism import log_replay
+from magail_sumo.evaluation.submission import (ScenarioRollouts, sim_agent_ids, validate_rollouts,
+                                               write_submission)
 from magail_sumo.outputs import (NameRegistry, OutputError, atomic_path, claim_output_dir, inside,
                                  one_line, printable, safe_name, write_text)
+from magail_sumo.policies import (BASELINES, BUILTIN_POLICIES, POLICY_LOADERS, make_policy,
+                                  method_name)
 from magail_sumo.scene import Scene
 from magail_sumo.scene.types import STEP_LENGTH
 from magail_sumo.sim.dynamics import wrap_angle
+from magail_sumo.sim.fcd import FcdRecorder, SHAPES, write_replay
+from magail_sumo.workers import run_jobs
 
 N_STEPS = 80  #: simulated steps per rollout (8 s)
 DT = STEP_LENGTH  #: s per step
@@ -102,8 +111,6 @@ def _policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
 
     :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
         actions) are added to it."""
-    from magail_sumo.env import EnvConfig, SumoDrivingEnv
-
     ids = sim_agent_ids(scene)
     col = {str(int(i)): k for k, i in enumerate(ids)}
     cur = scene.current_time_index
@@ -151,8 +158,6 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
     ids = sim_agent_ids(scene)
     idx = list(rollouts)
     if method == "logreplay":
-        from magail_sumo.evaluation.realism import log_replay
-
         ro = log_replay(scene, len(idx), N_STEPS)
         return ro
     xs, ys, yaws = [], [], []
@@ -165,8 +170,6 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
             raise EvaluationError(f"scenario {printable(scene.scenario_id)}: method {method} "
                                   "needs a converted SUMO bundle")
         elif method == "sumo":
-            from magail_sumo.agents.sumo_baseline import sumo_rollout
-
             x, y, yaw = sumo_rollout(scene, Path(bundle_dir), s, ids, N_STEPS)
         else:
             x, y, yaw = _policy_rollout(scene, Path(bundle_dir),
@@ -175,7 +178,6 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         xs.append(x)
         ys.append(y)
         yaws.append(yaw)
-    from magail_sumo.env.actions import action_summary
 
     fixed = action_summary(counts)
     if fixed:  # once per batch, in the run log
@@ -208,8 +210,6 @@ class Batch:
 
 
 def _load(scene_file: str, scenario_id: str) -> Scene:
-    from converters.scene_files import find_scene
-
     return find_scene(scene_file, scenario_id)
 
 
@@ -241,8 +241,6 @@ def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DE
     its own process). A batch running longer than ``timeout_s`` seconds is killed and reported,
     not retried. No wait is unbounded (:func:`magail_sumo.workers.run_jobs`).
     """
-    from magail_sumo.workers import run_jobs
-
     if not batches:
         return
     retry: list[Batch] = []
@@ -328,8 +326,6 @@ def write_rollout_fcd(out: str | Path, scene: Scene, ro: ScenarioRollouts, metho
     :func:`~magail_sumo.outputs.safe_name`). The recorded history (log steps ``0..current``,
     where valid) is followed by the simulated steps; times are ``step * 0.1`` s. Returns the
     ``.sumocfg`` paths."""
-    from magail_sumo.sim.fcd import SHAPES, FcdRecorder, write_replay
-
     tr = scene.tracks
     cur = scene.current_time_index
     r_n, a_n, t_n = ro.shape
@@ -342,7 +338,6 @@ def write_rollout_fcd(out: str | Path, scene: Scene, ro: ScenarioRollouts, metho
         v = np.where(tr.valid[rows], getattr(tr, name)[rows], np.nan)
         size[name] = np.nan_to_num(np.nanmedian(v, axis=1), nan=1.0)  # valid at current
     shape = [SHAPES.get(int(t), "passenger") for t in tr.type[rows]]
-    from converters.sumo.bundle import BundleLayout
 
     files = BundleLayout.of(bundle, scene.scenario_id)
     name, net, tll = files.name, files.net, files.signals
@@ -409,8 +404,6 @@ def read_rollouts(path: str | Path, scene: Scene) -> ScenarioRollouts:
 
 # --------------------------------------------------------------------------------- manifest
 def versions() -> dict[str, str]:
-    from magail_sumo.config import environment_versions
-
     out = dict(environment_versions())
     for pkg in ("pandas", "pyarrow", "libsumo", "sumolib"):
         try:
@@ -491,9 +484,7 @@ class EvaluationResult:
 def _bundle(scene: Scene, networks: Path | None, out: Path,
             timeout_s: float | None = DEFAULT_TIMEOUT_S) -> Path:
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
-    into ``out/networks`` (:func:`converters.sumo.bundle.ensure_bundle`)."""
-    from converters.sumo.bundle import ensure_bundle
-
+    into ``out/networks`` (:func:`converters.sumo.scenario.ensure_bundle`)."""
     return ensure_bundle(scene, out / "networks", time_budget_s=timeout_s,
                          search=[networks] if networks else [], claim=True)
 
@@ -527,9 +518,6 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     :raises EvaluationError: an unknown baseline, an unusable policy spec, bad counts or a
         name that is empty, not printable or another method's.
     """
-    from converters.scene_files import iter_scene_records
-    from magail_sumo.evaluation.submission import validate_rollouts, write_submission
-
     out = Path(out)
     if n_rollouts < 1:
         raise EvaluationError(f"--rollouts must be >= 1, got {n_rollouts}")

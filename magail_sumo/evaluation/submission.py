@@ -20,6 +20,7 @@ import numpy as np
 
 from converters.womd.protos import sim_agents_submission_pb2 as pb
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import write_bytes
 from magail_sumo.scene import Scene
 from magail_sumo.scene.validation import MAX_COORDINATE
 
@@ -179,7 +180,6 @@ def write_submission(path: str | PathLike, rollouts: Sequence[ScenarioRollouts],
         num_model_parameters=num_model_parameters,
         acknowledge_complies_with_closed_loop_requirement=True)
     sub.scenario_rollouts.extend(rollouts_to_proto(r) for r in rollouts)
-    from magail_sumo.outputs import write_bytes
 
     write_bytes(path, sub.SerializeToString())  # atomic: the old file or the whole new one
 

@@ -11,6 +11,8 @@ import numpy as np
 
 from magail_sumo.errors import MagailSumoError
 
+from .record import EXPERT_FORMAT, READABLE_FORMATS
+
 
 class ExpertDataError(MagailSumoError):
     """An expert directory is missing, empty, or does not match the training config."""
@@ -64,8 +66,6 @@ class ExpertDataset:
     def __init__(self, directory: str | Path, observation_names: Sequence[str] | None = None
                  ) -> None:
         import pyarrow.parquet as pq
-
-        from .record import EXPERT_FORMAT, READABLE_FORMATS
 
         d = Path(directory)
         meta_path = d / "metadata.json"

@@ -31,13 +31,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from magail_sumo.agents import LogReplayPolicy, Step, rollout
 from magail_sumo.config import to_dict
+from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv
 from magail_sumo.env.config import EnvConfig
+from magail_sumo.env.expert import training_actions
 from magail_sumo.env.slot_worker import SceneSpec, load_spec_scene
+from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import (NameRegistry, atomic_path, claim_output_dir, inside, printable,
                                  safe_name, write_text)
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 from magail_sumo.sim.dynamics import BicycleLimits
+from magail_sumo.workers import run_jobs
 
 EXPERT_FORMAT = "magail_sumo.expert/2"
 #: formats :class:`~magail_sumo.expert.dataset.ExpertDataset` reads (``/1``: no poses)
@@ -58,10 +63,6 @@ def record_scene(spec: SceneSpec, observation: ObservationConfig, limits: Bicycl
     Call in a process of its own (libsumo: one simulation per process)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
-
-    from magail_sumo.agents import LogReplayPolicy, Step, rollout
-    from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv
-    from magail_sumo.env.expert import training_actions
 
     scene = load_spec_scene(spec)
     cfg = EnvConfig(controlled="all", background="log", terminate_on=(), observation=observation,
@@ -153,8 +154,6 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
 
     :param on_scene: called with each scene's summary as soon as it is written (in order).
     """
-    from magail_sumo.workers import run_jobs
-
     observation = observation or ObservationConfig()
     limits = limits or BicycleLimits()
     out = claim_output_dir(out_dir, "expert", ["metadata.json"])
@@ -183,8 +182,6 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     claim_output_dir(out, "expert", ["metadata.json", *parquets])
     write_text(out / "metadata.json", json.dumps(meta, indent=2))
     if failed and on_error is None:
-        from magail_sumo.errors import MagailSumoError
-
         raise MagailSumoError(f"{len(failed)} of {len(jobs)} scene(s) not recorded; first: "
                               f"{failed[0]['reason']}")
     return meta

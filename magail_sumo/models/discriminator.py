@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from magail_sumo.config import FieldError
 from magail_sumo.models.normalizer import RunningNormalizer
 
 
@@ -39,8 +40,6 @@ class TransformerConfig:
     pooling: str = "mean"  # "mean" over present tokens, or "cls"
 
     def __post_init__(self) -> None:
-        from magail_sumo.config import FieldError
-
         check_set_encoder_sizes(self)
         if self.pooling not in ("mean", "cls"):
             raise FieldError("pooling", f"must be 'mean' or 'cls', got {self.pooling!r}"[:120])
@@ -50,8 +49,6 @@ def check_set_encoder_sizes(cfg) -> None:
     """Range rules of the sizes :func:`set_encoder` takes (``embed_dim``, ``num_layers``,
     ``num_heads``, ``ff_dim``, ``dropout`` of a config dataclass), raised as
     :class:`~magail_sumo.config.FieldError` naming the field."""
-    from magail_sumo.config import FieldError
-
     for name in ("embed_dim", "num_layers", "num_heads", "ff_dim"):
         if getattr(cfg, name) < 1:
             raise FieldError(name, f"must be >= 1, got {getattr(cfg, name)}")

@@ -30,8 +30,13 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from magail_sumo.agents.base import check_noise_scale
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import is_safe_name, printable
+from magail_sumo.outputs import atomic_path, is_safe_name, printable, write_text
+from magail_sumo.splits import load_split, scene_stem
+from magail_sumo.training.checkpoints import load_checkpoint
 
 #: environment variable naming another registry folder (tests, a user's own policies)
 ENV_VAR = "MAGAIL_SUMO_PRETRAINED_DIR"
@@ -171,24 +176,17 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
 
     The checkpoint is read safely and written back with only the policy, the run config and
     the update count (what evaluation loads; no optimiser, discriminator or RNG state). With
-    ``split`` (a split file, :mod:`magail_sumo.evaluation.split`) the card records it, and a
+    ``split`` (a split file, :mod:`magail_sumo.splits`) the card records it, and a
     checkpoint whose config trains on one of its test scenes (same file name stem) is refused.
     ``make_default`` names it in ``index.json``. ``noise_scale`` (with ``noise_note``, how it
     was chosen) is the card's ``sampling``. Files are written atomically.
     """
-    import torch
-
-    from magail_sumo.outputs import atomic_path, write_text
-    from magail_sumo.training.trainer import load_checkpoint
-
     if not is_safe_name(name) or name in RESERVED:
         raise PretrainedError(f"{printable(name, 60)!r}: not a pretrained policy name "
                               "([A-Za-z0-9._-], not a built-in method's name)")
     state = load_checkpoint(checkpoint)
     split_rec = None
     if split is not None:
-        from magail_sumo.evaluation.split import load_split, scene_stem
-
         sp = load_split(split)
         files = (state["config"].get("scenes") or {}).get("files") or []
         stems = {scene_stem(str(f)): f for f in files}
@@ -208,8 +206,6 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
                            "source": str(checkpoint), "update": state["update"]},
             "config": state["config"], "split": split_rec, "figures": figures}
     if noise_scale is not None:
-        from magail_sumo.agents.registry import check_noise_scale
-
         card["sampling"] = {"noise_scale": check_noise_scale(noise_scale, "--noise-scale"),
                             "note": noise_note}
     write_text(d / f"{name}.json", json.dumps(card, indent=2) + "\n")

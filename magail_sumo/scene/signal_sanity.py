@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from magail_sumo.scene import Scene
+from magail_sumo.scene.traffic_light import red_light_violation, signal_lanes
 from magail_sumo.scene.types import ObjectType, SignalState
 
 MAX_LISTED = 20  #: red-light events listed by track and step
@@ -43,8 +44,6 @@ def longest_run(mask: np.ndarray) -> np.ndarray:
 
 def red_light_runs(scene: Scene) -> np.ndarray:
     """(N, T) bool: track n (a vehicle or cyclist) ran a red light at step t (see module doc)."""
-    from magail_sumo.scene.traffic_light import red_light_violation, signal_lanes
-
     tr = scene.tracks
     n, t = tr.valid.shape
     out = np.zeros((n, t), bool)

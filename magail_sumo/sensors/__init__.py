@@ -4,6 +4,7 @@ Sensors are units (:mod:`.base`: names, bounds and a reading over a road map and
 source; one module each in :mod:`.units`); :class:`.observation.SensorSuite` concatenates them.
 """
 
+from . import units  # noqa: F401 - registers the built-in sensors (units import .base)
 from .raycast import SegmentGrid, box_edges, cast, polyline_segments
 
 __all__ = ["SegmentGrid", "box_edges", "cast", "polyline_segments"]

@@ -204,8 +204,6 @@ def register_layout(name: str, sensors: Sequence[str]) -> None:
 
 def sensor_class(name: str) -> type[Sensor]:
     """The sensor registered under ``name``; ``KeyError`` naming the known ones otherwise."""
-    from . import units  # noqa: F401  (registers the built-in sensors)
-
     try:
         return SENSORS[name]
     except KeyError:

@@ -39,7 +39,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from magail_sumo.outputs import atomic_write, write_text
 from magail_sumo.scene.types import STEP_LENGTH
+from magail_sumo.sim.sumo_map import network_map
 
 #: who moved an object in the run (its colour in the replay, R,G,B)
 KIND_COLORS: dict[str, str] = {"agent": "60,200,90", "sumo": "70,130,230", "log": "170,170,170"}
@@ -59,8 +61,6 @@ class LaneIndex:
     lane segments in blocks)."""
 
     def __init__(self, net_file: str | PathLike) -> None:
-        from magail_sumo.sim.sumo_map import network_map
-
         nm = network_map(net_file)
         a, b, lane, start = [], [], [], []
         ids = []
@@ -206,8 +206,6 @@ class FcdRecorder:
         """Write the FCD file (atomically); returns the number of records. With ``net_file``
         each record gets its nearest normal lane and position along it (the replay device
         needs them to insert and place the vehicles)."""
-        from magail_sumo.outputs import atomic_write
-
         types = self.type_ids()
         lines = ['<?xml version="1.0" encoding="UTF-8"?>',
                  "<!-- written by magail_sumo (magail_sumo.sim.fcd) -->", "<fcd-export>"]
@@ -257,8 +255,6 @@ class FcdRecorder:
     def write_types(self, path: str | PathLike) -> None:
         """The vTypes of the recorded objects (size, GUI shape, colour by kind) as an
         additional file; vClass ``ignoring`` lets them use every lane."""
-        from magail_sumo.outputs import write_text
-
         types = self.type_ids()
         lines = ["<additional>"]
         for i, (kind, shape, length, width) in self.objects.items():
@@ -310,8 +306,6 @@ def write_replay(recorder: FcdRecorder, fcd: str | PathLike, net_file: str | Pat
     ``additional`` files, e.g. the bundle's signal programs) in ``sumo-gui`` (or ``sumo``):
     see the module doc. Paths in the config are relative to its folder when possible. All
     files are written atomically; the folder is made when missing."""
-    from magail_sumo.outputs import write_text
-
     fcd_path, types_path, cfg_path = replay_paths(fcd)
     cfg_path.parent.mkdir(parents=True, exist_ok=True)
     net = Path(net_file)

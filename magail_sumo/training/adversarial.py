@@ -23,6 +23,8 @@ from magail_sumo.sensors.observation import observation_names
 
 from .checkpoints import load_into, plain
 from .config import TrainConfig
+from .discriminator_loss import DiscriminatorLossConfig
+from .reward import DiscriminatorRewardWrapper, DiscriminatorTrainer
 
 
 def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:
@@ -63,9 +65,6 @@ class AdversarialReward:
         wrapper of ``venv`` (``deferred``: rewards computed when the generator asks for them,
         see the wrapper) and fitted on ``expert`` by the trainer (seeded with the run seed).
         Torch's global RNG draws the discriminator's initial weights here."""
-        from .discriminator_loss import DiscriminatorLossConfig
-        from .reward import DiscriminatorRewardWrapper, DiscriminatorTrainer
-
         d = cfg.discriminator
         disc = make_discriminator(cfg, 2 * venv.obs_dim)
         extra = {"deferred": True} if deferred else {}

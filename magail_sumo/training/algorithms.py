@@ -16,6 +16,9 @@ import importlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
+from magail_sumo.expert import ExpertDataset
+from magail_sumo.sensors.observation import observation_names
+
 if TYPE_CHECKING:
     from magail_sumo.expert import ExpertDataset
 
@@ -59,9 +62,6 @@ def get(name: str) -> Algorithm:
 
 def load_expert(cfg: "TrainConfig") -> "ExpertDataset":
     """The run's expert demonstrations (``expert_dir``), columns in the observation's order."""
-    from magail_sumo.expert import ExpertDataset
-    from magail_sumo.sensors.observation import observation_names
-
     return ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
 
 

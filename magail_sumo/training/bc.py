@@ -14,8 +14,15 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import torch
 
+from magail_sumo.config import record_run, to_dict
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.policies import TanhGaussianPolicy
+
+from .algorithms import load_expert
+from .checkpoints import CHECKPOINT_FORMAT, encode_state, save_state
+from .policies import make_policy
+from .rng import rng_state
+from .run_dir import claim_run_dir
 
 if TYPE_CHECKING:
     from .config import TrainConfig
@@ -75,14 +82,6 @@ def train_bc(cfg: TrainConfig, run_dir: Path, ckpt: dict | None, log: Callable[[
              progress: Callable[[str, int, int], None]) -> Path:
     """The ``bc`` algorithm: behavioural cloning of the run's expert data into a fresh policy,
     saved as ``checkpoints/latest.pt`` (update 0); a run with a checkpoint is complete."""
-    from magail_sumo.config import record_run, to_dict
-
-    from .algorithms import load_expert
-    from .checkpoints import CHECKPOINT_FORMAT, encode_state, save_state
-    from .policies import make_policy
-    from .rng import rng_state
-    from .run_dir import claim_run_dir
-
     expert = load_expert(cfg)
     if ckpt is not None:
         log(f"{run_dir}: behavioural cloning run already complete")

@@ -14,12 +14,18 @@ from os import PathLike
 from pathlib import Path
 from typing import Any, Literal
 
+from converters.scene_files import read_record
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
+from magail_sumo.env.city_env import CityEnvConfig
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
+from magail_sumo.env.scene_pool import is_city, resolve_pool, start_problem
+from magail_sumo.errors import MagailSumoError
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import TransformerConfig
 from magail_sumo.models.gameformer import GameFormerModelConfig
+from magail_sumo.sensors.observation import observation_names
+from magail_sumo.splits import PARTS, load_split
 
 from .algorithms import REGISTRY as ALGORITHMS  # ``TrainConfig.algorithm`` names (live registry)
 
@@ -70,7 +76,6 @@ class ScenesConfig:
         if "split" not in data:
             check("part" not in data, "part", "needs split next to it (the split file)")
             return data
-        from magail_sumo.splits import PARTS, load_split
 
         out = dict(data)
         split, part = out.pop("split"), out.pop("part", "train")
@@ -122,8 +127,6 @@ class CityConfig:
 
     def env_config(self, env: EnvConfig):
         """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
-        from magail_sumo.env.city_env import CityEnvConfig
-
         return CityEnvConfig.from_env(env, max_agents=self.max_agents,
                                       control_fraction=self.control_fraction,
                                       warmup_s=self.warmup_s, max_steps=self.max_steps)
@@ -547,8 +550,6 @@ class TrainConfig:
               "torch_threads_update", f"must be >= 1, got {self.torch_threads_update}")
         _check_device_name(self.device)
         if self.discriminator.ignore_features:
-            from magail_sumo.sensors.observation import observation_names
-
             names = observation_names(self.env.observation)
             unknown = [f for f in self.discriminator.ignore_features if f not in names]
             check(not unknown, "discriminator.ignore_features",
@@ -591,8 +592,6 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
     the key."""
     from pathlib import Path
 
-    from magail_sumo.errors import MagailSumoError
-
     where = f"{source}: " if source is not None else ""
     try:
         check_device(cfg.device)
@@ -605,8 +604,6 @@ def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -
             if not set("*?[") & set(str(f)) and not Path(f).exists():
                 raise ConfigError(f"{where}scenes.files[{i}]: {show(f, 200)}: no such file")
         return
-    from converters.scene_files import read_record
-    from magail_sumo.env.scene_pool import is_city, resolve_pool, start_problem
 
     checked = []
     for i, f in enumerate(cfg.scenes.files):

@@ -23,7 +23,10 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from converters.sumo.scenario import claim_networks_dir
 from magail_sumo.config import ConfigError, record_run, to_dict
+from magail_sumo.env.scene_pool import is_city, resolve_pool
+from magail_sumo.env.vec_env import pool_vec_env
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.policies import TanhGaussianPolicy
@@ -32,10 +35,14 @@ from magail_sumo.outputs import printable
 from .adversarial import AdversarialReward
 from .checkpoints import (CHECKPOINT_FORMAT, CheckpointError, decode_env_state, encode_state,
                           load_into, plain, save_checkpoint, tensor_field)
-from .config import TrainConfig
+from .config import TrainConfig, usable_cores
 from .policies import policy_kwargs
 from .rng import decode_rng, rng_state, set_rng_state
 from .run_dir import claim_run_dir, note_skipped
+from .algorithms import load_expert
+from .bc import behavioural_cloning
+from .ppo import KLAdaptiveLR, MaskedPPO
+from .reward import DiscriminatorCallback
 
 #: second entropy word of the seed of the PPO behavioural-cloning regulariser's expert sampler
 #: (a stream apart from the discriminator sampler's, seeded with the run seed alone)
@@ -83,12 +90,6 @@ def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
     """The run's scene-pool vector env (:func:`~magail_sumo.env.vec_env.pool_vec_env`) and
     ``cfg`` with ``workers.count`` resolved (None: the usable cores, at most one per scene
     unless the pool holds a city scenario, which replicas play on every core)."""
-    from converters.sumo.scenario import claim_networks_dir
-    from magail_sumo.env.scene_pool import is_city, resolve_pool
-    from magail_sumo.env.vec_env import pool_vec_env
-
-    from .config import usable_cores
-
     skipped: list = []
     refs = resolve_pool(cfg.scenes.files, skipped)
     for s in skipped:
@@ -125,9 +126,6 @@ class GailRun:
     def __init__(self, cfg: TrainConfig, expert: ExpertDataset,
                  log: Callable[[str], None] | None = None) -> None:
         from stable_baselines3.common.callbacks import CallbackList
-
-        from .ppo import KLAdaptiveLR, MaskedPPO
-        from .reward import DiscriminatorCallback
 
         TorchThreads = torch_threads_callback()
 
@@ -288,8 +286,6 @@ def train_gail(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
     warm start, then ``updates`` PPO updates with a checkpoint every ``checkpoint_every``."""
     from stable_baselines3.common.logger import configure
 
-    from .algorithms import load_expert
-
     expert = load_expert(cfg)
     run = GailRun(cfg, expert, log=log)
     cfg = run.cfg  # workers.count resolved
@@ -301,8 +297,6 @@ def train_gail(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
         else:
             run.policy.obs_normalizer.update(torch.as_tensor(expert.s))
             if cfg.bc.epochs > 0:
-                from .bc import behavioural_cloning
-
                 behavioural_cloning(run.policy, expert, cfg.bc.epochs, cfg.bc.batch_size,
                                     cfg.bc.learning_rate, cfg.seed,
                                     log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))

@@ -24,6 +24,7 @@ from typing import Callable
 
 import torch
 
+from converters.scene_files import list_records
 from magail_sumo.config import record_run, to_dict
 from magail_sumo.models.gameformer import GameFormer, gameformer_loss
 
@@ -39,8 +40,6 @@ ALGORITHM = "gameformer"
 
 def scene_records(files: tuple[str, ...]) -> list:
     """The scene records of ``files`` (globs expanded, sorted), in order."""
-    from converters.scene_files import list_records
-
     refs = []
     for f in files:
         paths = sorted(glob.glob(f)) if set("*?[") & set(f) else [f]

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from converters.scene_files import read_record
 from magail_sumo.models.gameformer_features import (  # noqa: F401  (re-exported)
     MAP_KINDS, OBJECT_TYPES, Frame, History, MapChunks, build_sample, collate, focal_types,
     log_future, log_history, map_chunks)
@@ -83,8 +84,6 @@ class StreamingDataset:
     """
 
     def __init__(self, refs: list, cfg: "GameFormerConfig", seed: int) -> None:
-        from converters.scene_files import read_record
-
         self.refs, self.cfg, self.seed = list(refs), cfg, int(seed)
         self._read = read_record
         self.index: list[np.ndarray] = []

@@ -52,7 +52,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPoli
     if cfg.algorithm in ("sac", "sac_gail"):
         raise CheckpointError(f"{path}: a {cfg.algorithm} checkpoint (command-branched SAC), not "
                               "a PPO / behavioural-cloning policy (evaluate loads both: "
-                              "magail_sumo.training.policy_loader.load_checkpoint_policy)")
+                              "magail_sumo.policies.load_checkpoint_policy)")
     policy = make_policy(cfg)
     load_into(policy, state["policy"], "policy", Path(path))
     policy.set_training_mode(False)

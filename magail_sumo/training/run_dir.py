@@ -6,10 +6,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from magail_sumo.env.scene_pool import PoolSkip, write_skipped
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import claim_output_dir, read_marker
 
 from .config import TrainConfig
+from .algorithms import get
 
 #: what ``train`` writes into a run directory (recorded in its marker: ``--overwrite`` removes
 #: only these)
@@ -20,7 +22,6 @@ SKIPPED_FILE = "skipped_scenes.tsv"
 
 def default_run_dir(cfg: TrainConfig, name: str | None) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    from .algorithms import get
 
     kind = f"{cfg.algorithm}-{cfg.discriminator.kind}" if get(cfg.algorithm).adversarial \
         else cfg.algorithm
@@ -58,7 +59,5 @@ def claim_run_dir(d: Path, resumed: bool) -> Path:
 def note_skipped(venv, run_dir: Path) -> None:
     """Append the scenes the pool skipped since the last call to the run's
     :data:`SKIPPED_FILE`."""
-    from magail_sumo.env.scene_pool import PoolSkip, write_skipped
-
     new, venv.new_skipped = venv.new_skipped, []
     write_skipped(run_dir / SKIPPED_FILE, [PoolSkip(w, r) for w, r in new])

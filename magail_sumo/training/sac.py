@@ -73,6 +73,7 @@ from .checkpoints import (CHECKPOINT_FORMAT, CheckpointError, decode_env_state, 
 from .gail import make_pool_env
 from .rng import decode_rng, encode_rng, rng_state, set_rng_state
 from .run_dir import claim_run_dir, note_skipped
+from .algorithms import load_expert
 
 #: second entropy word of the seed of the replay sampler (apart from the other streams)
 SAC_STREAM = 0x5AC
@@ -545,8 +546,6 @@ def train_sac(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
     """Run (or resume, from ``ckpt``) a ``sac`` / ``sac_gail`` run in ``run_dir``."""
     from stable_baselines3.common.logger import configure
 
-    from .algorithms import load_expert
-
     expert = load_expert(cfg) if cfg.algorithm == "sac_gail" else None
     run = SacRun(cfg, expert, log=log)
     cfg = run.cfg
@@ -602,46 +601,6 @@ def train_sac(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
     return run_dir
 
 
-# ----------------------------------------------------------------------------- evaluation
-class SacCheckpointPolicy:
-    """Evaluation policy of a SAC checkpoint (``magail-sumo evaluate --policy CKPT``): each
-    vehicle acts from its own observation (with the route command: :attr:`observation` is the
-    observation config the evaluation env must use), sampled from the branched tanh-Gaussian
-    with the policy's own generator seeded with the rollout seed (agents in sorted-name order),
-    ``tanh(mu + noise_scale * sigma * eps)``, or ``tanh`` of its mean when deterministic."""
-
-    def __init__(self, model: BranchedSAC, observation: ObservationConfig, name: str = "",
-                 seed: int = 0, deterministic: bool = False, noise_scale: float = 1.0) -> None:
-        self.model = model.eval()
-        self.observation = observation
-        self.name = name
-        self.deterministic = bool(deterministic)
-        #: the sampling noise's scale (``magail-sumo evaluate --noise-scale``; 1: the policy's)
-        self.noise_scale = float(noise_scale)
-        self.generator = torch.Generator().manual_seed(int(seed))
-
-    @torch.no_grad()
-    def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        if not observations:
-            return {}
-        names = sorted(observations)
-        x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
-        if x.shape[1] != self.model.obs_dim:
-            raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
-                                  f"policy expects {self.model.obs_dim}")
-        x = torch.as_tensor(np.concatenate([x, np.zeros((len(names), 1), np.float32)], axis=1))
-        a = self.model.act(x, self.deterministic, self.generator, self.noise_scale)
-        return dict(zip(names, np.clip(a.numpy().astype(np.float32), -1.0, 1.0)))
-
-
-def load_sac_policy(path: str | Path, state: dict, cfg: TrainConfig, seed: int = 0,
-                    deterministic: bool = False) -> SacCheckpointPolicy:
-    """The :class:`SacCheckpointPolicy` of a loaded SAC checkpoint ``state`` (config ``cfg``)."""
-    model = make_sac_model(cfg)
-    load_into(model, state["policy"], "policy", Path(path))
-    return SacCheckpointPolicy(model, cfg.env.observation, str(path), seed, deterministic)
-
-
-__all__ = ["ReplayBuffer", "SacAgent", "SacCheckpointPolicy", "SacRun", "Transitions",
-           "buffer_rows", "collision_count", "load_sac_policy", "sample_batch",
+__all__ = ["ReplayBuffer", "SacAgent", "SacRun", "Transitions",
+           "buffer_rows", "collision_count", "sample_batch",
            "step_transitions", "task_reward", "train_sac"]

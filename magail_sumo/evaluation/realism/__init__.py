@@ -2,7 +2,7 @@
 
 ``scenario_metrics(scene, rollouts)`` gives the official per-scenario fields; the modules hold
 one concept each: ``config`` (the 2025 configuration as data), ``trajectories`` (agents and the
-joint 91-step arrays), ``kinematic``, ``interaction``, ``map_features``, ``traffic_light``
+joint 91-step arrays), ``kinematic``, ``interaction``, ``road_edge`` (:mod:`magail_sumo.sensors.road_edge`), ``traffic_light``
 (features), ``estimators`` (likelihoods) and ``metrics`` (aggregation).
 """
 

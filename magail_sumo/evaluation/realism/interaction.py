@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from magail_sumo.sensors.raycast import box_corners
+
 #: Boxes are rounded rectangles with corner radius ``min(length, width) * 0.7 / 2``.
 CORNER_ROUNDING_FACTOR = 0.7
 #: Fill value for pairs that do not count (metres).
@@ -32,18 +34,6 @@ def _rect_vertex_distance(px: np.ndarray, py: np.ndarray, cx: np.ndarray, cy: np
     v = np.abs(-s[..., None] * dx + c[..., None] * dy) - hw[..., None]
     u, v = np.maximum(u, 0), np.maximum(v, 0)
     return np.sqrt(u * u + v * v).min(-1)
-
-
-_SIGNS = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], np.float32)  # CCW corners
-
-
-def box_corners(x: np.ndarray, y: np.ndarray, heading: np.ndarray, length: np.ndarray,
-                width: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Corner coordinates ``(..., 4)`` each for x and y, counter-clockwise from front-left."""
-    c, s = np.cos(heading)[..., None], np.sin(heading)[..., None]
-    lx = _SIGNS[:, 0] * (length[..., None] / 2)
-    ly = _SIGNS[:, 1] * (width[..., None] / 2)
-    return x[..., None] + c * lx - s * ly, y[..., None] + s * lx + c * ly
 
 
 def signed_box_distance(xa, ya, ha, la, wa, xb, yb, hb, lb, wb) -> np.ndarray:

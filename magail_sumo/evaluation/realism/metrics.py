@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magail_sumo.evaluation.realism import interaction, kinematic, map_features, traffic_light
+from magail_sumo.evaluation.realism import interaction, kinematic, traffic_light
+from magail_sumo.sensors import road_edge as map_features
 from magail_sumo.evaluation.realism.config import (
     BUCKETS, CHALLENGE_2025, Bernoulli, ChallengeConfig, FeatureConfig, Histogram,
 )
@@ -38,7 +39,7 @@ FEATURE_NAMES = (
 
 
 #: Per-step features that need the map's road edges: absent from :attr:`Features.values` of a
-#: scene without any (:func:`~magail_sumo.evaluation.realism.map_features.has_road_edges`).
+#: scene without any (:func:`~magail_sumo.sensors.road_edge.has_road_edges`).
 ROAD_EDGE_FEATURES = ("distance_to_road_edge", "offroad_per_step")
 
 

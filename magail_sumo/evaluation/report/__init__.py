@@ -21,14 +21,19 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS
-from magail_sumo.evaluation.realism.map_features import has_road_edges
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, read_rows
+from magail_sumo.evaluation.rollouts import POLICY_LOADERS
+from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
+from magail_sumo.policies import unguarded
+from magail_sumo.pretrained import is_pretrained_spec
 
 from . import animation, figures
 from .render import REALISM_FIELDS, Document
-from .scoring import AGENT_FIELDS, SceneView, Scores, collect, method_means, scene_view
+from .scores import SceneView, Scores
+from .scoring import AGENT_FIELDS, collect, method_means, scene_view
 
 #: Traffic metrics in the main table, in order.
 MAIN = ["ade", "min_ade", "fde", "collision_rate", "offroad_rate", "red_light_rate",
@@ -60,10 +65,6 @@ def _action_mode(man: dict) -> str:
     """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled,
     with its noise scale when not 1), as the manifest records it; empty for other policies and
     older manifests."""
-    from magail_sumo.agents.registry import unguarded
-    from magail_sumo.evaluation.rollouts import POLICY_LOADERS
-    from magail_sumo.pretrained import is_pretrained_spec
-
     spec = man.get("policy_spec")
     spec = unguarded(spec) if isinstance(spec, str) else spec
     if "deterministic" not in man or not isinstance(spec, str) \
@@ -220,9 +221,6 @@ CITY_COLUMNS = ["scenario", "method", "begin_s", "end_s", "arrived", "travel_tim
 def _city_rows(folder: Path, errors: list[str]) -> list[dict]:
     """The folder's city rows (:func:`~magail_sumo.evaluation.city.read_rows`); a bad
     ``city.json`` is one error line and no rows."""
-    from magail_sumo.errors import MagailSumoError
-    from magail_sumo.evaluation.city import read_rows
-
     try:
         return read_rows(folder)[0]
     except MagailSumoError as exc:

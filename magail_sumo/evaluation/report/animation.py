@@ -18,7 +18,7 @@ import numpy as np
 from magail_sumo.outputs import printable
 from magail_sumo.scene import ObjectType, SignalState
 
-from .scoring import Scores
+from .scores import Scores
 
 #: Signal states drawn red / yellow / green (the rest grey).
 _RED = {SignalState.STOP, SignalState.ARROW_STOP, SignalState.FLASHING_STOP}

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 from magail_sumo.evaluation.traffic.distributions import BINS  # noqa: E402
 from magail_sumo.outputs import printable  # noqa: E402
 
-from .scoring import Scores  # noqa: E402
+from .scores import Scores  # noqa: E402
 
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
 

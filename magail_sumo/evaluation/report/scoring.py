@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from converters import find_scene, iter_scenes
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.realism.config import CHALLENGE_2025, Bernoulli, Histogram
 from magail_sumo.evaluation.realism.estimators import (
@@ -34,50 +35,13 @@ from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
 )
 from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
+from magail_sumo.evaluation.traffic.distributions import BINS
 from magail_sumo.outputs import OutputError, printable
 from magail_sumo.scene import ObjectType, Scene
+from magail_sumo.workers import run_jobs
 
-
-@dataclass
-class Scores:
-    """Everything a report shows.
-
-    :param rows: one dict per (scenario_id, method): traffic metrics and realism fields.
-    :param counts: per (scenario_id, method), per :data:`FIGURE_FEATURES` feature, the log's
-        and the rollouts' histogram counts on the feature's bins (for the distribution figure).
-    :param rollouts: the rollouts per (scenario_id, method).
-    :param errors: one-line problems (scene / method / agent named).
-    :param agent_rows: one dict per (scenario_id, method, evaluated agent): see
-        :func:`agent_metrics`.
-    :param valid: per (scenario_id, method), (R, A, T) bool: the states the method marked
-        valid (absent: all valid).
-    :param views: per scenario_id, its trajectory figure and animation drawn by a scoring
-        worker (see :class:`SceneView`); the report draws the scenes without one itself.
-    """
-
-    manifest: dict
-    scenes: dict[str, Scene]
-    methods: list[str]
-    rows: list[dict] = field(default_factory=list)
-    counts: dict[tuple[str, str], dict[str, tuple[np.ndarray, np.ndarray]]] = \
-        field(default_factory=dict)
-    rollouts: dict[tuple[str, str], ScenarioRollouts] = field(default_factory=dict)
-    errors: list[str] = field(default_factory=list)
-    agent_rows: list[dict] = field(default_factory=list)
-    valid: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
-    views: dict[str, "SceneView"] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class SceneView:
-    """A scene's trajectory figure (PNG bytes, :func:`figures.trajectories`) and animation
-    (HTML, :func:`animation.scene_animation`), drawn where the scene was scored from the
-    methods ``methods`` (in report order); valid for a report whose methods with rollouts for
-    this scene are exactly these."""
-
-    methods: tuple[str, ...]
-    trajectories_png: bytes
-    animation_html: str
+from . import animation, figures
+from .scores import SceneView, Scores
 
 
 #: Per-agent columns of :func:`agent_metrics` (after scenario_id, method, object_id, type).
@@ -138,8 +102,6 @@ def read_valid(path: Path, scene: Scene, ro: ScenarioRollouts) -> np.ndarray | N
 
 def load_scenes(manifest: dict, errors: list[str]) -> dict[str, Scene]:
     """The manifest's scenes, read from their files (missing ones reported)."""
-    from converters import iter_scenes
-
     want = {s["scenario_id"]: s["file"] for s in manifest.get("scenes", [])}
     got: dict[str, Scene] = {}
     for f in dict.fromkeys(want.values()):
@@ -170,8 +132,6 @@ FIGURE_FEATURES = ("linear_speed", "linear_acceleration", "time_to_collision")
 def _counts(values: np.ndarray, feature: str) -> np.ndarray:
     """Histogram counts of ``values`` on the feature's bins (as
     :func:`~magail_sumo.evaluation.traffic.distributions.histogram`, not normalised)."""
-    from magail_sumo.evaluation.traffic.distributions import BINS
-
     lo, hi, n = BINS[feature]
     edges = np.linspace(lo, hi, n + 1)
     idx = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, n - 1)
@@ -284,8 +244,6 @@ def _read_pair(folder: Path, method: str, scene: Scene
 
 def scene_view(scores: Scores, sid: str) -> SceneView:
     """The trajectory figure and animation of one scene of ``scores``."""
-    from . import animation, figures
-
     methods = tuple(m for m in scores.methods if (sid, m) in scores.rollouts)
     return SceneView(methods, figures.trajectories(scores, sid),
                      animation.scene_animation(scores, sid))
@@ -303,8 +261,6 @@ def _score_job(job: ScoreJob) -> list[tuple[list[tuple], SceneView | None]]:
     :returns: per scene, (per method ``("ok", PairScore, rollouts, valid)`` or ``("error",
         message)``; its :class:`SceneView` or None)."""
     import numba
-
-    from converters import find_scene
 
     # the workers share the cores: one numba thread each (numba's parallel kernels would
     # otherwise start a thread per core in every worker and spin against each other)
@@ -384,8 +340,6 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
     workers = default_workers() if workers is None else max(1, int(workers))
     results: dict[tuple[str, str], tuple] = {}
     if workers > 1 and len(scenes) * len(methods) > 1:
-        from magail_sumo.workers import run_jobs
-
         entries = {s["scenario_id"]: s for s in manifest.get("scenes", [])}
         # one job per worker (a worker's start-up, imports and compiled kernels cost seconds),
         # balanced by the scenes' sim agents; a whole scene's job also draws its view

@@ -26,6 +26,8 @@ from typing import Collection, Sequence
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sim.session import SessionConfig, SumoSession
+from magail_sumo.workers import run_one
 
 
 class SumoRunError(MagailSumoError):
@@ -94,8 +96,6 @@ def _controlled(sumocfg: str, options: list[str], controller: str) -> None:
     """Worker: run ``sumocfg`` with ``options`` (:func:`sumo_options`) in a
     :class:`~magail_sumo.sim.session.SumoSession`, calling ``controller(api, time_s)`` before
     each step (``api``: the session's :attr:`~magail_sumo.sim.session.SumoSession.api`)."""
-    from magail_sumo.sim.session import SessionConfig, SumoSession
-
     mod, _, attr = controller.partition(":")
     fn = getattr(importlib.import_module(mod), attr)
     # every option comes from ``options``: none of the session's own (teleports, collisions)
@@ -141,8 +141,6 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
             msg = " ".join((res.stderr or res.stdout).split())[-300:]
             raise SumoRunError(f"{cfg}: SUMO failed (exit {res.returncode}): {msg}")
     else:
-        from magail_sumo.workers import run_one
-
         res = run_one(_controlled_job, (str(cfg), sumo_options(out, begin, end, seed, extra_args),
                                         controller), timeout_s=timeout_s)
         if res.kind == "timeout":

@@ -1,4 +1,5 @@
-"""Map features: signed distance from box corners to the road edges, and off-road.
+"""Road edges: signed distance from box corners to a scene's road edges, and off-road (the
+WOSAC map feature; the env's road-edge off-road rule uses the same test).
 
 The signed distance of a point is taken to the road-edge segment nearest in 3-D (with z
 stretched ×3, so edges on other levels lose); it is the 2-D distance to that segment, negative
@@ -13,9 +14,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from magail_sumo.evaluation.realism.interaction import box_corners
 from magail_sumo.scene import Scene
-from magail_sumo.sensors.raycast import SegmentGrid
+
+from .raycast import SegmentGrid, box_corners
 
 #: Vertical stretch applied when choosing the nearest segment.
 Z_STRETCH = 3.0

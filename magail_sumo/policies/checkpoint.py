@@ -1,10 +1,10 @@
 """Training checkpoints as evaluation policies (``magail-sumo evaluate --policy RUN/checkpoints/latest.pt``).
 
-The loaders here are registered by algorithm in :data:`magail_sumo.agents.CHECKPOINT_LOADERS`
-(``gail`` / ``bc``: :func:`load_actor_policy`; ``sac`` / ``sac_gail``:
-:func:`load_sac_checkpoint_policy`), which evaluation reaches through ``.pt`` in
-:data:`magail_sumo.agents.POLICY_LOADERS`; :func:`load_checkpoint_policy` picks by the
-checkpoint's algorithm. The policy is the checkpoint's SB3 actor
+:func:`load_actor_policy` is registered for ``gail`` / ``bc`` checkpoints in
+:data:`magail_sumo.policies.registry.CHECKPOINT_LOADERS`, which evaluation reaches through
+``.pt`` in :data:`~magail_sumo.policies.registry.POLICY_LOADERS`
+(:func:`~magail_sumo.policies.registry.load_checkpoint_policy` picks by the checkpoint's
+algorithm). The policy is the checkpoint's SB3 actor
 (with its observation normaliser, stored in the policy's state dict), each vehicle acting from its
 own observation with normalised ``[accel, steer]`` in [-1, 1]²: by default a sample of the
 policy, ``a = tanh(mu(o) + k·sigma ⊙ eps)`` with ``eps ~ N(0, I)`` drawn from the policy's own
@@ -17,7 +17,7 @@ behavioural cloning, with an MLP or a transformer critic: the critic is loaded w
 but never evaluated).
 
 A ``gameformer`` checkpoint is a closed-loop GameFormer agent instead
-(:class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy`: it replans from the simulated
+(:class:`~magail_sumo.policies.gameformer.GameFormerPolicy`: it replans from the simulated
 history of all objects through the rollout's ``begin(scene, env)`` hook).
 
 Evaluation drives the env with the default observation layout and bicycle limits; a checkpoint
@@ -29,14 +29,13 @@ the policy's ``action_layout`` and ``observation`` attributes make evaluation bu
 with them.
 
 SAC checkpoints (``algorithm: sac`` / ``sac_gail``; the checkpoint's recorded algorithm picks
-the loader) load as :class:`~magail_sumo.training.sac.SacCheckpointPolicy`: the command-branched
+the loader) load as :class:`~magail_sumo.policies.sac.SacCheckpointPolicy`: the command-branched
 actor, with the route command appended to the default observation (the policy's
 ``observation`` attribute tells the evaluation env to compute it).
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +45,9 @@ from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.sensors.config import ObservationConfig
 
-from .trainer import CheckpointError, checkpoint_config, load_checkpoint, load_policy
+from magail_sumo.sensors.observation import observation_bounds
+from magail_sumo.training.checkpoints import CheckpointError
+from magail_sumo.training.policies import load_policy
 
 
 class CheckpointPolicy:
@@ -114,25 +115,6 @@ def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig
                                   f"uses ({what})")
 
 
-def load_checkpoint_policy(path: str | Path, seed: int = 0,
-                           target: EnvConfig | None = None,
-                           deterministic: bool = False):
-    """The evaluation policy of a training checkpoint, by the loader its algorithm registered
-    (:data:`magail_sumo.agents.CHECKPOINT_LOADERS`): a :class:`CheckpointPolicy` for PPO /
-    behavioural cloning, a :class:`~magail_sumo.training.sac.SacCheckpointPolicy` for SAC, a
-    :class:`~magail_sumo.training.gameformer_policy.GameFormerPolicy` for a gameformer run.
-
-    :param seed: seed of the action samples (evaluation passes the rollout seed).
-    :param target: the env config the policy will drive (default: evaluation's, the defaults
-        with the policy's action layout; a gameformer agent adapts to any).
-    :param deterministic: act with the tanh of the Gaussian mean (no sampling).
-    """
-    from magail_sumo.agents.registry import load_training_checkpoint
-
-    return load_training_checkpoint(path, seed, deterministic=deterministic,
-                                    **({} if target is None else {"target": target}))
-
-
 def policy_observation(trained: EnvConfig) -> ObservationConfig:
     """Evaluation's observation for a policy trained in ``trained``: the default one with the
     policy's optional features (route command, route look-ahead, leader)."""
@@ -142,7 +124,7 @@ def policy_observation(trained: EnvConfig) -> ObservationConfig:
                              leader_range=ob.leader_range)
 
 
-def _target(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
+def target_env(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
     """The env a checkpoint trained in ``trained`` drives: ``target``, or evaluation's (the
     defaults) with the policy's action layout, optional features and gap guard (the policy's
     ``action_layout``, ``observation`` and ``guard`` attributes make evaluation build its env
@@ -154,41 +136,15 @@ def _target(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
 def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
                       target: EnvConfig | None = None) -> CheckpointPolicy:
     """The :class:`CheckpointPolicy` of a PPO / behavioural-cloning checkpoint (``gail``,
-    ``bc``), registered in :data:`magail_sumo.agents.CHECKPOINT_LOADERS`; parameters as
-    :func:`load_checkpoint_policy`."""
-    from magail_sumo.sensors.observation import observation_bounds
-
+    ``bc``), registered in :data:`~magail_sumo.policies.registry.CHECKPOINT_LOADERS`; parameters as
+    :func:`~magail_sumo.policies.registry.load_checkpoint_policy`."""
     torch.set_num_threads(1)  # small MLP; evaluation runs several worker processes
     policy, cfg = load_policy(path, device="cpu")
-    check_env_compatible(path, cfg.env, _target(cfg.env, target))
+    check_env_compatible(path, cfg.env, target_env(cfg.env, target))
     low, _ = observation_bounds(cfg.env.observation)
     pol = CheckpointPolicy(policy, int(low.shape[0]), str(path), seed=seed,
                            deterministic=deterministic, action_layout=cfg.env.action_layout)
     pol.observation = policy_observation(cfg.env)
     if cfg.env.guard.on:
         pol.guard = cfg.env.guard  # trained behind the gap guard: evaluation keeps it
-    return pol
-
-
-def load_sac_checkpoint_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
-                               target: EnvConfig | None = None):
-    """The :class:`~magail_sumo.training.sac.SacCheckpointPolicy` of a ``sac`` / ``sac_gail``
-    checkpoint, registered in :data:`magail_sumo.agents.CHECKPOINT_LOADERS`; parameters as
-    :func:`load_checkpoint_policy`."""
-    from .sac import load_sac_policy
-
-    torch.set_num_threads(1)
-    state = load_checkpoint(path)
-    cfg = checkpoint_config(state, path)
-    if cfg.algorithm not in ("sac", "sac_gail"):
-        raise CheckpointError(f"{path}: a {cfg.algorithm} checkpoint, not a SAC one")
-    env = _target(cfg.env, target)
-    # evaluation drives the env with the policy's route command (SacCheckpointPolicy.observation)
-    obs = replace(env.observation, command=cfg.env.observation.command,
-                  command_lookahead=cfg.env.observation.command_lookahead)
-    check_env_compatible(path, cfg.env, replace(env, observation=obs))
-    pol = load_sac_policy(path, state, replace(cfg, device="cpu"), seed, deterministic)
-    pol.action_layout = cfg.env.action_layout
-    if cfg.env.guard.on:
-        pol.guard = cfg.env.guard
     return pol

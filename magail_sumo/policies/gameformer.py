@@ -1,5 +1,5 @@
 """A GameFormer checkpoint as a closed-loop sim agent (``magail-sumo evaluate --policy
-RUN/checkpoints/latest.pt`` with a ``gameformer`` run; :mod:`magail_sumo.training.policy_loader`
+RUN/checkpoints/latest.pt`` with a ``gameformer`` run; :mod:`magail_sumo.policies.registry`
 dispatches on the checkpoint's algorithm).
 
 The agent uses the optional ``begin(scene, env)`` hook of the evaluation rollout
@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from magail_sumo.sim import dynamics
-
 from magail_sumo.models.gameformer_features import (Frame, History, build_sample, collate,
                                                    log_history, map_chunks)
+from magail_sumo.sim import dynamics
+from magail_sumo.training.gameformer import load_gameformer
 
 
 class GameFormerPolicy:
@@ -170,8 +170,6 @@ def load_gameformer_policy(path: str | Path, seed: int = 0, deterministic: bool 
                            ) -> GameFormerPolicy:
     """The closed-loop agent of a gameformer checkpoint (:class:`CheckpointError` when the
     file is not one)."""
-    from .gameformer import load_gameformer
-
     torch.set_num_threads(1)  # evaluation runs several worker processes
     model, cfg = load_gameformer(path, device="cpu")
     return GameFormerPolicy(model, cfg, str(path), seed=seed, deterministic=deterministic)

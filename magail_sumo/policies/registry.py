@@ -1,9 +1,8 @@
 """Policies by spec: :func:`make_policy`, :func:`method_name` and the checkpoint-loader
 registries.
 
-Two registries, both holding a callable or a lazy ``"package.module:function"`` entry point
-(imported when first used, as gymnasium registers envs, so this package imports no training
-code):
+Two registries, each holding a callable or a ``"package.module:function"`` entry point (a user's
+loader, imported when first used, as gymnasium registers envs):
 
 * :data:`POLICY_LOADERS`, by file suffix: ``loader(path, seed) -> Policy``; a loader with a
   ``deterministic`` keyword also gets the caller's choice (sample the policy with ``seed``, or
@@ -17,15 +16,23 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import math
 from pathlib import Path
 from typing import Callable, Union
 
+import torch
+
+from magail_sumo.agents.base import Policy, PolicyError, check_noise_scale
+from magail_sumo.agents.random_policy import RandomPolicy
+from magail_sumo.env.config import EnvConfig
+from magail_sumo.env.guard import GuardConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import one_line
+from magail_sumo.pretrained import (PretrainedError, is_pretrained_spec, name_of,
+                                    resolve as resolve_pretrained)
 
-from .base import Policy, PolicyError
-from .random_policy import RandomPolicy
+from .checkpoint import load_actor_policy
+from .gameformer import load_gameformer_policy
+from .sac import load_sac_checkpoint_policy
 
 #: methods that are no env policy: whole-trajectory models (evaluation runs them itself)
 BASELINES = ("logreplay", "constvel", "sumo")
@@ -36,20 +43,17 @@ GUARDED = "guarded:"
 
 Loader = Union[Callable[..., Policy], str]
 
-#: checkpoint loaders by file suffix (``".pt"``); see the module doc
-POLICY_LOADERS: dict[str, Loader] = {
-    ".pt": "magail_sumo.agents.registry:load_training_checkpoint"}
 
 #: algorithm whose loader reads a checkpoint that records none, or an algorithm without a
 #: loader (it names what is wrong with the file)
 DEFAULT_ALGORITHM = "gail"
 #: training-checkpoint loaders by ``config.algorithm``; see the module doc
 CHECKPOINT_LOADERS: dict[str, Loader] = {
-    "gail": "magail_sumo.training.policy_loader:load_actor_policy",
-    "bc": "magail_sumo.training.policy_loader:load_actor_policy",
-    "sac": "magail_sumo.training.policy_loader:load_sac_checkpoint_policy",
-    "sac_gail": "magail_sumo.training.policy_loader:load_sac_checkpoint_policy",
-    "gameformer": "magail_sumo.training.gameformer_policy:load_gameformer_policy",
+    "gail": load_actor_policy,
+    "bc": load_actor_policy,
+    "sac": load_sac_checkpoint_policy,
+    "sac_gail": load_sac_checkpoint_policy,
+    "gameformer": load_gameformer_policy,
 }
 
 
@@ -76,8 +80,6 @@ def resolve(loader: Loader) -> Callable[..., Policy]:
 def checkpoint_algorithm(path: str | Path) -> str | None:
     """The algorithm a training checkpoint records (``config.algorithm``), None when the file
     cannot be read as one or records none (read with ``torch.load(weights_only=True)``)."""
-    import torch
-
     try:
         state = torch.load(Path(path), map_location="cpu", weights_only=True)
         algorithm = state["config"].get("algorithm")
@@ -99,6 +101,10 @@ def load_training_checkpoint(path: str | Path, seed: int = 0, deterministic: boo
     # to any env: it takes no ``target``)
     return loader(path, seed, deterministic=deterministic,
                   **{k: v for k, v in options.items() if _takes(loader, k)})
+
+
+#: checkpoint loaders by file suffix (``".pt"``); see the module doc
+POLICY_LOADERS: dict[str, Loader] = {".pt": load_training_checkpoint}
 
 
 def _takes(loader: Callable, keyword: str) -> bool:
@@ -135,8 +141,6 @@ def make_policy(spec: str, seed: int, deterministic: bool = False,
         check_noise_scale(noise_scale)
         return _scaled(spec, make_policy(spec, seed, deterministic), noise_scale)
     if spec.startswith(GUARDED):
-        from magail_sumo.env.guard import GuardConfig
-
         inner = make_policy(spec[len(GUARDED):], seed, deterministic)
         try:
             inner.guard = GuardConfig(kind="gap")
@@ -146,8 +150,6 @@ def make_policy(spec: str, seed: int, deterministic: bool = False,
         return inner
     if spec == "random":
         return RandomPolicy(seed)
-    from magail_sumo.pretrained import is_pretrained_spec, resolve as resolve_pretrained
-
     if is_pretrained_spec(spec):
         entry = resolve_pretrained(spec)
         loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
@@ -161,7 +163,7 @@ def make_policy(spec: str, seed: int, deterministic: bool = False,
         loader = POLICY_LOADERS.get(path.suffix)
         if loader is None:
             raise PolicyError(f"{spec}: no policy loader for '{path.suffix}' checkpoints "
-                              "(register one in magail_sumo.agents.POLICY_LOADERS)")
+                              "(register one in magail_sumo.policies.POLICY_LOADERS)")
         return _checkpoint_policy(spec, loader, path, seed, deterministic)
     if ":" in spec:
         mod, _, attr = spec.partition(":")
@@ -173,17 +175,6 @@ def make_policy(spec: str, seed: int, deterministic: bool = False,
         return _built(spec, factory, seed)
     raise PolicyError(f"{spec}: not a method ({', '.join(BASELINES + BUILTIN_POLICIES)}), "
                       "pretrained[:NAME], a checkpoint file or a module:factory spec")
-
-
-def check_noise_scale(scale: float, what: str = "noise scale") -> float:
-    """``scale`` as a float, refused (:class:`PolicyError`) unless finite and >= 0."""
-    try:
-        value = float(scale)
-    except (TypeError, ValueError):
-        value = float("nan")
-    if not math.isfinite(value) or value < 0:
-        raise PolicyError(f"{what} must be a finite number >= 0, got {scale!r}")
-    return value
 
 
 def card_noise_scale(entry) -> float | None:
@@ -247,8 +238,6 @@ def method_name(spec: str) -> str:
         return spec
     if spec.startswith(GUARDED):
         return f"{method_name(spec[len(GUARDED):])}-guarded"
-    from magail_sumo.pretrained import PretrainedError, is_pretrained_spec, name_of
-
     if is_pretrained_spec(spec):
         try:
             return name_of(spec)
@@ -261,3 +250,20 @@ def method_name(spec: str) -> str:
             return run.parent.name if p.stem == "latest" else f"{run.parent.name}-{p.stem}"
         return p.stem
     return spec.rpartition(":")[2] or spec
+
+
+def load_checkpoint_policy(path: str | Path, seed: int = 0,
+                           target: EnvConfig | None = None,
+                           deterministic: bool = False):
+    """The evaluation policy of a training checkpoint, by the loader its algorithm registered
+    (:data:`CHECKPOINT_LOADERS`): a :class:`~.checkpoint.CheckpointPolicy` for PPO /
+    behavioural cloning, a :class:`~.sac.SacCheckpointPolicy` for SAC, a
+    :class:`~.gameformer.GameFormerPolicy` for a gameformer run.
+
+    :param seed: seed of the action samples (evaluation passes the rollout seed).
+    :param target: the env config the policy will drive (default: evaluation's, the defaults
+        with the policy's action layout; a gameformer agent adapts to any).
+    :param deterministic: act with the tanh of the Gaussian mean (no sampling).
+    """
+    return load_training_checkpoint(path, seed, deterministic=deterministic,
+                                    **({} if target is None else {"target": target}))
