@@ -1,13 +1,13 @@
 """Read ScenarioNet scenario pickles (``sd_*.pkl``) into :class:`~magail_sumo.scene.Scene`.
 
 Pickles are loaded only through :mod:`converters.scenarionet.safe_pickle`. The dict layout is
-the one ScenarioNet's Waymo converter writes (see ``schema.py``); every access is checked and a
-wrong shape or type raises an error naming the key path.
+the one ScenarioNet's Waymo converter writes (see ``schema.py``); every value is read through
+:mod:`converters.scenarionet.fields`, which checks it and raises an error naming the key path
+for a wrong shape or type. This module builds the scene from those values.
 """
 
 from __future__ import annotations
 
-import contextvars
 import dataclasses
 from os import PathLike
 from pathlib import Path
@@ -17,6 +17,10 @@ import numpy as np
 
 from converters.files import open_regular
 from converters.scenarionet import schema
+from converters.scenarionet.fields import (
+    PER_ITEM, Ids, as_array, as_bool, as_enum, as_float, as_int, as_int_array, as_list, as_points,
+    as_text, charge, describe, memory_budget, or_default, required,
+)
 from converters.scenarionet.safe_pickle import (
     UnsafePickleError, allocation_budget, safe_loads,
 )
@@ -46,153 +50,6 @@ _AREA_TYPES = {schema.CROSSWALK: ("crosswalks", Crosswalk), schema.SPEED_BUMP: (
                schema.DRIVEWAY: ("driveways", Driveway)}
 
 
-_INT64 = (-(1 << 63), (1 << 63) - 1)
-#: Bytes of memory the scene being converted may still take (None: unlimited). A pickle can
-#: reference one array or list from many places (its memo), so a small file can describe a
-#: huge scene; :func:`load_scenarionet` sets the same budget as the unpickler's
-#: (:func:`~converters.scenarionet.safe_pickle.allocation_budget` of the file size).
-_BUDGET: contextvars.ContextVar[list[int] | None] = contextvars.ContextVar("budget", default=None)
-_PER_ITEM = 64  # bytes charged per list item / per track state
-_F32_MAX = float(np.finfo(np.float32).max)
-
-
-def _describe(value: Any) -> str:
-    """A short one-line rendering of ``value`` for a message (never a deep or huge repr)."""
-    if type(value) is str and len(value) <= 40 and value.isprintable():
-        return repr(value)  # fast path: dict keys of real files
-    if isinstance(value, (str, bytes, int, float, bool, type(None), np.number, np.bool_)):
-        try:
-            return printable(repr(value), 60)
-        except ValueError:  # an int too large to print
-            return f"an int of {value.bit_length()} bits"  # type: ignore[union-attr]
-    if isinstance(value, np.ndarray):
-        return f"an array of shape {value.shape}"
-    name = type(value).__name__
-    return f"{'an' if name[:1] in 'aeiou' else 'a'} {name}"
-
-
-def _charge(nbytes: int, path: str) -> None:
-    budget = _BUDGET.get()
-    if budget is None:
-        return
-    budget[1] -= nbytes
-    if budget[1] < 0:
-        raise SceneValidationError(
-            f"{path}: the scene would take more than {budget[0]} bytes of memory (the limit for "
-            "this file's size; its arrays or lists are shared between many fields)")
-
-
-def _get(d: Any, key: str, path: str) -> Any:
-    where = f"{path}: " if path else ""
-    if not isinstance(d, dict):
-        raise SceneValidationError(f"{where}expected a dict, got {type(d).__name__}")
-    if key not in d:
-        raise SceneValidationError(f"{where}missing key '{key}'")
-    return d[key]
-
-
-def _array(value: Any, shape: tuple[int, ...], dtype: Any, path: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value)
-        kind = arr.dtype.kind
-        if kind not in "biuf":
-            raise TypeError(f"dtype {arr.dtype}")
-        narrowing = dtype is np.float32 and kind == "f" and arr.dtype.itemsize > 4
-        if narrowing:
-            with np.errstate(over="ignore"):  # overflow is reported below
-                out = arr.astype(dtype)
-        else:
-            out = arr.astype(dtype, copy=False)
-    except (TypeError, ValueError, OverflowError, RecursionError) as exc:
-        raise SceneValidationError(f"{path}: expected a numeric array "
-                                   f"({printable(str(exc), 80)})") from None
-    if narrowing and out.size:
-        over = np.isinf(out) & ~np.isinf(arr)  # finite in the file, too large for float32
-        if over.any():
-            k = int(np.flatnonzero(over.reshape(-1))[0])
-            raise SceneValidationError(
-                f"{path}: value {arr.reshape(-1)[k]:.6g} out of range (|value| > {_F32_MAX:.4g})")
-    arr = out
-    if len(shape) == 1 and arr.ndim == 2 and arr.shape[1] == 1:
-        arr = arr[:, 0]  # (T, 1) variants written by some converters
-    if arr.ndim != len(shape) or any(s not in (-1, n) for s, n in zip(shape, arr.shape)):
-        raise SceneValidationError(f"{path}: expected shape {shape}, got {arr.shape}")
-    return arr
-
-
-def _int(value: Any, path: str) -> int:
-    kind = type(value)
-    if kind is int:  # fast path: most ids and indices
-        out = value
-    else:
-        try:
-            if kind is not str and (isinstance(value, (bool, np.bool_))
-                                    or not isinstance(value, (int, str, np.integer))):
-                raise ValueError
-            out = int(value)  # ScenarioNet stores some ids as decimal strings
-        except (TypeError, ValueError, OverflowError):
-            raise SceneValidationError(f"{path}: expected an integer, got {_describe(value)}") \
-                from None
-    if not _INT64[0] <= out <= _INT64[1]:
-        raise SceneValidationError(f"{path}: integer {_describe(out)} out of range (64-bit)")
-    return out
-
-
-def _float(value: Any, path: str) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
-        raise SceneValidationError(f"{path}: expected a number, got {_describe(value)}")
-    try:
-        out = float(value)
-    except OverflowError:
-        raise SceneValidationError(f"{path}: number {_describe(value)} out of range") from None
-    if not np.isfinite(out):
-        raise SceneValidationError(f"{path}: expected a finite number, got {out}")
-    return out
-
-
-def _default(value: Any, default: Any) -> Any:
-    """``default`` for None (as ``value or default`` did, without truth-testing arrays)."""
-    return default if value is None else value
-
-
-def _bool(value: Any, path: str) -> bool:
-    if not isinstance(value, (bool, int, np.bool_, np.integer)):
-        raise SceneValidationError(f"{path}: expected a bool, got {_describe(value)}")
-    return bool(value)
-
-
-def _seq(value: Any, path: str) -> list:
-    """The items of a list-like field (None: empty)."""
-    if value is None:
-        return []
-    if isinstance(value, np.ndarray):
-        if value.ndim != 1:
-            raise SceneValidationError(f"{path}: expected a list, got an array of shape "
-                                       f"{value.shape}")
-        _charge(_PER_ITEM * len(value), path)
-        return value.tolist()
-    if not isinstance(value, (list, tuple)):
-        raise SceneValidationError(f"{path}: expected a list, got {_describe(value)}")
-    _charge(_PER_ITEM * len(value), path)
-    return list(value)
-
-
-def _text(value: Any, path: str) -> str:
-    if isinstance(value, bool) or not isinstance(value, (str, int, np.integer)):
-        raise SceneValidationError(f"{path}: expected a string, got {_describe(value)}")
-    return str(value)
-
-
-def _enum(value: Any, table: dict, path: str):
-    try:
-        return table[value]
-    except (KeyError, TypeError):
-        if not isinstance(value, (str, int, type(None))):
-            raise SceneValidationError(f"{path}: expected a type name, got {_describe(value)}") \
-                from None
-        raise SceneValidationError(f"{path}: unknown type {_describe(value)}") from None
-
-
 def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
     """Convert a ScenarioNet scenario dict (no validation beyond structure).
 
@@ -210,57 +67,8 @@ def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
     :param budget: bytes of memory the scene may take (None: unlimited); exceeding it is a
         :class:`SceneValidationError` raised before the memory is allocated.
     """
-    token = _BUDGET.set(None if budget is None else [budget, budget])
-    try:
+    with memory_budget(budget):
         return _scene(sd)
-    finally:
-        _BUDGET.reset(token)
-
-
-def _decimal(text: str) -> bool:
-    try:
-        int(text)
-    except ValueError:
-        return False
-    return True
-
-
-def _key_int(key: Any, path: str) -> int:
-    if type(key) is str and 0 < len(key) < 19 and key.isdigit() and key.isascii():
-        return int(key)  # fast path: the decimal keys of real files (always within int64)
-    return _int(key, f"{path}[{_describe(key)}] key")
-
-
-class _Ids:
-    """Integer ids of a dict's keys: the keys themselves when every key is an integer (or a
-    decimal string), else 0..n-1 in recorded order with the original keys kept as names."""
-
-    def __init__(self, keys: list, path: str) -> None:
-        self.names: list[str] | None = None
-        try:
-            self.ids = [_key_int(k, path) for k in keys]
-            return
-        except SceneValidationError:
-            if not any(type(k) is str and not _decimal(k) for k in keys):
-                raise  # a bad integer key (a float, a bool, out of range): refused as before
-        self.names = [_text(k, f"{path}[{_describe(k)}] key") for k in keys]
-        self.ids = list(range(len(keys)))
-        self.by_name = {name: i for i, name in enumerate(self.names)}
-
-    @property
-    def renumbered(self) -> bool:
-        return self.names is not None
-
-    def pairs(self) -> tuple[tuple[int, str], ...]:
-        return tuple(enumerate(self.names)) if self.names is not None else ()
-
-    def resolve(self, value: Any, path: str) -> tuple[int | None, str]:
-        """``(our id or None when the source's id is unknown, the id as in the source)``."""
-        if self.names is None:
-            v = _int(value, path)
-            return v, str(v)
-        name = _text(value, path)
-        return self.by_name.get(name), name
 
 
 def _scene(sd: Any) -> Scene:
@@ -274,19 +82,19 @@ def _scene(sd: Any) -> Scene:
     notes: list[str] = []
     ts_raw, ts_path = (meta["ts"], "metadata.ts") if "ts" in meta else (sd.get("ts"), "ts")
     if "length" in sd:
-        length = _int(sd["length"], "length")
+        length = as_int(sd["length"], "length")
     elif ts_raw is not None:
-        length = len(_seq(ts_raw, ts_path))
+        length = len(as_list(ts_raw, ts_path))
     else:
         raise SceneValidationError("missing key 'length' (and no 'ts' to take it from)")
     if length < 0:
         raise SceneValidationError(f"length: {length} is negative")
     if ts_raw is not None:
-        ts = _array(ts_raw, (length,), np.float64, ts_path)
+        ts = as_array(ts_raw, (length,), np.float64, ts_path)
     else:
         ts = np.arange(length) * 0.1
         notes.append("no timestamps (metadata.ts): 0.1 s steps assumed")
-    tracks_d = _get(sd, "tracks", "")
+    tracks_d = required(sd, "tracks", "")
     if not isinstance(tracks_d, dict):
         raise SceneValidationError("tracks: expected a dict")
     tracks, track_ids = _tracks(tracks_d, length)
@@ -299,26 +107,26 @@ def _scene(sd: Any) -> Scene:
         ttp = {}
     if not isinstance(ttp, dict):
         raise SceneValidationError("metadata.tracks_to_predict: expected a dict")
-    sid = meta["scenario_id"] if "scenario_id" in meta else _get(sd, "id", "")
+    sid = meta["scenario_id"] if "scenario_id" in meta else required(sd, "id", "")
     predictions = []
     for k, v in ttp.items():
-        p = f"metadata.tracks_to_predict[{_describe(k)}]"
+        p = f"metadata.tracks_to_predict[{describe(k)}]"
         predictions.append(RequiredPrediction(
-            _int(_get(v, "track_index", p), p + ".track_index"),
-            _int(v.get("difficulty", 0), p + ".difficulty")))
+            as_int(required(v, "track_index", p), p + ".track_index"),
+            as_int(v.get("difficulty", 0), p + ".difficulty")))
     dropped: list[DroppedReference] = []
     interest = []
-    for v in _seq(meta.get("objects_of_interest"), "metadata.objects_of_interest"):
+    for v in as_list(meta.get("objects_of_interest"), "metadata.objects_of_interest"):
         if not track_ids.renumbered:
-            interest.append(_int(v, "metadata.objects_of_interest"))
+            interest.append(as_int(v, "metadata.objects_of_interest"))
             continue
-        name = _text(v, "metadata.objects_of_interest")
+        name = as_text(v, "metadata.objects_of_interest")
         if name in index_of:
             interest.append(index_of[name])
         else:
             dropped.append(DroppedReference(-1, "objects_of_interest", name))
-    roadmap, feature_ids = _roadmap(_get(sd, "map_features", ""), dropped)
-    signals = _signals(_get(sd, "dynamic_map_states", ""), length, feature_ids, dropped, notes)
+    roadmap, feature_ids = _roadmap(required(sd, "map_features", ""), dropped)
+    signals = _signals(required(sd, "dynamic_map_states", ""), length, feature_ids, dropped, notes)
     successors = neighbors = 0
     lanes = roadmap.lanes
     no_links = not any(l.entry_lanes or l.exit_lanes for l in lanes)
@@ -331,13 +139,13 @@ def _scene(sd: Any) -> Scene:
                                                                   neighbors=no_neighbors)
         roadmap = dataclasses.replace(roadmap, lanes=inferred)
     return Scene(
-        scenario_id=_text(sid, "metadata.scenario_id"),
+        scenario_id=as_text(sid, "metadata.scenario_id"),
         timestamps=ts,
         tracks=tracks,
         roadmap=roadmap,
         signals=signals,
         sdc_track_index=sdc_index,
-        current_time_index=_int(meta.get("current_time_index", 0), "metadata.current_time_index"),
+        current_time_index=as_int(meta.get("current_time_index", 0), "metadata.current_time_index"),
         tracks_to_predict=tuple(predictions),
         objects_of_interest=tuple(interest),
         source_ids=SourceIds(track_ids.pairs(), feature_ids.pairs()),
@@ -371,44 +179,45 @@ def _sdc_index(sd: dict, meta: dict, index_of: dict[str, int], n: int) -> int:
     ``metadata.sdc_id``, else the older layout's top-level ``sdc_track_index`` (a track key;
     an index when no track has that key); -1 when none is given."""
     if meta.get("sdc_track_index") is not None:
-        return _int(meta["sdc_track_index"], "metadata.sdc_track_index")
+        return as_int(meta["sdc_track_index"], "metadata.sdc_track_index")
     for value, path in ((meta.get("sdc_id"), "metadata.sdc_id"), (sd.get("sdc_id"), "sdc_id"),
                         (sd.get("sdc_track_index"), "sdc_track_index")):
         if value is None:
             continue
-        key = _text(value, path)
+        key = as_text(value, path)
         if key in index_of:
             return index_of[key]
         if path == "sdc_track_index":
-            return _int(value, path)
+            return as_int(value, path)
         return -1  # an sdc id that is not a track (as before: no sdc)
     return -1
 
 
-def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, _Ids]:
+def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, Ids]:
     n = len(tracks_d)
-    _charge(_PER_ITEM * n * length, "tracks")
+    charge(PER_ITEM * n * length, "tracks")
     cols: dict[str, np.ndarray] = {k: np.zeros((n, length), np.float64) for k in ("x", "y", "z")}
     cols.update({k: np.zeros((n, length), np.float32)
                  for k in ("length", "width", "height", "heading", "vx", "vy")})
     valid = np.zeros((n, length), bool)
     types = np.zeros(n, np.int8)
     keys = list(tracks_d)
-    track_ids = _Ids(keys, "tracks")
+    track_ids = Ids(keys, "tracks")
     for i, key in enumerate(keys):
         obj = tracks_d[key]
-        path = f"tracks[{_describe(key)}]"
-        types[i] = _enum(_get(obj, "type", path), _OBJECT_TYPES, path + ".type")
-        state = _get(obj, "state", path)
+        path = f"tracks[{describe(key)}]"
+        types[i] = as_enum(required(obj, "type", path), _OBJECT_TYPES, path + ".type")
+        state = required(obj, "state", path)
         sp = path + ".state"
-        pos = _array(_get(state, "position", sp), (length, -1), np.float64, sp + ".position")
+        pos = as_array(required(state, "position", sp), (length, -1), np.float64, sp + ".position")
         if pos.shape[1] not in (2, 3):
-            raise SceneValidationError(f"{sp}.position: expected 2 or 3 columns, got {pos.shape[1]}")
+            raise SceneValidationError(f"{sp}.position: expected 2 or 3 columns, "
+                                       f"got {pos.shape[1]}")
         cols["x"][i], cols["y"][i] = pos[:, 0], pos[:, 1]
         if pos.shape[1] == 3:
             cols["z"][i] = pos[:, 2]
         if isinstance(state, dict) and "size" in state and "length" not in state:
-            size = _array(state["size"], (length, -1), np.float32, sp + ".size")  # older layout
+            size = as_array(state["size"], (length, -1), np.float32, sp + ".size")  # older layout
             if size.shape[1] not in (2, 3):
                 raise SceneValidationError(f"{sp}.size: expected 2 or 3 columns (length, width, "
                                            f"height), got {size.shape[1]}")
@@ -418,36 +227,27 @@ def _tracks(tracks_d: dict, length: int) -> tuple[Tracks, _Ids]:
         else:
             for name in ("length", "width", "height"):
                 if name in state:
-                    cols[name][i] = _array(state[name], (length,), np.float32, f"{sp}.{name}")
-        cols["heading"][i] = _array(_get(state, "heading", sp), (length,), np.float32, sp + ".heading")
+                    cols[name][i] = as_array(state[name], (length,), np.float32, f"{sp}.{name}")
+        cols["heading"][i] = as_array(required(state, "heading", sp), (length,), np.float32,
+                                      sp + ".heading")
         if "velocity" in state:
-            vel = _array(state["velocity"], (length, 2), np.float32, sp + ".velocity")
+            vel = as_array(state["velocity"], (length, 2), np.float32, sp + ".velocity")
             cols["vx"][i], cols["vy"][i] = vel[:, 0], vel[:, 1]
-        valid[i] = _array(_get(state, "valid", sp), (length,), bool, sp + ".valid")
+        valid[i] = as_array(required(state, "valid", sp), (length,), bool, sp + ".valid")
     return Tracks(id=np.array(track_ids.ids, np.int64), type=types, valid=valid, **cols), track_ids
-
-
-def _points(value: Any, path: str) -> np.ndarray:
-    arr = _array(value, (-1, -1), np.float64, path)
-    _charge(2 * 24 * arr.shape[0], path)
-    if arr.shape[1] == 2:
-        arr = np.concatenate([arr, np.zeros((arr.shape[0], 1))], axis=1)
-    elif arr.shape[1] != 3:
-        raise SceneValidationError(f"{path}: expected 2 or 3 columns, got {arr.shape[1]}")
-    return arr
 
 
 class _Refs:
     """Resolves a map's references; one to an id not in the map is dropped and recorded."""
 
-    def __init__(self, ids: _Ids, lane_ids: set[int], all_ids: set[int],
+    def __init__(self, ids: Ids, lane_ids: set[int], all_ids: set[int],
                  dropped: list[DroppedReference]) -> None:
         self.ids, self.lane_ids, self.all_ids, self.dropped = ids, lane_ids, all_ids, dropped
 
     def __call__(self, value: Any, owner: int, field: str, path: str,
                  lanes_only: bool = True) -> int | None:
         if self.ids.names is None:  # fast path: integer ids
-            fid: int | None = value if type(value) is int else _int(value, path)
+            fid: int | None = value if type(value) is int else as_int(value, path)
             name = None
         else:
             fid, name = self.ids.resolve(value, path)
@@ -457,7 +257,7 @@ class _Refs:
         return fid
 
     def lanes(self, items: Any, owner: int, field: str, path: str) -> tuple[int, ...]:
-        out = (self(v, owner, field, path) for v in _seq(items, path))
+        out = (self(v, owner, field, path) for v in as_list(items, path))
         return tuple(v for v in out if v is not None)
 
 
@@ -466,20 +266,20 @@ def _segments(items: Any, path: str, refs: _Refs, owner: int, field: str,
     """Boundary segments; ``check=False`` (a neighbour's boundaries, where 0 means unset) keeps
     unknown integer ids as recorded."""
     out = []
-    for j, seg in enumerate(_seq(items, path)):
+    for j, seg in enumerate(as_list(items, path)):
         p = f"{path}[{j}]"
-        raw = _get(seg, "boundary_feature_id", p)
+        raw = required(seg, "boundary_feature_id", p)
         if check or refs.ids.renumbered:
             fid = refs(raw, owner, field, p + ".boundary_feature_id", lanes_only=False)
             if fid is None:
                 continue
         else:
-            fid = _int(raw, p + ".boundary_feature_id")
+            fid = as_int(raw, p + ".boundary_feature_id")
         out.append(BoundarySegment(
-            _int(_get(seg, "lane_start_index", p), p + ".lane_start_index"),
-            _int(_get(seg, "lane_end_index", p), p + ".lane_end_index"),
+            as_int(required(seg, "lane_start_index", p), p + ".lane_start_index"),
+            as_int(required(seg, "lane_end_index", p), p + ".lane_end_index"),
             fid,
-            _enum(seg.get("boundary_type", "UNKNOWN"), _BOUNDARY_TYPES, p + ".boundary_type"),
+            as_enum(seg.get("boundary_type", "UNKNOWN"), _BOUNDARY_TYPES, p + ".boundary_type"),
         ))
     return tuple(out)
 
@@ -488,12 +288,12 @@ def _neighbors(items: Any, path: str, refs: _Refs, owner: int,
                field: str) -> tuple[LaneNeighbor, ...]:
     out = []
     bfield = field + ".boundaries"
-    for j, nb in enumerate(_seq(items, path)):
+    for j, nb in enumerate(as_list(items, path)):
         p = f"{path}[{j}]"
-        fid = refs(_get(nb, "feature_id", p), owner, field, p + ".feature_id")
+        fid = refs(required(nb, "feature_id", p), owner, field, p + ".feature_id")
         if fid is None:
             continue
-        indices = [_int(_get(nb, k, p), f"{p}.{k}") for k in
+        indices = [as_int(required(nb, k, p), f"{p}.{k}") for k in
                    ("self_start_index", "self_end_index", "neighbor_start_index",
                     "neighbor_end_index")]
         out.append(LaneNeighbor(fid, *indices, boundaries=_segments(
@@ -503,37 +303,37 @@ def _neighbors(items: Any, path: str, refs: _Refs, owner: int,
 
 def _speed_mph(f: dict, path: str) -> float:
     if f.get("speed_limit_mph") is not None:
-        return _float(f["speed_limit_mph"], path + ".speed_limit_mph")
+        return as_float(f["speed_limit_mph"], path + ".speed_limit_mph")
     if f.get("speed_limit_kmh") is not None:  # nuScenes and other non-WOMD datasets
-        return _float(f["speed_limit_kmh"], path + ".speed_limit_kmh") / _KMH_PER_MPH
+        return as_float(f["speed_limit_kmh"], path + ".speed_limit_kmh") / _KMH_PER_MPH
     return 0.0
 
 
-def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, _Ids]:
+def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, Ids]:
     if not isinstance(features, dict):
         raise SceneValidationError("map_features: expected a dict")
     kinds: dict[str, list] = {k: [] for k in ("lanes", "road_lines", "road_edges", "stop_signs",
                                               "crosswalks", "speed_bumps", "driveways")}
     keys = list(features)
-    ids = _Ids(keys, "map_features")
+    ids = Ids(keys, "map_features")
     ftypes = []
     for key in keys:
-        path = f"map_features[{_describe(key)}]"
-        ftype = _get(features[key], "type", path)
+        path = f"map_features[{describe(key)}]"
+        ftype = required(features[key], "type", path)
         if not isinstance(ftype, str):
-            raise SceneValidationError(f"{path}.type: expected a string, got {_describe(ftype)}")
+            raise SceneValidationError(f"{path}.type: expected a string, got {describe(ftype)}")
         ftypes.append(_FEATURE_ALIASES.get(ftype, ftype))
     lane_ids = {fid for fid, t in zip(ids.ids, ftypes) if t in _LANE_TYPES}
     refs = _Refs(ids, lane_ids, set(ids.ids), dropped)
     for key, fid, ftype in zip(keys, ids.ids, ftypes):
         f = features[key]
-        path = f"map_features[{_describe(key)}]"
+        path = f"map_features[{describe(key)}]"
         if ftype in _LANE_TYPES:
             kinds["lanes"].append(Lane(
-                id=fid, polyline=_points(_get(f, "polyline", path), path + ".polyline"),
+                id=fid, polyline=as_points(required(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
                 speed_limit_mph=_speed_mph(f, path),
-                interpolating=_bool(f.get("interpolating", False), path + ".interpolating"),
+                interpolating=as_bool(f.get("interpolating", False), path + ".interpolating"),
                 entry_lanes=refs.lanes(f.get("entry_lanes"), fid, "entry_lanes",
                                        path + ".entry_lanes"),
                 exit_lanes=refs.lanes(f.get("exit_lanes"), fid, "exit_lanes", path + ".exit_lanes"),
@@ -547,13 +347,13 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, _
                                            refs, fid, "right_boundaries"),
             ))
         elif ftype in _LINE_TYPES:
-            kinds["road_lines"].append(RoadLine(fid, _points(_get(f, "polyline", path),
-                                                             path + ".polyline"), _LINE_TYPES[ftype]))
+            line = as_points(required(f, "polyline", path), path + ".polyline")
+            kinds["road_lines"].append(RoadLine(fid, line, _LINE_TYPES[ftype]))
         elif ftype in _EDGE_TYPES:
-            kinds["road_edges"].append(RoadEdge(fid, _points(_get(f, "polyline", path),
-                                                             path + ".polyline"), _EDGE_TYPES[ftype]))
+            line = as_points(required(f, "polyline", path), path + ".polyline")
+            kinds["road_edges"].append(RoadEdge(fid, line, _EDGE_TYPES[ftype]))
         elif ftype == schema.STOP_SIGN:
-            pos = _array(_get(f, "position", path), (-1,), np.float64, path + ".position")
+            pos = as_array(required(f, "position", path), (-1,), np.float64, path + ".position")
             if pos.shape[0] > 3:
                 raise SceneValidationError(f"{path}.position: expected 3 coordinates, "
                                            f"got {pos.shape[0]}")
@@ -565,7 +365,7 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, _
             # the older MetaDrive layout stores an area's outline as "polyline"
             outline = f.get("polygon") if isinstance(f, dict) and f.get("polygon") is not None \
                 else (f.get("polyline") if isinstance(f, dict) else None)
-            points = (_points(outline, path + ".polygon") if outline is not None
+            points = (as_points(outline, path + ".polygon") if outline is not None
                       else np.zeros((0, 3)))
             kinds[kind].append(cls(fid, points))
         else:
@@ -573,35 +373,21 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, _
     return RoadMap(**{k: tuple(v) for k, v in kinds.items()}), ids
 
 
-def _int_array(value: Any, length: int, path: str) -> np.ndarray:
-    """(length,) int64 of whole numbers within 64 bits (floats are accepted when integral)."""
-    arr = _array(value, (length,), np.float64, path) if not (
-        isinstance(value, np.ndarray) and value.dtype.kind in "iub") else \
-        _array(value, (length,), np.int64, path)
-    if arr.dtype.kind == "f":
-        bad = ~np.isfinite(arr) | (arr != np.round(arr)) | (np.abs(arr) >= 2.0 ** 63)
-        if bad.any():
-            k = int(np.flatnonzero(bad)[0])
-            raise SceneValidationError(f"{path}[{k}]: expected an integer, got {float(arr[k]):.6g}")
-        arr = arr.astype(np.int64)
-    return arr
-
-
 def _signal_state(value: Any, path: str) -> int:
     """A signal state: a ``LANE_STATE_*`` name, or the older layout's integer WOMD
     ``TrafficSignalLaneState`` code (0 unknown .. 8 flashing caution; same values as ours)."""
     if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
         if not 0 <= value <= max(SignalState):
-            raise SceneValidationError(f"{path}: unknown signal state code {_describe(value)}")
+            raise SceneValidationError(f"{path}: unknown signal state code {describe(value)}")
         return int(value)
-    return _enum(value, _SIGNAL_STATES, path)
+    return as_enum(value, _SIGNAL_STATES, path)
 
 
-def _signals(dyn: Any, length: int, map_ids: _Ids, dropped: list[DroppedReference],
+def _signals(dyn: Any, length: int, map_ids: Ids, dropped: list[DroppedReference],
              notes: list[str]) -> SignalStates:
     if not isinstance(dyn, dict):
         raise SceneValidationError("dynamic_map_states: expected a dict")
-    _charge(_PER_ITEM * length, "dynamic_map_states")
+    charge(PER_ITEM * length, "dynamic_map_states")
     per_step: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in range(length)]
     older_steps: set[int] = set()
 
@@ -612,16 +398,16 @@ def _signals(dyn: Any, length: int, map_ids: _Ids, dropped: list[DroppedReferenc
         return fid
 
     for key, light in dyn.items():
-        path = f"dynamic_map_states[{_describe(key)}]"
+        path = f"dynamic_map_states[{describe(key)}]"
         if not isinstance(light, dict):
             raise SceneValidationError(f"{path}: expected a dict, got {type(light).__name__}")
-        state = _get(light, "state", path)
+        state = required(light, "state", path)
         sp = path + ".state"
         if isinstance(state, dict) and "lane" in state and "lane" not in light:
             # older MetaDrive layout: per-step lane ids (0 = no record) and stop points
-            lanes = _int_array(state["lane"], length, sp + ".lane")
-            codes = _int_array(_get(state, "object_state", sp), length, sp + ".object_state")
-            stops = _array(_get(state, "stop_point", sp), (length, -1), np.float64,
+            lanes = as_int_array(state["lane"], length, sp + ".lane")
+            codes = as_int_array(required(state, "object_state", sp), length, sp + ".object_state")
+            stops = as_array(required(state, "stop_point", sp), (length, -1), np.float64,
                            sp + ".stop_point")
             if stops.shape[1] < 3:
                 stops = np.pad(stops, ((0, 0), (0, 3 - stops.shape[1])))
@@ -633,11 +419,12 @@ def _signals(dyn: Any, length: int, map_ids: _Ids, dropped: list[DroppedReferenc
                     older_steps.add(t)
             continue
         lane = lane_id(light.get("lane", key), path + ".lane")
-        states = _seq(_get(state, "object_state", sp), sp + ".object_state")
+        states = as_list(required(state, "object_state", sp), sp + ".object_state")
         if len(states) != length:
             raise SceneValidationError(
                 f"{path}.state.object_state: expected {length} steps, got {len(states)}")
-        stop = _array(light.get("stop_point", np.zeros(3)), (-1,), np.float64, path + ".stop_point")
+        stop = as_array(light.get("stop_point", np.zeros(3)), (-1,), np.float64,
+                        path + ".stop_point")
         stop = np.pad(stop, (0, 3 - stop.shape[0])) if stop.shape[0] < 3 else stop[:3]
         if lane is None:
             continue
@@ -706,7 +493,7 @@ def dataset_files(folder: str | PathLike) -> list[Path]:
                                    f"unreadable dataset summary ({_reason(exc)})") from None
 
     summary = load(SUMMARY_FILE)
-    mapping = _default(load(MAPPING_FILE), {}) if (root / MAPPING_FILE).exists() else {}
+    mapping = or_default(load(MAPPING_FILE), {}) if (root / MAPPING_FILE).exists() else {}
     if not isinstance(summary, dict) or not isinstance(mapping, dict):
         raise SceneFormatError(root, None, "dataset summary/mapping is not a dict")
     files = []
@@ -716,8 +503,8 @@ def dataset_files(folder: str | PathLike) -> list[Path]:
                 or "/" in name or "\\" in name or "\0" in name + sub or Path(sub).is_absolute() \
                 or ".." in Path(sub).parts:
             raise SceneFormatError(root / SUMMARY_FILE, None,
-                                   f"bad scenario file name {_describe(name)} "
-                                   f"(folder {_describe(sub)})")
+                                   f"bad scenario file name {describe(name)} "
+                                   f"(folder {describe(sub)})")
         files.append(root / sub / name)
     return files
 
