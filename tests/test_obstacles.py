@@ -12,8 +12,8 @@ import pytest
 
 from conftest import ROOT, WOMD_DIR
 from converters import load_scene
+from converters.sumo import baseline as sb
 from converters.sumo.scenario import ConvertOptions, convert_scene
-from magail_sumo.agents import sumo_baseline as sb
 from magail_sumo.evaluation import rollouts as rl
 from magail_sumo.evaluation.realism import log_replay, scenario_metrics
 from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SumoSession

@@ -34,6 +34,7 @@ from magail_sumo.scene import LaneType, Scene
 from magail_sumo.scene.signal_sanity import checked_signal_sanity
 from magail_sumo.scene.types import STEP_LENGTH
 
+from .baseline import run_baseline
 from .bundle import (LOCKS, REPORT_FILE, BundleError, BundleLayout, bundle_folder,
                      complete_bundle)
 from .bundle import claim_networks_dir  # re-exported: callers import it from here
@@ -41,7 +42,7 @@ from .matching import build_index
 from .network import build_network
 from .pedestrians import check_built, plan_pedestrians
 from .lanes import lane_segments
-from .quality import on_network_rate, route_rate, run_baseline
+from .quality import on_network_rate, route_rate
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
 from .synthesis import carried_states, synthesize_lanes

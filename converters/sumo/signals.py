@@ -98,7 +98,7 @@ def write_programs(path: Path, programs: SignalPrograms, dt: float, cycle: bool)
         for tls, per_step in programs.states.items():
             fh.write(f'  <tlLogic id="{tls}" type="static" programID="womd" offset="0">\n')
             runs: list[list] = []
-            for s in per_step[:1] + per_step:  # one extra step: see quality.run_baseline
+            for s in per_step[:1] + per_step:  # one extra step: see baseline.run_baseline
                 if runs and runs[-1][0] == s:
                     runs[-1][1] += 1
                 else:
