@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     from magail_sumo.errors import MagailSumoError
     from magail_sumo.evaluation.openloop import evaluate_openloop
     from magail_sumo.splits import load_split, scene_stem
-    from magail_sumo.training.gameformer import load_gameformer
+    from magail_sumo.training.gameformer.run import load_gameformer
 
     torch.set_num_threads(1)
     try:

@@ -19,7 +19,7 @@ from magail_sumo.models.critic import CriticTransformerConfig, scene_groups
 from magail_sumo.models.policies import TanhGaussianPolicy, with_scene_groups
 from magail_sumo.training.config import PolicyConfig, TrainConfig
 from magail_sumo.policies import load_checkpoint_policy
-from magail_sumo.training.ppo import MaskedPPO, MaskedRolloutBuffer
+from magail_sumo.training.gail.ppo import MaskedPPO, MaskedRolloutBuffer
 from magail_sumo.training.trainer import load_checkpoint, load_policy, train
 
 SCENE_A = str(WOMD_DIR / "2831b6fde0420b0d.tfrecord")  # 11 slots, 10 agents at reset

@@ -19,7 +19,8 @@ from magail_sumo.env.expert import training_actions
 from magail_sumo.env.vec_env import (MultiSceneVecEnv, episode_rng, max_concurrent_agents,
                                      scene_specs)
 from magail_sumo.sensors.observation import observation_names
-from magail_sumo.training.config import TrainConfig, check_train_config
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.preflight import check_train_config
 from magail_sumo.training.trainer import load_checkpoint, train
 from test_training import setup  # noqa: F401 - the resume test's tiny run (fixture)
 

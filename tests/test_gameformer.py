@@ -151,7 +151,7 @@ def test_config_checks():
 
 
 def test_samples_index_the_log(tmp_path):
-    from magail_sumo.training.gameformer_data import (Frame, StreamingDataset, scene_data,
+    from magail_sumo.training.gameformer.data import (Frame, StreamingDataset, scene_data,
                                                       training_sample)
     from converters.scene_files import list_records
 

@@ -11,7 +11,8 @@ import pytest
 from conftest import WOMD_DIR
 from magail_sumo.cli.main import main
 from magail_sumo.config import ConfigError, MAX_MESSAGE, from_dict, load_config
-from magail_sumo.training.config import TrainConfig, check_train_config
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.preflight import check_train_config
 
 SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")  # 91 steps
 

@@ -16,9 +16,11 @@ from magail_sumo.config import ConfigError, FieldError, from_dict
 from magail_sumo.models.branched import BranchedMLP, BranchedSAC
 from magail_sumo.sensors.command import LEFT, RIGHT, STRAIGHT, RouteCommands
 from magail_sumo.sensors.observation import COMMAND_NAMES, ObservationConfig, observation_names
-from magail_sumo.training.config import TaskRewardConfig, TrainConfig
-from magail_sumo.training.sac import (ReplayBuffer, Transitions, buffer_rows, collision_count,
-                                      sample_batch, step_transitions, task_reward)
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.sac.config import TaskRewardConfig
+from magail_sumo.training.sac.buffer import ReplayBuffer, collision_count, sample_batch
+from magail_sumo.training.sac.transitions import (buffer_rows, step_transitions,
+                                                  task_reward)
 
 SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
 CMD_OBS = ObservationConfig(command=True)

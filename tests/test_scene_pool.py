@@ -258,7 +258,8 @@ def test_city_scenario_trains_beside_a_recorded_scene(tmp_path):
     from magail_sumo.env.vec_env import scene_specs
     from magail_sumo.expert import ExpertDataset, record_expert
     from magail_sumo.sensors.observation import observation_names
-    from magail_sumo.training.config import TrainConfig, check_train_config
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.preflight import check_train_config
     from magail_sumo.training.trainer import GailRun
 
     city = ROOT / "data" / "sumo" / "ingolstadt21"

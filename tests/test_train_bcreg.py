@@ -19,7 +19,8 @@ from magail_sumo.env.vec_env import scene_specs
 from magail_sumo.expert import ExpertDataset, record_expert
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.training.bc import expert_actions, expert_nll
-from magail_sumo.training.config import PPOConfig, TrainConfig
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.gail.config import PPOConfig
 from magail_sumo.training.trainer import GailRun, load_checkpoint, train
 
 SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")

@@ -17,7 +17,7 @@ from magail_sumo.config import ConfigError, from_dict, load_config
 from magail_sumo.env.vec_env import scene_specs
 from magail_sumo.expert import record_expert
 from magail_sumo.training.config import TrainConfig
-from magail_sumo.training.ppo import MaskedRolloutBuffer, adapt_learning_rate
+from magail_sumo.training.gail.ppo import MaskedRolloutBuffer, adapt_learning_rate
 from magail_sumo.training.trainer import CheckpointError, load_checkpoint, load_policy, train
 
 SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
@@ -81,7 +81,7 @@ def test_info_scan_reads_done_slots_only():
     Monitor, summaries come with their slot's done, without reading the other slots."""
     from collections import deque
 
-    from magail_sumo.training.ppo import MaskedPPO
+    from magail_sumo.training.gail.ppo import MaskedPPO
 
     class Loud(dict):
         def get(self, *a):  # a slot whose info must not be read

@@ -104,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     import warnings
 
     # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
-    from magail_sumo.training.config import TrainConfig, check_train_config
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.preflight import check_train_config
     from magail_sumo.training.trainer import train
 
 

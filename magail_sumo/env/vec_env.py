@@ -15,8 +15,8 @@ takes the lowest free slot of its worker and keeps it until it leaves; then the 
 until another agent joins.
 ``infos[i]["slot_active"]`` (and :attr:`MultiSceneVecEnv.slot_active`) says whether slot ``i``
 holds an agent; the observation of a free slot is zeros and its action is ignored. Learning
-must drop free slot-steps (see :class:`magail_sumo.training.ppo.MaskedRolloutBuffer`): they are
-not transitions. ``dones[i]`` is True when the slot's agent left (with
+must drop free slot-steps (see :class:`magail_sumo.training.gail.ppo.MaskedRolloutBuffer`):
+they are not transitions. ``dones[i]`` is True when the slot's agent left (with
 ``infos[i]["terminal_observation"]``, ``"TimeLimit.truncated"`` when it was truncated, not
 terminated, and ``"reason"``) and also when a free slot is given to a new agent, so GAE never
 runs from one agent into another. When a worker's scene has no agents left it is reset (next

@@ -12,7 +12,7 @@ edge and crosswalk outline (closed) of the scene resampled every ``map_spacing``
 pieces of ``map_points`` points (:func:`map_chunks`), nearest by the smallest point distance to
 the agent's position at ``c``. Feature layouts: :data:`~magail_sumo.models.gameformer.AGENT_FEATURES`,
 :data:`~magail_sumo.models.gameformer.MAP_FEATURES`. Traffic-signal states are not used.
-Training (:mod:`magail_sumo.training.gameformer_data`), open-loop evaluation and the closed-loop
+Training (:mod:`magail_sumo.training.gameformer.data`), open-loop evaluation and the closed-loop
 agent build their samples here.
 """
 

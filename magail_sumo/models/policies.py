@@ -18,11 +18,11 @@ vehicle alone, shared by all vehicles. Two critics:
   know which rows of a batch belong together (:meth:`TanhGaussianPolicy.critic_groups`):
 
   - training minibatches carry their grouping on the observation tensor
-    (:func:`with_scene_groups`; :class:`~magail_sumo.training.ppo.MaskedRolloutBuffer` does it);
+    (:func:`with_scene_groups`; :class:`~magail_sumo.training.gail.ppo.MaskedRolloutBuffer` does it);
     :meth:`~TanhGaussianPolicy.evaluate_actions` refuses a batch without one;
   - a batch of one vector-env observation (as many rows as the env has slots, at rollout time)
     is grouped by :meth:`~TanhGaussianPolicy.set_scene_layout`'s slot→scene layout and the
-    env's current slot mask (:class:`~magail_sumo.training.ppo.MaskedPPO` wires both from the
+    env's current slot mask (:class:`~magail_sumo.training.gail.ppo.MaskedPPO` wires both from the
     :class:`~magail_sumo.env.vec_env.MultiSceneVecEnv`): the active slots of a scene form one
     group; a free slot is not evaluated and gets value 0 (never used: the masked buffer drops
     free slot-steps and GAE never bootstraps across a slot re-assignment);

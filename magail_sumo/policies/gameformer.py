@@ -28,7 +28,7 @@ import torch
 from magail_sumo.models.gameformer_features import (Frame, History, build_sample, collate,
                                                    log_history, map_chunks)
 from magail_sumo.sim import dynamics
-from magail_sumo.training.gameformer import load_gameformer
+from magail_sumo.training.gameformer.run import load_gameformer
 
 
 class GameFormerPolicy:

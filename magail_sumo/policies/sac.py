@@ -17,7 +17,7 @@ from magail_sumo.sensors.config import ObservationConfig
 from magail_sumo.training.checkpoints import (CheckpointError, checkpoint_config, load_checkpoint,
                                               load_into)
 from magail_sumo.training.config import TrainConfig
-from magail_sumo.training.sac import make_sac_model
+from magail_sumo.training.sac.agent import make_sac_model
 
 from .checkpoint import check_env_compatible, target_env
 

@@ -7,7 +7,7 @@ a ``"module:function"`` entry point resolved only when a run starts (as gymnasiu
 so importing the registry imports no algorithm. Adding an algorithm = its module plus one
 :func:`register` line below; :func:`~magail_sumo.training.trainer.train` does the shared part
 (config checks, resume checks, threads, seeds) and calls it. Evaluating an algorithm's
-checkpoints is registered apart, with the agents (:mod:`magail_sumo.agents`).
+checkpoints is registered apart, one layer up (:mod:`magail_sumo.policies`).
 """
 
 from __future__ import annotations
@@ -65,13 +65,13 @@ def load_expert(cfg: "TrainConfig") -> "ExpertDataset":
     return ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
 
 
-register(Algorithm("gail", "magail_sumo.training.gail:train_gail", adversarial=True,
+register(Algorithm("gail", "magail_sumo.training.gail.run:train_gail", adversarial=True,
                    summary="GAIL / MAGAIL: PPO generator, discriminator reward"))
 register(Algorithm("bc", "magail_sumo.training.bc:train_bc",
                    summary="behavioural cloning of the expert (s, a)"))
-register(Algorithm("sac", "magail_sumo.training.sac:train_sac",
+register(Algorithm("sac", "magail_sumo.training.sac.run:train_sac",
                    summary="command-branched SAC on a task reward"))
-register(Algorithm("sac_gail", "magail_sumo.training.sac:train_sac", adversarial=True,
+register(Algorithm("sac_gail", "magail_sumo.training.sac.run:train_sac", adversarial=True,
                    summary="command-branched SAC generator, discriminator reward"))
-register(Algorithm("gameformer", "magail_sumo.training.gameformer:train_gameformer",
+register(Algorithm("gameformer", "magail_sumo.training.gameformer.run:train_gameformer",
                    summary="GameFormer level-k trajectory prediction (supervised)"))

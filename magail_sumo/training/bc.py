@@ -3,7 +3,7 @@
 Maximises ``log pi(a_expert | s)`` of the actor (MLP + state-independent log-std; the critic is
 untouched), so the result is also a PPO initialisation. Expert actions are clipped to
 ``±(1 − 1e-3)`` (tanh cannot reach ±1). :func:`expert_nll` is also PPO's behavioural-cloning
-regulariser (``ppo.bc_coef``, :class:`~magail_sumo.training.ppo.MaskedPPO`).
+regulariser (``ppo.bc_coef``, :class:`~magail_sumo.training.gail.ppo.MaskedPPO`).
 """
 
 from __future__ import annotations

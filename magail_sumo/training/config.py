@@ -2,31 +2,32 @@
 
 Every hyperparameter of a run lives here; unknown keys, wrong types and values out of range
 (checked in each dataclass's ``__post_init__``) are refused naming the key.
-:func:`check_train_config` adds the checks that need the machine or the scene files (device
-available, scene files readable, ``env.start_step`` / ``env.min_history`` inside every scene),
-before any set-up.
+Each algorithm's own block lives with the algorithm (``ppo``: :mod:`.gail.config`, ``sac``:
+:mod:`.sac.config`, ``gameformer``: :mod:`.gameformer.config`);
+:func:`~magail_sumo.training.preflight.check_train_config` adds the checks that need the machine
+or the scene files, before any set-up.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from os import PathLike
 from pathlib import Path
 from typing import Any, Literal
 
-from converters.scene_files import read_record
+import torch
+
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
 from magail_sumo.env.city_env import CityEnvConfig
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
-from magail_sumo.env.scene_pool import is_city, resolve_pool, start_problem
-from magail_sumo.errors import MagailSumoError
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import TransformerConfig
-from magail_sumo.models.gameformer import GameFormerModelConfig
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.splits import PARTS, load_split
 
+from .gail.config import PPOConfig
+from .gameformer.config import GameFormerConfig
+from .sac.config import SACConfig
 from .algorithms import REGISTRY as ALGORITHMS  # ``TrainConfig.algorithm`` names (live registry)
 
 
@@ -221,55 +222,6 @@ class PolicyConfig:
 
 
 @dataclass(frozen=True)
-class PPOConfig:
-    """SB3 PPO plus the seed's KL-adaptive learning rate.
-
-    :param n_steps: env steps per rollout (each step = every slot of every scene).
-    :param batch_size: minibatch size in agent-steps.
-    :param desired_kl: target approx KL of an update (None: fixed learning rate); the lr is
-        halved above 2x, multiplied by 1.5 below half of it, within [lr_min, lr_max].
-    :param bc_coef: weight c of the behavioural-cloning regulariser added to every PPO
-        minibatch loss, ``c_u · (−mean log pi(a_E | s_E))`` over ``bc_batch_size`` expert
-        (s, a) pairs (:class:`~magail_sumo.training.ppo.MaskedPPO`); 0: off (plain PPO).
-    :param bc_decay: d in (0, 1], the weight of PPO update u (0-based) is ``c_u = c · d**u``.
-    :param bc_batch_size: expert pairs per minibatch.
-    """
-
-    n_steps: int = 128
-    batch_size: int = 1024
-    n_epochs: int = 10
-    gamma: float = 0.995
-    gae_lambda: float = 0.97
-    clip_range: float = 0.2
-    learning_rate: float = 1e-3
-    ent_coef: float = 0.0
-    vf_coef: float = 1.0
-    max_grad_norm: float = 1.0
-    normalize_advantage: bool = True
-    desired_kl: float | None = 0.01
-    lr_min: float = 1e-5
-    lr_max: float = 1e-2
-    bc_coef: float = 0.0
-    bc_decay: float = 1.0
-    bc_batch_size: int = 256
-
-    def __post_init__(self) -> None:
-        for name in ("n_steps", "batch_size", "n_epochs", "bc_batch_size"):
-            check(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
-        check_positive(self, "learning_rate", "max_grad_norm", "desired_kl", "lr_min", "lr_max")
-        check_positive(self, "vf_coef", "bc_coef", allow_zero=True)
-        check(0.0 < self.bc_decay <= 1.0, "bc_decay",
-              f"must be in (0, 1], got {show(self.bc_decay)}")
-        for name in ("gamma", "gae_lambda"):
-            v = getattr(self, name)
-            check(0.0 <= v <= 1.0, name, f"must be in [0, 1], got {show(v)}")
-        check(0.0 < self.clip_range <= 1.0, "clip_range",
-              f"must be in (0, 1], got {show(self.clip_range)}")
-        check(self.lr_max >= self.lr_min, "lr_max",
-              f"must be >= lr_min ({self.lr_min:g}), got {self.lr_max:g}")
-
-
-@dataclass(frozen=True)
 class DiscriminatorConfig:
     """GAIL discriminator and reward.
 
@@ -334,161 +286,6 @@ class BCConfig:
     def __post_init__(self) -> None:
         check_positive(self, "epochs", allow_zero=True)
         check_positive(self, "batch_size", "learning_rate")
-
-
-@dataclass(frozen=True)
-class TaskRewardConfig:
-    """Task reward of the ``sac`` algorithm per agent-step (:func:`~magail_sumo.training.sac.
-    task_reward`): ``progress·(d(s) − d(s')) + destination·[reached] − collision·[collided]
-    − off_road·[off road] − red_light·[ran a red light] − comfort·|a − a_prev|²``, with ``d``
-    the distance to the destination (m, the ``dest_distance`` feature), the events those that
-    ended the agent at that step (``env.terminate_on``) and ``a_prev`` the previous normalised
-    action (the ``prev_accel``, ``prev_steer`` features of s). All weights >= 0.
-    """
-
-    progress: float = 0.1
-    destination: float = 1.0
-    collision: float = 10.0
-    off_road: float = 5.0
-    red_light: float = 5.0
-    comfort: float = 0.05
-
-    def __post_init__(self) -> None:
-        check_positive(self, "progress", "destination", "collision", "off_road", "red_light",
-                       "comfort", allow_zero=True)
-
-
-@dataclass(frozen=True)
-class SACConfig:
-    """Soft Actor-Critic with command-branched heads (``algorithm: sac`` / ``sac_gail``;
-    :mod:`magail_sumo.training.sac`).
-
-    One update = ``train_freq`` env steps (every slot of every scene) then
-    ``gradient_steps`` gradient steps (after ``learning_starts`` transitions are stored).
-
-    :param hidden: hidden sizes of the shared trunks of the actor, twin Q and value networks
-        (each has one output head per command: left / straight / right).
-    :param buffer_size: transitions kept in the main replay buffer (and as many in the
-        collision buffer), oldest first out.
-    :param batch_size: transitions per gradient step.
-    :param collision_share: share of each batch drawn from the collision buffer (transitions
-        at which an agent collided), ``int(collision_share·batch_size)`` exactly once that
-        buffer holds as many; 0: off.
-    :param gamma: discount. :param tau: soft target update rate of the value network.
-    :param learning_rate: Adam learning rate of all networks (and of the temperature).
-    :param lr_step, lr_gamma: StepLR: every ``lr_step`` gradient steps the learning rates are
-        multiplied by ``lr_gamma``.
-    :param learning_starts: stored transitions before the first gradient step (actions are
-        uniform random until then).
-    :param train_freq: env steps per update. :param gradient_steps: gradient steps per update.
-    :param alpha: entropy temperature (initial one with ``auto_alpha``).
-    :param auto_alpha: learn the temperature towards ``target_entropy``.
-    :param target_entropy: entropy target (None: −action dimension, −2).
-    :param absorbing_reward: ``sac_gail``: reward of the absorbing state's self-transition
-        (the discriminators do not judge absorbing states; default log 2, the imitation
-        reward of a discriminator at chance).
-    :param save_buffers: store the replay buffers in checkpoints (resume is then exact; without
-        them a resumed run starts with empty buffers: approximate).
-    :param task_reward: weights of the ``sac`` task reward.
-    """
-
-    hidden: tuple[int, ...] = (256, 256)
-    buffer_size: int = 200_000
-    batch_size: int = 256
-    collision_share: float = 0.2
-    gamma: float = 0.99
-    tau: float = 0.005
-    learning_rate: float = 3e-4
-    lr_step: int = 10_000
-    lr_gamma: float = 0.9
-    learning_starts: int = 1000
-    train_freq: int = 16
-    gradient_steps: int = 16
-    alpha: float = 0.2
-    auto_alpha: bool = True
-    target_entropy: float | None = None
-    absorbing_reward: float = 0.6931471805599453
-    save_buffers: bool = True
-    task_reward: TaskRewardConfig = field(default_factory=TaskRewardConfig)
-
-    def __post_init__(self) -> None:
-        check_sizes(self, "hidden")
-        for name in ("buffer_size", "batch_size", "lr_step", "train_freq", "gradient_steps"):
-            check(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
-        check(self.learning_starts >= 0, "learning_starts",
-              f"must be >= 0, got {self.learning_starts}")
-        check(self.batch_size <= self.buffer_size, "batch_size",
-              f"must be <= buffer_size ({self.buffer_size}), got {self.batch_size}")
-        check(0.0 <= self.collision_share < 1.0, "collision_share",
-              f"must be in [0, 1), got {show(self.collision_share)}")
-        check(0.0 <= self.gamma < 1.0, "gamma", f"must be in [0, 1), got {show(self.gamma)}")
-        check(0.0 < self.tau <= 1.0, "tau", f"must be in (0, 1], got {show(self.tau)}")
-        check(0.0 < self.lr_gamma <= 1.0, "lr_gamma",
-              f"must be in (0, 1], got {show(self.lr_gamma)}")
-        check_positive(self, "learning_rate", "alpha")
-        check(self.target_entropy is None or abs(self.target_entropy) < 1e3, "target_entropy",
-              f"must be a number in (-1000, 1000) or null, got {show(self.target_entropy)}")
-        check(abs(self.absorbing_reward) < 1e3, "absorbing_reward",
-              f"must be in (-1000, 1000), got {show(self.absorbing_reward)}")
-
-
-@dataclass(frozen=True)
-class GameFormerConfig:
-    """The ``gameformer`` algorithm: level-k interactive trajectory prediction trained on the
-    recorded scenes ``scenes.files`` (no simulation; :mod:`magail_sumo.training.gameformer`,
-    samples as in :mod:`magail_sumo.training.gameformer_data`), driving as a sim agent in
-    evaluation. ``updates`` of the run are gradient steps, one batch each.
-
-    :param model: network sizes (:class:`~magail_sumo.models.gameformer.GameFormerModelConfig`).
-    :param history_steps: 0.1-s history steps per agent, the current one included.
-    :param max_agents: agents per sample (the focal one and its nearest others).
-    :param map_elements: map elements per agent. :param map_points: points per element.
-    :param map_spacing: m between the points of an element.
-    :param window_stride: steps between the current steps of the training windows.
-    :param min_future_steps: observed future steps a focal agent needs to be a sample.
-    :param focal_types: object types that are focal agents (``vehicle``, ``pedestrian``,
-        ``cyclist``, ``other``).
-    :param interaction_weight: weight of the repulsion term; :param safety_distance: m below
-        which it acts.
-    :param cache_scenes: scenes the dataset holds at once (and groups when shuffling).
-    :param replan_every: steps between replans of the closed-loop agent.
-    :param eval_stride: steps between the current steps of the open-loop evaluation windows.
-    """
-
-    model: GameFormerModelConfig = field(default_factory=GameFormerModelConfig)
-    history_steps: int = 11
-    max_agents: int = 8
-    map_elements: int = 16
-    map_points: int = 10
-    map_spacing: float = 2.0
-    window_stride: int = 5
-    min_future_steps: int = 10
-    focal_types: tuple[str, ...] = ("vehicle", "cyclist")
-    batch_size: int = 32
-    learning_rate: float = 5e-4
-    weight_decay: float = 0.0
-    max_grad_norm: float = 1.0
-    interaction_weight: float = 0.1
-    safety_distance: float = 3.0
-    cache_scenes: int = 4
-    replan_every: int = 10
-    eval_stride: int = 10
-
-    def __post_init__(self) -> None:
-        for name in ("history_steps", "max_agents", "map_elements", "map_points",
-                     "window_stride", "min_future_steps", "batch_size", "cache_scenes",
-                     "replan_every", "eval_stride"):
-            v = getattr(self, name)
-            check(v >= 1, name, f"must be >= 1, got {show(v)}")
-        check(self.min_future_steps <= self.model.future_steps, "min_future_steps",
-              f"must be <= model.future_steps ({self.model.future_steps}), "
-              f"got {self.min_future_steps}")
-        check_positive(self, "map_spacing", "learning_rate", "max_grad_norm", "safety_distance")
-        check_positive(self, "weight_decay", "interaction_weight", allow_zero=True)
-        known = ("vehicle", "pedestrian", "cyclist", "other")
-        bad = [t for t in self.focal_types if t not in known]
-        check(bool(self.focal_types) and not bad, "focal_types",
-              f"must be a non-empty list of {', '.join(known)}, got {show(self.focal_types)}")
 
 
 @dataclass(frozen=True)
@@ -558,8 +355,6 @@ class TrainConfig:
 
 
 def _check_device_name(device: str) -> None:
-    import torch
-
     try:
         dev = torch.device(device)
     except (RuntimeError, ValueError, TypeError):
@@ -567,73 +362,3 @@ def _check_device_name(device: str) -> None:
                          "(e.g. 'cpu', 'cuda', 'cuda:0')") from None
     check(dev.type in ("cpu", "cuda", "mps"), "device",
           f"must be a cpu, cuda or mps device, got {show(device)}")
-
-
-def check_device(device: str) -> None:
-    """:class:`FieldError` unless ``device`` exists on this machine."""
-    import torch
-
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        check(n > 0, "device", f"{show(device)}: no CUDA device available")
-        check(dev.index is None or dev.index < n, "device",
-              f"{show(device)}: not available ({n} CUDA device{'s' if n != 1 else ''}: "
-              f"cuda:0{f' .. cuda:{n - 1}' if n > 1 else ''})")
-    elif dev.type == "mps":
-        check(torch.backends.mps.is_available(), "device", f"{show(device)}: not available")
-
-
-def check_train_config(cfg: TrainConfig, source: str | PathLike | None = None) -> None:
-    """Checks of ``cfg`` that need this machine and the scene files, before any set-up:
-    the device exists, every scene file is readable and ``env.start_step`` (with
-    ``env.start_window: random``, ``env.min_history``) leaves at least one step in each of its
-    scenes. :class:`ConfigError` naming ``source`` (the config file) and
-    the key."""
-    from pathlib import Path
-
-    where = f"{source}: " if source is not None else ""
-    try:
-        check_device(cfg.device)
-    except FieldError as exc:
-        raise ConfigError(f"{where}{exc.key}: {exc.problem}") from None
-    if cfg.algorithm == "bc":
-        return
-    if cfg.algorithm == "gameformer":
-        for i, f in enumerate(cfg.scenes.files):
-            if not set("*?[") & set(str(f)) and not Path(f).exists():
-                raise ConfigError(f"{where}scenes.files[{i}]: {show(f, 200)}: no such file")
-        return
-
-    checked = []
-    for i, f in enumerate(cfg.scenes.files):
-        key = f"scenes.files[{i}]"
-        if not set("*?[") & set(str(f)) and not Path(f).exists():
-            raise ConfigError(f"{where}{key}: {show(f, 200)}: no such file")
-        skipped: list = []
-        refs = resolve_pool([f], skipped)
-        if not refs:
-            why = skipped[0].reason if skipped else "no scene"
-            raise ConfigError(f"{where}{key}: cannot read the scenes ({show(why, 200)[1:-1]})")
-        if cfg.discriminator.kind == "transformer" and cfg.algorithm != "sac" \
-                and any(is_city(r) for r in refs):
-            raise ConfigError(f"{where}discriminator.kind: 'transformer' judges all vehicles of "
-                              f"a worker step as one set, not a city's local neighbourhoods "
-                              f"({key} is a city scenario); use 'decomposed' (each vehicle "
-                              "with its K nearest within R m) or 'mlp'")
-        checked.extend(r for r in refs[:max(0, 32 - len(checked))] if not is_city(r))
-    # a small pool is read now: a start past every scene is a config mistake (in a larger
-    # pool, or next to usable scenes, such a scene is skipped at run time)
-    problems = []
-    for ref in checked:
-        try:
-            scene = read_record(ref)
-        except (MagailSumoError, OSError, ValueError):
-            continue  # skipped at run time, with its reason
-        problem = start_problem(scene, cfg.env)
-        if problem is None:
-            return
-        problems.append(f"{problem} of {ref}")
-    if problems:
-        key_start = "min_history" if cfg.env.start_window == "random" else "start_step"
-        raise ConfigError(f"{where}env.{key_start}: {problems[0]}")

@@ -26,7 +26,7 @@ imitation part is not computed step by step: the wrapper returns ``c_t·r_task``
 scene tokens, and :meth:`DiscriminatorRewardWrapper.flush_rewards` computes the imitation reward
 of every step of the rollout in a few large batched forwards (per scene, trimmed to the slots
 that were ever occupied), added to the rollout buffer's rewards before the returns are computed
-(:class:`~magail_sumo.training.ppo.MaskedRolloutBuffer` ``reward_source``). Same rewards as the
+(:class:`~magail_sumo.training.gail.ppo.MaskedRolloutBuffer` ``reward_source``). Same rewards as the
 per-step computation, up to float rounding.
 """
 

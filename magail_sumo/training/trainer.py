@@ -24,8 +24,10 @@ from .checkpoints import (CHECKPOINT_FORMAT, OLD_CHECKPOINT_FORMATS, CheckpointE
                           checkpoint_config, decode_env_state, encode_env_state, encode_state,
                           load_checkpoint, load_into, save_checkpoint, save_state,
                           upgrade_checkpoint)
-from .config import TrainConfig, check_train_config
-from .gail import BC_STREAM, SB3_RESUME_STATE, GailRun, make_pool_env
+from .config import TrainConfig
+from .envs import make_pool_env
+from .gail.run import BC_STREAM, SB3_RESUME_STATE, GailRun
+from .preflight import check_train_config
 from .policies import load_policy, make_policy, policy_kwargs, spaces_of
 from .resume import RESUMABLE_CHANGES, check_resume_config, resume_worker_count
 from .rng import rng_state, seed_everything

@@ -59,7 +59,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from magail_sumo.models.policies import with_scene_groups
 
-from .bc import expert_actions, expert_nll
+from ..bc import expert_actions, expert_nll
 
 
 class MaskedRolloutBuffer(RolloutBuffer):

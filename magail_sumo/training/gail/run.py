@@ -1,6 +1,6 @@
 """GAIL / MAGAIL with a PPO generator (``algorithm: gail``): the scene-pool env, the adversarial
 reward (:class:`~magail_sumo.training.adversarial.AdversarialReward`), masked PPO
-(:class:`~magail_sumo.training.ppo.MaskedPPO`, with the optional behavioural-cloning regulariser)
+(:class:`~magail_sumo.training.gail.ppo.MaskedPPO`, with the optional behavioural-cloning regulariser)
 and their callbacks, run update by update with checkpoints and exact resume.
 
 A checkpoint (:mod:`~magail_sumo.training.checkpoints`) holds the policy (with its observation
@@ -10,39 +10,37 @@ behavioural-cloning regulariser's expert sampler RNG and update count, the torch
 RNG states, SB3's counters and last observation (:data:`SB3_RESUME_STATE`), and the env state as
 per-scene (episode, actions since reset) — replayed in fresh workers on resume, so a resumed run
 continues exactly as if uninterrupted. (A transformer critic's slot→scene layout is not state:
-:class:`~magail_sumo.training.ppo.MaskedPPO` takes it from the env it is built on.)
+:class:`~magail_sumo.training.gail.ppo.MaskedPPO` takes it from the env it is built on.)
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import torch
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.logger import Logger
 
-from converters.sumo.scenario import claim_networks_dir
-from magail_sumo.config import ConfigError, record_run, to_dict
-from magail_sumo.env.scene_pool import is_city, resolve_pool
-from magail_sumo.env.vec_env import pool_vec_env
+from magail_sumo.config import ConfigError, to_dict
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.policies import TanhGaussianPolicy
 from magail_sumo.outputs import printable
 
-from .adversarial import AdversarialReward
-from .checkpoints import (CHECKPOINT_FORMAT, CheckpointError, decode_env_state, encode_state,
-                          load_into, plain, save_checkpoint, tensor_field)
-from .config import TrainConfig, usable_cores
-from .policies import policy_kwargs
-from .rng import decode_rng, rng_state, set_rng_state
-from .run_dir import claim_run_dir, note_skipped
-from .algorithms import load_expert
-from .bc import behavioural_cloning
+from ..adversarial import AdversarialReward
+from ..checkpoints import (CHECKPOINT_FORMAT, CheckpointError, decode_env_state, encode_state,
+                           load_into, plain, save_checkpoint, tensor_field)
+from ..config import TrainConfig
+from ..policies import policy_kwargs
+from ..rng import decode_rng, rng_state, set_rng_state
+from ..algorithms import load_expert
+from ..bc import behavioural_cloning
+from ..envs import make_pool_env
+from ..loop import Progress, run_loop
+from ..reward import DiscriminatorCallback
 from .ppo import KLAdaptiveLR, MaskedPPO
-from .reward import DiscriminatorCallback
 
 #: second entropy word of the seed of the PPO behavioural-cloning regulariser's expert sampler
 #: (a stream apart from the discriminator sampler's, seeded with the run seed alone)
@@ -60,63 +58,30 @@ SB3_RESUME_STATE = ("_n_updates", "_last_obs", "_last_episode_starts")
 REWARD_AHEAD_STEPS = 64
 
 
-def torch_threads_callback():
-    from stable_baselines3.common.callbacks import BaseCallback
+class TorchThreads(BaseCallback):
+    """Torch CPU threads: ``rollout`` while the scene workers step, ``update`` for the
+    discriminator fit and PPO epochs (the workers are idle then)."""
 
-    class TorchThreads(BaseCallback):
-        """Torch CPU threads: ``rollout`` while the scene workers step, ``update`` for the
-        discriminator fit and PPO epochs (the workers are idle then)."""
+    def __init__(self, rollout: int, update: int) -> None:
+        super().__init__(0)
+        self.rollout, self.update = max(1, rollout), max(1, update)
 
-        def __init__(self, rollout: int, update: int) -> None:
-            super().__init__(0)
-            self.rollout, self.update = max(1, rollout), max(1, update)
+    def _on_rollout_start(self) -> None:
+        torch.set_num_threads(self.rollout)
 
-        def _on_rollout_start(self) -> None:
-            torch.set_num_threads(self.rollout)
+    def _on_rollout_end(self) -> None:
+        torch.set_num_threads(self.update)
 
-        def _on_rollout_end(self) -> None:
-            torch.set_num_threads(self.update)
+    def _on_training_end(self) -> None:
+        torch.set_num_threads(self.rollout)
 
-        def _on_training_end(self) -> None:
-            torch.set_num_threads(self.rollout)
-
-        def _on_step(self) -> bool:
-            return True
-
-    return TorchThreads
-
-
-def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
-    """The run's scene-pool vector env (:func:`~magail_sumo.env.vec_env.pool_vec_env`) and
-    ``cfg`` with ``workers.count`` resolved (None: the usable cores, at most one per scene
-    unless the pool holds a city scenario, which replicas play on every core)."""
-    skipped: list = []
-    refs = resolve_pool(cfg.scenes.files, skipped)
-    for s in skipped:
-        log(f"scene skipped: {s.what}: {s.reason}")
-    cores = usable_cores()
-    count = cfg.workers.count or (cores if any(is_city(r) for r in refs)
-                                  else min(len(refs), cores))
-    cfg = replace(cfg, workers=replace(cfg.workers, count=count))
-    w = cfg.workers
-    claim_networks_dir(cfg.scenes.networks)
-    venv = pool_vec_env(
-        refs, cfg.scenes.networks, count, cfg.env, cfg.seed, cache=w.scene_cache,
-        city=cfg.city.env_config(cfg.env),
-        convert_budget_s=cfg.scenes.effective_convert_budget_s, log=log,
-        timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
-        backend=w.backend, backend_options={"address": w.ray.address,
-                                            "num_cpus": w.ray.num_cpus},
-        max_restarts=w.max_restarts)
-    venv.skipped[:0] = [(s.what, s.reason) for s in skipped]
-    venv.new_skipped[:0] = [(s.what, s.reason) for s in skipped]
-    log(f"scene pool: {len(refs)} scene(s) over {len(venv.specs)} "
-        f"{w.backend} worker(s), {venv.num_envs} agent slots")
-    return cfg, venv
+    def _on_step(self) -> bool:
+        return True
 
 
 class GailRun:
-    """The objects of a GAIL / MAGAIL run (env, reward wrapper, discriminator, PPO, callbacks).
+    """The objects of a GAIL / MAGAIL run (env, reward wrapper, discriminator, PPO, callbacks),
+    a :class:`~magail_sumo.training.loop.Run`.
 
     :param cfg: the run config (``workers.count`` None is resolved: :attr:`cfg` holds the
         number used). :param expert: expert demonstrations. :param log: one-line messages
@@ -125,11 +90,7 @@ class GailRun:
 
     def __init__(self, cfg: TrainConfig, expert: ExpertDataset,
                  log: Callable[[str], None] | None = None) -> None:
-        from stable_baselines3.common.callbacks import CallbackList
-
-        TorchThreads = torch_threads_callback()
-
-        self.cfg = cfg
+        self.cfg, self.expert = cfg, expert
         d = cfg.discriminator
         if d.kind == "decomposed":  # before any worker starts
             expert.require_poses("discriminator.kind 'decomposed'")
@@ -171,10 +132,10 @@ class GailRun:
             raise
         # no output until a run sets its own (SB3 would otherwise make a /tmp/SB3-<time> folder
         # for every learn() call without a logger)
-        from stable_baselines3.common.logger import Logger
-
         self.model.set_logger(Logger(None, []))
         self.update = 0
+
+    progress_phase = "updates"
 
     @property
     def policy(self) -> TanhGaussianPolicy:
@@ -276,58 +237,47 @@ class GailRun:
                 reset_num_timesteps=False, progress_bar=False)
         self.update += 1
 
+    def begin(self, progress: Progress) -> None:
+        """A new run: the observation normaliser from the expert states, then the optional
+        behavioural-cloning warm start (``bc.epochs``)."""
+        cfg = self.cfg
+        self.policy.obs_normalizer.update(torch.as_tensor(self.expert.s))
+        if cfg.bc.epochs > 0:
+            behavioural_cloning(self.policy, self.expert, cfg.bc.epochs, cfg.bc.batch_size,
+                                cfg.bc.learning_rate, cfg.seed,
+                                log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))
+
+    def attach_logger(self, logger: Logger) -> None:
+        self.model.set_logger(logger)
+
+    def summarise(self, logger: Logger) -> str:
+        """The update line's tail: learning rate, KL, the discriminator's loss and accuracies,
+        the policy's mean speed and the outcome shares; records the worker restarts."""
+        st = self.disc_callback.last_stats
+        kl = logger.name_to_value.get("train/approx_kl", float("nan"))
+        tail = (f", lr {self.model.learning_rate:.2e}, kl {kl:.4f}"
+                + (f", D loss {st.loss:.3f} acc expert {st.expert_accuracy:.2f} policy "
+                   f"{st.policy_accuracy:.2f}" if st else "")
+                + (f", speed {sp:.2f} m/s (expert {self.disc_callback.expert_speed:.2f})"
+                   if (sp := self.disc_callback.last_speed) is not None else "")
+                + _rates_text(self.disc_callback.last_rates, self.cfg.env.guard.on))
+        if self.venv.restarts:
+            logger.record("workers/restarts", self.venv.restarts)
+        return tail
+
+    def log_step(self) -> int:
+        return self.model.num_timesteps
+
     def close(self) -> None:
         self.venv.close()
 
 
 def train_gail(cfg: TrainConfig, run_dir: Path, ckpt: dict | None,
-               log: Callable[[str], None], progress: Callable[[str, int, int], None]) -> Path:
+               log: Callable[[str], None], progress: Progress) -> Path:
     """Run (or resume, from ``ckpt``) a ``gail`` run in ``run_dir``: optional behavioural-cloning
-    warm start, then ``updates`` PPO updates with a checkpoint every ``checkpoint_every``."""
-    from stable_baselines3.common.logger import configure
-
-    expert = load_expert(cfg)
-    run = GailRun(cfg, expert, log=log)
-    cfg = run.cfg  # workers.count resolved
-
-    try:
-        if ckpt is not None:
-            run.load_state_dict(ckpt, run_dir / "checkpoints" / "latest.pt")
-            log(f"resumed {run_dir} at update {run.update}")
-        else:
-            run.policy.obs_normalizer.update(torch.as_tensor(expert.s))
-            if cfg.bc.epochs > 0:
-                behavioural_cloning(run.policy, expert, cfg.bc.epochs, cfg.bc.batch_size,
-                                    cfg.bc.learning_rate, cfg.seed,
-                                    log=lambda e, v: progress("bc", e + 1, cfg.bc.epochs))
-        claim_run_dir(run_dir, resumed=ckpt is not None)
-        record_run(run_dir, cfg)
-        note_skipped(run.venv, run_dir)
-        run.model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
-        while run.update < cfg.updates:
-            t0 = time.perf_counter()
-            steps0 = run.venv.agent_steps
-            run.run_update()
-            dt = time.perf_counter() - t0
-            st = run.disc_callback.last_stats
-            kl = run.model.logger.name_to_value.get("train/approx_kl", float("nan"))
-            log(f"update {run.update}/{cfg.updates}: {run.venv.agent_steps - steps0} agent-steps "
-                f"in {dt:.1f} s, lr {run.model.learning_rate:.2e}, kl {kl:.4f}"
-                + (f", D loss {st.loss:.3f} acc expert {st.expert_accuracy:.2f} policy "
-                   f"{st.policy_accuracy:.2f}" if st else "")
-                + (f", speed {sp:.2f} m/s (expert {run.disc_callback.expert_speed:.2f})"
-                   if (sp := run.disc_callback.last_speed) is not None else "")
-                + _rates_text(run.disc_callback.last_rates, cfg.env.guard.on))
-            if run.venv.restarts:
-                run.model.logger.record("workers/restarts", run.venv.restarts)
-            run.model.logger.dump(run.model.num_timesteps)
-            note_skipped(run.venv, run_dir)
-            progress("updates", run.update, cfg.updates)
-            if run.update % cfg.checkpoint_every == 0 or run.update == cfg.updates:
-                run.save(run_dir)
-    finally:
-        run.close()
-    return run_dir
+    warm start, then ``updates`` PPO updates with a checkpoint every ``checkpoint_every``
+    (:func:`~magail_sumo.training.loop.run_loop`)."""
+    return run_loop(GailRun(cfg, load_expert(cfg), log=log), run_dir, ckpt, log, progress)
 
 
 def _rates_text(rates: dict[str, float], guard: bool) -> str:

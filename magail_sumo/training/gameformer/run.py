@@ -2,7 +2,7 @@
 
 The GameFormer predictor (:mod:`magail_sumo.models.gameformer`) learns from the recorded scenes
 of ``scenes.files`` (every scene of each file; globs allowed) through the seeded
-:class:`~magail_sumo.training.gameformer_data.StreamingDataset`; no simulation, no expert
+:class:`~magail_sumo.training.gameformer.data.StreamingDataset`; no simulation, no expert
 folder. Update ``u`` (0-based) is one AdamW step on batch ``u`` of the stream (the sum over the
 levels of :func:`~magail_sumo.models.gameformer.level_loss`, gradients clipped to
 ``max_grad_norm``).
@@ -28,12 +28,12 @@ from converters.scene_files import list_records
 from magail_sumo.config import record_run, to_dict
 from magail_sumo.models.gameformer import GameFormer, gameformer_loss
 
-from .config import TrainConfig
-from .gameformer_data import StreamingDataset
-from .checkpoints import (CHECKPOINT_FORMAT, CheckpointError, checkpoint_config, encode_state,
-                          load_checkpoint, load_into, save_checkpoint)
-from .rng import decode_rng, rng_state, set_rng_state
-from .run_dir import claim_run_dir
+from ..checkpoints import (CHECKPOINT_FORMAT, CheckpointError, checkpoint_config, encode_state,
+                           load_checkpoint, load_into, save_checkpoint)
+from ..config import TrainConfig
+from ..rng import decode_rng, rng_state, set_rng_state
+from ..run_dir import claim_run_dir
+from .data import StreamingDataset
 
 ALGORITHM = "gameformer"
 
