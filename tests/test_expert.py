@@ -71,7 +71,7 @@ def test_bad_expert_dirs_are_refused(expert_dir, tmp_path):
         ExpertDataset(tmp_path)
     with pytest.raises(ExpertDataError, match="not found"):
         ExpertDataset(tmp_path / "missing")
-    names = observation_names(ObservationConfig(layout="seed"))
+    names = observation_names(ObservationConfig(layout="scene_frame"))
     with pytest.raises(ExpertDataError, match=r"layout mismatch.*108.*index 0.*'speed'.*'x'"):
         ExpertDataset(expert_dir, names)
     meta = json.loads((expert_dir / "metadata.json").read_text())

@@ -25,8 +25,8 @@ def _step(scene, t):
 
 def test_layouts_and_names():
     assert len(observation_names()) == 113
-    seed = ObservationConfig(layout="seed")
-    names = observation_names(seed)
+    scene_frame = ObservationConfig(layout="scene_frame")
+    names = observation_names(scene_frame)
     assert len(names) == 108 and names[:5] == ["x", "y", "vx", "vy", "heading"]
     assert names[5] == "lidar_00" and names[85] == "side_00" and names[95] == "lane_line_00"
     assert names[105:] == ["light", "dest_x", "dest_y"]
@@ -53,7 +53,7 @@ def test_lidar_block_matches_brute_force(scene_637f):
 
 
 def test_observation_blocks_on_real_scene(scene_637f):
-    suite = SensorSuite(scene_637f, ObservationConfig(layout="seed"))
+    suite = SensorSuite(scene_637f, ObservationConfig(layout="scene_frame"))
     boxes, ego = _step(scene_637f, 20)
     obs = suite.observe(boxes, ego, 20)
     assert obs.shape == (len(boxes), 108) and obs.dtype == np.float32 and np.isfinite(obs).all()

@@ -8,6 +8,8 @@ import pytest
 
 from conftest import WOMD_DIR
 from converters import load_scene
+from magail_sumo.config import from_dict, to_dict
+from magail_sumo.env.config import EnvConfig
 from magail_sumo.sensors import base
 from magail_sumo.sensors.base import Sensor, SensorInput, bounded, register, register_layout
 from magail_sumo.sensors.command import STRAIGHT, RouteCommands, one_hot
@@ -21,9 +23,10 @@ from magail_sumo.sensors.traffic_lights import NO_LIGHTS, LightTable
 
 CONFIGS = {
     "ego": ObservationConfig(),
-    "seed": ObservationConfig(layout="seed"),
+    "scene_frame": ObservationConfig(layout="scene_frame"),
     "command": ObservationConfig(command=True),
-    "seed_command": ObservationConfig(layout="seed", command=True, command_lookahead=12.0),
+    "scene_frame_command": ObservationConfig(layout="scene_frame", command=True,
+                                             command_lookahead=12.0),
     "beams": ObservationConfig(lidar=BeamSpec(17, 25.0, np.pi), side=BeamSpec(5, 6.0, 1.5),
                                lane_line=BeamSpec(3, 2.0), lane_cell=5.0),
 }
@@ -31,12 +34,13 @@ CONFIGS = {
 
 # --------------------------------------------------------------------------- the old code path
 def reference_names(cfg: ObservationConfig) -> list[str]:
-    """``observation_names`` as written before the sensor units (the seed and ego layouts)."""
+    """``observation_names`` as written before the sensor units (the scene-frame and ego
+    layouts)."""
     beams = [f"lidar_{j:02d}" for j in range(cfg.lidar.beams)] + \
         [f"side_{j:02d}" for j in range(cfg.side.beams)] + \
         [f"lane_line_{j:02d}" for j in range(cfg.lane_line.beams)]
     command = COMMAND_NAMES if cfg.command else []
-    if cfg.layout == "seed":
+    if cfg.layout == "scene_frame":
         return ["x", "y", "vx", "vy", "heading", *beams, "light", "dest_x", "dest_y", *command]
     return ["speed", "prev_accel", "prev_steer", "length", "width", "lane_lateral",
             "lane_heading_error", *beams, "light", "dest_x", "dest_y", "dest_distance",
@@ -108,7 +112,7 @@ class ReferenceSuite:
         light = (self.lights.lookup(step, lq.lane) if light is None else
                  np.asarray(light)).astype(np.float64)
         dx, dy = ego.destination[:, 0] - x, ego.destination[:, 1] - y
-        if cfg.layout == "seed":
+        if cfg.layout == "scene_frame":
             cols = [x, y, ego.speed * np.cos(yaw), ego.speed * np.sin(yaw), yaw, lidar, side, line,
                     light, ego.destination[:, 0], ego.destination[:, 1]]
         else:
@@ -188,7 +192,7 @@ def test_observations_bit_identical_to_the_old_suite(sid):
                         np.zeros(0))
         _same_bits(new.observe(boxes, none, 3), old.observe(boxes, none, 3))
     # built from the road map and the recorded lights, as the envs do
-    cfg = CONFIGS["seed"]
+    cfg = CONFIGS["scene_frame"]
     boxes, ego = _inputs(scene, 12)
     _same_bits(SensorSuite.from_map(scene.roadmap, LightTable.build(scene), cfg).observe(
         boxes, ego, 12), ReferenceSuite(scene, cfg).observe(boxes, ego, 12))
@@ -265,7 +269,8 @@ def test_registered_sensor_is_concatenated(scene_637f, registries):
 
 
 def test_refused_sensor_set_ups(scene_637f, registries):
-    with pytest.raises(ValueError, match="layout must be one of 'ego', 'seed', got 'nope'"):
+    with pytest.raises(ValueError,
+                       match="layout must be one of 'ego', 'scene_frame', got 'nope'"):
         ObservationConfig(layout="nope")
     with pytest.raises(KeyError, match="unknown sensor 'nope'.*lidar"):
         observation_names(sensors=("ego", "nope"))
@@ -288,3 +293,34 @@ def test_refused_sensor_set_ups(scene_637f, registries):
     boxes, ego = _inputs(scene_637f, 5)
     with pytest.raises(ValueError, match="'toy_wide' read 3 values per agent but declares 2"):
         SensorSuite(scene_637f, sensors=("toy_wide",)).observe(boxes, ego, 5)
+
+
+def test_seed_layout_is_a_deprecated_name_of_scene_frame(scene_637f, monkeypatch):
+    """``seed`` named the predecessor project (MAGAIL4AutoDrive) in a codebase where ``seed`` is
+    the random seed: the layout is now ``scene_frame``. The old name still loads, as the same
+    config (the new name held), with one ``FutureWarning`` per process, so configs, checkpoints
+    and expert data recorded with it load, match and observe as before."""
+    monkeypatch.setattr(base, "_WARNED", set())
+    with pytest.warns(FutureWarning) as caught:
+        old = ObservationConfig(layout="seed")
+        again = from_dict(ObservationConfig, {"layout": "seed", "command": True})
+    renamed = [str(w.message) for w in caught if issubclass(w.category, FutureWarning)]
+    assert renamed == ["observation layout 'seed' is deprecated and now called 'scene_frame' "
+                       "(the same values); write 'scene_frame'"]  # once, one line
+    new = ObservationConfig(layout="scene_frame")
+    assert old == new and old.layout == "scene_frame" and to_dict(old) == to_dict(new)
+    assert again == ObservationConfig(layout="scene_frame", command=True)
+    assert observation_names(old) == observation_names(new)  # expert data of either matches
+    assert len(observation_names(old)) == 108
+    boxes, ego = _inputs(scene_637f, 20)
+    _same_bits(SensorSuite(scene_637f, old).observe(boxes, ego, 20),
+               SensorSuite(scene_637f, new).observe(boxes, ego, 20))
+    # a checkpoint's env recorded with the old name is the env of the new one, setting for
+    # setting (what evaluation compares a checkpoint's env with)
+    trained = from_dict(EnvConfig, {"observation": {"layout": "seed"}})
+    assert to_dict(trained) == to_dict(EnvConfig(observation=new))
+    # the old sensor names too (a custom layout or suite naming them)
+    with pytest.warns(FutureWarning, match="sensor 'seed_pose' is deprecated.*'scene_pose'"):
+        assert base.sensor_class("seed_pose") is base.sensor_class("scene_pose")
+    with pytest.warns(FutureWarning, match="sensor 'seed_destination' is deprecated"):
+        assert observation_names(sensors=("seed_destination",)) == ["dest_x", "dest_y"]

@@ -21,6 +21,7 @@ Frames and units: scene frame = the recording's frame (m, rad CCW from +x).
 
 from __future__ import annotations
 
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from functools import cached_property
@@ -179,11 +180,37 @@ SENSORS: dict[str, type[Sensor]] = {}
 
 #: layouts by name: the ordered sensor names of the observation vector (``ObservationConfig.
 #: layout``; the route command is appended with ``ObservationConfig.command``, the route
-#: look-ahead with ``ObservationConfig.route_points``)
+#: look-ahead with ``ObservationConfig.route_points``). ``scene_frame``: the MAGAIL4AutoDrive
+#: observation, pose and destination in absolute map coordinates.
 LAYOUTS: dict[str, tuple[str, ...]] = {
     "ego": ("ego", "lane", "lidar", "side", "lane_line", "light", "destination"),
-    "seed": ("seed_pose", "lidar", "side", "lane_line", "light", "seed_destination"),
+    "scene_frame": ("scene_pose", "lidar", "side", "lane_line", "light", "scene_destination"),
 }
+
+#: deprecated layout names still accepted (:func:`layout_name`): old name -> name now. ``seed``
+#: named the predecessor project, where ``seed`` elsewhere is the random seed.
+LAYOUT_ALIASES: dict[str, str] = {"seed": "scene_frame"}
+#: deprecated sensor names still accepted (:func:`sensor_class`): old name -> name now
+SENSOR_ALIASES: dict[str, str] = {"seed_pose": "scene_pose",
+                                  "seed_destination": "scene_destination"}
+_WARNED: set[tuple[str, str]] = set()  # (kind, old name) already warned about in this process
+
+
+def _renamed(kind: str, old: str, new: str) -> str:
+    """``new``, with a one-line :class:`FutureWarning` the first time in this process that
+    ``old`` (a deprecated ``kind`` name) is used (shown by default: users meet it in configs)."""
+    if (kind, old) not in _WARNED:
+        _WARNED.add((kind, old))
+        warnings.warn(f"{kind} {old!r} is deprecated and now called {new!r} (the same values); "
+                      f"write {new!r}", FutureWarning, stacklevel=3)
+    return new
+
+
+def layout_name(name: str) -> str:
+    """``name``, or the name now of a deprecated layout name (:data:`LAYOUT_ALIASES`; warned
+    once per process)."""
+    new = LAYOUT_ALIASES.get(name) if isinstance(name, str) else None
+    return name if new is None else _renamed("observation layout", name, new)
 
 
 def register(cls: type[Sensor]) -> type[Sensor]:
@@ -203,7 +230,10 @@ def register_layout(name: str, sensors: Sequence[str]) -> None:
 
 
 def sensor_class(name: str) -> type[Sensor]:
-    """The sensor registered under ``name``; ``KeyError`` naming the known ones otherwise."""
+    """The sensor registered under ``name`` (a deprecated name, :data:`SENSOR_ALIASES`: the
+    sensor it is now, warned once per process); ``KeyError`` naming the known ones otherwise."""
+    if name in SENSOR_ALIASES and name not in SENSORS:
+        name = _renamed("sensor", name, SENSOR_ALIASES[name])
     try:
         return SENSORS[name]
     except KeyError:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .base import LAYOUTS
+from .base import LAYOUTS, layout_name
 
 TWO_PI = 2.0 * np.pi
 
@@ -34,8 +34,12 @@ class BeamSpec:
 class ObservationConfig:
     """Sensors and layout of the observation vector (see :mod:`magail_sumo.sensors.observation`).
 
-    :param layout: ``"ego"`` (ego-frame quantities), ``"seed"`` (the seed's 108 values) or a
-        layout registered with :func:`~magail_sumo.sensors.base.register_layout`.
+    :param layout: ``"ego"`` (ego-frame quantities), ``"scene_frame"`` (the MAGAIL4AutoDrive
+        observation: 108 values, pose and destination in absolute map coordinates) or a layout
+        registered with :func:`~magail_sumo.sensors.base.register_layout`. The deprecated
+        ``"seed"`` is read as ``"scene_frame"`` (the config then holds the new name; a one-time
+        ``FutureWarning`` says so), so configs, checkpoints and expert data recorded with it
+        load and evaluate as before.
     :param lane_cell: grid cell of the lane index (m); lane distances are capped at it.
     :param command: append the route command (one-hot left / straight / right at the next
         junction, :mod:`magail_sumo.sensors.command`) as ``command_left``,
@@ -68,6 +72,9 @@ class ObservationConfig:
     leader_range: float = 50.0
 
     def __post_init__(self) -> None:
+        layout = layout_name(self.layout)
+        if layout != self.layout:  # a deprecated name: the config holds the name now
+            object.__setattr__(self, "layout", layout)
         if self.layout not in LAYOUTS:
             raise ValueError(f"observation layout must be one of "
                              f"{', '.join(map(repr, LAYOUTS))}, got {self.layout!r}")

@@ -33,10 +33,11 @@ then 2                (``leader: true`` only) ``leader_gap`` (m), ``leader_closi
                       (:mod:`magail_sumo.sensors.units.leader`)
 ====================  ======================================================================
 
-Layout ``"seed"`` (108 values with the defaults, the seed project's vector): position x, y
-(scene frame, m) 0–1; velocity vx, vy (scene frame, m/s) 2–3; heading (scene frame, rad) 4;
-lidar 5–84; side detector 85–94; lane-line detector 95–104; light 105; destination x, y
-(scene frame, m) 106–107 (with ``command: true`` the 3 command values follow).
+Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
+deprecated name ``"seed"`` is still read): position x, y (scene frame, m) 0–1; velocity vx, vy
+(scene frame, m/s) 2–3; heading (scene frame, rad) 4; lidar 5–84; side detector 85–94;
+lane-line detector 95–104; light 105; destination x, y (scene frame, m) 106–107 (with
+``command: true`` the 3 command values follow).
 
 The current lane is the nearest lane centre line running within 90° of the heading
 (:class:`~magail_sumo.sensors.lanes.LaneIndex`); its light comes from the suite's light source
@@ -47,8 +48,8 @@ passes). :meth:`SensorSuite.observe` runs the numba kernels of
 Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module each under
 :mod:`magail_sumo.sensors.units`): it declares its names, bounds and reading, and a layout
 (:data:`~magail_sumo.sensors.base.LAYOUTS`) lists the units in order — ``ego``: ``ego``,
-``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``seed``:
-``seed_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``seed_destination``; then
+``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``scene_frame``:
+``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points`` and ``leader`` with
 ``leader: true``. The suite is built from
 a road map and a light source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)``

@@ -1,5 +1,5 @@
-"""The seed project's scene-frame quantities (layout ``seed``): the agent's pose and velocity,
-and its destination, in the scene frame."""
+"""Scene-frame quantities of the ``scene_frame`` layout (the MAGAIL4AutoDrive observation): the
+agent's pose and velocity, and its destination, in the scene frame (absolute map coordinates)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from ..base import Sensor, SensorInput, register
 
 
 @register
-class SeedPose(Sensor):
+class ScenePose(Sensor):
     """``x``, ``y`` (m), ``vx``, ``vy`` (m/s) and ``heading`` (rad, [-pi, pi]), scene frame."""
 
-    name = "seed_pose"
+    name = "scene_pose"
 
     @classmethod
     def names(cls, config) -> list[str]:
@@ -30,10 +30,10 @@ class SeedPose(Sensor):
 
 
 @register
-class SeedDestination(Sensor):
+class SceneDestination(Sensor):
     """``dest_x``, ``dest_y``: the destination in the scene frame (m)."""
 
-    name = "seed_destination"
+    name = "scene_destination"
 
     @classmethod
     def names(cls, config) -> list[str]:
