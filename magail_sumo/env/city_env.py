@@ -46,13 +46,14 @@ from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
 from magail_sumo.sim import dynamics
-from magail_sumo.sim.fcd import FcdRecorder, write_replay
+from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
 from .actions import ACTION_COUNTS
 from .guard import GuardConfig
 from .fleet import Fleet, resized
+from .fcd import EpisodeFcd
 from .step import END_OF_EPISODE, FleetEnv
 
 #: Events of the city env, in the order the first one found becomes the reason.
@@ -169,8 +170,8 @@ class SumoCityEnv(FleetEnv):
         self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
         net_file, vehicle_ids = _scenario_files(self.sumocfg)
         self.net_file = net_file
-        #: FCD recorder (:meth:`record_fcd`), None when not recording
-        self.fcd = None
+        #: FCD recording (:meth:`record_fcd`)
+        self._fcd = EpisodeFcd(STEP_LENGTH, self._fcd_frame, self._fcd_replay)
         self.network: NetworkMap = network_map(net_file)
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         # no recorded signals: _observe passes each agent's live SUMO light
@@ -394,26 +395,9 @@ class SumoCityEnv(FleetEnv):
         return ids[j]
 
     # ------------------------------------------------------------------ FCD
-    def record_fcd(self, recorder=None):
-        """Record every vehicle's pose from now on, each step (agents from their bicycle
-        state, the others from SUMO), into ``recorder`` (default: a new
-        :class:`~magail_sumo.sim.fcd.FcdRecorder`); returns it. Times are episode seconds."""
-        self.fcd = recorder if recorder is not None else FcdRecorder(self.dt)
-        if self._session is not None:
-            self._record_fcd()
-        return self.fcd
-
-    def write_fcd(self, path: str | Path, recorder=None):
-        """Write the recording as SUMO FCD plus a ``.sumocfg`` replaying it on the scenario's
-        network in ``sumo-gui`` (:func:`~magail_sumo.sim.fcd.write_replay`)."""
-        rec = recorder if recorder is not None else self.fcd
-        if rec is None:
-            raise RuntimeError("nothing recorded: call record_fcd() first")
-        return write_replay(rec, path, self.net_file)
-
-    def _record_fcd(self) -> None:
-        if self.fcd is None or self._session is None:
-            return
+    def _fcd_frame(self, recorder: FcdRecorder) -> None:
+        """Add the step's vehicles to ``recorder`` (agents from their bicycle state, the others
+        from SUMO)."""
         agents = self.fleet.live()
         boxes, ids = self._world(agents)
         if not ids:
@@ -423,5 +407,9 @@ class SumoCityEnv(FleetEnv):
         v = self._sumo
         speed = np.concatenate([self.fleet.speed[agents],
                                 [sp for vid, sp in zip(v.ids, v.speed) if vid not in ctrl]])
-        self.fcd.add(self.t * self.dt, ids, boxes.x, boxes.y, boxes.yaw, boxes.length,
+        recorder.add(self.t * self.dt, ids, boxes.x, boxes.y, boxes.yaw, boxes.length,
                      boxes.width, kind, "passenger", speed)
+
+    def _fcd_replay(self, recorder: FcdRecorder, path: Path) -> ReplayFiles:
+        """The recording replayed on the scenario's network."""
+        return write_replay(recorder, path, self.net_file)

@@ -46,12 +46,11 @@ import numpy as np
 from gymnasium import spaces
 
 from converters import load_scene
-from magail_sumo.outputs import safe_name
 from magail_sumo.scene import Scene
 from magail_sumo.sensors.command import RouteCommands
 from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
 from magail_sumo.sim import dynamics
-from magail_sumo.sim.fcd import FcdRecorder, SHAPES, write_replay
+from magail_sumo.sim.fcd import SHAPES, FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
 from .actions import ACTION_COUNTS
@@ -61,6 +60,7 @@ from .events import RoadEdgeRule, StopLines
 from .fleet import AgentStates, Fleet
 from .outcomes import StepDicts
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
+from .fcd import EpisodeFcd
 from .step import END_OF_EPISODE, FleetEnv
 from .expert import log_prev_actions
 
@@ -157,10 +157,9 @@ class SumoDrivingEnv(FleetEnv):
         self.agents: list[str] = []
         self.t = 0
         self.sensor_time = 0.0  #: s spent in sensors and observations since reset
-        #: FCD recorder of the running episode (:meth:`record_fcd`; ``EnvConfig.fcd_every``)
-        self.fcd = None
-        self._fcd_episode = -1  # episodes reset so far - 1 (for EnvConfig.fcd_every)
-        self._fcd_auto: Path | None = None  # where the automatic recording is written
+        #: FCD recording (:meth:`record_fcd`; automatic with ``EnvConfig.fcd_dir`` / ``fcd_every``)
+        self._fcd = EpisodeFcd(self.dt, self._fcd_frame, self._fcd_replay, cfg.fcd_dir,
+                               cfg.fcd_every)
         self._id_order: np.ndarray | None = None
 
     # ------------------------------------------------------------------ spaces
@@ -254,10 +253,7 @@ class SumoDrivingEnv(FleetEnv):
                 self._act_spaces[a].seed(seed + k)
                 self._obs_spaces[a].seed(seed + k)
         self.close()
-        self._fcd_episode += 1
-        every = cfg.fcd_every
-        if cfg.fcd_dir is not None and every > 0 and self._fcd_episode % every == 0:
-            self._start_auto_fcd()
+        self._fcd.begin_episode(self.scene.scenario_id)
         if not cfg.sumo_mirror:  # nothing of a log-background episode reads SUMO
             self._session = _NO_MIRROR
         else:
@@ -297,8 +293,7 @@ class SumoDrivingEnv(FleetEnv):
         return obs, infos
 
     def close(self) -> None:
-        if self._fcd_auto is not None:
-            self._finish_auto_fcd()
+        self._fcd.end_episode()
         if self._session is not None:
             self._session.close()
             self._session = None
@@ -460,8 +455,8 @@ class SumoDrivingEnv(FleetEnv):
     def step(self, actions: dict[str, Any]):
         """One log step (module doc; the stages: :class:`~magail_sumo.env.step.FleetEnv`)."""
         out = super().step(actions)
-        if not self.agents and self._fcd_auto is not None:
-            self._finish_auto_fcd()
+        if not self.agents:
+            self._fcd.end_episode()
         return out
 
     def _red_light(self, act: np.ndarray, p0: np.ndarray, ctx) -> np.ndarray:
@@ -516,33 +511,9 @@ class SumoDrivingEnv(FleetEnv):
         return self._ctrl[k]
 
     # ------------------------------------------------------------------ FCD
-    def record_fcd(self, recorder=None):
-        """Record every road user's pose from now on, each step, into ``recorder`` (a new
-        :class:`~magail_sumo.sim.fcd.FcdRecorder` when None; None stops recording when given
-        to ``stop_fcd``); returns it. Write it with :meth:`write_fcd`. Recording starts with
-        the current step when an episode is running."""
-        self.fcd = recorder if recorder is not None else FcdRecorder(self.dt)
-        if self._session is not None:
-            self._record_fcd()
-        return self.fcd
-
-    def write_fcd(self, path: str | Path, recorder=None):
-        """Write ``recorder`` (default: :attr:`fcd`) as SUMO FCD plus a ``.sumocfg`` replaying
-        it on this scene's converted network with its signal programs
-        (:func:`~magail_sumo.sim.fcd.write_replay`); returns the
-        :class:`~magail_sumo.sim.fcd.ReplayFiles`."""
-        rec = recorder if recorder is not None else self.fcd
-        if rec is None:
-            raise RuntimeError("nothing recorded: call record_fcd() first")
-        files = self.bundle.files
-        return write_replay(rec, path, files.net,
-                            [files.signals] if files.signals.is_file() else [])
-
-    def _record_fcd(self) -> None:
-        """Add step t's poses of all road users to :attr:`fcd` (agents, SUMO- and
-        log-driven objects; the same world the sensors see)."""
-        if self.fcd is None or self._session is None:
-            return
+    def _fcd_frame(self, recorder: FcdRecorder) -> None:
+        """Add step t's poses of all road users to ``recorder`` (agents, SUMO- and log-driven
+        objects; the same world the sensors see)."""
 
         tr = self.scene.tracks
         agents = self.fleet.live()
@@ -562,23 +533,15 @@ class SumoDrivingEnv(FleetEnv):
         speed[:agents.size] = self.fleet.speed[agents]
         if self.config.background == "sumo":
             speed[kind == "sumo"] = np.nan  # derived from the recorded positions
-        self.fcd.add(self.t * self.dt, [str(int(i)) for i in ids], boxes.x, boxes.y, boxes.yaw,
+        recorder.add(self.t * self.dt, [str(int(i)) for i in ids], boxes.x, boxes.y, boxes.yaw,
                      boxes.length, boxes.width, list(kind), shape, speed)
 
-    def _start_auto_fcd(self) -> None:
-        import os
-
-        if self._fcd_auto is not None:
-            self._finish_auto_fcd()
-        name = f"{safe_name(self.scene.scenario_id)}-{os.getpid()}-ep{self._fcd_episode:05d}"
-        self._fcd_auto = Path(self.config.fcd_dir) / f"{name}.fcd.xml"
-        self.record_fcd()
-
-    def _finish_auto_fcd(self) -> None:
-        path, self._fcd_auto = self._fcd_auto, None
-        if path is not None and self.fcd is not None and len(self.fcd):
-            self.write_fcd(path)
-        self.fcd = None
+    def _fcd_replay(self, recorder: FcdRecorder, path: Path) -> ReplayFiles:
+        """The recording replayed on this scene's converted network with its signal
+        programs."""
+        files = self.bundle.files
+        return write_replay(recorder, path, files.net,
+                            [files.signals] if files.signals.is_file() else [])
 
     # ------------------------------------------------------------------ helpers
     def render(self) -> np.ndarray | None:

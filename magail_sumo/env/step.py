@@ -40,12 +40,14 @@ as agent names are, or a SUMO vehicle id; ``""`` when none), ``nan_actions`` and
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 from pettingzoo import ParallelEnv
 
 from magail_sumo.sensors.units.leader import nearest_ahead
+from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles
 
 from .actions import checked_actions, count_actions
 from .collision import first_overlap
@@ -233,9 +235,38 @@ class FleetEnv(ParallelEnv):
         (first, in order) and of every other road user at the current step, and their ids."""
         raise NotImplementedError
 
-    def _record_fcd(self) -> None:
-        """Add the step's poses to the env's FCD recording, if any."""
+    def _fcd_frame(self, recorder: FcdRecorder) -> None:
+        """Add the current step's road users to ``recorder`` (the env's FCD recording)."""
         raise NotImplementedError
+
+    def _fcd_replay(self, recorder: FcdRecorder, path: Path) -> ReplayFiles:
+        """Write ``recorder`` with the ``.sumocfg`` replaying it on the env's network."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ FCD
+    @property
+    def fcd(self) -> FcdRecorder | None:
+        """The FCD recorder in use (None: not recording; :class:`~magail_sumo.env.fcd.
+        EpisodeFcd`)."""
+        return self._fcd.recorder
+
+    def record_fcd(self, recorder: FcdRecorder | None = None) -> FcdRecorder:
+        """Record every road user's pose from now on, each step, into ``recorder`` (a new
+        :class:`~magail_sumo.sim.fcd.FcdRecorder` when None); returns it. Write it with
+        :meth:`write_fcd`. Recording starts with the current step when an episode is running.
+        Times are episode seconds."""
+        return self._fcd.record(recorder, running=self._session is not None)
+
+    def write_fcd(self, path: str | Path, recorder: FcdRecorder | None = None) -> ReplayFiles:
+        """Write ``recorder`` (default: :attr:`fcd`) as SUMO FCD plus a ``.sumocfg`` replaying
+        it in ``sumo-gui`` on the env's network (:func:`~magail_sumo.sim.fcd.write_replay`);
+        returns the :class:`~magail_sumo.sim.fcd.ReplayFiles`."""
+        return self._fcd.write(path, recorder)
+
+    def _record_fcd(self) -> None:
+        """Add the step's poses to the env's FCD recording, if any (and a session runs)."""
+        if self._session is not None:
+            self._fcd.add_step()
 
     # ------------------------------------------------------------------ optional hooks
     def _before_move(self, act: np.ndarray) -> Any:
