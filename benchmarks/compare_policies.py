@@ -1,7 +1,7 @@
 """Closed-loop comparison of driving policies: ADE, collision, off-road and red-light rates, speed
 bias — the evaluation's traffic metrics (:mod:`magail_sumo.evaluation.traffic`).
 
-Each policy runs through ``magail-sumo evaluate`` (:func:`magail_sumo.evaluation.rollouts.
+Each policy runs through ``magail-sumo evaluate`` (:func:`magail_sumo.evaluation.runner.
 evaluate`, its one rollout loop :func:`magail_sumo.agents.rollout`): from each scene's current
 step for 80 steps, every route vehicle and cyclist driven by the policy through the env with no
 terminating event, every other sim agent at constant velocity; deterministic actions (the tanh
@@ -65,7 +65,7 @@ def untrained_checkpoint(config: str, expert: str, seed: int, path: Path) -> Pat
 def scene_metrics(out: Path, name: str) -> list[dict]:
     """Traffic metrics of method ``name``'s rollouts of every scene evaluated into ``out``."""
     from converters import iter_scenes
-    from magail_sumo.evaluation.rollouts import read_manifest, read_rollouts, rollouts_path
+    from magail_sumo.evaluation.storage import read_manifest, read_rollouts, rollouts_path
     from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
 
     rows = []
@@ -97,7 +97,7 @@ def main() -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
-    from magail_sumo.evaluation.rollouts import evaluate
+    from magail_sumo.evaluation.runner import evaluate
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out or Path(tmp) / "eval")

@@ -79,7 +79,7 @@ def cli(args: list[str]) -> int:
 
 def parse_policies(items: list[str]) -> dict[str, str]:
     """``NAME=SPEC`` (or a bare SPEC, named as evaluate would) -> {name: spec}."""
-    from magail_sumo.evaluation.rollouts import BASELINES, BUILTIN_POLICIES, method_name
+    from magail_sumo.policies import BASELINES, BUILTIN_POLICIES, method_name
     from magail_sumo.outputs import is_safe_name
 
     out: dict[str, str] = {}
@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from magail_sumo.errors import MagailSumoError
-    from magail_sumo.evaluation.rollouts import BASELINES
+    from magail_sumo.policies import BASELINES
     from magail_sumo.splits import load_split, scene_stem
     from magail_sumo.outputs import claim_output_dir
 

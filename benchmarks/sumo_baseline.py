@@ -66,7 +66,7 @@ def main() -> int:
 
     from magail_sumo.evaluation.realism.trajectories import evaluated_ids
     from magail_sumo.evaluation.report import build_report
-    from magail_sumo.evaluation.rollouts import evaluate
+    from magail_sumo.evaluation.runner import evaluate
     from magail_sumo.evaluation.submission import sim_agent_ids
 
     out = args.rescore or args.out or Path(tempfile.mkdtemp(prefix="sumo_baseline_"))

@@ -154,7 +154,7 @@ def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path):
     from converters import load_scene
     from converters.sumo.scenario import ConvertOptions, convert_scene
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
-    from magail_sumo.evaluation import rollouts as rl
+    from magail_sumo.evaluation import methods, protocol
 
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
     rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
@@ -162,17 +162,17 @@ def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path):
     bundle = tmp_path / SID
     ckpt = _seed_layout_checkpoint(tmp_path)
 
-    ro = rl.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=bundle, deterministic=True)
+    ro = methods.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=bundle, deterministic=True)
     # the same policy driving the env directly: the poses the env produced
     cur = scene.current_time_index
     env = SumoDrivingEnv(scene, bundle, EnvConfig(
-        controlled="all", start_step=cur, max_steps=rl.N_STEPS, terminate_on=(),
+        controlled="all", start_step=cur, max_steps=protocol.N_STEPS, terminate_on=(),
         end_of_life=False, action_layout="steer_throttle"))
-    policy = policies.make_policy(str(ckpt), rl.rollout_seed(0, 0), deterministic=True)
+    policy = policies.make_policy(str(ckpt), protocol.rollout_seed(0, 0), deterministic=True)
     col = {int(i): k for k, i in enumerate(ro.object_id)}
     checked = 0
     try:
-        obs, _ = env.reset(seed=rl.rollout_seed(0, 0))
+        obs, _ = env.reset(seed=protocol.rollout_seed(0, 0))
         while env.agents:
             t, stepped = env.t - cur, set(env.agents)  # t: column of log step env.t + 1
             obs, *_ = env.step(policy.act(obs))

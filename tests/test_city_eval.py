@@ -13,7 +13,7 @@ import pytest
 
 from conftest import ROOT, WOMD_DIR
 from magail_sumo.cli.main import main
-from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation import storage
 from magail_sumo.evaluation.city import ROW_FIELDS
 from magail_sumo.evaluation.traffic import summarise
 
@@ -136,7 +136,7 @@ def test_scenes_added_later_keep_the_city_results(city, tmp_path, capsys):
 def test_manifest_of_another_run_setting_keeps_the_city_entry(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(
         {"scenes": [], "methods": [], "seed": 0, "city": {"file": "city.json"}}))
-    rl.write_manifest(tmp_path, {"scenes": [], "methods": ["constvel"], "rollouts": 2,
+    storage.write_manifest(tmp_path, {"scenes": [], "methods": ["constvel"], "rollouts": 2,
                                  "seed": 1})
     man = json.loads((tmp_path / "manifest.json").read_text())
     assert man["city"] == {"file": "city.json"} and man["methods"] == ["constvel"]

@@ -55,9 +55,9 @@ def test_agents_end_with_their_log_only_when_asked(end_of_life):
 def test_evaluation_keeps_every_sim_agent_to_the_horizon(scene_637f, env_configs):
     """Evaluation's env has end_of_life off: an agent whose log ends early has a driven
     (not constant-velocity) trajectory to the last step."""
-    from magail_sumo.evaluation import rollouts as rl
+    from magail_sumo.evaluation import methods
 
-    ro = rl.simulate(scene_637f, "random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
+    ro = methods.simulate(scene_637f, "random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
     assert [c.end_of_life for c in env_configs] == [False]
     a = [int(i) for i in ro.object_id].index(int(EARLY))
     x, y = ro.x[0, a], ro.y[0, a]

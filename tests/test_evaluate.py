@@ -11,8 +11,10 @@ import pytest
 
 from conftest import WOMD_DIR
 from converters import load_scene
+from magail_sumo import agents, policies
 from magail_sumo.cli.main import main
-from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.agents import constant_velocity as cv
+from magail_sumo.evaluation import methods, protocol, runner, storage
 from magail_sumo.evaluation.submission import iter_submission, sim_agent_ids, validate_rollouts
 
 SID = "850c48d8bbfa008f"
@@ -55,10 +57,10 @@ def test_parquet_layout_and_manifest(run):
     cur = scene.current_time_index
     for m in man["methods"]:
         df = pd.read_parquet(out / "rollouts" / m / f"{SID}.parquet")
-        assert tuple(df.columns) == rl.COLUMNS
+        assert tuple(df.columns) == storage.COLUMNS
         assert len(df) == R * len(ids) * (cur + 1 + 80)
         assert set(df["method"].astype(str)) == {m}
-        ro = rl.read_rollouts(out / "rollouts" / m / f"{SID}.parquet", scene)
+        ro = storage.read_rollouts(out / "rollouts" / m / f"{SID}.parquet", scene)
         validate_rollouts(ro, scene, R, 80)
         # the history is the log
         h = df[(df.step == cur) & (df.rollout == 1)].sort_values("object_id")
@@ -71,7 +73,7 @@ def test_parquet_layout_and_manifest(run):
 @pytest.mark.sumo
 def test_sumo_starts_from_the_log(run):
     out, scene = run
-    ro = rl.read_rollouts(out / "rollouts" / "sumo" / f"{SID}.parquet", scene)
+    ro = storage.read_rollouts(out / "rollouts" / "sumo" / f"{SID}.parquet", scene)
     tr, cur = scene.tracks, scene.current_time_index
     rows = [int(np.flatnonzero(tr.id == i)[0]) for i in ro.object_id]
     err = np.hypot(ro.x[:, :, 0] - tr.x[rows, cur + 1], ro.y[:, :, 0] - tr.y[rows, cur + 1])
@@ -84,7 +86,7 @@ def test_exported_submission(run):
     (rec,) = list(iter_submission(out / "random.binproto"))
     assert rec.error is None and rec.scenario_id == SID
     validate_rollouts(rec.rollouts, scene, R, 80)
-    ro = rl.read_rollouts(out / "rollouts" / "random" / f"{SID}.parquet", scene)
+    ro = storage.read_rollouts(out / "rollouts" / "random" / f"{SID}.parquet", scene)
     assert np.allclose(rec.rollouts.x, ro.x)
 
 
@@ -99,11 +101,11 @@ def test_seeded_and_pluggable_policy():
         convert_scene(scene, tmp, ConvertOptions(baseline=False))
         bundle = f"{tmp}/{SID}"
         spec = f"{__name__}:stop_policy"
-        batches = [rl.Batch(f, SID, bundle, "random", (0,), 3),
-                   rl.Batch(f, SID, bundle, "random", (0,), 3),
-                   rl.Batch(f, SID, bundle, spec, (0,), 3)]
+        batches = [runner.Batch(f, SID, bundle, "random", (0,), 3),
+                   runner.Batch(f, SID, bundle, "random", (0,), 3),
+                   runner.Batch(f, SID, bundle, spec, (0,), 3)]
         sys.path.insert(0, str(WOMD_DIR.parents[1] / "tests"))
-        got = [(b.spec, ro) for b, ro, err, _ in rl.run_batches(batches, 2) if err is None]
+        got = [(b.spec, ro) for b, ro, err, _ in runner.run_batches(batches, 2) if err is None]
     assert len(got) == 3
     rand = [ro for s, ro in got if s == "random"]
     assert np.array_equal(rand[0].x, rand[1].x)  # same seed, same rollout
@@ -113,21 +115,21 @@ def test_seeded_and_pluggable_policy():
 
 
 def test_policy_specs(tmp_path):
-    assert isinstance(rl.make_policy("random", 0), rl.RandomPolicy)
-    assert isinstance(rl.make_policy(f"{__name__}:stop_policy", 0), _StopPolicy)
+    assert isinstance(policies.make_policy("random", 0), agents.RandomPolicy)
+    assert isinstance(policies.make_policy(f"{__name__}:stop_policy", 0), _StopPolicy)
     ckpt = tmp_path / "agent.ckpt"
     ckpt.write_bytes(b"x")
-    with pytest.raises(rl.PolicyError, match="no policy loader"):
-        rl.make_policy(str(ckpt), 0)
-    rl.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
+    with pytest.raises(agents.PolicyError, match="no policy loader"):
+        policies.make_policy(str(ckpt), 0)
+    policies.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
     try:
-        assert isinstance(rl.make_policy(str(ckpt), 5), _StopPolicy)
-        assert rl.method_name(str(ckpt)) == "agent"
+        assert isinstance(policies.make_policy(str(ckpt), 5), _StopPolicy)
+        assert policies.method_name(str(ckpt)) == "agent"
     finally:
-        del rl.POLICY_LOADERS[".ckpt"]
-    with pytest.raises(rl.PolicyError, match="not a method"):
-        rl.make_policy("nonsense", 0)
-    a = rl.RandomPolicy(1).act({"2": np.zeros(3), "1": np.zeros(3)})
+        del policies.POLICY_LOADERS[".ckpt"]
+    with pytest.raises(agents.PolicyError, match="not a method"):
+        policies.make_policy("nonsense", 0)
+    a = agents.RandomPolicy(1).act({"2": np.zeros(3), "1": np.zeros(3)})
     assert set(a) == {"1", "2"} and all(np.all(np.abs(v) <= 1) for v in a.values())
 
 
@@ -137,33 +139,33 @@ def test_loaders_get_the_deterministic_choice(tmp_path):
     ckpt = tmp_path / "agent.ckpt"
     ckpt.write_bytes(b"x")
     seen = []
-    rl.POLICY_LOADERS[".ckpt"] = lambda path, seed, deterministic=False: \
+    policies.POLICY_LOADERS[".ckpt"] = lambda path, seed, deterministic=False: \
         seen.append((seed, deterministic)) or _StopPolicy(seed)
     try:
-        rl.make_policy(str(ckpt), 5)
-        rl.make_policy(str(ckpt), 6, deterministic=True)
+        policies.make_policy(str(ckpt), 5)
+        policies.make_policy(str(ckpt), 6, deterministic=True)
         assert seen == [(5, False), (6, True)]
-        rl.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
-        assert rl.make_policy(str(ckpt), 7, deterministic=True).seed == 7
+        policies.POLICY_LOADERS[".ckpt"] = lambda path, seed: _StopPolicy(seed)
+        assert policies.make_policy(str(ckpt), 7, deterministic=True).seed == 7
     finally:
-        del rl.POLICY_LOADERS[".ckpt"]
-    assert isinstance(rl.make_policy("random", 0, deterministic=True), rl.RandomPolicy)
-    assert rl.make_policy(f"{__name__}:stop_policy", 3, deterministic=True).seed == 3
+        del policies.POLICY_LOADERS[".ckpt"]
+    assert isinstance(policies.make_policy("random", 0, deterministic=True), agents.RandomPolicy)
+    assert policies.make_policy(f"{__name__}:stop_policy", 3, deterministic=True).seed == 3
     # the choice travels with a batch into the workers (and its single-rollout retries)
-    b = rl.Batch("f", SID, "b", "random", (0, 1), 3, True)
-    assert b.deterministic and not rl.Batch("f", SID, "b", "random", (0,), 3).deterministic
+    b = runner.Batch("f", SID, "b", "random", (0, 1), 3, True)
+    assert b.deterministic and not runner.Batch("f", SID, "b", "random", (0,), 3).deterministic
 
 
 def test_constant_velocity_fill():
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
     ids = sim_agent_ids(scene)
     tr, cur = scene.tracks, scene.current_time_index
-    x, y, yaw = rl.constant_velocity(scene, ids)
+    x, y, yaw = methods.constant_velocity(scene, ids)
     r = int(np.flatnonzero(tr.id == ids[0])[0])
     assert np.isclose(x[0, 9], tr.x[r, cur] + 10 * 0.1 * tr.vx[r, cur], atol=1e-4)
-    track = rl._Track.empty(len(ids), 80)
+    track = cv.Track.empty(len(ids), 80)
     track.x[0, :5], track.y[0, :5], track.yaw[0, :5], track.speed[0, :5] = 1.0, 2.0, 0.0, 10.0
-    x, y, _ = rl.fill_constant_velocity(scene, ids, track)
+    x, y, _ = cv.fill_constant_velocity(scene, ids, track)
     assert np.isclose(x[0, 5], 2.0) and np.isclose(x[0, 14], 11.0) and np.allclose(y[0], 2.0)
 
 
@@ -190,8 +192,8 @@ def test_method_names(tmp_path):
     ckdir.mkdir(parents=True)
     for stem in ("latest", "update_000020"):
         (ckdir / f"{stem}.pt").write_bytes(b"x")
-    assert rl.method_name(str(ckdir / "latest.pt")) == "magail_run"
-    assert rl.method_name(str(ckdir / "update_000020.pt")) == "magail_run-update_000020"
+    assert policies.method_name(str(ckdir / "latest.pt")) == "magail_run"
+    assert policies.method_name(str(ckdir / "update_000020.pt")) == "magail_run-update_000020"
     out = tmp_path / "ev"
     assert main(["evaluate", "--policy", "constvel", "--name", "cv_named", "--baselines",
                  "logreplay", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"), "--rollouts", "1",
@@ -201,6 +203,6 @@ def test_method_names(tmp_path):
     assert (out / "rollouts" / "cv_named" / f"{SID}.parquet").is_file()
     assert set(pd.read_parquet(out / "rollouts" / "cv_named" / f"{SID}.parquet").method) == \
         {"cv_named"}
-    with pytest.raises(rl.EvaluationError, match="built-in"):
-        rl.evaluate([str(WOMD_DIR / f"{SID}.tfrecord")], "constvel", tmp_path / "e2",
+    with pytest.raises(protocol.EvaluationError, match="built-in"):
+        runner.evaluate([str(WOMD_DIR / f"{SID}.tfrecord")], "constvel", tmp_path / "e2",
                     n_rollouts=1, baselines=["logreplay"], name="logreplay")

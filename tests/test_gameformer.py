@@ -257,7 +257,7 @@ def test_closed_loop_evaluate(trained, tmp_path):
     import pandas as pd
 
     from magail_sumo.cli.main import main
-    from magail_sumo.evaluation.rollouts import make_policy
+    from magail_sumo.policies import make_policy
     from magail_sumo.policies import GameFormerPolicy
 
     assert isinstance(make_policy(str(trained), 3), GameFormerPolicy)

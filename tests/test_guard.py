@@ -129,19 +129,19 @@ def test_checkpoint_brings_its_guard_to_evaluation(tmp_path, env_configs):
     """A policy trained behind the guard carries it, and evaluation's env drives it so."""
     from converters import load_scene
     from magail_sumo import policies
-    from magail_sumo.evaluation import rollouts as rl
+    from magail_sumo.evaluation import methods
 
     ckpt = _guard_checkpoint(tmp_path)
     policy = policies.make_policy(str(ckpt), 0)
     assert policy.guard == GuardConfig(kind="gap", tau=0.7)
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
-    ro = rl.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=ROOT / "networks" / SID)
+    ro = methods.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=ROOT / "networks" / SID)
     assert np.isfinite(ro.x).any()
     assert [c.guard for c in env_configs] == [GuardConfig(kind="gap", tau=0.7)]
     # any policy behind the guard's defaults in evaluation: the guarded: prefix
     assert policies.method_name("guarded:random") == "random-guarded"
-    rl.simulate(scene, "guarded:random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
-    rl.simulate(scene, "random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
+    methods.simulate(scene, "guarded:random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
+    methods.simulate(scene, "random", [0], seed=0, bundle_dir=ROOT / "networks" / SID)
     assert [c.guard for c in env_configs[1:]] == [GuardConfig(kind="gap"), GuardConfig()]
 
 

@@ -366,7 +366,7 @@ def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, mo
 def test_full_disk_on_summary_and_manifest_keeps_old_files(tmp_path, capsys, monkeypatch):
     from magail_sumo.evaluation.report import _write_csv
     from magail_sumo.evaluation.report.render import Document
-    from magail_sumo.evaluation.rollouts import write_manifest, write_parquet
+    from magail_sumo.evaluation.storage import write_manifest, write_parquet
     from magail_sumo.evaluation.submission import write_submission
 
     src = str(WOMD_DIR / f"{SID}.tfrecord")

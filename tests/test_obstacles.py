@@ -14,7 +14,7 @@ from conftest import ROOT, WOMD_DIR
 from converters import load_scene
 from converters.sumo import baseline as sb
 from converters.sumo.scenario import ConvertOptions, convert_scene
-from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation import methods
 from magail_sumo.evaluation.realism import log_replay, scenario_metrics
 from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SumoSession
 
@@ -69,7 +69,7 @@ def test_sumo_baseline_collides_no_more_than_the_log(bundle):
     """On 637f20cafde22ff8 SUMO drove scored agents into a pedestrian and a vehicle it
     was not inserted (collision rate 0.5 against log replay's 0.25)."""
     scene, folder = bundle
-    ro = rl.simulate(scene, "sumo", [0], bundle_dir=folder)
+    ro = methods.simulate(scene, "sumo", [0], bundle_dir=folder)
     sim = scenario_metrics(scene, ro, validate=False)
     log = scenario_metrics(scene, log_replay(scene, 1), validate=False)
     assert sim["simulated_collision_rate"] <= log["simulated_collision_rate"] + 0.05
@@ -106,9 +106,9 @@ def test_put_off_insertion_starts_at_the_current_step(tmp_path):
     scene = load_scene(WOMD_DIR / "2831b6fde0420b0d.tfrecord")
     rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok", rep.reason
-    ro = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    ro = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
     a = int(np.flatnonzero(ro.object_id == 1520)[0])
-    cx, cy, _ = rl.constant_velocity(scene, ro.object_id)
+    cx, cy, _ = methods.constant_velocity(scene, ro.object_id)
     assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0  # starts at the log
     assert np.hypot(ro.x[0, a, -1] - cx[a, -1], ro.y[0, a, -1] - cy[a, -1]) > 5.0  # SUMO drives it
     sim = scenario_metrics(scene, ro, validate=False)
@@ -156,10 +156,10 @@ def test_current_step_zero_starts_at_the_recorded_pose(tmp_path):
     assert scene.current_time_index == 0
     rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok", rep.reason
-    ro = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    ro = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
     sdc = int(scene.tracks.id[scene.sdc_track_index])
     a = int(np.flatnonzero(ro.object_id == sdc)[0])
-    cx, cy, _ = rl.constant_velocity(scene, ro.object_id)
+    cx, cy, _ = methods.constant_velocity(scene, ro.object_id)
     assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0
 
 
@@ -211,7 +211,7 @@ def test_recorded_lateral_offset_is_kept_at_the_handover(tmp_path, monkeypatch):
     scene = load_scene(ROOT / "data" / "scenarionet" / "2a1e44d405a6833f.pkl")
     rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
     assert rep.status == "ok", rep.reason
-    ro = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    ro = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
     tr, cur = scene.tracks, scene.current_time_index
     a = int(np.flatnonzero(ro.object_id == 1624)[0])
     r = int(np.flatnonzero(tr.id == 1624)[0])
@@ -225,6 +225,6 @@ def test_recorded_lateral_offset_is_kept_at_the_handover(tmp_path, monkeypatch):
     # against the poses SUMO drove (centre line: the offset gone at once), the same seed: the
     # cyclist starts 1.5 m or more aside of SUMO's pose, and 5 s on the offset has faded
     monkeypatch.setattr(sb, "LATERAL_OFFSET_TAU", 1e-9)
-    centre = rl.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    centre = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
     gap = np.hypot(ro.x[0, a] - centre.x[0, a], ro.y[0, a] - centre.y[0, a])
     assert gap[0] > 1.5 and gap[50] < 0.05

@@ -313,7 +313,7 @@ def test_env_and_sumo_baseline_walk_pedestrians_on_a_pedestrian_bundle(peds_637f
     import libsumo as ls
 
     from magail_sumo.env import EnvConfig, SumoDrivingEnv, expert_actions
-    from magail_sumo.evaluation import rollouts as rl
+    from magail_sumo.evaluation import methods
 
     scene, folder, _ = peds_637f
     tr = scene.tracks
@@ -332,7 +332,7 @@ def test_env_and_sumo_baseline_walk_pedestrians_on_a_pedestrian_bundle(peds_637f
                 < 1e-3
     finally:
         env.close()
-    ro = rl.simulate(scene, "sumo", [0], bundle_dir=folder)
+    ro = methods.simulate(scene, "sumo", [0], bundle_dir=folder)
     assert np.isfinite(ro.x).all()
 
 

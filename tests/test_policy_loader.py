@@ -14,11 +14,12 @@ import torch
 
 from conftest import WOMD_DIR
 from converters import load_scene
+from magail_sumo import agents, policies
 from magail_sumo.cli.main import main
 from magail_sumo.config import from_dict
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.vec_env import scene_specs
-from magail_sumo.evaluation import rollouts as rl
+from magail_sumo.evaluation import runner, storage
 from magail_sumo.expert import record_expert
 from magail_sumo.sim.dynamics import BicycleLimits
 from magail_sumo.training.config import TrainConfig
@@ -73,8 +74,8 @@ def legacy_deterministic(seed: int) -> _LegacyPolicy:
 @pytest.mark.sumo
 def test_registered_loader_samples_seeded_actions(checkpoint):
     _, ckpt = checkpoint
-    assert ".pt" in rl.POLICY_LOADERS
-    pol = rl.make_policy(str(ckpt), seed=0)
+    assert ".pt" in policies.POLICY_LOADERS
+    pol = policies.make_policy(str(ckpt), seed=0)
     assert isinstance(pol, CheckpointPolicy) and not pol.deterministic
     rng = np.random.default_rng(0)
     obs = {str(k): rng.normal(size=pol.obs_dim).astype(np.float32) for k in range(5)}
@@ -83,15 +84,15 @@ def test_registered_loader_samples_seeded_actions(checkpoint):
     assert all(a[k].shape == (2,) and a[k].dtype == np.float32 and np.all(np.abs(a[k]) <= 1)
                for k in obs)
     # the same seed reproduces the draws bit for bit, whatever order the agents come in
-    again = rl.make_policy(str(ckpt), seed=0).act(dict(reversed(list(obs.items()))))
+    again = policies.make_policy(str(ckpt), seed=0).act(dict(reversed(list(obs.items()))))
     assert all(np.array_equal(a[k], again[k]) for k in obs)
     # another seed, or the next step of the same generator, draws other actions
-    other = rl.make_policy(str(ckpt), seed=9).act(obs)
+    other = policies.make_policy(str(ckpt), seed=9).act(obs)
     nxt = pol.act(obs)
     assert all(not np.array_equal(a[k], other[k]) and not np.array_equal(a[k], nxt[k])
                for k in obs)
     # samples scatter around the mean action: tanh of the Gaussian sample
-    many = rl.make_policy(str(ckpt), seed=1)
+    many = policies.make_policy(str(ckpt), seed=1)
     draws = np.stack([many.act({"0": obs["0"]})["0"] for _ in range(400)])
     policy, _ = load_policy(ckpt)
     with torch.no_grad():
@@ -107,11 +108,11 @@ def test_registered_loader_samples_seeded_actions(checkpoint):
 @pytest.mark.sumo
 def test_deterministic_loader_gives_the_mean_action(checkpoint):
     _, ckpt = checkpoint
-    pol = rl.make_policy(str(ckpt), seed=0, deterministic=True)
+    pol = policies.make_policy(str(ckpt), seed=0, deterministic=True)
     assert isinstance(pol, CheckpointPolicy) and pol.deterministic
     rng = np.random.default_rng(0)
     obs = {str(k): rng.normal(size=pol.obs_dim).astype(np.float32) for k in range(5)}
-    a, b = pol.act(obs), rl.make_policy(str(ckpt), seed=9, deterministic=True).act(obs)
+    a, b = pol.act(obs), policies.make_policy(str(ckpt), seed=9, deterministic=True).act(obs)
     want = _legacy_actions(load_policy(ckpt)[0], obs)
     assert all(np.array_equal(a[k], b[k]) and np.array_equal(a[k], want[k])
                and np.array_equal(a[k], pol.act(obs)[k]) for k in obs)
@@ -127,7 +128,7 @@ def test_other_env_refused(checkpoint):
 
 
 def _rollouts(out, method):
-    return rl.read_rollouts(out / "rollouts" / method / f"{SID}.parquet", load_scene(SCENE))
+    return storage.read_rollouts(out / "rollouts" / method / f"{SID}.parquet", load_scene(SCENE))
 
 
 def _same(a, b) -> bool:
@@ -145,7 +146,7 @@ def test_evaluate_checkpoint_end_to_end(checkpoint):
     assert man["methods"] == ["run", "constvel"] and man["policy_spec"] == str(ckpt)
     assert man["deterministic"] is False
     df = pd.read_parquet(out / "rollouts" / "run" / f"{SID}.parquet")
-    assert tuple(df.columns) == rl.COLUMNS and df["rollout"].nunique() == 2
+    assert tuple(df.columns) == storage.COLUMNS and df["rollout"].nunique() == 2
     assert np.isfinite(df[["x", "y", "heading"]].to_numpy()).all()
     # sampled actions: the two rollouts (two rollout seeds) differ
     ro = _rollouts(out, "run")
@@ -180,9 +181,9 @@ def test_evaluate_seeded_sampling_and_deterministic(checkpoint, monkeypatch):
     monkeypatch.syspath_prepend(str(Path(__file__).parent))
     bundle = str(nets / SID)
     legacy = f"{__name__}:legacy_deterministic"
-    batches = [rl.Batch(SCENE, SID, bundle, str(ckpt), (0, 1), 5),
-               rl.Batch(SCENE, SID, bundle, legacy, (0,), 5)]
-    got = {b.spec: ro for b, ro, err, _ in rl.run_batches(batches, 2) if err is None}
+    batches = [runner.Batch(SCENE, SID, bundle, str(ckpt), (0, 1), 5),
+               runner.Batch(SCENE, SID, bundle, legacy, (0,), 5)]
+    got = {b.spec: ro for b, ro, err, _ in runner.run_batches(batches, 2) if err is None}
     assert len(got) == 2
     assert _same(got[str(ckpt)], sampled)
     old = got[legacy]
@@ -202,34 +203,34 @@ def test_noise_scale_scales_the_sampled_noise(checkpoint, tmp_path, monkeypatch)
 
     _, ckpt = checkpoint
     rng = np.random.default_rng(3)
-    pol = rl.make_policy(str(ckpt), seed=0)
+    pol = policies.make_policy(str(ckpt), seed=0)
     obs = {str(k): rng.normal(size=pol.obs_dim).astype(np.float32) for k in range(6)}
-    mean = rl.make_policy(str(ckpt), seed=0, deterministic=True).act(obs)
+    mean = policies.make_policy(str(ckpt), seed=0, deterministic=True).act(obs)
 
     def offsets(k):
-        a = rl.make_policy(str(ckpt), seed=4, noise_scale=k).act(obs)
+        a = policies.make_policy(str(ckpt), seed=4, noise_scale=k).act(obs)
         return np.stack([np.arctanh(a[n]) - np.arctanh(mean[n]) for n in obs])
 
     assert np.abs(offsets(0.0)).max() < 1e-5
     one, half = offsets(1.0), offsets(0.5)
     assert np.abs(one).max() > 0.05
     assert np.allclose(half, 0.5 * one, atol=1e-4)
-    assert np.array_equal(rl.make_policy(str(ckpt), seed=4, noise_scale=1.0).act(obs)["0"],
-                          rl.make_policy(str(ckpt), seed=4).act(obs)["0"])
+    assert np.array_equal(policies.make_policy(str(ckpt), seed=4, noise_scale=1.0).act(obs)["0"],
+                          policies.make_policy(str(ckpt), seed=4).act(obs)["0"])
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(PolicyError, match="noise scale must be a finite number >= 0"):
-            rl.make_policy(str(ckpt), seed=0, noise_scale=bad)
+            policies.make_policy(str(ckpt), seed=0, noise_scale=bad)
     with pytest.raises(PolicyError, match="RandomPolicy has no sampling noise to scale"):
-        rl.make_policy("random", seed=0, noise_scale=0.5)
-    assert isinstance(rl.make_policy("random", seed=0, noise_scale=1.0), rl.RandomPolicy)
+        policies.make_policy("random", seed=0, noise_scale=0.5)
+    assert isinstance(policies.make_policy("random", seed=0, noise_scale=1.0), agents.RandomPolicy)
 
     # a pretrained card's sampling.noise_scale is the default; an explicit one overrides it
     reg = tmp_path / "registry"
     pretrained.export(ckpt, "calm", reg, noise_scale=0.25, noise_note="picked on train scenes")
     monkeypatch.setenv(pretrained.ENV_VAR, str(reg))
-    assert rl.make_policy("pretrained:calm", seed=0).noise_scale == 0.25
-    assert rl.make_policy("guarded:pretrained:calm", seed=0).noise_scale == 0.25
-    assert rl.make_policy("pretrained:calm", seed=0, noise_scale=1.0).noise_scale == 1.0
+    assert policies.make_policy("pretrained:calm", seed=0).noise_scale == 0.25
+    assert policies.make_policy("guarded:pretrained:calm", seed=0).noise_scale == 0.25
+    assert policies.make_policy("pretrained:calm", seed=0, noise_scale=1.0).noise_scale == 1.0
     out = tmp_path / "eval"
     assert main(["evaluate", "--policy", "pretrained:calm", "--scenes", SCENE, "--rollouts",
                  "1", "--baselines", "none", "--networks", str(checkpoint[0] / "nets"),

@@ -21,7 +21,8 @@ from magail_sumo import pretrained as pt
 from magail_sumo.cli.main import main
 from magail_sumo.config import from_dict
 from magail_sumo.env.vec_env import scene_specs
-from magail_sumo.evaluation import rollouts as rl
+from magail_sumo import policies
+from magail_sumo.evaluation import storage
 from magail_sumo.evaluation.realism.config import BUCKETS, CHALLENGE_2025
 from magail_sumo.expert import record_expert
 from magail_sumo.training.config import TrainConfig
@@ -59,10 +60,10 @@ def test_registry_errors_name_the_spec_and_the_available(tmp_path, monkeypatch):
     assert pt.resolve("pretrained", tmp_path).name == "a"
     # the environment variable selects the folder; evaluate's spec errors are one line
     monkeypatch.setenv(pt.ENV_VAR, str(tmp_path))
-    assert pt.registry_dir() == tmp_path and rl.method_name("pretrained") == "a"
-    assert rl.method_name("pretrained:zz") == "zz"
+    assert pt.registry_dir() == tmp_path and policies.method_name("pretrained") == "a"
+    assert policies.method_name("pretrained:zz") == "zz"
     with pytest.raises(pt.PretrainedError, match="unknown pretrained policy 'zz'"):
-        rl.make_policy("pretrained:zz", 0)
+        policies.make_policy("pretrained:zz", 0)
 
 
 def test_shipped_registry_and_package_data():
@@ -94,7 +95,7 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
     assert not trained & {scene_stem(f) for f in split.test}
     # the evaluation layout with the policy's optional features (the default: the leader
     # sensor), and the gap guard it was trained behind
-    policy = rl.make_policy("pretrained", 7)
+    policy = policies.make_policy("pretrained", 7)
     low, high = observation_bounds(getattr(policy, "observation", EnvConfig().observation))
     assert low.shape == (policy.obs_dim,)
     assert getattr(policy, "guard", None) is None or policy.guard.on
@@ -102,11 +103,11 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
     assert policy.noise_scale == (card.get("sampling") or {}).get("noise_scale", 1.0)
     obs = {str(k): np.clip(np.zeros_like(low), low, high) for k in range(5)}
     a1 = policy.act(obs)
-    a2 = rl.make_policy("pretrained", 7).act(dict(reversed(list(obs.items()))))
+    a2 = policies.make_policy("pretrained", 7).act(dict(reversed(list(obs.items()))))
     for k in obs:
         assert a1[k].shape == (2,) and np.all(np.abs(a1[k]) <= 1.0)
         np.testing.assert_array_equal(a1[k], a2[k])
-    d = rl.make_policy("pretrained", 7, deterministic=True).act(obs)
+    d = policies.make_policy("pretrained", 7, deterministic=True).act(obs)
     assert all(np.array_equal(d["0"], d[k]) for k in obs)  # same observation, same mean action
 
 
@@ -153,7 +154,7 @@ def test_export_writes_a_slim_checkpoint_and_its_card(checkpoint, registry, tmp_
     assert card["split"]["test"][-1] == "data/scenarionet/8799c31b5be1f312.pkl"
     # the same policy as the run's checkpoint
     monkeypatch.setenv(pt.ENV_VAR, str(reg))
-    a, b = rl.make_policy("pretrained", 0), rl.make_policy(str(ckpt), 0)
+    a, b = policies.make_policy("pretrained", 0), policies.make_policy(str(ckpt), 0)
     obs = {str(k): np.random.default_rng(k).normal(size=a.obs_dim).astype(np.float32)
            for k in range(4)}
     got, want = a.act(obs), b.act(obs)
@@ -187,7 +188,7 @@ def test_evaluate_pretrained_end_to_end(checkpoint, registry, monkeypatch, capsy
     man = json.loads((out / "manifest.json").read_text())
     assert man["methods"] == ["tiny", "constvel"] and man["policy_spec"] == "pretrained:tiny"
     df = pd.read_parquet(out / "rollouts" / "tiny" / f"{SID}.parquet")
-    assert tuple(df.columns) == rl.COLUMNS and df["rollout"].nunique() == 2
+    assert tuple(df.columns) == storage.COLUMNS and df["rollout"].nunique() == 2
     assert np.isfinite(df[["x", "y", "heading"]].to_numpy()).all()
     capsys.readouterr()
     rc = main(["evaluate", "--policy", "pretrained:nope", "--scenes", SCENE, "--rollouts", "2",

@@ -97,7 +97,7 @@ def test_report_of_nuscenes_scene(tmp_path):
     import csv
 
     from magail_sumo.evaluation.report import build_report
-    from magail_sumo.evaluation.rollouts import evaluate
+    from magail_sumo.evaluation.runner import evaluate
 
     res = evaluate([str(NUSC)], "constvel", tmp_path / "ev", n_rollouts=2,
                    baselines=["logreplay"], workers=1)

@@ -89,7 +89,7 @@ def test_checkpoint_brings_its_route_points_to_evaluation(tmp_path):
     from converters import load_scene
     from magail_sumo import policies
     from magail_sumo.env import EnvConfig
-    from magail_sumo.evaluation import rollouts as rl
+    from magail_sumo.evaluation import methods
     from magail_sumo.policies import load_checkpoint_policy
     from magail_sumo.training.trainer import CheckpointError
 
@@ -100,5 +100,5 @@ def test_checkpoint_brings_its_route_points_to_evaluation(tmp_path):
     with pytest.raises(CheckpointError, match="env.observation.route_points"):
         load_checkpoint_policy(ckpt, target=EnvConfig())
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
-    ro = rl.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=ROOT / "networks" / SID)
+    ro = methods.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=ROOT / "networks" / SID)
     assert np.isfinite(ro.x).any()

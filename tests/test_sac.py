@@ -285,7 +285,8 @@ def test_train_and_resume_exactly(sac_setup, algorithm):
 
 @pytest.mark.sumo
 def test_evaluate_sac_checkpoint(sac_setup, tmp_path):
-    from magail_sumo.evaluation.rollouts import evaluate, make_policy
+    from magail_sumo.evaluation.runner import evaluate
+    from magail_sumo.policies import make_policy
     from magail_sumo.policies import SacCheckpointPolicy
     from magail_sumo.training.trainer import CheckpointError, load_policy, train
 

@@ -35,6 +35,9 @@ class Policy(Protocol):
       seed's ``"steer_throttle"``); the env is built with it.
     * ``guard``: a :class:`~magail_sumo.env.guard.GuardConfig` the env drives its actions
       through (a checkpoint trained behind the gap guard).
+    * ``reseed(seed)``: put the policy in the state building it with ``seed`` gives (it then
+      draws the same random numbers as a fresh one): evaluation reuses one policy for all the
+      rollouts of a batch, reseeded per rollout, and builds a policy without it anew.
     """
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...

@@ -84,7 +84,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.evaluation.city import CitySettings, check_policy, check_sumocfg
-    from magail_sumo.evaluation.rollouts import EvaluationError
+    from magail_sumo.evaluation.protocol import EvaluationError
 
     if not args.scenes and not args.city:
         raise EvaluationError("nothing to evaluate: give --scenes FILE..., --city SUMOCFG... "
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
 def _scenes(args: argparse.Namespace) -> tuple[int, int]:
     """Rollouts of the recorded scenes: (scene/method pairs done, problems)."""
     # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
-    from magail_sumo.evaluation.rollouts import evaluate
+    from magail_sumo.evaluation.runner import evaluate
 
     base = [] if args.baselines.strip().lower() == "none" else \
         [b.strip() for b in args.baselines.split(",") if b.strip()]

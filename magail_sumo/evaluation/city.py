@@ -51,14 +51,14 @@ from magail_sumo.agents import env_settings, rollout
 from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv, _scenario_files
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.rollouts import (BASELINES, DEFAULT_TIMEOUT_S, EvaluationError,
-                                             log, make_policy, method_name, previous_manifest,
-                                             rollout_seed, versions)
+from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, EvaluationError, log, rollout_seed
+from magail_sumo.evaluation.storage import previous_manifest, versions
 from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSummary,
                                                          output_args, run_sumo_outputs,
                                                          summarise)
 from magail_sumo.outputs import (claim_output_dir, inside, one_line, printable, safe_name,
                                  write_text)
+from magail_sumo.policies import BASELINES, make_policy, method_name
 from magail_sumo.sim.session import SessionConfig
 from magail_sumo.workers import run_one
 

@@ -72,6 +72,10 @@ class CheckpointPolicy:
         self.deterministic = bool(deterministic)
         self.generator = torch.Generator(device=policy.device).manual_seed(int(seed))
 
+    def reseed(self, seed: int) -> None:
+        """Sample from here on as the policy built with ``seed`` does (the next rollout)."""
+        self.generator.manual_seed(int(seed))
+
     def _observations(self, observations: dict[str, np.ndarray], names: list[str]
                       ) -> torch.Tensor:
         x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])

@@ -3,7 +3,7 @@ RUN/checkpoints/latest.pt`` with a ``gameformer`` run; :mod:`magail_sumo.policie
 dispatches on the checkpoint's algorithm).
 
 The agent uses the optional ``begin(scene, env)`` hook of the evaluation rollout
-(:func:`magail_sumo.evaluation.rollouts._policy_rollout`): told the scene and the env after
+(:func:`magail_sumo.evaluation.methods.policy_rollout`): told the scene and the env after
 reset, it keeps the last ``history_steps`` world-frame states of every object — the simulated
 state (``env.agent_states()``) of the live agents, the recorded one of every other object — and
 every ``replan_every`` steps (and when an agent first appears) predicts every live agent in its
@@ -43,6 +43,12 @@ class GameFormerPolicy:
         self.model, self.cfg, self.name = model, cfg, name
         self.g = cfg.gameformer
         self.deterministic = bool(deterministic)
+        self.rng = np.random.default_rng(int(seed))
+        self.env = None
+
+    def reseed(self, seed: int) -> None:
+        """Be the policy built with ``seed`` (the next rollout): its mode draws restart from
+        ``seed``; the rollout's ``begin`` resets the rest."""
         self.rng = np.random.default_rng(int(seed))
         self.env = None
 

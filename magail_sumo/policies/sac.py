@@ -39,6 +39,10 @@ class SacCheckpointPolicy:
         self.noise_scale = float(noise_scale)
         self.generator = torch.Generator().manual_seed(int(seed))
 
+    def reseed(self, seed: int) -> None:
+        """Sample from here on as the policy built with ``seed`` does (the next rollout)."""
+        self.generator.manual_seed(int(seed))
+
     @torch.no_grad()
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if not observations:

@@ -120,17 +120,35 @@ def _row_features(scene: Scene, jt: JointTrajectories, rows: np.ndarray,
     return {k: a for k, a in out.items() if a is not None}
 
 
+def log_features(scene: Scene, jt: JointTrajectories,
+                 config: ChallengeConfig = CHALLENGE_2025) -> dict[str, np.ndarray]:
+    """The per-step features of the log alone (batch row 0 of ``jt``, values ``(1, E, T_sim)``):
+    the same for every rollout set of the scene with the same agents and ``n_eval``, so a
+    caller scoring several passes them to :func:`compute_features`."""
+    return _row_features(scene, jt, np.zeros(1, np.int64), config)
+
+
 def compute_features(scene: Scene, jt: JointTrajectories,
-                     config: ChallengeConfig = CHALLENGE_2025) -> Features:
+                     config: ChallengeConfig = CHALLENGE_2025,
+                     log_values: dict[str, np.ndarray] | None = None) -> Features:
     """All per-step features of the log and rollouts of ``jt`` (vectorised over both).
 
     Features are computed once per distinct batch row (:func:`distinct_rows`) and repeated
-    for the rows equal to it: the same values as computing every row."""
+    for the rows equal to it: the same values as computing every row.
+
+    :param log_values: :func:`log_features` of the scene's log, computed before (for another
+        rollout set of the scene): only the rollouts' rows are computed."""
     E = jt.n_eval
     fut = slice(scene.current_time_index + 1, None)
     x, y, z = jt.x, jt.y, jt.z
     first, inverse = distinct_rows(x, y, z, jt.heading, jt.valid)
-    values = _row_features(scene, jt, first, config)
+    if log_values is None:
+        values = _row_features(scene, jt, first, config)
+    elif len(first) == 1:  # every rollout equals the log
+        values = dict(log_values)
+    else:  # row 0, the log, is always the first distinct row
+        rest = _row_features(scene, jt, first[1:], config)
+        values = {k: np.concatenate([log_values[k], rest[k]]) for k in rest}
     if len(first) < x.shape[0]:
         values = {k: v[inverse] for k, v in values.items()}
     disp = np.sqrt((x[1:, :E] - x[:1, :E]) ** 2 + (y[1:, :E] - y[:1, :E]) ** 2

@@ -23,11 +23,10 @@ from pathlib import Path
 
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, read_rows
-from magail_sumo.evaluation.rollouts import POLICY_LOADERS
-from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
-from magail_sumo.policies import unguarded
+from magail_sumo.policies import POLICY_LOADERS, unguarded
+from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.pretrained import is_pretrained_spec
 
 from . import animation, figures

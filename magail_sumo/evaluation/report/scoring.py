@@ -6,7 +6,8 @@ against its scene (agent set, 80 steps, finite values); a bad one gives a one-li
 the scene / agent and the others are still scored.
 
 Per (scene, method) the realism features are computed once and give both the scene's fields
-and the per-agent rows (:func:`agent_metrics`); the states a method marks invalid (``valid``
+and the per-agent rows (:func:`agent_metrics`); the log's own features are computed once per
+scene for all its methods (:class:`LogFeatures`). The states a method marks invalid (``valid``
 column; log replay where the log has none) are kept as a mask so figures never draw them.
 """
 
@@ -26,11 +27,12 @@ from magail_sumo.evaluation.realism.estimators import (
     bernoulli_log_likelihood, histogram_log_likelihood,
 )
 from magail_sumo.evaluation.realism.metrics import (
-    _FLAGS, _MASKS, Features, compute_features, feature_masks, metrics_from_features,
-    value_name,
+    _FLAGS, _MASKS, Features, compute_features, feature_masks, log_features,
+    metrics_from_features, value_name,
 )
-from magail_sumo.evaluation.realism.trajectories import joint_trajectories
-from magail_sumo.evaluation.rollouts import N_STEPS, read_manifest, read_rollouts, rollouts_path
+from magail_sumo.evaluation.realism.trajectories import JointTrajectories, joint_trajectories
+from magail_sumo.evaluation.protocol import N_STEPS
+from magail_sumo.evaluation.storage import read_manifest, read_rollouts, rollouts_path
 from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
 )
@@ -86,7 +88,7 @@ def agent_metrics(feat: Features, config=CHALLENGE_2025) -> dict[str, np.ndarray
 
 def read_valid(path: Path, scene: Scene, ro: ScenarioRollouts) -> np.ndarray | None:
     """(R, A, T) ``valid`` column of a rollouts file over the simulated steps, in
-    :func:`~magail_sumo.evaluation.rollouts.read_rollouts`' order; None when all are valid."""
+    :func:`~magail_sumo.evaluation.storage.read_rollouts`' order; None when all are valid."""
     import pandas as pd
 
     try:
@@ -151,13 +153,34 @@ class PairScore:
     error: str | None = None
 
 
-def score_pair(scene: Scene, method: str, ro: ScenarioRollouts) -> PairScore:
+class LogFeatures:
+    """The realism features of one scene's log (:func:`~magail_sumo.evaluation.realism.
+    metrics.log_features`), computed for the first rollout set scored and reused for the
+    scene's other methods."""
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._values: dict[str, np.ndarray] | None = None
+
+    def of(self, scene: Scene, jt: JointTrajectories, config) -> dict[str, np.ndarray]:
+        """The log's features for ``jt`` (computed anew should its agents differ)."""
+        key = (scene.scenario_id, config.current_time_index, jt.n_eval, jt.object_id.tobytes())
+        if self._values is None or key != self._key:
+            self._key, self._values = key, log_features(scene, jt, config)
+        return self._values
+
+
+def score_pair(scene: Scene, method: str, ro: ScenarioRollouts,
+               log: LogFeatures | None = None) -> PairScore:
     """Validate and score one rollout set; never raises (a failure is ``error``).
 
     The features of all sim agents are computed once (the traffic metrics need them all) and
     the realism fields use the evaluated agents' rows; the simulated steps start after the
     scene's own current step (a scene recorded with another history length is scored on its
-    80 simulated steps like any other)."""
+    80 simulated steps like any other).
+
+    :param log: the scene's :class:`LogFeatures`, shared by its methods (None: the log's
+        features are computed with the rollouts')."""
     sid = scene.scenario_id
     res = PairScore(sid, method)
     try:
@@ -168,7 +191,8 @@ def score_pair(scene: Scene, method: str, ro: ScenarioRollouts) -> PairScore:
         jt = joint_trajectories(scene, ro)
         n_eval = jt.n_eval
         jt = dataclasses.replace(jt, n_eval=len(jt.object_id))
-        feat_all = compute_features(scene, jt, config)
+        feat_all = compute_features(scene, jt, config,
+                                    None if log is None else log.of(scene, jt, config))
         feat = _eval_subset(feat_all, n_eval)
         realism = metrics_from_features(feat, config)
         per_agent = agent_metrics(feat, config)
@@ -220,9 +244,10 @@ def _add(scores: Scores, res: PairScore, ro: ScenarioRollouts,
 
 
 def score(scores: Scores, sid: str, method: str, ro: ScenarioRollouts,
-          valid: np.ndarray | None = None) -> None:
-    """Validate and score one rollout set into ``scores`` (errors are recorded, not raised)."""
-    _add(scores, score_pair(scores.scenes[sid], method, ro), ro, valid)
+          valid: np.ndarray | None = None, log: LogFeatures | None = None) -> None:
+    """Validate and score one rollout set into ``scores`` (errors are recorded, not raised;
+    ``log``: the scene's :class:`LogFeatures`)."""
+    _add(scores, score_pair(scores.scenes[sid], method, ro, log), ro, valid)
 
 
 def _read_pair(folder: Path, method: str, scene: Scene
@@ -271,12 +296,13 @@ def _score_job(job: ScoreJob) -> list[tuple[list[tuple], SceneView | None]]:
         scene = find_scene(scene_file, sid)
         part = Scores({}, {sid: scene}, [])
         items: list[tuple] = []
+        log = LogFeatures()
         for m in methods:
             got = _read_pair(Path(folder), m, scene)
             if isinstance(got, str):
                 items.append(("error", got))
             else:
-                items.append(("ok", score_pair(scene, m, got[0]), *got))
+                items.append(("ok", score_pair(scene, m, got[0], log), *got))
                 _add(part, *items[-1][1:])
         view = None
         if draw and part.methods:
@@ -339,6 +365,7 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
     methods = list(manifest.get("methods", []))
     workers = default_workers() if workers is None else max(1, int(workers))
     results: dict[tuple[str, str], tuple] = {}
+    logs = {sid: LogFeatures() for sid in scenes}  # each scene's log features, once
     if workers > 1 and len(scenes) * len(methods) > 1:
         entries = {s["scenario_id"]: s for s in manifest.get("scenes", [])}
         # one job per worker (a worker's start-up, imports and compiled kernels cost seconds),
@@ -362,7 +389,7 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
             else:
                 got = _read_pair(folder, method, scenes[sid])
                 item = ("error", got) if isinstance(got, str) else \
-                    ("ok", score_pair(scenes[sid], method, got[0]), *got)
+                    ("ok", score_pair(scenes[sid], method, got[0], logs[sid]), *got)
             if item[0] == "error":
                 scores.errors.append(item[1])
             else:
@@ -376,7 +403,8 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
                     scores.errors.append(f"method {method}: scenario {rec.scenario_id}: not "
                                          "among the evaluated scenes")
                 else:
-                    score(scores, rec.scenario_id, method, rec.rollouts)  # type: ignore[arg-type]
+                    score(scores, rec.scenario_id, method, rec.rollouts,  # type: ignore[arg-type]
+                          log=logs[rec.scenario_id])
         except SubmissionError as exc:
             scores.errors.append(f"method {method}: {exc}")
     return scores

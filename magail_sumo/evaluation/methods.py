@@ -1,0 +1,231 @@
+"""How each method produces the simulated steps of a scene (the protocol:
+:mod:`magail_sumo.evaluation.protocol`). Methods:
+
+* ``logreplay``: the recorded future (stored states, invalid ones included).
+* ``constvel``: constant velocity from the recorded state at the current step (heading held).
+* ``sumo``: SUMO's default car-following (Krauss) drives the converted routes from every route
+  vehicle's recorded pose and speed at the current step, each with a seeded speed factor; every
+  other sim agent moves at constant velocity and is an obstacle SUMO's drivers brake for
+  (:mod:`magail_sumo.agents.sumo_baseline` has the details).
+* a policy (``random``, or a checkpoint / ``module:factory`` spec, see
+  :func:`magail_sumo.policies.make_policy`): drives every route vehicle and cyclist through
+  :class:`~magail_sumo.env.SumoDrivingEnv` (bicycle model, SUMO co-simulation, no event
+  terminates an agent; :func:`magail_sumo.agents.rollout`), built with the policy's
+  ``observation``, ``action_layout`` and gap ``guard`` when it names them. Rollout ``r`` runs
+  with the policy as ``make_policy(spec, rollout_seed(seed, r), ...)`` builds it; a training
+  checkpoint samples its actions from that seed (``deterministic=True``: the tanh of the
+  Gaussian mean, the same in every rollout).
+
+The rollouts of a policy on a scene share one env and one policy (:class:`PolicyRollouts`):
+the env is reset with each rollout's seed and the policy reseeded (its optional
+``reseed(seed)``, :class:`~magail_sumo.agents.base.Policy`) rather than both rebuilt, which
+gives the same rollouts as a fresh env and policy per rollout; a policy without ``reseed`` (a
+user's factory) is built anew per rollout.
+
+Objects a method does not move (pedestrians, objects SUMO does not carry, vehicles not yet
+inserted) and objects that leave the simulation early (arrived at their route end, end of
+their recorded track in the env) follow the constant-velocity model from their last simulated
+(else recorded) state. Positions are box centres in the scene frame (m), headings rad CCW
+from +x; z is the recorded z at the current step (SUMO is 2-D).
+
+SUMO methods run one simulation after another in the calling process; the runner gives every
+batch of them a fresh ``spawn`` worker process (libsumo allows one simulation per process and
+has crashed when a second one starts after vehicle removals).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from magail_sumo.agents import Policy, env_settings, rollout
+from magail_sumo.agents import constant_velocity as _cv
+from magail_sumo.agents.constant_velocity import Track, current_state, fill_constant_velocity
+from magail_sumo.agents.sumo_baseline import sumo_rollout
+from magail_sumo.env import EnvConfig, SumoDrivingEnv
+from magail_sumo.env.actions import action_summary
+from magail_sumo.evaluation.protocol import N_STEPS, EvaluationError, log, rollout_seed, span
+from magail_sumo.evaluation.realism import log_replay
+from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
+from magail_sumo.outputs import printable
+from magail_sumo.policies import make_policy
+from magail_sumo.scene import Scene
+from magail_sumo.sim.dynamics import wrap_angle
+
+#: methods evaluation runs in its own process (no SUMO, no policy)
+IN_PROCESS = ("logreplay", "constvel")
+
+Trajectory = tuple[np.ndarray, np.ndarray, np.ndarray]  #: (x, y, yaw), each (A, N_STEPS)
+
+
+def needs_worker(spec: str) -> bool:
+    """Whether method ``spec`` runs SUMO (the runner gives it worker processes)."""
+    return spec not in IN_PROCESS
+
+
+# ------------------------------------------------------------------------- trajectory models
+def constant_velocity(scene: Scene, ids: np.ndarray) -> Trajectory:
+    """(x, y, yaw) (A, :data:`N_STEPS`): recorded state at the current step moved at its
+    velocity (:func:`magail_sumo.agents.constant_velocity.constant_velocity`)."""
+    return _cv.constant_velocity(scene, ids, N_STEPS)
+
+
+def as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
+                ) -> ScenarioRollouts:
+    """Rollouts of the per-rollout (x, y, yaw) lists, z held at the current step's."""
+    _, _, _, z0, _, _, _ = current_state(scene, ids)
+    x, y, yaw = (np.stack(v).astype(np.float32) for v in (xs, ys, yaws))
+    yaw = wrap_angle(yaw).astype(np.float32)
+    z = np.broadcast_to(z0.astype(np.float32)[None, :, None], x.shape).copy()
+    return ScenarioRollouts(scene.scenario_id, ids.astype(np.int64), x, y, z, yaw)
+
+
+# ---------------------------------------------------------------------------- policy rollouts
+def env_config(scene: Scene, policy: Policy) -> EnvConfig:
+    """The env of a policy's rollouts: every route vehicle controlled from the scene's current
+    step for :data:`N_STEPS` steps, no event ends an agent, with the policy's
+    ``observation``, ``action_layout`` and ``guard`` when it has them."""
+    return EnvConfig(controlled="all", start_step=scene.current_time_index, max_steps=N_STEPS,
+                     terminate_on=(), end_of_life=False, **env_settings(policy))
+
+
+def policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
+                   counts: dict[str, int] | None = None,
+                   env: SumoDrivingEnv | None = None) -> Trajectory:
+    """One rollout of ``policy`` driving every route vehicle through SumoDrivingEnv (with the
+    policy's ``observation`` config, ``action_layout`` and ``guard`` when it has them, e.g. a
+    SAC policy's route command), by :func:`magail_sumo.agents.rollout`. Each agent's simulated
+    state at a step is the one the env reports after it (``infos[agent]["state"]``).
+
+    :param counts: the env's ``action_counts`` (missing / unknown / non-finite / clipped
+        actions) are added to it.
+    :param env: the env to reset with ``seed`` and drive (built with :func:`env_config`; the
+        caller closes it); None: one is built for this rollout and closed after it."""
+    ids = sim_agent_ids(scene)
+    col = {str(int(i)): k for k, i in enumerate(ids)}
+    cur = scene.current_time_index
+    own = env is None
+    if env is None:
+        env = SumoDrivingEnv(scene, bundle_dir, env_config(scene, policy))
+    track = Track.empty(len(ids), N_STEPS)
+
+    def keep(step) -> None:
+        t = step.t - cur  # column of log step step.t + 1
+        if not 0 <= t < N_STEPS:
+            return
+        sel = [(col[n], step.infos[n]["state"]) for n in step.agents if n in col]
+        if sel:
+            a = np.array([s[0] for s in sel])
+            state = np.array([s[1] for s in sel], np.float64)  # (n, 4): x, y, yaw, speed
+            track.x[a, t], track.y[a, t] = state[:, 0], state[:, 1]
+            track.yaw[a, t], track.speed[a, t] = state[:, 2], state[:, 3]
+
+    try:
+        rollout(env, policy, keep, seed=seed, max_steps=N_STEPS, scene=scene)
+        if counts is not None:
+            for k, v in env.action_counts.items():
+                counts[k] = counts.get(k, 0) + v
+    finally:
+        if own:
+            env.close()
+    return fill_constant_velocity(scene, ids, track)
+
+
+class PolicyRollouts:
+    """Rollouts of one policy on one scene through one env (module doc): the policy is built
+    once, by ``make(seed)``, and reseeded for every later rollout (its ``reseed(seed)``; built
+    anew when it has none); the env is built once, with :func:`env_config`, and reset with each
+    rollout's seed (built anew only if a rebuilt policy asks for other env settings).
+
+    Use as a context manager (the env's SUMO session is closed at the end)."""
+
+    def __init__(self, scene: Scene, bundle_dir: str | Path, make: Callable[[int], Policy]
+                 ) -> None:
+        self.scene, self.bundle_dir, self.make = scene, Path(bundle_dir), make
+        self.policy: Policy | None = None
+        self.env: SumoDrivingEnv | None = None
+        self._settings: dict | None = None
+
+    def policy_for(self, seed: int) -> Policy:
+        """The policy as ``make(seed)`` builds it."""
+        reseed = getattr(self.policy, "reseed", None)
+        if callable(reseed):
+            reseed(seed)
+        else:
+            self.policy = self.make(seed)
+        return self.policy  # type: ignore[return-value]
+
+    def env_for(self, policy: Policy) -> SumoDrivingEnv:
+        """The env ``policy`` drives (the one built before when its settings are the same)."""
+        settings = env_settings(policy)
+        if self.env is None or settings != self._settings:
+            self.close()
+            self.env = SumoDrivingEnv(self.scene, self.bundle_dir, env_config(self.scene, policy))
+            self._settings = settings
+        return self.env
+
+    def run(self, seed: int, counts: dict[str, int] | None = None) -> Trajectory:
+        """One rollout with ``seed`` (:func:`policy_rollout`)."""
+        policy = self.policy_for(seed)
+        return policy_rollout(self.scene, self.bundle_dir, policy, seed, counts,
+                              env=self.env_for(policy))
+
+    def close(self) -> None:
+        if self.env is not None:
+            self.env.close()
+            self.env = None
+
+    def __enter__(self) -> "PolicyRollouts":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ------------------------------------------------------------------------------- one method
+def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
+             bundle_dir: str | Path | None = None,
+             action_counts: dict[str, int] | None = None,
+             deterministic: bool = False, noise_scale: float | None = None
+             ) -> ScenarioRollouts:
+    """Rollouts ``rollouts`` (indices) of one method on one scene, in this process.
+
+    SUMO methods run one simulation after another here; the runner batches them in fresh
+    worker processes (:func:`magail_sumo.evaluation.runner.run_batches`). Rollout ``r`` runs
+    the policy ``make_policy(method, rollout_seed(seed, r), deterministic, noise_scale)``
+    builds (one policy and one env for all, :class:`PolicyRollouts`).
+
+    :param action_counts: a policy's fixed-up actions (the env's ``action_counts``: missing,
+        unknown, non-finite, clipped) are added to it; they are also logged once.
+    """
+    ids = sim_agent_ids(scene)
+    idx = list(rollouts)
+    if method == "logreplay":
+        return log_replay(scene, len(idx), N_STEPS)
+    seeds = [rollout_seed(seed, r) for r in idx]
+    counts: dict[str, int] = {}
+    if method == "constvel":
+        runs = [constant_velocity(scene, ids) for _ in seeds]
+    elif not seeds:
+        runs = []
+    elif bundle_dir is None:
+        raise EvaluationError(f"scenario {printable(scene.scenario_id)}: method {method} "
+                              "needs a converted SUMO bundle")
+    elif method == "sumo":
+        runs = [sumo_rollout(scene, Path(bundle_dir), s, ids, N_STEPS) for s in seeds]
+    else:
+        with PolicyRollouts(scene, bundle_dir,
+                            lambda s: make_policy(method, s, deterministic, noise_scale)) as pr:
+            runs = [pr.run(s, counts) for s in seeds]
+
+    fixed = action_summary(counts)
+    if fixed:  # once per batch, in the run log
+        log(f"warning: scenario {printable(scene.scenario_id)}: method {method} rollout(s) "
+            f"{span(tuple(idx))}: {fixed}")
+    if action_counts is not None:
+        for k, v in counts.items():
+            action_counts[k] = action_counts.get(k, 0) + int(v)
+    xs, ys, yaws = ([run[k] for run in runs] for k in range(3))
+    return as_rollouts(scene, ids, xs, ys, yaws)

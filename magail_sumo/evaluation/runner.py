@@ -1,0 +1,314 @@
+"""``magail-sumo evaluate``'s run: every method's rollouts of every scene, the SUMO ones batched
+over fresh worker processes, written as Parquet with the run's manifest.
+
+:func:`evaluate` takes its steps in order: check the settings (:func:`method_names`), read and
+prepare the scenes once (:mod:`magail_sumo.evaluation.scenes`), run the methods
+(:func:`run_methods`: the in-process ones here, the SUMO ones as :class:`Batch` es of up to 8
+rollouts, each batch in a fresh ``spawn`` process, :func:`run_batches`), write each (scene,
+method)'s rollouts (:func:`write_rollouts`), then the manifest (:func:`manifest_of`) and the
+optional submission.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from converters.scene_files import find_scene
+from magail_sumo.errors import MagailSumoError
+from magail_sumo.evaluation.methods import needs_worker, simulate
+from magail_sumo.evaluation.protocol import (DEFAULT_TIMEOUT_S, N_STEPS, EvaluationError, Problems,
+                                             span)
+from magail_sumo.evaluation.scenes import PreparedScene, read_scenes, with_bundles
+from magail_sumo.evaluation.storage import (rollouts_path, to_frame, versions, write_manifest,
+                                            write_parquet, write_rollout_fcd)
+from magail_sumo.evaluation.submission import (ScenarioRollouts, sim_agent_ids, validate_rollouts,
+                                               write_submission)
+from magail_sumo.outputs import NameRegistry, claim_output_dir, one_line, printable
+from magail_sumo.policies import BASELINES, BUILTIN_POLICIES, make_policy, method_name
+from magail_sumo.scene import Scene
+from magail_sumo.workers import run_jobs
+
+
+# ------------------------------------------------------------------------------ worker batches
+@dataclass(frozen=True)
+class Batch:
+    """Work for one worker process: some rollouts of one method on one scene.
+
+    :param spec: method name or policy spec (see :func:`make_policy`).
+    :param deterministic: a checkpoint policy acts deterministically (see :func:`make_policy`).
+    :param noise_scale: its sampling noise's scale (None: the policy's own; see
+        :func:`make_policy`).
+    :param scene: the parsed scene (the worker reads ``scene_file`` when None).
+    """
+
+    scene_file: str
+    scenario_id: str
+    bundle_dir: str
+    spec: str
+    rollouts: tuple[int, ...]
+    seed: int
+    deterministic: bool = False
+    noise_scale: float | None = None
+    scene: Scene | None = field(default=None, compare=False, repr=False)
+
+
+def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
+    """Worker entry point (module level, picklable): the batch, its rollouts and the policy's
+    fixed-up action counts."""
+    scene = batch.scene if batch.scene is not None else \
+        find_scene(batch.scene_file, batch.scenario_id)
+    counts: dict[str, int] = {}
+    ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts,
+                  batch.deterministic, batch.noise_scale)
+    return replace(batch, scene=None), ro, counts
+
+
+def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
+                ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
+    """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line,
+    fixed-up action counts).
+
+    A batch whose worker fails (crashes, dies, raises anything but a
+    :class:`~magail_sumo.errors.MagailSumoError`) is retried once rollout by rollout (each in
+    its own process). A batch running longer than ``timeout_s`` seconds is killed and reported,
+    not retried. No wait is unbounded (:func:`magail_sumo.workers.run_jobs`).
+    """
+    if not batches:
+        return
+    retry: list[Batch] = []
+    for res in run_jobs(run_batch, batches, workers=max(1, workers), timeout_s=timeout_s):
+        b = res.job
+        what = f"scenario {b.scenario_id}: method {b.spec}"
+        if res.ok:
+            _, ro, counts = res.value
+            yield b, ro, None, counts
+        elif res.kind == "error" and res.expected:
+            yield b, None, res.reason, {}
+        elif res.kind == "timeout":
+            yield b, None, (f"{what} rollout(s) {span(b.rollouts)}: worker {res.reason} "
+                            "(--timeout-s)"), {}
+        elif len(b.rollouts) > 1:  # worker crash (libsumo) or bug: retry singly
+            retry += [replace(b, rollouts=(r,)) for r in b.rollouts]
+        else:
+            yield b, None, f"{what} rollout {b.rollouts[0]} failed: {res.reason}", {}
+    if retry:
+        yield from run_batches(retry, workers, timeout_s)
+
+
+def chunks(n: int, size: int) -> list[tuple[int, ...]]:
+    return [tuple(range(i, min(i + size, n))) for i in range(0, n, size)]
+
+
+def batch_size(n_rollouts: int, workers: int) -> int:
+    return max(1, min(8, math.ceil(n_rollouts / max(1, workers))))
+
+
+def merge(parts: list[ScenarioRollouts]) -> ScenarioRollouts:
+    """Concatenate rollout batches of one scene (same agents) along the rollout axis."""
+    first = parts[0]
+    cat = lambda n: np.concatenate([getattr(p, n) for p in parts])  # noqa: E731
+    return ScenarioRollouts(first.scenario_id, first.object_id, cat("x"), cat("y"), cat("z"),
+                            cat("heading"))
+
+
+# ----------------------------------------------------------------------------------- the run
+@dataclass
+class EvaluationResult:
+    """What :func:`evaluate` wrote: (scenario, method) pairs done, and one-line errors."""
+
+    done: list[tuple[str, str]]
+    errors: list[str]
+
+
+@dataclass
+class MethodRuns:
+    """What :func:`run_methods` produced: per (scenario, spec) the rollout parts (first rollout,
+    rollouts), the pairs that failed, and a policy's fixed-up action counts."""
+
+    parts: dict[tuple[str, str], list[tuple[int, ScenarioRollouts]]] = field(default_factory=dict)
+    failed: set[tuple[str, str]] = field(default_factory=set)
+    fixes: dict[tuple[str, str], dict[str, int]] = field(default_factory=dict)
+
+
+def check_settings(policy: str, baselines: list[str], n_rollouts: int, fcd_rollouts: int,
+                   seed: int, deterministic: bool, noise_scale: float | None) -> float | None:
+    """Refuse bad counts, an unknown baseline or an unusable policy spec
+    (:class:`EvaluationError` / :class:`~magail_sumo.agents.base.PolicyError`); the noise scale
+    the policy samples with (None: a baseline, or a policy without one)."""
+    if n_rollouts < 1:
+        raise EvaluationError(f"--rollouts must be >= 1, got {n_rollouts}")
+    if fcd_rollouts < 0:
+        raise EvaluationError(f"--fcd-rollouts must be >= 0, got {fcd_rollouts}")
+    bad = [b for b in baselines if b not in BASELINES]
+    if bad:
+        raise EvaluationError(f"unknown baseline {bad[0]} (known: {', '.join(BASELINES)})")
+    if policy in BASELINES:
+        return None
+    # fail early on an unusable spec
+    return getattr(make_policy(policy, seed, deterministic, noise_scale), "noise_scale", None)
+
+
+def method_names(specs: list[str], policy: str, name: str | None) -> dict[str, str]:
+    """Each spec's method name (:func:`method_name`; the policy's ``name`` when given), refused
+    (:class:`EvaluationError`) when a name is empty, not printable or another method's, or two
+    names share a file name."""
+    names = {s: method_name(s) for s in specs}
+    if name is not None:
+        if not name.strip() or not name.isprintable() or len(name) > 100:
+            raise EvaluationError(f"--name {printable(name)!r}: must be a non-empty printable "
+                                  "name of at most 100 characters")
+        if name in BASELINES + BUILTIN_POLICIES and name != policy:
+            raise EvaluationError(f"--name {name!r}: is a built-in method's name")
+        names[policy] = name
+    files = NameRegistry()
+    for s in specs:
+        files.name(names[s])
+    return names
+
+
+def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: int, seed: int,
+                workers: int, timeout_s: float | None, deterministic: bool,
+                noise_scale: float | None, error: Problems) -> MethodRuns:
+    """Every method's rollouts of every scene: the in-process methods here, the SUMO ones in
+    :class:`Batch` es of :func:`batch_size` rollouts (each worker gets the prepared scene);
+    failures are reported (``error``) and their pairs marked failed."""
+    runs = MethodRuns()
+    batches = []
+    size = batch_size(n_rollouts, workers)
+    for sid, ps in scenes.items():
+        for s in specs:
+            if needs_worker(s):
+                batches += [Batch(ps.file, sid, str(ps.bundle), s, c, seed, deterministic,
+                                  noise_scale, ps.scene) for c in chunks(n_rollouts, size)]
+            else:
+                try:
+                    runs.parts[(sid, s)] = [(0, simulate(ps.scene, s, range(n_rollouts), seed))]
+                except Exception as exc:  # noqa: BLE001 - one scene's failure
+                    error(f"scenario {sid}: method {s}: {type(exc).__name__}: {one_line(exc)}")
+    for b, ro, err, counts in run_batches(batches, workers, timeout_s):
+        if err is not None:
+            error(err)
+            runs.failed.add((b.scenario_id, b.spec))
+        else:
+            runs.parts.setdefault((b.scenario_id, b.spec), []).append((b.rollouts[0], ro))
+            tally = runs.fixes.setdefault((b.scenario_id, b.spec), {})
+            for k, v in counts.items():
+                tally[k] = tally.get(k, 0) + v
+    return runs
+
+
+def write_rollouts(out: Path, scenes: dict[str, PreparedScene], specs: list[str],
+                   names: dict[str, str], runs: MethodRuns, n_rollouts: int, fcd_rollouts: int,
+                   error: Problems) -> dict[tuple[str, str], ScenarioRollouts]:
+    """Merge, validate and write every (scene, method) that did not fail (Parquet, plus FCD of
+    the first ``fcd_rollouts``); the rollouts written, by (scenario id, spec)."""
+    written: dict[tuple[str, str], ScenarioRollouts] = {}
+    for sid, ps in scenes.items():
+        for s in specs:
+            if (sid, s) in runs.failed or (sid, s) not in runs.parts:
+                continue
+            try:
+                ro = merge([r for _, r in sorted(runs.parts[(sid, s)], key=lambda p: p[0])])
+                validate_rollouts(ro, ps.scene, n_rollouts, N_STEPS)
+            except MagailSumoError as exc:
+                error(f"method {names[s]}: {' '.join(str(exc).split())}")
+                continue
+            except Exception as exc:  # noqa: BLE001 - one scene's failure
+                error(f"scenario {printable(sid)}: method {names[s]}: {type(exc).__name__}: "
+                      f"{one_line(exc)}")
+                continue
+            write_parquet(rollouts_path(out, names[s], sid), to_frame(ps.scene, ro, names[s]))
+            if fcd_rollouts and ps.bundle is not None:
+                write_rollout_fcd(out, ps.scene, ro, names[s], Path(ps.bundle), fcd_rollouts)
+            written[(sid, s)] = ro
+    return written
+
+
+def manifest_of(scenes: dict[str, PreparedScene], specs: list[str], names: dict[str, str],
+                policy: str, baselines: list[str], runs: MethodRuns,
+                done: list[tuple[str, str]], *, n_rollouts: int, seed: int,
+                deterministic: bool, noise_scale: float | None) -> dict:
+    """The run's ``manifest.json`` (:func:`~magail_sumo.evaluation.storage.write_manifest`
+    merges it into an earlier one)."""
+    return {
+        "scenes": [{"scenario_id": sid, "file": ps.file,
+                    "bundle": str(ps.bundle) if ps.bundle else None,
+                    "num_steps": ps.scene.num_steps,
+                    "current_time_index": ps.scene.current_time_index,
+                    "agents": int(len(sim_agent_ids(ps.scene)))}
+                   for sid, ps in scenes.items()],
+        "methods": [names[s] for s in specs], "policy": names[policy], "policy_spec": policy,
+        "baselines": [names[b] for b in baselines], "rollouts": n_rollouts, "steps": N_STEPS,
+        "seed": seed, "deterministic": bool(deterministic), "noise_scale": noise_scale,
+        "versions": versions(),
+        # actions the policy did not give (agents coasted), gave for unknown agents, or gave
+        # non-finite / outside [-1, 1] (fixed up by the env), per scene and method
+        "action_fixes": [{"scenario_id": sid, "method": names[s], **c}
+                         for (sid, s), c in runs.fixes.items() if (sid, names[s]) in done
+                         and any(c.get(k) for k in ("missing", "unknown", "nonfinite",
+                                                    "clipped"))],
+    }
+
+
+def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts: int = 32,
+             baselines: Iterable[str] = BASELINES, seed: int = 0, workers: int = 2,
+             networks: str | Path | None = None, submission: str | Path | None = None,
+             timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0,
+             name: str | None = None, deterministic: bool = False,
+             noise_scale: float | None = None) -> EvaluationResult:
+    """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
+    ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``; with
+    ``fcd_rollouts`` > 0 the first that many rollouts of every scene and method also as SUMO
+    FCD with a ``sumo-gui`` replay config
+    (:func:`~magail_sumo.evaluation.storage.write_rollout_fcd`).
+
+    ``out`` must be new, empty or written by magail_sumo
+    (:func:`~magail_sumo.outputs.claim_output_dir`, else
+    :class:`~magail_sumo.outputs.OutputError`); file names come from
+    :func:`~magail_sumo.evaluation.storage.rollouts_path`, the manifest and the Parquet
+    ``scenario_id`` column keep the original ids, and every file is written atomically. Bad
+    scenes, failed conversions and failed rollouts (any exception, a worker that dies, or one
+    running past ``timeout_s`` seconds: killed) are reported (stderr, one line each) and the
+    rest goes on.
+
+    :param name: the policy's method name (default :func:`method_name` of the spec); rollouts,
+        the manifest and the report use it.
+    :param deterministic: a checkpoint policy acts with the tanh of its Gaussian mean (every
+        rollout alike) instead of sampling its actions with the rollout seed (the default);
+        recorded in the manifest.
+    :param noise_scale: a sampling policy's noise scale (``tanh(mu + k·sigma·eps)``; None: the
+        policy's own, 1 or a pretrained card's); the one used is recorded in the manifest.
+    :raises EvaluationError: an unknown baseline, an unusable policy spec, bad counts or a
+        name that is empty, not printable or another method's.
+    """
+    out = Path(out)
+    baselines = list(baselines)
+    scale = check_settings(policy, baselines, n_rollouts, fcd_rollouts, seed, deterministic,
+                           noise_scale)
+    specs = list(dict.fromkeys([policy, *baselines]))
+    names = method_names(specs, policy, name)
+    claim_output_dir(out, "evaluate", ["manifest.json", "rollouts", "networks"]
+                     + (["fcd"] if fcd_rollouts else []))
+    error = Problems()
+    scenes = read_scenes(scene_files, error)
+    if any(needs_worker(s) for s in specs) or fcd_rollouts > 0:  # FCD: the network
+        scenes = with_bundles(scenes, Path(networks) if networks else None, out, timeout_s,
+                              error)
+    runs = run_methods(scenes, specs, n_rollouts, seed, workers, timeout_s, deterministic,
+                       noise_scale, error)
+    written = write_rollouts(out, scenes, specs, names, runs, n_rollouts, fcd_rollouts, error)
+    done = [(sid, names[s]) for sid, s in written]
+    out.mkdir(parents=True, exist_ok=True)
+    write_manifest(out, manifest_of(scenes, specs, names, policy, baselines, runs, done,
+                                    n_rollouts=n_rollouts, seed=seed,
+                                    deterministic=deterministic, noise_scale=scale))
+    policy_ros = [ro for (_, s), ro in written.items() if s == policy]
+    if submission is not None and policy_ros:
+        write_submission(submission, policy_ros, method_name=names[policy],
+                         description=f"magail_sumo evaluate --policy {policy}")
+    return EvaluationResult(done, error.lines)
