@@ -9,13 +9,45 @@ from typing import Sequence
 
 import numpy as np
 
+from magail_sumo.config import to_dict
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sensors.observation import ObservationConfig, observation_names as names_of
 
-from .record import EXPERT_FORMAT, READABLE_FORMATS
+from .record import EXPERT_FORMAT, READABLE_FORMATS, observation_hash
 
 
 class ExpertDataError(MagailSumoError):
     """An expert directory is missing, empty, or does not match the training config."""
+
+
+def _flat(value, prefix: str = "") -> dict:
+    """A config dict's leaves by dotted path (``lidar.range``)."""
+    if not isinstance(value, dict):
+        return {prefix: value}
+    out: dict = {}
+    for k, v in value.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def check_observation(directory: Path, meta: dict, observation: ObservationConfig) -> None:
+    """Refuse (:class:`ExpertDataError`, one line naming ``directory`` and the differing
+    fields) expert data whose recorded ``observation_hash`` is not that of ``observation``.
+    Data recorded before the hash (no ``observation_hash``) passes: its layout is checked by
+    name only."""
+    recorded = meta.get("observation_hash")
+    if recorded is None or recorded == observation_hash(observation):
+        return
+    theirs = _flat(meta.get("observation")) if isinstance(meta.get("observation"), dict) else {}
+    ours = _flat(to_dict(observation))
+    diff = [f"observation.{k}: expert {theirs.get(k, '<none>')!r}, training "
+            f"{ours.get(k, '<none>')!r}" for k in sorted(set(theirs) | set(ours))
+            if theirs and theirs.get(k) != ours.get(k)]
+    what = "; ".join(diff[:4]) + (f"; {len(diff) - 4} more" if len(diff) > 4 else "") \
+        if diff else "observation_hash differs"
+    raise ExpertDataError(f"{directory}: expert data recorded with another observation config "
+                          f"than training uses ({what}); re-record it with `magail-sumo expert "
+                          f"SCENES... --config <training config> --out {directory}`")
 
 
 @dataclass(frozen=True)
@@ -57,14 +89,18 @@ class ExpertDataset:
     :param directory: what ``magail-sumo expert`` wrote.
     :param observation_names: the training observation layout; a different stored layout is
         refused with :class:`ExpertDataError` naming the first mismatch.
+    :param observation: the training observation config: data recorded with another (its
+        ``observation_hash``: every field, sensor ranges included) is refused naming the
+        differing fields (:func:`check_observation`); data recorded before the hash is checked
+        by its layout's names (``observation_names`` defaults to this config's).
 
     Reads formats ``magail_sumo.expert/2`` (with each vehicle's pose at the step of s:
     :attr:`pos`) and ``/1`` (no poses: :attr:`pos` is None, and :meth:`require_poses` refuses
     it).
     """
 
-    def __init__(self, directory: str | Path, observation_names: Sequence[str] | None = None
-                 ) -> None:
+    def __init__(self, directory: str | Path, observation_names: Sequence[str] | None = None,
+                 observation: ObservationConfig | None = None) -> None:
         import pyarrow.parquet as pq
 
         d = Path(directory)
@@ -82,6 +118,8 @@ class ExpertDataset:
             raise ExpertDataError(f"{meta_path}: format {meta.get('format')!r}, expected "
                                   f"{EXPERT_FORMAT!r}")
         self.format = meta["format"]
+        if observation is not None and observation_names is None:
+            observation_names = names_of(observation)
         names = list(meta.get("observation_names", []))
         if observation_names is not None:
             want = list(observation_names)
@@ -94,6 +132,8 @@ class ExpertDataset:
                     f"{d}: observation layout mismatch: expert data has {len(names)} values, the "
                     f"training config {len(want)}; first difference at index {i}: expert "
                     f"{got_i!r} vs config {want_i!r}")
+        if observation is not None:  # the same layout may hold other values (sensor ranges)
+            check_observation(d, meta, observation)
         self.directory = d
         self.metadata = meta
         self.observation_names = names

@@ -16,7 +16,9 @@ previous-action entries of the observation (``prev_accel``, ``prev_steer``) are 
 those training-normalised actions, so expert and policy observations share one scale.
 
 ``DIR/<scenario_id>.parquet`` per scene plus ``DIR/metadata.json``: the format, the observation
-layout (``observation_names``), the observation config and the training limits. The file name
+layout (``observation_names``), the observation config with its hash (``observation_hash``,
+:func:`observation_hash`: every field, sensor ranges included; training refuses data recorded
+with another) and the training limits. The file name
 is :func:`magail_sumo.outputs.safe_name` of the scenario id (the id itself for every real WOMD
 id); ``metadata.json`` (``scenes[].scenario_id`` / ``parquet``) and the ``scene_id`` column keep
 the original id. ``DIR`` must be new, empty or written by magail_sumo
@@ -25,6 +27,7 @@ the original id. ``DIR`` must be new, empty or written by magail_sumo
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Callable, Sequence
@@ -47,6 +50,14 @@ from magail_sumo.workers import run_jobs
 EXPERT_FORMAT = "magail_sumo.expert/2"
 #: formats :class:`~magail_sumo.expert.dataset.ExpertDataset` reads (``/1``: no poses)
 READABLE_FORMATS = ("magail_sumo.expert/1", EXPERT_FORMAT)
+
+
+def observation_hash(observation: ObservationConfig) -> str:
+    """SHA-256 (hex) of every field of an observation config (:func:`~magail_sumo.config.
+    to_dict`, keys sorted): two configs hash alike exactly when every field, sensor ranges and
+    beam counts included, is the same."""
+    text = json.dumps(to_dict(observation), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _fixed_list(values: np.ndarray):
@@ -175,7 +186,8 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
         if on_error is not None:
             on_error(spec, reason)
     meta = {"format": EXPERT_FORMAT, "observation_names": observation_names(observation),
-            "observation": to_dict(observation), "limits": to_dict(limits),
+            "observation": to_dict(observation),
+            "observation_hash": observation_hash(observation), "limits": to_dict(limits),
             "action": ["accel", "steer"], "scenes": scenes}
     if failed:
         meta["failed"] = failed

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 from magail_sumo.expert import ExpertDataset
-from magail_sumo.sensors.observation import observation_names
 
 if TYPE_CHECKING:
     from magail_sumo.expert import ExpertDataset
@@ -61,8 +60,9 @@ def get(name: str) -> Algorithm:
 
 
 def load_expert(cfg: "TrainConfig") -> "ExpertDataset":
-    """The run's expert demonstrations (``expert_dir``), columns in the observation's order."""
-    return ExpertDataset(cfg.expert_dir, observation_names(cfg.env.observation))
+    """The run's expert demonstrations (``expert_dir``), columns in the observation's order;
+    data recorded with another observation config (any field) is refused."""
+    return ExpertDataset(cfg.expert_dir, observation=cfg.env.observation)
 
 
 register(Algorithm("gail", "magail_sumo.training.gail.run:train_gail", adversarial=True,
