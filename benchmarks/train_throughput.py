@@ -58,7 +58,7 @@ if __name__ == "__main__":
 
     from magail_sumo.config import load_config
     from magail_sumo.env.scene_pool import is_city, resolve_pool
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import ExpertDataset, record_expert
     from magail_sumo.sensors.observation import observation_names
     from magail_sumo.training.bc import behavioural_cloning

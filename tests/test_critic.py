@@ -13,7 +13,8 @@ from gymnasium import spaces
 from conftest import ROOT, WOMD_DIR
 from magail_sumo.config import ConfigError, from_dict, load_config
 from magail_sumo.env.config import EnvConfig
-from magail_sumo.env.vec_env import MultiSceneVecEnv, scene_specs
+from magail_sumo.env.vec_env import MultiSceneVecEnv
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.expert import record_expert
 from magail_sumo.models.critic import CriticTransformerConfig, scene_groups
 from magail_sumo.models.policies import TanhGaussianPolicy, with_scene_groups

@@ -291,7 +291,7 @@ def test_config_range_checks_and_kind():
 # ------------------------------------------------------------------ real scenes (SUMO)
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
     from magail_sumo.training.config import TrainConfig
 
@@ -372,7 +372,8 @@ def test_expert_poses_format_2_and_format_1(setup, tmp_path):
 @pytest.mark.sumo
 def test_vec_env_reports_each_slots_pose(setup):
     from magail_sumo.env import EnvConfig
-    from magail_sumo.env.vec_env import MultiSceneVecEnv, scene_specs
+    from magail_sumo.env.vec_env import MultiSceneVecEnv
+    from magail_sumo.env.scene_specs import scene_specs
 
     root, cfg = setup
     venv = MultiSceneVecEnv(scene_specs([SCENE], root / "nets"), EnvConfig(max_steps=20), seed=2)

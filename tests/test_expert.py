@@ -10,7 +10,7 @@ import pytest
 
 from conftest import WOMD_DIR
 from magail_sumo.cli.main import main
-from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.expert import ExpertDataError, ExpertDataset
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 

@@ -228,7 +228,8 @@ def test_training_workers_record_episodes(tmp_path):
     """``env.fcd_dir`` / ``env.fcd_every`` of a training config: every scene worker of the
     vectorised env writes its chosen episodes."""
     from magail_sumo.env import EnvConfig
-    from magail_sumo.env.vec_env import MultiSceneVecEnv, scene_specs
+    from magail_sumo.env.vec_env import MultiSceneVecEnv
+    from magail_sumo.env.scene_specs import scene_specs
 
     specs = scene_specs([SCENE], ROOT / "networks", convert_missing=False)
     cfg = EnvConfig(controlled=4, max_steps=5, fcd_dir=str(tmp_path / "fcd"), fcd_every=3)

@@ -165,7 +165,7 @@ def test_training_logs_what_the_guard_did(tmp_path):
     and the shares of agent episodes ended by collision / off-road; the vector env's totals
     agree with the events the workers reported."""
     from magail_sumo.config import from_dict
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
     from magail_sumo.training.config import TrainConfig
     from magail_sumo.training.trainer import train

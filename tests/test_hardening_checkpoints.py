@@ -16,7 +16,7 @@ import yaml
 from conftest import WOMD_DIR
 from magail_sumo.cli.main import main
 from magail_sumo.config import from_dict, to_dict
-from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.expert import record_expert
 from magail_sumo.training.config import TrainConfig
 from magail_sumo.training.trainer import (CHECKPOINT_FORMAT, CheckpointError, _rng_state,

@@ -18,7 +18,7 @@ from magail_sumo import agents, policies
 from magail_sumo.cli.main import main
 from magail_sumo.config import from_dict
 from magail_sumo.env.config import EnvConfig
-from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.evaluation import runner, storage
 from magail_sumo.expert import record_expert
 from magail_sumo.sim.dynamics import BicycleLimits

@@ -20,7 +20,7 @@ from conftest import ROOT, WOMD_DIR
 from magail_sumo import pretrained as pt
 from magail_sumo.cli.main import main
 from magail_sumo.config import from_dict
-from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo import policies
 from magail_sumo.evaluation import storage
 from magail_sumo.evaluation.realism.config import BUCKETS, CHALLENGE_2025

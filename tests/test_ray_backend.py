@@ -18,7 +18,8 @@ ray = pytest.importorskip("ray")
 from converters.scene_files import RecordRef  # noqa: E402
 from magail_sumo.config import from_dict  # noqa: E402
 from magail_sumo.env.config import EnvConfig  # noqa: E402
-from magail_sumo.env.vec_env import pool_vec_env, scene_specs  # noqa: E402
+from magail_sumo.env.vec_env import pool_vec_env  # noqa: E402
+from magail_sumo.env.scene_specs import scene_specs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = [WOMD_DIR / "850c48d8bbfa008f.tfrecord",

@@ -227,7 +227,7 @@ def test_sac_config_checks():
 # ----------------------------------------------------------------------------- real runs
 @pytest.fixture(scope="module")
 def sac_setup(tmp_path_factory):
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
 
     root = tmp_path_factory.mktemp("sac")

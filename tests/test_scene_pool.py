@@ -224,7 +224,7 @@ def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_p
     import yaml
 
     from magail_sumo.config import from_dict
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
     from magail_sumo.training.config import TrainConfig, usable_cores
     from magail_sumo.training.trainer import train
@@ -255,7 +255,7 @@ def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_p
 @pytest.mark.sumo
 def test_city_scenario_trains_beside_a_recorded_scene(tmp_path):
     from magail_sumo.config import ConfigError, from_dict
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import ExpertDataset, record_expert
     from magail_sumo.sensors.observation import observation_names
     from magail_sumo.training.config import TrainConfig

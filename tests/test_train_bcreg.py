@@ -15,7 +15,7 @@ from stable_baselines3.common.utils import FloatSchedule
 
 from conftest import WOMD_DIR
 from magail_sumo.config import ConfigError, MAX_MESSAGE, from_dict, load_config
-from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.expert import ExpertDataset, record_expert
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.training.bc import expert_actions, expert_nll

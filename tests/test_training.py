@@ -14,7 +14,7 @@ from gymnasium import spaces
 from conftest import WOMD_DIR
 from magail_sumo.cli.main import main
 from magail_sumo.config import ConfigError, from_dict, load_config
-from magail_sumo.env.vec_env import scene_specs
+from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.expert import record_expert
 from magail_sumo.training.config import TrainConfig
 from magail_sumo.training.gail.ppo import MaskedRolloutBuffer, adapt_learning_rate

@@ -10,7 +10,8 @@ import pytest
 
 from conftest import ROOT, WOMD_DIR
 from magail_sumo.env import EnvConfig
-from magail_sumo.env.vec_env import MultiSceneVecEnv, VecEnvWorkerError, scene_specs
+from magail_sumo.env.vec_env import MultiSceneVecEnv, VecEnvWorkerError
+from magail_sumo.env.scene_specs import scene_specs
 
 
 @pytest.fixture(scope="module")

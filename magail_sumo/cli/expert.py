@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
-    from magail_sumo.env.vec_env import scene_specs
+    from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
 
     observation = limits = None

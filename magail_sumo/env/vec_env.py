@@ -36,22 +36,15 @@ and a replaced worker continues exactly where the lost one was.
 
 from __future__ import annotations
 
-import os
 from collections import Counter
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
-from converters import iter_scenes
-from converters.scene_files import RecordRef
-from converters.sumo.bundle import bundle_folder, complete_bundle
-from converters.sumo.scenario import ensure_bundle
-from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import NameRegistry, printable
 from magail_sumo.sensors.observation import observation_bounds
 from magail_sumo.sim.dynamics import ACTION_SIZE
 
@@ -61,44 +54,11 @@ from .config import SCENE_CACHE, EnvConfig
 from .slot_worker import (PoolSpec, SceneSpec, SlotWorker, VecEnvWorkerError,  # noqa: F401
                           episode_rng, load_spec_scene, make_worker, max_concurrent_agents)
 from .scene_pool import ScenePoolError, shard_pool
-from .transport import WorkerFailed, WorkerLost, backend_class
-
-SEED_STRIDE = 100_003
-#: per-step cost of a scene worker in units of one agent's cost (SUMO step, log replay, sensor
-#: set-up: about 1 ms of fixed work per step against about 0.1 ms per agent, measured on the
-#: bundled scenes); used to balance workers over cores
-WORKER_FIXED_COST = 10.0
-
-
-def place_workers(loads: Sequence[float], cores: Sequence[int]) -> list[set[int]]:
-    """CPU set of each worker: every worker pinned to one core, heaviest first onto the least
-    loaded core (greedy longest-processing-time); with no more workers than cores, one core each.
-
-    :param loads: relative per-step cost of each worker. :param cores: usable core ids.
-    """
-    cores = sorted(cores)
-    if not cores:
-        return [set() for _ in loads]
-    total = {c: 0.0 for c in cores}
-    out: list[set[int]] = [set() for _ in loads]
-    for k in sorted(range(len(loads)), key=lambda i: (-loads[i], i)):
-        c = min(cores, key=lambda c: (total[c], c))
-        total[c] += loads[k]
-        out[k] = {c}
-    return out
-
-
-class WorkerStartError(VecEnvWorkerError):
-    """A scene worker could not start (:attr:`worker`: its index)."""
-
-    def __init__(self, message: str, worker: int) -> None:
-        super().__init__(message)
-        self.worker = worker
-
-
+from .supervision import (SEED_STRIDE, WORKER_FIXED_COST, WorkerStartError,  # noqa: F401
+                          WorkerSupervisor, place_workers)
 
 # ---------------------------------------------------------------------------------- parent side
-class MultiSceneVecEnv(VecEnv):
+class MultiSceneVecEnv(WorkerSupervisor, VecEnv):
     """Agents of several scene workers as SB3 vector slots (module doc).
 
     :param scenes: one source per worker: a :class:`SceneSpec` (one scene, explicit bundle) or
@@ -132,48 +92,12 @@ class MultiSceneVecEnv(VecEnv):
         self.specs = list(scenes)
         self.config = config or EnvConfig()
         self.seed_base = seed
-        self.timeout_s = timeout_s
-        #: seconds a (re)started worker gets to start and replay its episode: at least a minute,
-        #: as starting a process or actor, importing and building the scene take a while
-        self.start_timeout_s = max(timeout_s, 60.0)
-        self.backend = backend
-        self.max_restarts = max_restarts
         self.log = log or (lambda msg: None)
-        self._handle_cls = backend_class(backend)
-        self._backend_opts = dict(backend_options or {}, start_method=start_method)
-        if hasattr(self._handle_cls, "prepare"):
-            self._handle_cls.prepare(self._backend_opts, len(self.specs))
-        self.closed = False
-        self.restarts = 0  #: workers replaced so far
         #: scenes skipped so far, (scene, reason) each, and those not yet taken by the trainer
         self.skipped: list[tuple[str, str]] = []
         self.new_skipped: list[tuple[str, str]] = []
-        self._handles = []
-        self._slots_asked = None if slots is None else list(slots)
-        try:
-            for k in range(len(self.specs)):
-                self._handles.append(self._new_handle(k))
-            hello = []
-            for k in range(len(self.specs)):
-                try:
-                    hello.append(self._recv(k))
-                except VecEnvWorkerError as exc:
-                    raise WorkerStartError(str(exc), k) from None
-        except BaseException:
-            self._kill_all()
-            raise
-        self.slots = [h["slots"] for h in hello]
-        #: where each worker runs: (host, pid)
-        self.worker_hosts = [(h["host"], h["pid"]) for h in hello]
-        #: CPU set of each worker (empty: not pinned)
-        self.worker_cpus: list[set[int]] = [set() for _ in self.specs]
-        self.pin_workers = pin_workers and backend == "process" and \
-            hasattr(os, "sched_setaffinity")
-        if self.pin_workers:
-            self.worker_cpus = place_workers([WORKER_FIXED_COST + n for n in self.slots],
-                                             os.sched_getaffinity(0))
-            for k in range(len(self.specs)):
-                self._pin(k)
+        hello = self._start_workers(slots, timeout_s, start_method, pin_workers, backend,
+                                    backend_options, max_restarts)
         self.possible_agents = [h["possible_agents"] for h in hello]
         low, high = observation_bounds(self.config.observation)
         self.obs_dim = int(low.shape[0])
@@ -211,122 +135,8 @@ class MultiSceneVecEnv(VecEnv):
         super().__init__(n, spaces.Box(low, high, dtype=np.float32),
                          spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32))
 
-    # ------------------------------------------------------------------ workers
-    def _new_handle(self, k: int):
-        spec = self.specs[k]
-        slots = None if self._slots_asked is None else self._slots_asked[k]
-        if hasattr(self, "slots"):  # a replacement keeps the layout
-            slots = self.slots[k]
-        h = self._handle_cls(f"scene {spec.name}", make_worker,
-                             (spec, self.config, self.seed_base + SEED_STRIDE * k, slots),
-                             self._backend_opts)
-        h.start()
-        return h
-
-    def _pin(self, k: int) -> None:
-        try:
-            os.sched_setaffinity(self._handles[k].pid, self.worker_cpus[k])
-        except (OSError, TypeError):  # gone (reported by the next answer) or denied
-            pass
-
-    @property
-    def _procs(self) -> list:
-        """The worker processes (process backend)."""
-        return [getattr(h, "proc", None) for h in self._handles]
-
-    def _recv(self, k: int) -> Any:
-        try:
-            return self._handles[k].recv(self.timeout_s)
-        except (WorkerLost, WorkerFailed) as exc:
-            self._kill_all()
-            raise VecEnvWorkerError(str(exc)) from None
-
-    def _restart(self, k: int) -> None:
-        """Kill worker ``k`` and start a fresh one with the same source, seed and slots."""
-        self._handles[k].kill()
-        self._handles[k] = self._new_handle(k)
-        self._handles[k].recv(self.start_timeout_s)  # hello
-        if self.pin_workers:
-            self._pin(k)
-
-    def _replace(self, k: int, reason: str) -> None:
-        """Start a fresh worker ``k`` in the state of the lost one (same seed; the current
-        episode replayed)."""
-        self._restart(k)
-        acts = self._ep_actions[k]
-        self._handles[k].send("restore", (self._episode[k], acts), self.start_timeout_s)
-        self._handles[k].recv(self.start_timeout_s)
-        self.restarts += 1
-        self.log(f"worker {k} ({self.specs[k].name}) lost: {reason.splitlines()[0]}; replaced "
-                 f"on {self._handles[k].node or 'local'}, episode {self._episode[k]} replayed "
-                 f"({len(acts)} steps)")
-
-    def _exchange(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None = None
-                  ) -> list[Any]:
-        """Send ``(cmd, args[i])`` to each worker and collect the answers; a lost worker is
-        replaced (up to :attr:`max_restarts` times in a row) and asked again."""
-        return self._gather(cmd, args, workers, self._send(cmd, args, workers))
-
-    def _send(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None = None
-              ) -> dict[int, str]:
-        """The sending half of :meth:`_exchange`: the workers lost on the way (reason each)."""
-        if self.closed:
-            raise VecEnvWorkerError("the vector env is closed")
-        ks = list(range(len(self.specs))) if workers is None else list(workers)
-        lost: dict[int, str] = {}
-        for k, arg in zip(ks, args):
-            try:
-                self._handles[k].send(cmd, arg, self.timeout_s)
-            except WorkerLost as exc:
-                lost[k] = str(exc)
-        return lost
-
-    def _gather(self, cmd: str, args: Sequence[Any], workers: Sequence[int] | None,
-                lost: dict[int, str]) -> list[Any]:
-        """The receiving half of :meth:`_exchange` (``lost``: from :meth:`_send`)."""
-        ks = list(range(len(self.specs))) if workers is None else list(workers)
-        out = []
-        for k, arg in zip(ks, args):
-            tries = 0
-            while True:
-                try:
-                    if k not in lost:
-                        out.append(self._handles[k].recv(self.timeout_s))
-                        break
-                    reason = lost.pop(k)
-                except WorkerLost as exc:
-                    reason = str(exc)
-                except WorkerFailed as exc:
-                    self._kill_all()
-                    raise VecEnvWorkerError(str(exc)) from None
-                tries += 1
-                if tries > self.max_restarts:
-                    self._kill_all()
-                    raise VecEnvWorkerError(reason + (f" ({self.max_restarts} replacement(s) "
-                                                      "failed too)" if self.max_restarts else ""))
-                try:
-                    if cmd in ("reset", "restore"):  # the request itself sets the state
-                        self._restart(k)
-                        self.restarts += 1
-                        self.log(f"worker {k} ({self.specs[k].name}) lost: "
-                                 f"{reason.splitlines()[0]}; replaced")
-                    else:
-                        self._replace(k, reason)
-                    self._handles[k].send(cmd, arg, self.timeout_s)
-                except WorkerLost as exc:
-                    lost[k] = str(exc)
-                except WorkerFailed as exc:
-                    self._kill_all()
-                    raise VecEnvWorkerError(str(exc)) from None
-        return out
-
-    def _kill_all(self) -> None:
-        for h in self._handles:
-            try:
-                h.kill()
-            except Exception:  # noqa: BLE001 - best effort
-                pass
-        self.closed = True
+    def _replay_state(self, k: int) -> tuple[int, list[np.ndarray]]:
+        return self._episode[k], self._ep_actions[k]
 
     # ------------------------------------------------------------------ VecEnv API
     def _collect(self, packets: list[dict], step: bool) -> tuple:
@@ -452,55 +262,6 @@ class MultiSceneVecEnv(VecEnv):
                 self._kill_all()
         except Exception:
             pass
-
-
-def scene_specs(scene_files: Iterable[str | Path], networks: str | Path,
-                convert_missing: bool = True, errors: list[str] | None = None,
-                time_budget_s: float | None = 600.0) -> list[SceneSpec]:
-    """A :class:`SceneSpec` per scene of ``scene_files`` with its bundle under ``networks``
-    (``networks/<name>/``, ``name`` = :func:`magail_sumo.outputs.safe_name` of the scenario
-    id), converting the scenes that have none yet (baseline run skipped, ``time_budget_s``
-    seconds each at most) into ``networks`` once it is claimed
-    (:func:`converters.sumo.scenario.ensure_bundle`). Two scenes whose ids map to one name
-    are refused (:class:`~magail_sumo.outputs.OutputError`).
-
-    :param errors: when given, a scene (or file) that cannot be used is appended here as a
-        one-line reason and left out, instead of raising :class:`MagailSumoError`.
-    """
-    networks = Path(networks)
-    names = NameRegistry()
-    out = []
-
-    def fail(msg: str) -> None:
-        if errors is None:
-            raise MagailSumoError(msg)
-        errors.append(msg)
-
-    for f in scene_files:
-        try:
-            for index, scene in enumerate(iter_scenes(f)):
-                sid = scene.scenario_id
-                names.name(sid)  # two ids of one name: refused
-                if not convert_missing:
-                    folder = complete_bundle(networks, sid)
-                    if folder is None:
-                        fail(f"{bundle_folder(networks, sid)}: no converted bundle for scene "
-                             f"{printable(sid)}")
-                        continue
-                else:
-                    try:
-                        folder = ensure_bundle(scene, networks, RecordRef(str(f), index),
-                                               time_budget_s, claim=True)
-                    except MagailSumoError as exc:
-                        fail(f"{f}: {exc}")
-                        continue
-                out.append(SceneSpec(str(f), str(folder), sid))
-        except Exception as exc:  # noqa: BLE001 - an unreadable file
-            if errors is None:
-                raise
-            errors.append(printable(f"{f}: " + (str(exc) if isinstance(exc, MagailSumoError)
-                                                 else f"{type(exc).__name__}: {exc}"), 400))
-    return out
 
 
 def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,

@@ -24,7 +24,8 @@ from magail_sumo.sensors.observation import observation_names
 from .checkpoints import load_into, plain
 from .config import TrainConfig
 from .discriminator_loss import DiscriminatorLossConfig
-from .reward import DiscriminatorRewardWrapper, DiscriminatorTrainer
+from .discriminator_trainer import DiscriminatorTrainer
+from .reward import DiscriminatorRewardWrapper
 
 
 def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:

@@ -1,10 +1,11 @@
-"""GAIL reward over vehicle sets: an SB3 ``VecEnvWrapper`` and the discriminator's training.
+"""GAIL reward over vehicle sets: an SB3 ``VecEnvWrapper``.
 
 Reward nets and the RL algorithm are kept apart (as in ``imitation``):
 :class:`DiscriminatorRewardWrapper` turns env steps into rewards with a frozen discriminator and
-records the policy's scene steps; :class:`DiscriminatorTrainer` fits the discriminator on expert
-vs policy scene steps; :class:`DiscriminatorCallback` runs the trainer between PPO rollouts and
-logs to SB3's logger (TensorBoard).
+records the policy's scene steps; :class:`~magail_sumo.training.discriminator_trainer.
+DiscriminatorTrainer` fits the discriminator on expert vs policy scene steps;
+:class:`~magail_sumo.training.gail.callbacks.DiscriminatorCallback` runs the trainer between PPO
+rollouts and logs to SB3's logger (TensorBoard).
 
 Token of a vehicle = ``concat(s, s')`` of one env step (``s'`` = the terminal observation when
 the vehicle left). All vehicles of a scene step go through the discriminator together (the
@@ -32,20 +33,17 @@ per-step computation, up to float rounding.
 
 from __future__ import annotations
 
-from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 import torch
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
-from magail_sumo.expert import ExpertDataset, SceneSteps
+from magail_sumo.expert import SceneSteps
 from magail_sumo.models.discriminator import imitation_reward
 
-from .discriminator_loss import DiscriminatorLossConfig, discriminator_loss, pose_args
+from .discriminator_loss import pose_args
 
 
 class DiscriminatorRewardWrapper(VecEnvWrapper):
@@ -314,153 +312,3 @@ class DiscriminatorRewardWrapper(VecEnvWrapper):
         self.reward_sum = self.reward_sq = 0.0
         self.reward_n = 0
         return out
-
-
-@dataclass
-class DiscriminatorStats:
-    loss: float
-    bce: float
-    gradient_penalty: float
-    logit_penalty: float
-    expert_accuracy: float
-    policy_accuracy: float
-
-
-class DiscriminatorTrainer:
-    """Fits the discriminator on expert vs policy scene steps (AdamW, GAIL loss with GP).
-
-    :param discriminator: the reward net (its :class:`RunningNormalizer` is updated with the
-        policy and expert tokens of each call before the gradient steps).
-    :param expert: expert demonstrations.
-    :param steps: gradient steps per call. :param batch_size: scene steps per side and step.
-    :param seed: seed of the batch sampling (its state is part of :meth:`state_dict`).
-    """
-
-    def __init__(self, discriminator: torch.nn.Module, expert: ExpertDataset, steps: int = 50,
-                 batch_size: int = 32, learning_rate: float = 1e-3, weight_decay: float = 1e-4,
-                 loss: DiscriminatorLossConfig | None = None, seed: int = 0,
-                 device: str = "cpu") -> None:
-        self.discriminator = discriminator
-        self.expert = expert
-        if getattr(discriminator, "uses_poses", False):
-            expert.require_poses(f"the {type(discriminator).__name__}")
-        self.steps, self.batch_size = steps, batch_size
-        self.loss_config = loss or DiscriminatorLossConfig()
-        self.optimizer = torch.optim.AdamW(discriminator.parameters(), lr=learning_rate,
-                                           weight_decay=weight_decay)
-        self.rng = np.random.default_rng(seed)
-        self.device = torch.device(device)
-
-    def state_dict(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "rng": self.rng.bit_generator.state}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.rng.bit_generator.state = state["rng"]
-
-    def _t(self, a: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(a, device=self.device)
-
-    def train(self, policy: SceneSteps) -> DiscriminatorStats:
-        """``steps`` gradient steps on expert batches vs batches of ``policy`` scene steps."""
-        disc = self.discriminator
-        poses = getattr(disc, "uses_poses", False)
-        present = policy.x[policy.mask]
-        exp = self.expert.sample_scene_steps(max(1, len(policy.x)), self.rng)
-        disc.normalizer.update(self._t(present))
-        disc.normalizer.update(self._t(exp.x[exp.mask]))
-        disc.train()
-        acc = np.zeros(6)
-        for _ in range(self.steps):
-            e = self.expert.sample_scene_steps(self.batch_size, self.rng)
-            idx = self.rng.integers(0, len(policy.x), self.batch_size)
-            px, pm = policy.x[idx], policy.mask[idx]
-            v = int(pm.any(axis=0).nonzero()[0].max()) + 1
-            pos = {}
-            if poses:
-                pos = {"expert_pos": self._t(e.pos), "policy_pos": self._t(policy.pos[idx, :v])}
-            out = discriminator_loss(disc, self._t(e.x), self._t(e.mask), self._t(px[:, :v]),
-                                     self._t(pm[:, :v]), self.loss_config, **pos)
-            self.optimizer.zero_grad(set_to_none=True)
-            out.total.backward()
-            self.optimizer.step()
-            acc += [float(out.total.detach()), out.bce, out.gradient_penalty, out.logit_penalty,
-                    out.expert_accuracy, out.policy_accuracy]
-        disc.eval()
-        return DiscriminatorStats(*(acc / max(self.steps, 1)).tolist())
-
-
-class DiscriminatorCallback(BaseCallback):
-    """Between PPO rollouts: train the discriminator on the rollout's scene steps and log
-    ``discriminator/*`` (loss, BCE, gradient penalty, expert/policy accuracy), ``reward/*``
-    (imitation reward mean/std per agent-step), ``env/*`` (agent-steps, scene episodes) and,
-    when the observation has a ``speed`` entry, ``diag/speed_policy`` / ``diag/speed_expert``
-    (mean speed along the heading at s over the rollout's agent-steps / over every expert
-    transition, m/s) and ``diag/speed_gap`` (policy − expert): the speed bias as training sees
-    it (the populations differ — rollout windows vs whole logs — so it is a trend, not the
-    evaluation's ``speed_bias``).
-
-    :param wrapper: the reward wrapper of the model's env. :param trainer: the fitter.
-    """
-
-    def __init__(self, wrapper: DiscriminatorRewardWrapper, trainer: DiscriminatorTrainer,
-                 verbose: int = 0) -> None:
-        super().__init__(verbose)
-        self.wrapper, self.trainer = wrapper, trainer
-        self.last_stats: DiscriminatorStats | None = None
-        names = list(getattr(trainer.expert, "observation_names", []))
-        self._speed_col = names.index("speed") if "speed" in names else None
-        self.expert_speed = (float(np.mean(trainer.expert.s[:, self._speed_col]))
-                              if self._speed_col is not None and len(trainer.expert) else None)
-        #: the last rollout's mean policy speed (m/s), None before the first
-        self.last_speed: float | None = None
-        #: the vector env's (agent-steps, guarded, end reasons) totals at the last rollout end
-        self._seen: tuple[int, int, Counter] = (0, 0, Counter())
-        #: the last rollout's ``env/*`` rates (``guarded_frac``, ``end_<reason>``) by name
-        self.last_rates: dict[str, float] = {}
-
-    def _on_step(self) -> bool:
-        return True
-
-    def _on_training_start(self) -> None:
-        base = self.wrapper.base  # a resumed run's env starts from its restored totals
-        self._seen = (base.agent_steps, base.guarded, Counter(base.end_reasons))
-
-    def _log_env_rates(self, base) -> None:
-        """``env/guarded_frac``: share of the rollout's agent-steps whose acceleration the gap
-        guard lowered; ``env/end_<reason>``: share of the rollout's ended agent episodes that
-        ended for that reason (collision, off_road, …); from the vector env's running totals."""
-        steps = base.agent_steps - self._seen[0]
-        guarded, ends = base.guarded, Counter(base.end_reasons)
-        rates: dict[str, float] = {}
-        if steps > 0:
-            rates["guarded_frac"] = (guarded - self._seen[1]) / steps
-        new = ends - self._seen[2]
-        total = sum(new.values())
-        if total:
-            for reason in sorted(set(ends) | set(self._seen[2]) | {"collision", "off_road"}):
-                rates[f"end_{reason}"] = new.get(reason, 0) / total
-        for k, v in rates.items():
-            self.logger.record(f"env/{k}", v)
-        self.last_rates = rates
-        self._seen = (base.agent_steps, guarded, ends)
-
-    def _on_rollout_end(self) -> None:
-        for k, v in self.wrapper.pop_reward_stats().items():
-            self.logger.record(f"reward/{k}", v)
-        base = self.wrapper.base
-        self.logger.record("env/agent_steps_total", base.agent_steps)
-        self.logger.record("env/scene_episodes_total", base.episodes)
-        self._log_env_rates(base)
-        data = self.wrapper.pop_rollout()
-        if data is not None and self._speed_col is not None and data.mask.any():
-            self.last_speed = float(data.x[..., self._speed_col][data.mask].mean())
-            self.logger.record("diag/speed_policy", self.last_speed)
-            self.logger.record("diag/speed_expert", self.expert_speed)
-            self.logger.record("diag/speed_gap", self.last_speed - self.expert_speed)
-        if data is None or self.trainer.steps == 0:
-            return
-        stats = self.trainer.train(data)
-        self.last_stats = stats
-        for k, v in vars(stats).items():
-            self.logger.record(f"discriminator/{k}", v)

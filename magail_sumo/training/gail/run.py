@@ -39,7 +39,7 @@ from ..algorithms import load_expert
 from ..bc import behavioural_cloning
 from ..envs import make_pool_env
 from ..loop import Progress, run_loop
-from ..reward import DiscriminatorCallback
+from .callbacks import DiscriminatorCallback
 from .ppo import KLAdaptiveLR, MaskedPPO
 
 #: second entropy word of the seed of the PPO behavioural-cloning regulariser's expert sampler
