@@ -9,7 +9,8 @@ from pettingzoo.test import parallel_api_test
 from conftest import WOMD_DIR
 from converters import load_scene
 from converters.sumo.scenario import ConvertOptions, convert_scene
-from magail_sumo.env import REPLAY_LIMITS, BundleError, EnvConfig, SumoDrivingEnv, expert_actions
+from converters.sumo.bundle import BundleError
+from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
 from magail_sumo.env.collision import first_overlap
 from magail_sumo.env.events import StopLines, off_road
 from magail_sumo.sensors.traffic_lights import RED

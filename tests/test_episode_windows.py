@@ -15,7 +15,7 @@ from converters import load_scene
 from magail_sumo.config import ConfigError, FieldError, load_config
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
 from magail_sumo.env.config import draw_start, window_starts
-from magail_sumo.env.expert import training_actions
+from magail_sumo.env.log_actions import training_actions
 from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.env.vec_env import MultiSceneVecEnv, episode_rng, max_concurrent_agents
 from magail_sumo.sensors.observation import observation_names

@@ -119,7 +119,7 @@ def test_replay_cli_fcd_reproduces_the_run_in_sumo(replay_run, tmp_path):
 @pytest.mark.sumo
 def test_env_fcd_every_records_chosen_episodes(tmp_path):
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
-    from magail_sumo.env.expert import expert_actions
+    from magail_sumo.env.log_actions import expert_actions
 
     cfg = EnvConfig(max_steps=4, fcd_dir=str(tmp_path / "fcd"), fcd_every=2,
                     terminate_on=())

@@ -180,7 +180,7 @@ def test_dead_end_inside_the_map_holds_the_vehicle(bundle):
     and move on at constant velocity through whatever is mapped there."""
     import libsumo as ls
 
-    from magail_sumo.env.bundle import SceneBundle
+    from converters.sumo.bundle import SceneBundle
 
     scene, folder = bundle
     parked = SceneBundle.load(scene, folder).parked  # held at their own parking stops

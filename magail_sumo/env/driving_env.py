@@ -15,7 +15,7 @@ Timeline: after ``reset`` the observation is of the episode's start step (``env.
 ``(t + 1)·0.1`` s (a vehicle departing at ``t·0.1`` s is inserted by that step). The log before
 the start is history: SUMO runs those steps (placing the log-replayed vehicles), agents join at
 the start at their recorded poses, and one valid at the step before too starts with the log's
-previous action (the expert data's, :func:`~magail_sumo.env.expert.log_prev_actions`), the
+previous action (the expert data's, :func:`~magail_sumo.env.log_actions.log_prev_actions`), the
 others with 0. An episode ends ``max_steps`` steps after its start (or with the log). An agent
 joins at the first log step its track is valid (from the start on) and leaves on an event (see
 :mod:`magail_sumo.env.events`; collision = oriented-box overlap with any other road user) or at
@@ -46,6 +46,7 @@ import numpy as np
 from gymnasium import spaces
 
 from converters import load_scene
+from converters.sumo.bundle import SceneBundle
 from magail_sumo.scene import Scene
 from magail_sumo.sensors.command import RouteCommands
 from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
@@ -54,15 +55,14 @@ from magail_sumo.sim.fcd import SHAPES, FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
 from .actions import ACTION_COUNTS
-from .bundle import SceneBundle
 from .config import EVENTS, EnvConfig, draw_start, window_starts
 from .events import RoadEdgeRule, StopLines
 from .fleet import AgentStates, Fleet
 from .outcomes import StepDicts
-from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
 from .fcd import EpisodeFcd
+from .log_actions import log_prev_actions
+from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
 from .step import END_OF_EPISODE, FleetEnv
-from .expert import log_prev_actions
 
 __all__ = ["AgentStates", "SumoDrivingEnv"]
 
@@ -375,7 +375,7 @@ class SumoDrivingEnv(FleetEnv):
                                      tr.vx[rows, t] * np.cos(yaw) + tr.vy[rows, t] * np.sin(yaw))
 
     def _log_prev_actions(self, t: int) -> np.ndarray:
-        """:func:`~magail_sumo.env.expert.log_prev_actions` covering step ``t`` (cached)."""
+        """:func:`~magail_sumo.env.log_actions.log_prev_actions` covering step ``t`` (cached)."""
         if self._prev_table is None or self._prev_table[0] < t:
             # the first need computes up to it (evaluation: the current step), a later one
             # further the whole log
@@ -388,7 +388,7 @@ class SumoDrivingEnv(FleetEnv):
         their recorded state; their fleet rows (``departed`` is not needed: the log says).
 
         A joiner valid at t - 1 too (only at the episode start: the log before it is history)
-        gets the log's previous action (:func:`~magail_sumo.env.expert.log_prev_actions`),
+        gets the log's previous action (:func:`~magail_sumo.env.log_actions.log_prev_actions`),
         the others 0."""
         tr, t, f = self.scene.tracks, self.t, self.fleet
         new = np.flatnonzero(~f.joined & tr.valid[self._ctrl, t])

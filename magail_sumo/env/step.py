@@ -292,6 +292,6 @@ class FleetEnv(ParallelEnv):
     # ------------------------------------------------------------------ accessors
     def agent_states(self) -> AgentStates:
         """Bicycle state of the live agents, in :attr:`agents` order (for
-        :func:`~magail_sumo.env.expert.expert_actions` and policies that need poses)."""
+        :func:`~magail_sumo.env.log_actions.expert_actions` and policies that need poses)."""
         k = self.fleet.rows_of(self.agents)
         return self.fleet.agent_states(k, self._agent_rows(k))

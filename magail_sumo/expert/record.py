@@ -1,9 +1,9 @@
 """Record expert demonstrations: replay the log through the same sensors as training.
 
 Each scene runs in :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` with every route vehicle
-controlled, driven by :func:`~magail_sumo.env.expert.expert_actions`
+controlled, driven by :func:`~magail_sumo.env.log_actions.expert_actions`
 (:class:`~magail_sumo.agents.LogReplayPolicy` through :func:`magail_sumo.agents.rollout`) under
-:data:`~magail_sumo.env.expert.REPLAY_LIMITS` (wide enough to follow the recorded tracks), no
+:data:`~magail_sumo.env.log_actions.REPLAY_LIMITS` (wide enough to follow the recorded tracks), no
 terminating events, log background. Per vehicle and step the Parquet file stores ``s``,
 ``s_next`` (the observation before and after the step), ``action`` — the inverse-dynamics
 acceleration and steering normalised with the *training* limits and clipped to [-1, 1], i.e.
@@ -38,7 +38,7 @@ from magail_sumo.agents import LogReplayPolicy, Step, rollout
 from magail_sumo.config import to_dict
 from magail_sumo.env import REPLAY_LIMITS, SumoDrivingEnv
 from magail_sumo.env.config import EnvConfig
-from magail_sumo.env.expert import training_actions
+from magail_sumo.env.log_actions import training_actions
 from magail_sumo.env.slot_worker import SceneSpec, load_spec_scene
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import (NameRegistry, atomic_path, claim_output_dir, inside, printable,

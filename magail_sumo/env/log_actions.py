@@ -1,4 +1,5 @@
-"""Expert actions: the normalised actions that drive the agents along their recorded tracks."""
+"""Log actions: the normalised actions that drive the agents along their recorded tracks (the
+expert actions of imitation; expert data are recorded from them by :mod:`magail_sumo.expert`)."""
 
 from __future__ import annotations
 
