@@ -3,6 +3,7 @@ earlier commit, runs alternated (median over repeats).
 
     python benchmarks/evaluate_speed.py SCENE... --against COMMIT [--rollouts 32]
         [--policy pretrained] [--baselines logreplay,constvel,sumo] [--workers 2] [--repeats 3]
+        [--batch N]
 
 The earlier commit is checked out with ``git worktree add`` into a temporary folder (removed at
 the end) and run with ``PYTHONPATH`` and the working folder set to it. Both versions first run
@@ -11,6 +12,11 @@ reuse them through ``--networks``) and both checkouts' numba caches are filled. 
 runs both versions, alternating which goes first (AB, BA, AB, ...), each into a fresh folder;
 it prints every run's wall time, the medians, the speed-up, and whether the two versions wrote
 the same rollouts (the SHA-256 of every ``rollouts/**/*.parquet``).
+
+``--batch N`` times one worker batch instead: ``simulate`` of N rollouts of ``--policy`` on the
+first scene, in one process per version and repeat (after an untimed one-rollout warm-up: the
+imports, the policy's first load and numba's kernels), which is what evaluation's per-batch
+preparation changes, without the process starts, the baselines and the files around it.
 """
 
 from __future__ import annotations
@@ -43,6 +49,34 @@ def _evaluate(tree: Path, scenes: list[str], out: Path, args: argparse.Namespace
     return wall
 
 
+#: ``--batch``: one process timing ``simulate`` of N rollouts (argv: scene, bundles, policy, N)
+BATCH = """
+import sys, time
+from pathlib import Path
+from converters.scene_files import iter_scenes
+try:
+    from magail_sumo.evaluation.methods import simulate
+except ImportError:  # before the split
+    from magail_sumo.evaluation.rollouts import simulate
+scene = next(iter(iter_scenes(sys.argv[1])))
+bundle = Path(sys.argv[2]) / scene.scenario_id
+simulate(scene, sys.argv[3], [0], bundle_dir=bundle)
+t0 = time.perf_counter()
+simulate(scene, sys.argv[3], range(int(sys.argv[4])), bundle_dir=bundle)
+print(time.perf_counter() - t0)
+"""
+
+
+def _batch(tree: Path, scene: str, networks: Path, policy: str, n: int) -> float:
+    """Seconds of ``simulate`` of ``n`` rollouts in a process of checkout ``tree``."""
+    res = subprocess.run([sys.executable, "-c", BATCH, scene, str(networks), policy, str(n)],
+                         cwd=tree, env=dict(os.environ, PYTHONPATH=str(tree)),
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"{tree}: batch failed ({res.returncode}):\n{res.stderr[-2000:]}")
+    return float(res.stdout.split()[-1])
+
+
 def _digest(out: Path) -> str:
     """One SHA-256 over every rollouts Parquet file of ``out`` (path and bytes)."""
     h = hashlib.sha256()
@@ -62,6 +96,9 @@ def main() -> int:
     ap.add_argument("--baselines", default="logreplay,constvel,sumo")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=0, metavar="N",
+                    help="time one worker batch of N rollouts of --policy on the first scene "
+                         "in-process instead of whole evaluate runs")
     args = ap.parse_args()
     scenes = [str(Path(s).resolve()) for s in args.scenes]
     with tempfile.TemporaryDirectory(prefix="evaluate_speed_") as tmp_s:
@@ -83,6 +120,12 @@ def main() -> int:
             order = list(trees)
             for rep in range(args.repeats):
                 for k, name in enumerate(order if rep % 2 == 0 else order[::-1]):
+                    if args.batch:
+                        walls[name].append(_batch(trees[name], scenes[0], nets, args.policy,
+                                                  args.batch))
+                        print(f"repeat {rep + 1}: {name}: batch {walls[name][-1]:.2f} s",
+                              flush=True)
+                        continue
                     out = tmp / f"run-{rep}-{k}"
                     walls[name].append(_evaluate(trees[name], scenes, out, args,
                                                  args.rollouts, nets))
@@ -93,6 +136,11 @@ def main() -> int:
                            capture_output=True)
     med = {n: statistics.median(w) for n, w in walls.items()}
     base, new = med[order[0]], med[order[1]]
+    if args.batch:
+        print(f"one batch of {args.batch} {args.policy} rollouts of {Path(scenes[0]).name}, "
+              f"{args.repeats} repeats: {order[0]} median {base:.2f} s, this checkout median "
+              f"{new:.2f} s ({base / new:.2f}x, {100 * (1 - new / base):.0f}% less)")
+        return 0
     n_methods = 1 + len([b for b in args.baselines.split(",") if b.strip() and b != "none"])
     print(f"{len(scenes)} scene(s) x {n_methods} method(s) x {args.rollouts} rollouts, "
           f"{args.workers} workers, {args.repeats} repeats: {order[0]} median {base:.1f} s, "
