@@ -1,8 +1,12 @@
-"""Shared fixtures: the bundled real WOMD scenes (and ../shared data when present)."""
+"""Shared fixtures: the bundled real WOMD scenes (and ../shared data when present), their
+converted bundles (converted once per session), and helpers used by several test modules."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -11,6 +15,7 @@ from converters import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 WOMD_DIR = ROOT / "data" / "womd"
+SCENARIONET_DIR = ROOT / "data" / "scenarionet"
 SHARED_WOMD = ROOT.parent / "shared" / "data" / "womd"
 
 #: Counts from the dataset README (the official Waymo protos' parse of each scene).
@@ -54,6 +59,98 @@ def real_scene_files() -> list[Path]:
 @pytest.fixture(scope="session")
 def scene_637f():
     return load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
+
+
+class BundledNetworks:
+    """Networks folders holding converted bundles of the bundled scenes: the WOMD scenes of
+    ``data/womd/<id>.tfrecord`` and the ScenarioNet scenes of ``data/scenarionet/<id>.pkl``.
+
+    ``bundled_networks(*scenario_ids)`` is a networks folder holding the bundles of exactly
+    those scenes (the bundled WOMD scenes when none is named), marked as ``convert``'s (as a
+    folder that :func:`~magail_sumo.env.scene_specs.scene_specs` converted into is);
+    ``bundled_networks.bundle(scenario_id)`` is one scene's bundle folder. Each scene is
+    converted once per session, by ``scene_specs`` itself (baseline run skipped, source
+    recorded), and each set of scenes is laid out once (bundles copied).
+
+    The folders are shared by every test that asks for them: read them, never write into them
+    (the session ends with an error naming the files that changed). A test that writes into
+    its networks folder (converts more scenes into it, say) copies one first:
+    ``shutil.copytree(bundled_networks(sid), tmp_path / "nets")``.
+    """
+
+    def __init__(self, tmp_path_factory) -> None:
+        self._factory = tmp_path_factory
+        self._converted: Path | None = None
+        self._bundles: dict[str, Path] = {}
+        self._sets: dict[tuple[str, ...], Path] = {}
+        self._digests: dict[Path, dict[str, str]] = {}
+
+    def bundle(self, scenario_id: str) -> Path:
+        """The bundle folder of one bundled scene (converted on first use)."""
+        from converters.sumo.scenario import claim_networks_dir
+        from magail_sumo.env.scene_specs import scene_specs
+
+        if scenario_id not in self._bundles:
+            path = WOMD_DIR / f"{scenario_id}.tfrecord"
+            if not path.is_file():
+                path = SCENARIONET_DIR / f"{scenario_id}.pkl"
+            assert path.is_file(), f"{scenario_id} is not a bundled scene"
+            if self._converted is None:
+                self._converted = claim_networks_dir(self._factory.mktemp("bundled_scenes"))
+            (spec,) = scene_specs([str(path)], self._converted)
+            folder = self._bundles[scenario_id] = Path(spec.bundle)
+            self._digests[folder] = _tree_digest(folder)
+        return self._bundles[scenario_id]
+
+    def __call__(self, *scenario_ids: str) -> Path:
+        from converters.sumo.scenario import claim_networks_dir
+
+        key = tuple(sorted(set(scenario_ids))) or BUNDLED_WOMD
+        if key not in self._sets:
+            root = self._factory.mktemp("networks")
+            for sid in key:
+                shutil.copytree(self.bundle(sid), root / sid)
+            claim_networks_dir(root)
+            self._sets[key] = root
+            self._digests[root] = _tree_digest(root)
+        return self._sets[key]
+
+    def changed(self) -> list[str]:
+        """Files added, changed or removed in the folders handed out since."""
+        out = []
+        for root, before in self._digests.items():
+            after = _tree_digest(root)
+            out += [str(root / p) for p in sorted(set(before) | set(after))
+                    if before.get(p) != after.get(p)]
+        return out
+
+
+def _tree_digest(root: Path) -> dict[str, str]:
+    """Relative path -> SHA-256 of every file under ``root`` ("dir" for folders)."""
+    out = {}
+    for dirpath, dirs, files in os.walk(root):
+        for d in dirs:
+            out[os.path.relpath(os.path.join(dirpath, d), root)] = "dir"
+        for f in files:
+            p = os.path.join(dirpath, f)
+            out[os.path.relpath(p, root)] = hashlib.sha256(Path(p).read_bytes()).hexdigest()
+    return out
+
+
+#: The scenario ids of the bundled WOMD scenes (data/womd/<id>.tfrecord).
+BUNDLED_WOMD = tuple(sorted(p.stem for p in WOMD_DIR.glob("*.tfrecord")))
+
+
+@pytest.fixture(scope="session")
+def bundled_networks(tmp_path_factory):
+    """:class:`BundledNetworks`: ``bundled_networks(sid, ...)`` is a shared, read-only
+    networks folder with the converted bundles of those bundled scenes, converted once per
+    session."""
+    nets = BundledNetworks(tmp_path_factory)
+    yield nets
+    changed = nets.changed()
+    assert not changed, ("a test wrote into a shared bundled_networks folder (copy it "
+                         f"first): {changed[:10]}")
 
 
 @pytest.fixture(scope="session", params=real_scene_files(), ids=lambda p: p.stem)

@@ -147,19 +147,16 @@ def test_checkpoint_brings_its_action_layout(tmp_path):
 
 
 @pytest.mark.sumo
-def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path):
+def test_checkpoint_action_layout_rolls_out_to_the_env_poses(tmp_path, bundled_networks):
     """A checkpoint trained with ``env.action_layout: steer_throttle`` drives evaluation's env in
     that layout, and the rollout holds the poses the env gave its agents. (Evaluation used to
     re-derive the poses with the default layout: they were another vehicle's motion.)"""
     from converters import load_scene
-    from converters.sumo.scenario import ConvertOptions, convert_scene
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
     from magail_sumo.evaluation import methods, protocol
 
     scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
-    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
-    assert rep.status == "ok", rep.reason
-    bundle = tmp_path / SID
+    bundle = bundled_networks.bundle(SID)
     ckpt = _seed_layout_checkpoint(tmp_path)
 
     ro = methods.simulate(scene, str(ckpt), [0], seed=0, bundle_dir=bundle, deterministic=True)

@@ -4,6 +4,7 @@ PPO minibatches, a real training run with exact resume, strict config."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,10 +30,10 @@ TINY = CriticTransformerConfig(embed_dim=16, num_layers=1, num_heads=2, ff_dim=3
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory):
+def scenes(bundled_networks):
     """A MaskedPPO with a transformer-critic policy on two real scenes, after one env step;
     the policy's normaliser fitted on that observation."""
-    nets = tmp_path_factory.mktemp("critic") / "nets"
+    nets = bundled_networks(Path(SCENE_A).stem, Path(SCENE_B).stem)
     venv = MultiSceneVecEnv(scene_specs([SCENE_A, SCENE_B], nets), EnvConfig(max_steps=20),
                             seed=0)
     try:
@@ -206,9 +207,9 @@ def test_bad_critic_config_refused(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(tmp_path_factory, bundled_networks):
     root = tmp_path_factory.mktemp("tcritic")
-    nets = root / "nets"
+    nets = bundled_networks(Path(SCENE_A).stem, Path(SCENE_B).stem)
     record_expert(scene_specs([SCENE_B], nets), root / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 5, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),

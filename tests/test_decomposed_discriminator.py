@@ -290,13 +290,13 @@ def test_config_range_checks_and_kind():
 
 # ------------------------------------------------------------------ real scenes (SUMO)
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(tmp_path_factory, bundled_networks):
     from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
     from magail_sumo.training.config import TrainConfig
 
     root = tmp_path_factory.mktemp("decomposed")
-    nets = root / "nets"
+    nets = bundled_networks("850c48d8bbfa008f")
     record_expert(scene_specs([SCENE], nets), root / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 5, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),
@@ -376,7 +376,8 @@ def test_vec_env_reports_each_slots_pose(setup):
     from magail_sumo.env.scene_specs import scene_specs
 
     root, cfg = setup
-    venv = MultiSceneVecEnv(scene_specs([SCENE], root / "nets"), EnvConfig(max_steps=20), seed=2)
+    venv = MultiSceneVecEnv(scene_specs([SCENE], cfg.scenes.networks), EnvConfig(max_steps=20),
+                            seed=2)
     rng = np.random.default_rng(0)
 
     def agent_poses():

@@ -8,7 +8,6 @@ from pettingzoo.test import parallel_api_test
 
 from conftest import WOMD_DIR
 from converters import load_scene
-from converters.sumo.scenario import ConvertOptions, convert_scene
 from converters.sumo.bundle import BundleError
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
 from magail_sumo.env.collision import first_overlap
@@ -19,15 +18,9 @@ SCENES = ("850c48d8bbfa008f", "637f20cafde22ff8", "2831b6fde0420b0d")
 
 
 @pytest.fixture(scope="module")
-def bundles(tmp_path_factory):
-    out = tmp_path_factory.mktemp("bundles")
-    got = {}
-    for sid in SCENES:
-        scene = load_scene(WOMD_DIR / f"{sid}.tfrecord")
-        rep = convert_scene(scene, out, ConvertOptions(baseline=False))
-        assert rep.status == "ok", rep.reason
-        got[sid] = (scene, out / sid)
-    return got
+def bundles(bundled_networks):
+    return {sid: (load_scene(WOMD_DIR / f"{sid}.tfrecord"), bundled_networks.bundle(sid))
+            for sid in SCENES}
 
 
 @pytest.mark.sumo

@@ -29,8 +29,8 @@ SHORT = "637f20cafde22ff8"  # 91 steps, 3 tracks to predict
 
 
 @pytest.fixture(scope="module")
-def long_spec(tmp_path_factory):
-    return scene_specs([WOMD_DIR / f"{LONG}.tfrecord"], tmp_path_factory.mktemp("nets"))
+def long_spec(bundled_networks):
+    return scene_specs([WOMD_DIR / f"{LONG}.tfrecord"], bundled_networks(LONG))
 
 
 @pytest.fixture(scope="module")

@@ -91,21 +91,15 @@ def test_exported_submission(run):
 
 
 @pytest.mark.sumo
-def test_seeded_and_pluggable_policy():
-    scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+def test_seeded_and_pluggable_policy(bundled_networks):
     f = str(WOMD_DIR / f"{SID}.tfrecord")
-    from converters.sumo.scenario import ConvertOptions, convert_scene
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as tmp:
-        convert_scene(scene, tmp, ConvertOptions(baseline=False))
-        bundle = f"{tmp}/{SID}"
-        spec = f"{__name__}:stop_policy"
-        batches = [runner.Batch(f, SID, bundle, "random", (0,), 3),
-                   runner.Batch(f, SID, bundle, "random", (0,), 3),
-                   runner.Batch(f, SID, bundle, spec, (0,), 3)]
-        sys.path.insert(0, str(WOMD_DIR.parents[1] / "tests"))
-        got = [(b.spec, ro) for b, ro, err, _ in runner.run_batches(batches, 2) if err is None]
+    bundle = str(bundled_networks.bundle(SID))
+    spec = f"{__name__}:stop_policy"
+    batches = [runner.Batch(f, SID, bundle, "random", (0,), 3),
+               runner.Batch(f, SID, bundle, "random", (0,), 3),
+               runner.Batch(f, SID, bundle, spec, (0,), 3)]
+    sys.path.insert(0, str(WOMD_DIR.parents[1] / "tests"))
+    got = [(b.spec, ro) for b, ro, err, _ in runner.run_batches(batches, 2) if err is None]
     assert len(got) == 3
     rand = [ro for s, ro in got if s == "random"]
     assert np.array_equal(rand[0].x, rand[1].x)  # same seed, same rollout

@@ -24,10 +24,10 @@ LONGER = ObservationConfig(lidar=BeamSpec(80, 40.0))
 
 
 @pytest.fixture(scope="module")
-def expert_dir(tmp_path_factory):
+def expert_dir(tmp_path_factory, bundled_networks):
     root = tmp_path_factory.mktemp("expert")
     rc = main(["expert", str(WOMD_DIR / f"{SID}.tfrecord"), "--out", str(root / "expert"),
-               "--networks", str(root / "nets")])
+               "--networks", str(bundled_networks(SID))])
     assert rc == 0
     return root / "expert"
 

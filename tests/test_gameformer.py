@@ -253,7 +253,7 @@ def test_openloop_metrics(trained, tmp_path):
 
 
 @pytest.mark.sumo
-def test_closed_loop_evaluate(trained, tmp_path):
+def test_closed_loop_evaluate(trained, tmp_path, bundled_networks):
     import pandas as pd
 
     from magail_sumo.cli.main import main
@@ -263,7 +263,8 @@ def test_closed_loop_evaluate(trained, tmp_path):
     assert isinstance(make_policy(str(trained), 3), GameFormerPolicy)
     out = tmp_path / "eval"
     rc = main(["evaluate", "--policy", str(trained), "--scenes", SCENE, "--rollouts", "2",
-               "--out", str(out), "--baselines", "none", "--workers", "1", "--name", "gf"])
+               "--out", str(out), "--baselines", "none", "--workers", "1", "--name", "gf",
+               "--networks", str(bundled_networks("850c48d8bbfa008f"))])
     assert rc == 0
     df = pd.read_parquet(next((out / "rollouts" / "gf").glob("*.parquet")))
     assert sorted(df["rollout"].unique()) == [0, 1]

@@ -51,9 +51,9 @@ def _one_line_error(err: str, name: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(tmp_path_factory, bundled_networks):
     root = tmp_path_factory.mktemp("hard_ckpt")
-    nets = root / "nets"
+    nets = bundled_networks("850c48d8bbfa008f")
     record_expert(scene_specs([SCENE], nets), root / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 2, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),

@@ -136,12 +136,12 @@ def test_check_train_config_accepts_the_defaults_and_bundled_scenes():
 
 
 @pytest.mark.sumo
-def test_batch_size_larger_than_the_rollout_refused(tmp_path):
+def test_batch_size_larger_than_the_rollout_refused(bundled_networks):
     from magail_sumo.training.trainer import GailRun
 
     cfg = from_dict(TrainConfig, {
         "env": {"max_steps": 10, "controlled": 2},
-        "scenes": {"files": [SCENE], "networks": str(tmp_path / "nets")},
+        "scenes": {"files": [SCENE], "networks": str(bundled_networks(Path(SCENE).stem))},
         "discriminator": {"kind": "mlp", "mlp_hidden": [8]},
         "ppo": {"n_steps": 4, "batch_size": 4096}})
     with pytest.raises(ConfigError, match=r"ppo\.batch_size: 4096 is larger than a rollout "

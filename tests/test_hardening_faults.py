@@ -105,14 +105,8 @@ def env_action_counts(bundle: str) -> dict:
 
 # ------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
-def bundle_root(tmp_path_factory) -> Path:
-    from converters import load_scene
-    from converters.sumo.scenario import ConvertOptions, convert_scene
-
-    root = tmp_path_factory.mktemp("networks")
-    rep = convert_scene(load_scene(SCENE), root, ConvertOptions(baseline=False))
-    assert rep.status == "ok", rep.reason
-    return root
+def bundle_root(bundled_networks) -> Path:
+    return bundled_networks(SID)
 
 
 def _dense_scene(n_junction: int = 40, n_in: int = 4, n_out: int = 4, steps: int = 91):

@@ -13,19 +13,15 @@ import pytest
 from conftest import ROOT, WOMD_DIR
 from converters import load_scene
 from converters.sumo import baseline as sb
-from converters.sumo.scenario import ConvertOptions, convert_scene
 from magail_sumo.evaluation import methods
 from magail_sumo.evaluation.realism import log_replay, scenario_metrics
 from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SumoSession
 
 
 @pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
+def bundle(bundled_networks):
     scene = load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
-    out = tmp_path_factory.mktemp("net")
-    rep = convert_scene(scene, out, ConvertOptions(baseline=False))
-    assert rep.status == "ok", rep.reason
-    return scene, out / scene.scenario_id
+    return scene, bundled_networks.bundle(scene.scenario_id)
 
 
 @pytest.mark.sumo
@@ -99,14 +95,13 @@ def test_env_shows_pedestrians_to_sumo_background(bundle):
 
 
 @pytest.mark.sumo
-def test_put_off_insertion_starts_at_the_current_step(tmp_path):
+def test_put_off_insertion_starts_at_the_current_step(bundled_networks):
     """2831b6fde0420b0d: SUMO puts off vehicle 1520's insertion (no room at its departure); it is
     inserted at its recorded pose at the current step and driven by SUMO, not left to move at
     constant velocity into the vehicle ahead of it."""
     scene = load_scene(WOMD_DIR / "2831b6fde0420b0d.tfrecord")
-    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
-    assert rep.status == "ok", rep.reason
-    ro = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    ro = methods.simulate(scene, "sumo", [0],
+                          bundle_dir=bundled_networks.bundle(scene.scenario_id))
     a = int(np.flatnonzero(ro.object_id == 1520)[0])
     cx, cy, _ = methods.constant_velocity(scene, ro.object_id)
     assert np.hypot(ro.x[0, a, 0] - cx[a, 0], ro.y[0, a, 0] - cy[a, 0]) < 1.0  # starts at the log
@@ -148,15 +143,14 @@ def test_route_vehicles_drive_on_past_their_route_end(bundle):
 
 
 @pytest.mark.sumo
-def test_current_step_zero_starts_at_the_recorded_pose(tmp_path):
+def test_current_step_zero_starts_at_the_recorded_pose(bundled_networks):
     """6f85f27e0243fc10 starts at step 0: vehicles due then were inserted by SUMO at their
     route's depart position (the SDC 3.4 m behind its recorded pose, then it drove into the
     junction); they now start at their recorded pose like every other route vehicle."""
     scene = load_scene(ROOT / "data" / "scenarionet" / "6f85f27e0243fc10.pkl")
     assert scene.current_time_index == 0
-    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
-    assert rep.status == "ok", rep.reason
-    ro = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    ro = methods.simulate(scene, "sumo", [0],
+                          bundle_dir=bundled_networks.bundle(scene.scenario_id))
     sdc = int(scene.tracks.id[scene.sdc_track_index])
     a = int(np.flatnonzero(ro.object_id == sdc)[0])
     cx, cy, _ = methods.constant_velocity(scene, ro.object_id)
@@ -202,16 +196,15 @@ def test_dead_end_inside_the_map_holds_the_vehicle(bundle):
 
 
 @pytest.mark.sumo
-def test_recorded_lateral_offset_is_kept_at_the_handover(tmp_path, monkeypatch):
+def test_recorded_lateral_offset_is_kept_at_the_handover(bundled_networks, monkeypatch):
     """2a1e44d405a6833f (a parking lot): cyclist 1624 rides 1.9 m right of its lane's centre
     line while car 490 turns past it. SUMO (no sublane model) puts every vehicle on the centre
     line, so at the handover the cyclist jumped sideways into the car's path and both collided
     in every rollout (scored-agent collision rate 0.25 against log replay's 0). The recorded
     offset is now carried in the reported pose and fades with ``LATERAL_OFFSET_TAU``."""
     scene = load_scene(ROOT / "data" / "scenarionet" / "2a1e44d405a6833f.pkl")
-    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
-    assert rep.status == "ok", rep.reason
-    ro = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    bundle = bundled_networks.bundle(scene.scenario_id)
+    ro = methods.simulate(scene, "sumo", [0], bundle_dir=bundle)
     tr, cur = scene.tracks, scene.current_time_index
     a = int(np.flatnonzero(ro.object_id == 1624)[0])
     r = int(np.flatnonzero(tr.id == 1624)[0])
@@ -225,6 +218,6 @@ def test_recorded_lateral_offset_is_kept_at_the_handover(tmp_path, monkeypatch):
     # against the poses SUMO drove (centre line: the offset gone at once), the same seed: the
     # cyclist starts 1.5 m or more aside of SUMO's pose, and 5 s on the offset has faded
     monkeypatch.setattr(sb, "LATERAL_OFFSET_TAU", 1e-9)
-    centre = methods.simulate(scene, "sumo", [0], bundle_dir=tmp_path / scene.scenario_id)
+    centre = methods.simulate(scene, "sumo", [0], bundle_dir=bundle)
     gap = np.hypot(ro.x[0, a] - centre.x[0, a], ro.y[0, a] - centre.y[0, a])
     assert gap[0] > 1.5 and gap[50] < 0.05

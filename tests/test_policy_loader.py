@@ -31,9 +31,9 @@ SCENE = str(WOMD_DIR / f"{SID}.tfrecord")
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
+def checkpoint(tmp_path_factory, bundled_networks):
     root = tmp_path_factory.mktemp("loader")
-    nets = root / "nets"
+    nets = bundled_networks("850c48d8bbfa008f")
     record_expert(scene_specs([SCENE], nets), root / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 1, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),
@@ -136,11 +136,12 @@ def _same(a, b) -> bool:
 
 
 @pytest.mark.sumo
-def test_evaluate_checkpoint_end_to_end(checkpoint):
+def test_evaluate_checkpoint_end_to_end(checkpoint, bundled_networks):
     root, ckpt = checkpoint
     out = root / "eval"
     rc = main(["evaluate", "--policy", str(ckpt), "--scenes", SCENE, "--rollouts", "2",
-               "--baselines", "constvel", "--networks", str(root / "nets"), "--out", str(out)])
+               "--baselines", "constvel", "--networks", str(bundled_networks(SID)),
+               "--out", str(out)])
     assert rc == 0
     man = json.loads((out / "manifest.json").read_text())
     assert man["methods"] == ["run", "constvel"] and man["policy_spec"] == str(ckpt)
@@ -157,12 +158,12 @@ def test_evaluate_checkpoint_end_to_end(checkpoint):
 
 
 @pytest.mark.sumo
-def test_evaluate_seeded_sampling_and_deterministic(checkpoint, monkeypatch):
+def test_evaluate_seeded_sampling_and_deterministic(checkpoint, bundled_networks, monkeypatch):
     """The same seed reproduces sampled rollouts bit for bit (in other worker processes and
     batches); --deterministic rollouts are all alike and equal evaluation's earlier actions
     (tanh of the mean, the env's agent order)."""
     root, ckpt = checkpoint
-    nets = root / "nets"
+    nets = bundled_networks(SID)
     first = root / "eval-sampled"
     assert main(["evaluate", "--policy", str(ckpt), "--scenes", SCENE, "--rollouts", "2",
                  "--baselines", "none", "--networks", str(nets), "--out", str(first),
@@ -192,7 +193,8 @@ def test_evaluate_seeded_sampling_and_deterministic(checkpoint, monkeypatch):
 
 
 @pytest.mark.sumo
-def test_noise_scale_scales_the_sampled_noise(checkpoint, tmp_path, monkeypatch):
+def test_noise_scale_scales_the_sampled_noise(checkpoint, bundled_networks, tmp_path,
+                                              monkeypatch):
     """``noise_scale`` k samples ``tanh(mu + k·sigma·eps)`` with the same draws: 0 gives the
     mean action, and the pre-tanh offset from the mean grows linearly in k; a pretrained card's
     ``sampling.noise_scale`` is the default, ``--noise-scale`` overrides it and the manifest
@@ -233,7 +235,7 @@ def test_noise_scale_scales_the_sampled_noise(checkpoint, tmp_path, monkeypatch)
     assert policies.make_policy("pretrained:calm", seed=0, noise_scale=1.0).noise_scale == 1.0
     out = tmp_path / "eval"
     assert main(["evaluate", "--policy", "pretrained:calm", "--scenes", SCENE, "--rollouts",
-                 "1", "--baselines", "none", "--networks", str(checkpoint[0] / "nets"),
+                 "1", "--baselines", "none", "--networks", str(bundled_networks(SID)),
                  "--out", str(out), "--noise-scale", "0.5"]) == 0
     assert json.loads((out / "manifest.json").read_text())["noise_scale"] == 0.5
     assert main(["report", str(out)]) == 0

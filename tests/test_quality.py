@@ -113,9 +113,9 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
 
 # --------------------------------------------------------------- with a trained checkpoint
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
+def checkpoint(tmp_path_factory, bundled_networks):
     root = tmp_path_factory.mktemp("pretrained")
-    nets = root / "nets"
+    nets = bundled_networks("850c48d8bbfa008f")
     record_expert(scene_specs([SCENE], nets), root / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 1, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),
@@ -177,13 +177,15 @@ def test_export_writes_a_slim_checkpoint_and_its_card(checkpoint, registry, tmp_
 
 
 @pytest.mark.sumo
-def test_evaluate_pretrained_end_to_end(checkpoint, registry, monkeypatch, capsys):
+def test_evaluate_pretrained_end_to_end(checkpoint, registry, bundled_networks, monkeypatch,
+                                       capsys):
     root, _ = checkpoint
     reg, _ = registry
     monkeypatch.setenv(pt.ENV_VAR, str(reg))
     out = root / "eval"
     rc = main(["evaluate", "--policy", "pretrained:tiny", "--scenes", SCENE, "--rollouts", "2",
-               "--baselines", "constvel", "--networks", str(root / "nets"), "--out", str(out)])
+               "--baselines", "constvel", "--networks", str(bundled_networks(SID)),
+               "--out", str(out)])
     assert rc == 0
     man = json.loads((out / "manifest.json").read_text())
     assert man["methods"] == ["tiny", "constvel"] and man["policy_spec"] == "pretrained:tiny"

@@ -30,7 +30,7 @@ CFG = EnvConfig(start_window="random", max_steps=15, controlled=6)
 pytestmark = pytest.mark.sumo
 
 
-def test_unreachable_cluster_is_one_line(tmp_path, capsys):
+def test_unreachable_cluster_is_one_line(tmp_path, capsys, bundled_networks):
     from magail_sumo.cli.main import main
     from magail_sumo.env.ray_workers import RayUnavailable, init_ray
 
@@ -41,10 +41,11 @@ def test_unreachable_cluster_is_one_line(tmp_path, capsys):
         init_ray("127.0.0.1:9")
     from magail_sumo.expert import record_expert
 
-    record_expert(scene_specs([SCENES[0]], tmp_path / "nets"), tmp_path / "expert")
+    nets = bundled_networks(SCENES[0].stem)
+    record_expert(scene_specs([SCENES[0]], nets), tmp_path / "expert")
     cfg = tmp_path / "c.yaml"
     cfg.write_text(f"expert_dir: {tmp_path / 'expert'}\nscenes:\n  files: ['{SCENES[0]}']\n"
-                   f"  networks: {tmp_path / 'nets'}\nworkers:\n  backend: ray\n  ray:\n"
+                   f"  networks: {nets}\nworkers:\n  backend: ray\n  ray:\n"
                    "    address: 127.0.0.1:9\n")
     assert main(["train", "--config", str(cfg), "--run-dir", str(tmp_path / "run")]) != 0
     err = capsys.readouterr().err.strip().splitlines()
@@ -69,14 +70,15 @@ def cluster():
     c.shutdown()
 
 
-def test_ray_actors_on_both_nodes_give_the_process_rollouts(cluster, tmp_path):
+def test_ray_actors_on_both_nodes_give_the_process_rollouts(cluster, bundled_networks):
     refs = [RecordRef(str(f)) for f in SCENES]
-    want_env = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=5)
+    nets = bundled_networks(*(f.stem for f in SCENES))
+    want_env = pool_vec_env(refs, nets, 2, CFG, seed=5)
     try:
         want = roll_random(want_env, 40, seed=1)
     finally:
         want_env.close()
-    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=5, backend="ray",
+    venv = pool_vec_env(refs, nets, 2, CFG, seed=5, backend="ray",
                         backend_options={"address": cluster.address})
     try:
         got = roll_random(venv, 40, seed=1)
@@ -95,7 +97,7 @@ def test_ray_actors_on_both_nodes_give_the_process_rollouts(cluster, tmp_path):
             v.timeout_s = 4.0
 
     logs: list[str] = []
-    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=5, backend="ray",
+    venv = pool_vec_env(refs, nets, 2, CFG, seed=5, backend="ray",
                         backend_options={"address": cluster.address}, max_restarts=1,
                         log=logs.append)
     try:
@@ -108,17 +110,18 @@ def test_ray_actors_on_both_nodes_give_the_process_rollouts(cluster, tmp_path):
     assert any("Ray actor did not answer within 4 s" in m and "replaced" in m for m in logs)
 
 
-def test_ray_training_goes_on_past_a_killed_actor(cluster, tmp_path):
+def test_ray_training_goes_on_past_a_killed_actor(cluster, tmp_path, bundled_networks):
     from magail_sumo.expert import ExpertDataset, record_expert
     from magail_sumo.sensors.observation import observation_names
     from magail_sumo.training.config import TrainConfig
     from magail_sumo.training.trainer import GailRun
 
-    record_expert(scene_specs([SCENES[0]], tmp_path / "nets"), tmp_path / "expert")
+    nets = bundled_networks(*(f.stem for f in SCENES))  # the pool's scenes, converted
+    record_expert(scene_specs([SCENES[0]], nets), tmp_path / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 2, "expert_dir": str(tmp_path / "expert"),
         "env": {"max_steps": 15, "start_window": "random", "controlled": 6},
-        "scenes": {"files": [str(s) for s in SCENES], "networks": str(tmp_path / "nets"),
+        "scenes": {"files": [str(s) for s in SCENES], "networks": str(nets),
                    "worker_timeout_s": 60.0},
         "workers": {"count": 2, "backend": "ray", "ray": {"address": cluster.address}},
         "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},

@@ -5,6 +5,7 @@ evaluation of a SAC checkpoint."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -226,12 +227,12 @@ def test_sac_config_checks():
 
 # ----------------------------------------------------------------------------- real runs
 @pytest.fixture(scope="module")
-def sac_setup(tmp_path_factory):
+def sac_setup(tmp_path_factory, bundled_networks):
     from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import record_expert
 
     root = tmp_path_factory.mktemp("sac")
-    nets = root / "nets"
+    nets = bundled_networks("850c48d8bbfa008f")
     record_expert(scene_specs([SCENE], nets), root / "expert", observation=CMD_OBS)
     cfg = from_dict(TrainConfig, {
         "algorithm": "sac", "seed": 5, "expert_dir": str(root / "expert"),
@@ -300,7 +301,7 @@ def test_evaluate_sac_checkpoint(sac_setup, tmp_path):
     with pytest.raises(CheckpointError, match="SAC"):
         load_policy(ckpt)
     res = evaluate([SCENE], str(ckpt), tmp_path / "eval", n_rollouts=1, baselines=(),
-                   workers=1, networks=root / "nets", name="sac")
+                   workers=1, networks=Path(cfg.scenes.networks), name="sac")
     files = list((tmp_path / "eval" / "rollouts" / "sac").glob("*.parquet"))
     assert len(files) == 1, res
 

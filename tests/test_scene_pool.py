@@ -23,6 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SN = ROOT / "data" / "scenarionet"
 SMALL = [WOMD_DIR / "850c48d8bbfa008f.tfrecord", SN / "250011f460de6135.pkl",
          SN / "53e9adfdac0eb822.pkl"]
+#: their scenario ids (the file names' stems): bundled scenes, converted once per session
+POOL = tuple(f.stem for f in SMALL)
 CFG = EnvConfig(start_window="random", max_steps=15, controlled=6)
 
 
@@ -146,14 +148,14 @@ def test_pool_plays_every_scene_skips_the_bad_one_and_resumes_exactly(pool_dir, 
 
 
 @pytest.mark.sumo
-def test_kept_scene_envs_play_exactly_as_freshly_built_ones(pool_dir, tmp_path):
+def test_kept_scene_envs_play_exactly_as_freshly_built_ones(pool_dir, bundled_networks):
     """A worker keeping its scenes' envs (the default cache) plays the same rollouts as one
     that rebuilds the env at every scene change (cache 1): a reused env carries nothing from
     its earlier episodes."""
     refs = [r for r in resolve_pool([str(pool_dir)]) if not r.path.endswith("broken.pkl")][:2]
     runs = []
     for cache in (1, 16):
-        venv = pool_vec_env(refs, tmp_path / "nets", 1, CFG, seed=7, cache=cache)
+        venv = pool_vec_env(refs, bundled_networks(*POOL), 1, CFG, seed=7, cache=cache)
         scenes: list[str] = []
         try:
             runs.append(roll_random(venv, 70, hook=lambda t, v: scenes.extend(v.worker_scene)))
@@ -165,9 +167,9 @@ def test_kept_scene_envs_play_exactly_as_freshly_built_ones(pool_dir, tmp_path):
 
 
 @pytest.mark.sumo
-def test_worker_with_only_bad_scenes_is_dropped_at_start(pool_dir, tmp_path):
+def test_worker_with_only_bad_scenes_is_dropped_at_start(pool_dir, tmp_path, bundled_networks):
     refs = [RecordRef(str(pool_dir / "broken.pkl")), RecordRef(str(SMALL[0]))]
-    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=0)
+    venv = pool_vec_env(refs, bundled_networks(*POOL), 2, CFG, seed=0)
     try:
         assert venv.skipped[0][0] == str(pool_dir / "broken.pkl")
         # the 2 workers asked for both play the scene left (replicas with their own seeds)
@@ -181,9 +183,10 @@ def test_worker_with_only_bad_scenes_is_dropped_at_start(pool_dir, tmp_path):
 
 @pytest.mark.sumo
 @pytest.mark.parametrize("how", ["kill", "hang"])
-def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path):
+def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, bundled_networks):
     refs = [RecordRef(str(f)) for f in SMALL]
-    base = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9)
+    nets = bundled_networks(*POOL)
+    base = pool_vec_env(refs, nets, 2, CFG, seed=9)
     try:
         want = roll_random(base, 40)
     finally:
@@ -195,7 +198,7 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path
             v.timeout_s = 4.0
 
     logs: list[str] = []
-    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9, max_restarts=2,
+    venv = pool_vec_env(refs, nets, 2, CFG, seed=9, max_restarts=2,
                         log=logs.append)
     try:
         pid = venv._handles[1].pid
@@ -209,7 +212,7 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path
     assert ("died" if how == "kill" else "did not answer within 4 s") in line
     assert "replaced" in line and "replayed" in line
     # no replacement allowed: the env gives up with one line
-    venv = pool_vec_env(refs, tmp_path / "nets", 2, CFG, seed=9, max_restarts=0)
+    venv = pool_vec_env(refs, nets, 2, CFG, seed=9, max_restarts=0)
     try:
         venv.reset()
         os.kill(venv._handles[0].pid, signal.SIGKILL)
@@ -220,7 +223,8 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, tmp_path
 
 
 @pytest.mark.sumo
-def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_path):
+def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_path,
+                                                                  bundled_networks):
     import yaml
 
     from magail_sumo.config import from_dict
@@ -229,10 +233,11 @@ def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_p
     from magail_sumo.training.config import TrainConfig, usable_cores
     from magail_sumo.training.trainer import train
 
-    record_expert(scene_specs([SMALL[0]], tmp_path / "nets"), tmp_path / "expert")
+    nets = bundled_networks(*POOL)  # the pool's scenes, converted
+    record_expert(scene_specs([SMALL[0]], nets), tmp_path / "expert")
     raw = {"seed": 1, "expert_dir": str(tmp_path / "expert"), "updates": 2, "checkpoint_every": 1,
            "env": {"max_steps": 15, "start_window": "random", "controlled": 6},
-           "scenes": {"files": [str(pool_dir)], "networks": str(tmp_path / "nets")},
+           "scenes": {"files": [str(pool_dir)], "networks": str(nets)},
            "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},
            "ppo": {"n_steps": 16, "batch_size": 32, "n_epochs": 1},
            "discriminator": {"kind": "mlp", "epochs": 1, "batch_size": 16}}
@@ -253,7 +258,7 @@ def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_p
 
 
 @pytest.mark.sumo
-def test_city_scenario_trains_beside_a_recorded_scene(tmp_path):
+def test_city_scenario_trains_beside_a_recorded_scene(tmp_path, bundled_networks):
     from magail_sumo.config import ConfigError, from_dict
     from magail_sumo.env.scene_specs import scene_specs
     from magail_sumo.expert import ExpertDataset, record_expert
@@ -263,10 +268,11 @@ def test_city_scenario_trains_beside_a_recorded_scene(tmp_path):
     from magail_sumo.training.trainer import GailRun
 
     city = ROOT / "data" / "sumo" / "ingolstadt21"
-    record_expert(scene_specs([SMALL[0]], tmp_path / "nets"), tmp_path / "expert")
+    nets = bundled_networks(SMALL[0].stem)
+    record_expert(scene_specs([SMALL[0]], nets), tmp_path / "expert")
     raw = {"seed": 0, "expert_dir": str(tmp_path / "expert"),
            "env": {"max_steps": 15, "start_window": "random"},
-           "scenes": {"files": [str(city), str(SMALL[0])], "networks": str(tmp_path / "nets")},
+           "scenes": {"files": [str(city), str(SMALL[0])], "networks": str(nets)},
            "workers": {"count": 2},
            "city": {"max_agents": 40, "warmup_s": 300, "max_steps": 30},
            "policy": {"actor_hidden": [16, 16], "critic_hidden": [16, 16]},

@@ -7,18 +7,15 @@ import pytest
 
 from conftest import WOMD_DIR
 from converters import load_scene
-from converters.sumo.scenario import convert_scene
 from magail_sumo.sim.frames import centre_to_front, front_to_centre, sumo_angle_to_yaw, yaw_to_sumo_angle
 from magail_sumo.sim.session import SessionConfig, SimulationError, SumoSession
 
 
 @pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
+def bundle(bundled_networks):
     scene = load_scene(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
-    out = tmp_path_factory.mktemp("net")
-    rep = convert_scene(scene, out)
-    assert rep.status == "ok", rep.reason
-    return scene, out / scene.scenario_id / f"{scene.scenario_id}.sumocfg"
+    folder = bundled_networks.bundle(scene.scenario_id)
+    return scene, folder / f"{scene.scenario_id}.sumocfg"
 
 
 def test_frame_conventions():

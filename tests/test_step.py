@@ -125,14 +125,12 @@ def _roll(env, road_users) -> tuple[int, set]:
 
 
 @pytest.mark.sumo
-def test_driving_env_info_contract(tmp_path):
+def test_driving_env_info_contract(bundled_networks):
     from converters import load_scene
-    from converters.sumo.scenario import ConvertOptions, convert_scene
     from magail_sumo.env import EnvConfig, SumoDrivingEnv
 
     scene = load_scene(WOMD_DIR / "637f20cafde22ff8.tfrecord")
-    assert convert_scene(scene, tmp_path, ConvertOptions(baseline=False)).status == "ok"
-    env = SumoDrivingEnv(scene, tmp_path / scene.scenario_id,
+    env = SumoDrivingEnv(scene, bundled_networks.bundle(scene.scenario_id),
                          EnvConfig(controlled="all", max_steps=30))
     names = {str(int(i)) for i in scene.tracks.id}
     hits, reasons = _roll(env, lambda: names)

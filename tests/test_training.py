@@ -24,9 +24,9 @@ SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(tmp_path_factory, bundled_networks):
     root = tmp_path_factory.mktemp("training")
-    nets = root / "nets"
+    nets = bundled_networks("850c48d8bbfa008f")
     record_expert(scene_specs([SCENE], nets), root / "expert")
     cfg = from_dict(TrainConfig, {
         "seed": 3, "expert_dir": str(root / "expert"), "out_dir": str(root / "runs"),

@@ -15,8 +15,8 @@ from magail_sumo.env.scene_specs import scene_specs
 
 
 @pytest.fixture(scope="module")
-def specs(tmp_path_factory):
-    nets = tmp_path_factory.mktemp("nets")
+def specs(bundled_networks):
+    nets = bundled_networks("850c48d8bbfa008f")
     return scene_specs([WOMD_DIR / "850c48d8bbfa008f.tfrecord"], nets) + \
         scene_specs([WOMD_DIR / "637f20cafde22ff8.tfrecord"], ROOT / "networks",
                     convert_missing=False)
