@@ -194,6 +194,33 @@ def env_configs(monkeypatch) -> list:
     return seen
 
 
+class PartialPolicy:
+    """A policy that acts for every other agent only, plus one made-up agent (to see what the
+    env and evaluation do with missing and unknown actions)."""
+
+    def act(self, observations):
+        import numpy as np
+
+        names = sorted(observations)
+        out = {n: np.zeros(2, np.float32) for n in names[::2]}
+        out["no-such-agent"] = np.zeros(2, np.float32)
+        return out
+
+
+def peak_memory(fn):
+    """``(fn(), peak bytes allocated while it ran)``, measured with ``tracemalloc``: it records
+    an allocation's full size even when its pages are never touched, so a regression that
+    allocates a size a file claims is caught without the machine spending the memory."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        result = fn()
+        return result, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
 def tiny_checkpoint(path, env: dict):
     """A 0-update PPO checkpoint file ``path`` of a tiny policy trained in env settings ``env``
     (a config dict): for tests of what a checkpoint carries into evaluation."""

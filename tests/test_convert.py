@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import subprocess
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -316,3 +317,40 @@ def test_cli_convert_is_resumable(tmp_path, capsys):
     assert "repeated scenario id" in next(r["reason"] for r in got if r["status"] == "skipped")
     err = capsys.readouterr().err
     assert "scenes/s per core" in err
+
+
+# -------------------------------------------------------------- worker timeouts and the time budget
+SID = "850c48d8bbfa008f"  # the smallest bundled scene
+SCENE = WOMD_DIR / f"{SID}.tfrecord"
+
+
+@pytest.mark.sumo
+def test_convert_workers_report_hung_scenes_and_bad_records(tmp_path):
+    from converters.sumo.batch import convert_files
+    from converters.sumo.scenario import ConvertOptions
+
+    bad = tmp_path / "bad.tfrecord"
+    bad.write_bytes(b"\x00" * 40)
+    clock = time.monotonic()
+    rows = list(convert_files([SCENE, bad, WOMD_DIR / "2831b6fde0420b0d.tfrecord"],
+                              tmp_path / "out", workers=2,
+                              options=ConvertOptions(baseline=False), timeout_s=0.05))
+    assert time.monotonic() - clock < 300  # generous: nothing hangs (reasons checked below)
+    assert [r.status for r in rows if r.status == "unreadable"] == ["unreadable"]
+    scenes = [r for r in rows if r.status != "unreadable"]
+    assert [r.scenario_id for r in scenes] == [SID, "2831b6fde0420b0d"]
+    # the first scene may finish while the parent reads the last file; the last one cannot
+    assert scenes[1].status == "failed"
+    for r in scenes:
+        assert r.status == "ok" or r.reason == f"{r.scenario_id}: timed out after 0.05 s " \
+            "(worker killed)"
+
+
+def test_conversion_over_its_time_budget_fails_with_the_reason(tmp_path):
+    from converters import load_scene
+    from converters.sumo.scenario import ConvertOptions, convert_scene
+
+    rep = convert_scene(load_scene(SCENE), tmp_path, ConvertOptions(baseline=False,
+                                                                    time_budget_s=1e-6))
+    assert rep.status == "failed"
+    assert rep.reason.startswith(f"{SID}: ") and "time budget of 1e-06 s exceeded" in rep.reason

@@ -1,4 +1,5 @@
-"""SumoDrivingEnv on real converted scenes with real SUMO: API, actions, fidelity, events."""
+"""SumoDrivingEnv on real converted scenes with real SUMO: API, actions (missing and unknown
+ones too), fidelity, events, and where agents end (``env.end_of_life``)."""
 
 from __future__ import annotations
 
@@ -6,9 +7,10 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from conftest import WOMD_DIR
+from conftest import ROOT, PartialPolicy, WOMD_DIR
 from converters import load_scene
 from converters.sumo.bundle import BundleError
+from magail_sumo.config import ConfigError
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
 from magail_sumo.env.collision import first_overlap
 from magail_sumo.env.events import StopLines, off_road
@@ -250,3 +252,119 @@ def test_sumo_mirror_is_needed_with_sumo_background():
 
     with pytest.raises(FieldError, match="sumo_mirror"):
         EnvConfig(background="sumo", sumo_mirror=False)
+
+
+# ---------------------------------------------------------------------- missing and unknown actions
+SID = "850c48d8bbfa008f"  # the smallest bundled scene
+SCENE = WOMD_DIR / f"{SID}.tfrecord"
+
+
+def env_action_counts(bundle: str) -> dict:
+    """Three env steps with actions missing for every other agent and one unknown agent."""
+    from converters import load_scene
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv
+
+    env = SumoDrivingEnv(load_scene(SCENE), bundle, EnvConfig(controlled="all",
+                                                              terminate_on=()))
+    obs, _ = env.reset(seed=0)
+    policy = PartialPolicy()
+    expected_missing = 0
+    for _ in range(3):
+        expected_missing += len(env.agents) - len(sorted(env.agents)[::2])
+        obs, *_ = env.step(policy.act({a: obs[a] for a in env.agents}))
+    counts = dict(env.action_counts)
+    env.close()
+    return {"counts": counts, "expected_missing": expected_missing}
+
+
+@pytest.mark.sumo
+def test_env_counts_missing_and_unknown_actions(bundled_networks):
+    from magail_sumo.workers import run_one
+
+    res = run_one(env_action_counts, str(bundled_networks(SID) / SID), timeout_s=300)
+    assert res.ok, res.reason
+    counts = res.value["counts"]
+    assert counts["missing"] == res.value["expected_missing"] > 0
+    assert counts["unknown"] == 3 and counts["clipped"] == 0
+    assert counts["nonfinite"] == counts["missing"]
+
+
+def test_action_summary_words_the_counts():
+    from magail_sumo.env.actions import action_summary
+
+    assert action_summary({"missing": 0, "unknown": 0, "departed": 4, "nonfinite": 0,
+                           "clipped": 0}) == ""
+    line = action_summary({"missing": 12, "unknown": 3, "departed": 1, "nonfinite": 14,
+                           "clipped": 1})
+    assert line == ("policy gave no action for 12 agent-step(s) (those agents coasted: zero "
+                    "acceleration and steering); 3 action(s) for unknown agents ignored; 2 "
+                    "non-finite action(s) replaced by 0; 1 action(s) outside [-1, 1] clipped")
+
+
+# ---------------------------------------------------------------------------------- env.end_of_life
+# agents end at their log's last step in training; in evaluation every sim agent drives
+# all 80 steps, as WOSAC simulates it (an agent removed earlier vanished from the others'
+# world while its scored trajectory went on at constant velocity through them)
+EOL_SID = "637f20cafde22ff8"
+EOL_EARLY = "1603"  # a sim agent of EOL_SID whose recorded track ends at step 16
+
+
+def _eol_env(end_of_life: bool):
+    from converters import load_scene
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv
+
+    scene = load_scene(WOMD_DIR / f"{EOL_SID}.tfrecord")
+    return scene, SumoDrivingEnv(scene, ROOT / "networks" / EOL_SID, EnvConfig(
+        controlled="all", start_step=10, max_steps=80, terminate_on=(), sumo_mirror=False,
+        end_of_life=end_of_life))
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("end_of_life", [True, False])
+def test_agents_end_with_their_log_only_when_asked(end_of_life):
+    from magail_sumo.evaluation.submission import sim_agent_ids
+
+    scene, env = _eol_env(end_of_life)
+    try:
+        obs, _ = env.reset(seed=0)
+        # the sim agents the env drives (the others are off the SUMO routes: log-replayed)
+        sim = {str(int(i)) for i in sim_agent_ids(scene)} & set(env.agents)
+        assert EOL_EARLY in sim and len(sim) >= 20
+        ended, steps = {}, 0
+        while env.agents:
+            obs, _, terms, truncs, infos = env.step({n: np.zeros(2, np.float32) for n in obs})
+            steps += 1
+            for n in truncs:
+                if truncs[n] or terms[n]:
+                    ended[n] = (steps, infos[n]["reason"])
+    finally:
+        env.close()
+    assert steps == 80
+    if end_of_life:
+        assert ended[EOL_EARLY] == (6, "end_of_life")  # log step 16 = 6 steps after step 10
+    else:  # every sim agent drives to the episode's end
+        assert all(ended[n][0] == 80 and ended[n][1] != "end_of_life" for n in sim)
+
+
+@pytest.mark.sumo
+def test_evaluation_keeps_every_sim_agent_to_the_horizon(scene_637f, env_configs):
+    """Evaluation's env has end_of_life off: an agent whose log ends early has a driven
+    (not constant-velocity) trajectory to the last step."""
+    from magail_sumo.evaluation import methods
+
+    ro = methods.simulate(scene_637f, "random", [0], seed=0, bundle_dir=ROOT / "networks" / EOL_SID)
+    assert [c.end_of_life for c in env_configs] == [False]
+    a = [int(i) for i in ro.object_id].index(int(EOL_EARLY))
+    x, y = ro.x[0, a], ro.y[0, a]
+    # random accelerations and steering: the path after the log's end (step 16: column 5 on)
+    # is no straight line at constant speed
+    jerk = np.hypot(np.diff(x[5:], 2), np.diff(y[5:], 2))
+    assert np.isfinite(x).all() and (jerk > 1e-3).mean() > 0.5
+
+
+def test_end_of_life_must_be_a_bool():
+    from magail_sumo.config import from_dict
+    from magail_sumo.env import EnvConfig
+
+    with pytest.raises(ConfigError, match="end_of_life: expected true or false"):
+        from_dict(EnvConfig, {"end_of_life": "no"})

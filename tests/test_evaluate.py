@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import WOMD_DIR
+from conftest import PartialPolicy, WOMD_DIR
 from converters import load_scene
 from magail_sumo import agents, policies
 from magail_sumo.cli.main import main
@@ -200,3 +204,92 @@ def test_method_names(tmp_path):
     with pytest.raises(protocol.EvaluationError, match="built-in"):
         runner.evaluate([str(WOMD_DIR / f"{SID}.tfrecord")], "constvel", tmp_path / "e2",
                     n_rollouts=1, baselines=["logreplay"], name="logreplay")
+
+
+# ------------------------------------------- faults: stopped workers, bad policies, missing actions
+SCENE = WOMD_DIR / f"{SID}.tfrecord"
+
+
+MARKER_ENV = "MAGAIL_SUMO_TEST_MARKER"
+
+
+class _StoppingPolicy:
+    """Stops its own process (SIGSTOP) at the first action: a hung SUMO worker."""
+
+    def act(self, observations):
+        marker = os.environ.get(MARKER_ENV)
+        if marker:
+            Path(marker).write_text("stopped")
+        os.kill(os.getpid(), signal.SIGSTOP)
+        return {}
+
+
+def stopping_policy(seed: int) -> _StoppingPolicy:
+    return _StoppingPolicy()
+
+
+def raising_factory(seed: int):
+    raise RuntimeError("no weights here")
+
+
+def not_a_policy(seed: int):
+    return 42
+
+
+def partial_policy(seed: int) -> PartialPolicy:
+    return PartialPolicy()
+
+
+@pytest.mark.sumo
+def test_evaluate_reports_a_stopped_worker_and_goes_on(tmp_path, bundled_networks, monkeypatch,
+                                                       capsys):
+    marker = tmp_path / "stopped"
+    monkeypatch.setenv(MARKER_ENV, str(marker))
+    out = tmp_path / "eval"
+    clock = time.monotonic()
+    rc = main(["evaluate", "--policy", f"{__name__}:stopping_policy", "--baselines", "constvel",
+               "--scenes", str(SCENE), "--networks", str(bundled_networks(SID)), "--rollouts", "1",
+               "--workers", "1", "--timeout-s", "20", "--out", str(out)])
+    assert time.monotonic() - clock < 300  # generous: the stopped worker would never answer
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert marker.read_text() == "stopped"  # the worker really was stopped, then killed
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "timed out after 20 s (worker killed)" in lines[0], err
+    assert f"scenario {SID}" in lines[0]
+    assert (out / "rollouts" / "constvel" / f"{SID}.parquet").is_file()  # the rest went on
+
+
+@pytest.mark.parametrize("factory, problem", [
+    ("raising_factory", "could not be created: RuntimeError: no weights here"),
+    ("not_a_policy", "the factory returned int, which has no act(observations) method"),
+])
+def test_raising_policy_factory_is_one_line(tmp_path, capsys, factory, problem):
+    spec = f"{__name__}:{factory}"
+    rc = main(["evaluate", "--policy", spec, "--baselines", "none", "--scenes", str(SCENE),
+               "--out", str(tmp_path / "e")])
+    assert rc == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"error: magail-sumo evaluate: policy {spec}: {problem}"]
+
+
+@pytest.mark.sumo
+def test_evaluate_logs_a_policys_missing_actions(tmp_path, bundled_networks, capfd):
+    rc = main(["evaluate", "--policy", f"{__name__}:partial_policy", "--baselines", "none",
+               "--scenes", str(SCENE), "--networks", str(bundled_networks(SID)), "--rollouts", "1",
+               "--workers", "1", "--out", str(tmp_path / "e")])
+    err = capfd.readouterr().err
+    assert rc == 0, err
+    warn = [ln for ln in err.splitlines() if ln.startswith("warning:")]
+    assert len(warn) == 1, err
+    assert warn[0].startswith(f"warning: scenario {SID}: method {__name__}:partial_policy "
+                              "rollout(s) 0: policy gave no action for ")
+    assert "action(s) for unknown agents ignored" in warn[0]
+    # counted in the manifest and shown in the report
+    man = json.loads((tmp_path / "e" / "manifest.json").read_text())
+    (fix,) = man["action_fixes"]
+    assert fix["scenario_id"] == SID and fix["method"] == man["policy"]
+    assert fix["missing"] > 0 and fix["unknown"] > 0
+    assert main(["report", str(tmp_path / "e")]) == 0
+    html = (tmp_path / "e" / "report" / "report.html").read_text()
+    assert "Policy actions fixed up by the env" in html

@@ -1,8 +1,12 @@
-"""Expert demonstrations: recording through the env sensors, Parquet + metadata, sampling."""
+"""Expert demonstrations: recording through the env sensors, Parquet + metadata, sampling,
+scenes that fail; the hash of the whole observation config (sensor ranges, not only the
+layout's names) recorded with the data, and training refusing data recorded with another
+config (data recorded before the hash is still read with the name-based layout check)."""
 
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -11,10 +15,15 @@ import pytest
 from conftest import WOMD_DIR
 from magail_sumo.cli.main import main
 from magail_sumo.env.scene_specs import scene_specs
-from magail_sumo.expert import ExpertDataError, ExpertDataset
+from magail_sumo.config import from_dict
+from magail_sumo.expert import ExpertDataError, ExpertDataset, observation_hash
+from magail_sumo.sensors.config import BeamSpec
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
+from magail_sumo.training.algorithms import load_expert
+from magail_sumo.training.config import TrainConfig
 
 SID = "850c48d8bbfa008f"
+SCENE = WOMD_DIR / f"{SID}.tfrecord"
 
 
 @pytest.fixture(scope="module")
@@ -81,3 +90,63 @@ def test_bad_expert_dirs_are_refused(expert_dir, tmp_path):
     (empty / "metadata.json").write_text(json.dumps(meta))
     with pytest.raises(ExpertDataError, match="no transitions"):
         ExpertDataset(empty)
+
+
+# ----------------------------------------------------------------------------------- failing scenes
+def test_expert_goes_on_past_failing_scenes(tmp_path):
+    from magail_sumo.env.vec_env import SceneSpec
+    from magail_sumo.expert import record_expert
+
+    specs = [SceneSpec(str(SCENE), str(tmp_path / "no-bundle"), SID),
+             SceneSpec(str(SCENE), str(tmp_path / "no-bundle"), "no-such-scene")]
+    seen = []
+    meta = record_expert(specs, tmp_path / "expert", on_error=lambda s, r: seen.append(r),
+                         timeout_s=120)
+    assert meta["scenes"] == [] and len(meta["failed"]) == 2 and len(seen) == 2
+    assert all("\n" not in r for r in seen)
+    assert "no-such-scene" in seen[1]
+
+
+# -------------------------------------------------------------------- the observation config's hash
+LONGER = ObservationConfig(lidar=BeamSpec(80, 40.0))
+
+
+def test_the_hash_covers_every_field():
+    assert observation_hash(ObservationConfig()) == observation_hash(ObservationConfig())
+    assert observation_names(LONGER) == observation_names(ObservationConfig())
+    assert observation_hash(LONGER) != observation_hash(ObservationConfig())
+    assert observation_hash(ObservationConfig(leader_range=60.0)) != \
+        observation_hash(ObservationConfig())
+
+
+@pytest.mark.sumo
+def test_training_refuses_expert_data_of_another_observation_config(expert_dir, tmp_path):
+    meta = json.loads((expert_dir / "metadata.json").read_text())
+    assert meta["observation_hash"] == observation_hash(ObservationConfig())
+    assert len(ExpertDataset(expert_dir, observation=ObservationConfig())) > 0
+    with pytest.raises(ExpertDataError) as err:
+        ExpertDataset(expert_dir, observation=LONGER)
+    msg = str(err.value)
+    assert "\n" not in msg and str(expert_dir) in msg
+    assert "observation.lidar.range: expert 30.0, training 40.0" in msg
+    assert "observation.lidar.beams" not in msg  # only the fields that differ
+
+    cfg = from_dict(TrainConfig, {"expert_dir": str(expert_dir),
+                                  "env": {"observation": {"lidar": {"beams": 80,
+                                                                    "range": 40.0}}}})
+    with pytest.raises(ExpertDataError, match=r"lidar\.range: expert 30\.0, training 40\.0"):
+        load_expert(cfg)
+    same = from_dict(TrainConfig, {"expert_dir": str(expert_dir)})
+    assert load_expert(same).obs_dim == len(observation_names())
+
+
+@pytest.mark.sumo
+def test_expert_data_without_the_hash_is_checked_by_names(expert_dir, tmp_path):
+    old = tmp_path / "old"
+    shutil.copytree(expert_dir, old)
+    meta = json.loads((old / "metadata.json").read_text())
+    del meta["observation_hash"]
+    (old / "metadata.json").write_text(json.dumps(meta))
+    assert len(ExpertDataset(old, observation=LONGER)) > 0  # same names: accepted as before
+    with pytest.raises(ExpertDataError, match="layout mismatch"):
+        ExpertDataset(old, observation=ObservationConfig(leader=True))

@@ -4,6 +4,7 @@ into SUMO junctions 100-300 m across, whose internal lanes routes cannot follow.
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -185,3 +186,53 @@ def test_route_without_a_short_synthesised_stretch_when_it_covers_more(converted
     n = int(np.flatnonzero(scene.tracks.id == 1324)[0])
     route = VehicleRoute(n, "1324", "passenger", 4.0, 2.0, edges, 0, 0, 0.0, 0.0, True, False)
     assert route_covers(scene, lane_segments(net), route, net) >= COVERAGE
+
+
+# --------------------------------------------------------------------- a densely connected junction
+def _dense_scene(n_junction: int = 40, n_in: int = 4, n_out: int = 4, steps: int = 91):
+    """Road lanes into and out of a junction whose ``n_junction`` lanes all connect to each
+    other (and to every road lane around): exponentially many junction paths."""
+    from magail_sumo.scene import Lane, LaneType, RoadMap, Scene, Tracks
+
+    def line(p, q, n=6):
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        return np.column_stack([p + (q - p) * t, np.zeros(n)])
+
+    ins, outs = list(range(1, n_in + 1)), list(range(100, 100 + n_out))
+    junction = list(range(200, 200 + n_junction))
+    lanes, end_in, start_out = [], {}, {}
+    for k, a in enumerate(np.linspace(0, np.pi, n_in, endpoint=False)):
+        d = np.array([np.cos(a), np.sin(a)])
+        end_in[ins[k]] = d * 20
+        lanes.append(Lane(ins[k], line(d * 120, d * 20), LaneType.SURFACE_STREET, 25.0,
+                          exit_lanes=tuple(junction)))
+        start_out[outs[k]] = -d * 20
+        lanes.append(Lane(outs[k], line(-d * 20, -d * 120), LaneType.SURFACE_STREET, 25.0,
+                          entry_lanes=tuple(junction)))
+    for m, j in enumerate(junction):
+        others = tuple(x for x in junction if x != j)
+        lanes.append(Lane(j, line(end_in[ins[m % n_in]], start_out[outs[(m // n_in) % n_out]]),
+                          LaneType.SURFACE_STREET, 25.0, interpolating=True,
+                          entry_lanes=tuple(ins) + others, exit_lanes=tuple(outs) + others))
+    return Scene("dense-junction", np.arange(steps) * 0.1, Tracks.empty(steps),
+                 RoadMap(lanes=tuple(lanes)))
+
+
+@pytest.mark.sumo
+def test_dense_junction_converts_within_seconds(tmp_path):
+    from converters.sumo.scenario import ConvertOptions, convert_scene
+    from converters.sumo.topology import plan_network
+
+    scene = _dense_scene(40)
+    clock = time.monotonic()
+    plan = plan_network(scene)
+    # generous bounds (plan and conversion take well under a second here): the exponentially
+    # many junction paths of a regression would take hours
+    assert time.monotonic() - clock < 60
+    assert len(plan.junction_lanes) == 40
+    assert len({(c.from_edge, c.to_edge) for c in plan.connections}) == 16  # every in -> out
+    dense = [u for u in plan.unconverted if u["reason"].startswith("densely connected")]
+    assert sorted(u["id"] for u in dense) == [1, 2, 3, 4]
+    rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
+    assert time.monotonic() - clock < 180
+    assert rep.status == "ok", rep.reason

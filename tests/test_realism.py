@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -203,3 +204,42 @@ def test_scene_with_history_of_one_step_scores_all_80_simulated_steps():
     assert feat.valid.shape[-1] == 80
     assert feat.values["linear_speed"].shape[-1] == 80
     assert scenario_metrics(sc, ro, validate=False)["simulated_collision_rate"] == 0.0
+
+
+# ------------------------------------------------------------------------------ submission messages
+def _submission_error(tmp_path, edit) -> str:
+    from converters.womd.protos import sim_agents_submission_pb2 as pb
+    from magail_sumo.evaluation import iter_submission, read_submission
+    from magail_sumo.evaluation.submission import rollouts_to_proto
+
+    (good,) = read_submission(CONSTVEL)
+    msg = rollouts_to_proto(good)
+    edit(msg)
+    path = tmp_path / "sub.binproto"
+    path.write_bytes(pb.SimAgentsChallengeSubmission(scenario_rollouts=[msg]).SerializeToString())
+    [rec] = list(iter_submission(path))
+    return str(rec.error)
+
+
+@pytest.mark.parametrize("field", ["center_x", "center_y", "heading"])
+@pytest.mark.parametrize("rollout, agent", [(0, 0), (5, 2)])
+def test_short_trajectory_field_is_named(tmp_path, field, rollout, agent):
+    def edit(msg):
+        del getattr(msg.joint_scenes[rollout].simulated_trajectories[agent], field)[-1]
+    text = _submission_error(tmp_path, edit)
+    assert text.endswith(f"79 steps of {field}, expected 80"), text
+
+
+def test_huge_finite_coordinate_is_out_of_range_not_non_finite(scene_637f):
+    from magail_sumo.evaluation import SubmissionError, read_submission, validate_rollouts
+
+    (good,) = read_submission(CONSTVEL)
+    x = np.array(good.x, np.float64)
+    x[3, 1, 7] = 1e308
+    ro = dataclasses.replace(good, x=x)
+    with pytest.raises(SubmissionError) as err:
+        validate_rollouts(ro, scene_637f)
+    text = str(err.value)
+    assert (f"rollout 3 agent {int(good.object_id[1])}: x 1e+308 out of range (|x| > 1e+07 m) "
+            "at simulated step 7") in text, text
+    assert "non-finite" not in text

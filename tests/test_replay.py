@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 from conftest import ROOT, WOMD_DIR
+from magail_sumo.cli.main import main
 
 
 def _cli(*args):
@@ -40,3 +41,41 @@ def test_replay_gif_and_mp4(tmp_path):
 def test_replay_refuses_unknown_format(tmp_path):
     out = _cli("replay", WOMD_DIR / "850c48d8bbfa008f.tfrecord", "--out", tmp_path / "x.avi")
     assert out.returncode != 0 and "x.avi: unsupported video format" in out.stderr
+
+
+# ------------------------------------------------------------------------------------ bad arguments
+SCENE = WOMD_DIR / "850c48d8bbfa008f.tfrecord"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--fps", "0"], "argument --fps: 0 is outside 1..100"),
+    (["--fps", "-3"], "argument --fps: -3 is outside 1..100"),
+    (["--size", "0"], "argument --size: 0 is outside 64..4096"),
+    (["--size", "100000"], "argument --size: 100000 is outside 64..4096"),
+    (["--fps", "ten"], "argument --fps: 'ten' is not an int"),
+])
+def test_replay_refuses_bad_numbers(tmp_path, capsys, args, message):
+    with pytest.raises(SystemExit) as exc:
+        main(["replay", str(SCENE), "--out", str(tmp_path / "v.gif"), *args])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.rstrip().endswith(message)
+
+
+def test_replay_refuses_an_unwritable_out_before_the_slow_work(tmp_path, capsys, monkeypatch):
+    from magail_sumo.cli import replay
+
+    def slow_work(*args, **kwargs):  # the scene is read first of the slow work
+        raise AssertionError("replay started its slow work")
+
+    monkeypatch.setattr(replay, "load_scene", slow_work)
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["replay", str(SCENE), "--out", str(blocker / "v.gif")]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("error: magail-sumo replay: ")
+    assert f"{blocker / 'v.gif'}: cannot be written ({blocker} is not a folder)" in err[0]
+    assert main(["replay", str(SCENE), "--out", "/proc/no/v.gif"]) == 1
+    assert "/proc/no/v.gif: cannot be written (" in capsys.readouterr().err
+    (tmp_path / "d.gif").mkdir()
+    assert main(["replay", str(SCENE), "--out", str(tmp_path / "d.gif")]) == 1
+    assert "d.gif: is a folder" in capsys.readouterr().err

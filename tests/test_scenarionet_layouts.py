@@ -20,7 +20,7 @@ from converters.scenarionet import (
 )
 from converters.sumo import ConvertOptions, convert_scene
 from magail_sumo.scene import Lane, SignalState, infer_lane_connectivity
-from test_cli_inspect import run_cli
+from test_cli import run_cli
 
 BUNDLED = ROOT / "data" / "scenarionet"
 OLDER = BUNDLED / "250011f460de6135.pkl"  # older MetaDrive layout: state.size, areas as polylines

@@ -75,3 +75,87 @@ def test_validation_rules(scene_637f):
     with pytest.raises(SceneValidationError, match="zero tracks"):
         validate_scene(empty)
     assert RoadMap().count_by_kind()["lane"] == 0
+
+
+# -------------------------------------------------- scenes with nothing usable, out-of-range values
+def _tracks(scene, **cols) -> Tracks:
+    tr = scene.tracks
+    fields = {f.name: getattr(tr, f.name) for f in dataclasses.fields(tr)}
+    fields.update(cols)
+    return Tracks(**fields)
+
+
+def _refused(scene, match: str) -> str:
+    with pytest.raises(SceneValidationError) as err:
+        validate_scene(scene)
+    assert match in str(err.value), str(err.value)
+    return str(err.value)
+
+
+def test_huge_but_finite_coordinates_are_out_of_range(scene_637f):
+    tr = scene_637f.tracks
+    x = np.full(tr.x.shape, 1e308)
+    y = np.full(tr.y.shape, -1e308)
+    text = _refused(dataclasses.replace(scene_637f, tracks=_tracks(scene_637f, x=x, y=y)),
+                    "field x is 1e+308, out of range (|x| > 1e+07 m)")
+    assert "non-finite" not in text and "not finite" not in text
+    x = np.array(tr.x)
+    x[3, 5] = np.inf
+    _refused(dataclasses.replace(scene_637f, tracks=_tracks(scene_637f, x=x)),
+             f"track {int(tr.id[3])} step 5: field x is inf, not finite")
+
+
+@pytest.mark.parametrize("kind", ["zero", "reversed", "repeated"])
+def test_timestamps_must_increase(scene_637f, kind):
+    ts = np.array(scene_637f.timestamps)
+    if kind == "zero":
+        ts[:] = 0.0
+    elif kind == "reversed":
+        ts = ts[::-1].copy()
+    else:
+        ts[40] = ts[39]
+    _refused(dataclasses.replace(scene_637f, timestamps=ts),
+             "timestamps not strictly increasing: step ")
+
+
+def test_zero_steps_and_no_valid_state_are_refused(scene_637f):
+    cols = {f.name: getattr(scene_637f.tracks, f.name)[:, :0] for f in dataclasses.fields(Tracks)
+            if f.name not in ("id", "type")}
+    empty = dataclasses.replace(scene_637f, timestamps=np.zeros(0),
+                                tracks=_tracks(scene_637f, **cols))
+    _refused(empty, "scene has zero time steps")
+    invalid = np.zeros(scene_637f.tracks.valid.shape, bool)
+    _refused(dataclasses.replace(scene_637f, tracks=_tracks(scene_637f, valid=invalid)),
+             "no track has a valid state")
+
+
+@pytest.mark.parametrize("name, value, rule", [("length", 0.0, "positive"),
+                                               ("width", -1.0, "positive"),
+                                               ("height", -0.5, "non-negative")])
+def test_box_sizes_on_valid_states(scene_637f, name, value, rule):
+    tr = scene_637f.tracks
+    i, t = (int(v[0]) for v in np.nonzero(tr.valid))
+    arr = np.array(getattr(tr, name))
+    arr[i, t] = value
+    _refused(dataclasses.replace(scene_637f, tracks=_tracks(scene_637f, **{name: arr})),
+             f"track {int(tr.id[i])} step {t}: box {name} {value:g} on a valid state "
+             f"(must be {rule})")
+    # the same value on an invalid state carries no meaning and is kept
+    j, s = (int(v[0]) for v in np.nonzero(~tr.valid))
+    arr = np.array(getattr(tr, name))
+    arr[j, s] = value
+    validate_scene(dataclasses.replace(scene_637f, tracks=_tracks(scene_637f, **{name: arr})))
+
+
+def test_real_scenes_still_valid(real_scene):
+    validate_scene(real_scene)
+
+
+def test_boundary_message_spelling(scene_637f):
+    lane = next(ln for ln in scene_637f.roadmap.lanes if ln.right_boundaries)
+    seg = dataclasses.replace(lane.right_boundaries[0], boundary_feature_id=987654321)
+    bad = dataclasses.replace(lane, right_boundaries=(seg,) + lane.right_boundaries[1:])
+    lanes = tuple(bad if ln is lane else ln for ln in scene_637f.roadmap.lanes)
+    text = _refused(dataclasses.replace(scene_637f, roadmap=dataclasses.replace(
+        scene_637f.roadmap, lanes=lanes)), f"lane {lane.id}: right_boundary feature 987654321")
+    assert "boundariy" not in text

@@ -1,4 +1,5 @@
-"""TFRecord framing: CRCs, gzip, and every framing error."""
+"""TFRecord framing: CRCs, gzip, every framing error, and lengths a file claims (a
+record length, a gzip bomb) that never become allocations."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ import struct
 
 import pytest
 
-from converters.tfrecord import encode_record, iter_records, masked_crc32c, write_records
+from conftest import WOMD_DIR, peak_memory
+from converters.tfrecord import (
+    GZIP_MIN_RECORD_BUDGET, encode_record, iter_records, masked_crc32c, write_records,
+)
 from magail_sumo.errors import SceneFormatError
 
 
@@ -17,7 +21,6 @@ def test_masked_crc_matches_reference_values():
     expected = ((((crc >> 15) | (crc << 17)) & 0xFFFFFFFF) + 0xA282EAD8) & 0xFFFFFFFF
     assert masked_crc32c(b"123456789") == expected
     # The length CRC of a real WOMD record header, as stored in the file.
-    from conftest import WOMD_DIR
     head = (WOMD_DIR / "850c48d8bbfa008f.tfrecord").read_bytes()[:12]
     assert masked_crc32c(head[:8]) == struct.unpack("<I", head[8:12])[0]
 
@@ -87,3 +90,63 @@ def test_corrupt_gzip_stream(tmp_path):
     path.write_bytes(data[: len(data) // 2])
     errs = _errors(path)
     assert len(errs) == 1 and errs[0][1].fatal_for_file
+
+
+# --------------------------------------------------------- claimed lengths never become allocations
+MiB = 1 << 20
+
+
+def _header(length: int) -> bytes:
+    head = struct.pack("<Q", length)
+    return head + struct.pack("<I", masked_crc32c(head))
+
+
+def test_28_byte_file_claiming_2gib_is_truncated_without_allocating(tmp_path):
+    path = tmp_path / "claim.tfrecord"
+    path.write_bytes(_header(2**31) + b"x" * 16)
+    assert path.stat().st_size == 28
+    recs, peak = peak_memory(lambda: list(iter_records(path)))
+    [(index, err)] = recs
+    assert index == 0 and err.fatal_for_file
+    assert str(err) == (f"{path}: record 0: truncated record: length field 2147483648 but only "
+                        "16 bytes left in the file")
+    assert peak < 16 * MiB
+
+
+def test_gzip_record_is_read_in_pieces(tmp_path):
+    """A gzip record claiming 200 MiB (inside the budget) with 1 kB present costs ~chunk size."""
+    path = tmp_path / "claim.tfrecord.gz"
+    path.write_bytes(gzip.compress(_header(200 * MiB) + b"x" * 1000))
+    recs, peak = peak_memory(lambda: list(iter_records(path)))
+    [(_, err)] = recs
+    assert "record 0: truncated record: 1000 of 209715204 bytes present" in str(err)
+    assert peak < 32 * MiB
+
+
+def test_gzip_bomb_is_refused_before_decompressing(tmp_path):
+    path = tmp_path / "bomb.tfrecord.gz"
+    path.write_bytes(gzip.compress(_header(GZIP_MIN_RECORD_BUDGET + 1) + b"\0" * 1000))
+    recs, peak = peak_memory(lambda: list(iter_records(path)))
+    [(_, err)] = recs
+    assert err.fatal_for_file and "\n" not in str(err)
+    assert (f"record 0: record length {GZIP_MIN_RECORD_BUDGET + 1} exceeds the decompression "
+            f"limit of {GZIP_MIN_RECORD_BUDGET} bytes") in str(err)
+    assert peak < 16 * MiB
+
+
+def test_real_records_still_read_plain_and_gzip(tmp_path):
+    records = [d for _, d in iter_records(WOMD_DIR / "850c48d8bbfa008f.tfrecord")]
+    for name in ("x.tfrecord", "x.tfrecord.gz"):
+        write_records(tmp_path / name, records * 2)
+        back = [d for _, d in iter_records(tmp_path / name)]
+        assert back == records * 2
+
+
+def test_second_record_truncated_names_its_index(tmp_path):
+    good = encode_record(b"hello")
+    path = tmp_path / "two.tfrecord"
+    path.write_bytes(good + _header(10**9) + b"abc")
+    recs = list(iter_records(path))
+    assert recs[0] == (0, b"hello")
+    assert "record 1: truncated record: length field 1000000000 but only 3 bytes left" \
+        in str(recs[1][1])

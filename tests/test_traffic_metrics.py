@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -170,3 +173,25 @@ def _controller_module(tmp_path, monkeypatch):
                    "        ls.vehicle.setMaxSpeed(v, 4.0)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     yield Path(mod)
+
+
+# ----------------------------------------------------------------- a controlled SUMO run that stops
+SID = "850c48d8bbfa008f"  # the smallest bundled scene
+
+
+def stopping_controller(libsumo, time_s: float) -> None:
+    """A SUMO controller whose process stops itself after the first steps."""
+    if time_s >= 0.5:
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+
+@pytest.mark.sumo
+def test_controlled_sumo_run_that_stops_times_out(tmp_path, bundled_networks):
+    from magail_sumo.evaluation.traffic import sumo_outputs as so
+
+    cfg = bundled_networks(SID) / SID / f"{SID}.sumocfg"
+    clock = time.monotonic()
+    with pytest.raises(so.SumoRunError, match="controlled SUMO run timed out after 8 s"):
+        so.run_sumo_outputs(cfg, tmp_path / "o", controller=f"{__name__}:stopping_controller",
+                            timeout_s=8)
+    assert time.monotonic() - clock < 300  # generous: the stopped SUMO would never answer

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -186,3 +187,30 @@ def test_scene_worker_holds_no_learner_imports(specs):
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
+# ------------------------------------------------------------------------------- every wait bounded
+SID = "850c48d8bbfa008f"  # the smallest bundled scene
+SCENE = WOMD_DIR / f"{SID}.tfrecord"
+
+
+@pytest.mark.sumo
+def test_vec_env_large_request_to_a_stopped_worker_times_out(bundled_networks):
+    from magail_sumo.env import EnvConfig
+    from magail_sumo.env.vec_env import MultiSceneVecEnv, SceneSpec, VecEnvWorkerError
+
+    spec = SceneSpec(str(SCENE), str(bundled_networks(SID) / SID), SID)
+    venv = MultiSceneVecEnv([spec], EnvConfig(controlled=3, max_steps=10), timeout_s=120.0)
+    try:
+        venv.reset()
+        venv.timeout_s = 3.0
+        os.kill(venv._procs[0].pid, signal.SIGSTOP)
+        # distinct arrays (pickle would share one): far beyond a pipe's 64 KiB
+        replay = [np.zeros((venv.num_envs, 2), np.float32) for _ in range(20_000)]
+        clock = time.monotonic()
+        with pytest.raises(VecEnvWorkerError, match="did not read its request within 3 s"):
+            venv.set_state([(0, replay)])
+        assert time.monotonic() - clock < 120  # generous: a stopped worker never reads
+        assert not venv._procs[0].is_alive()
+    finally:
+        venv.close()

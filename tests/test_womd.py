@@ -220,3 +220,64 @@ def test_non_canonical_points_fall_back(scene_637f):
     got = scene.roadmap.lane(lane.id).polyline
     assert got[0, 2] == 0.0 and got[0, 0] == lane.lane.polyline[0].x
     assert np.array_equal(got[2:], scene_637f.roadmap.lane(lane.id).polyline[2:])
+
+
+# ----------------------------------------------------------------- map points far outside the scene
+def _record_error(tmp_path, msg) -> str:
+    path = tmp_path / "bad.tfrecord"
+    path.write_bytes(encode_record(msg.SerializeToString()))
+    [rec] = list(iter_scene_records(path))
+    assert not rec.ok and rec.index == 0
+    text = str(rec.error)
+    assert "\n" not in text and text.startswith(f"{path}: record 0: ")
+    return text
+
+
+@pytest.mark.parametrize("x", [1e9, 5e4])
+def test_map_point_far_outside_the_scene_is_refused_naming_the_feature(tmp_path, scene_637f, x):
+    """One lane point at x = 1e9 once drove ``convert`` past 7.9 GB; 50 km out is refused too."""
+    msg = scene_to_proto(scene_637f)
+    k = next(i for i, f in enumerate(msg.map_features) if f.HasField("lane"))
+    msg.map_features[k].lane.polyline[1].x = x
+    text = _record_error(tmp_path, msg)
+    assert (f"lane {msg.map_features[k].id}: point ({x:.6g}, " in text
+            and "is far outside the scene (more than 10000 m from the bounding box of the valid "
+                "object states)" in text), text
+
+
+def test_far_stop_sign_and_stop_point_are_refused(tmp_path, scene_637f):
+    msg = scene_to_proto(scene_637f)
+    k = next(i for i, f in enumerate(msg.map_features) if f.HasField("stop_sign"))
+    msg.map_features[k].stop_sign.position.y = -3e6
+    assert f"stop_sign {msg.map_features[k].id}: point (" in _record_error(tmp_path, msg)
+    msg = scene_to_proto(scene_637f)
+    ls = msg.dynamic_map_states[4].lane_states[0]
+    ls.stop_point.x = 1e8
+    assert (f"signal state of lane {ls.lane} at step 4: stop_point (1e+08, "
+            in _record_error(tmp_path, msg))
+
+
+def test_map_near_the_scene_is_kept(scene_637f):
+    """Real maps reach ~150 m past the agents; a point 9 km out is still accepted."""
+    from dataclasses import replace
+
+    from magail_sumo.scene import validate_scene
+    lane = scene_637f.roadmap.lanes[0]
+    tr = scene_637f.tracks
+    far = tr.x[tr.valid].max() + 9_000.0
+    pts = np.array(lane.polyline)
+    pts[0, 0] = far
+    lanes = (replace(lane, polyline=pts),) + scene_637f.roadmap.lanes[1:]
+    validate_scene(replace(scene_637f, roadmap=replace(scene_637f.roadmap, lanes=lanes)))
+
+
+# ------------------------------------------------------------------------------- an unusable record
+def test_unusable_womd_record_is_a_one_line_error_with_the_reason(tmp_path, scene_637f):
+    msg = scene_to_proto(scene_637f)
+    for track in msg.tracks:
+        for s in track.states:
+            s.center_x, s.center_y = 1e308, -1e308
+    path = tmp_path / "far.tfrecord"
+    path.write_bytes(encode_record(msg.SerializeToString()))
+    [rec] = list(iter_scene_records(path))
+    assert "field x is 1e+308, out of range" in str(rec.error)

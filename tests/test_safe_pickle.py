@@ -1,4 +1,6 @@
-"""Hostile ScenarioNet pickles: memory corruption, allocation bombs, wrong-typed fields.
+"""The restricted unpickler (``converters.scenarionet.safe_pickle``) and the ScenarioNet reader
+on hostile pickles: memory corruption, allocation bombs, wrong-typed fields, one object
+shared by thousands of tracks or map features.
 
 Every crafted pickle is tiny and built here opcode by opcode; each must give one
 :class:`UnsafePickleError` / one-line :class:`SceneFormatError`, never a crash, a traceback or
@@ -20,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROOT, WOMD_DIR
+from conftest import ROOT, WOMD_DIR, peak_memory
 from converters import iter_scene_records, load_scene
 from converters.scenarionet import UnsafePickleError, load_scenarionet, safe_loads
 from converters.scenarionet.safe_pickle import MIN_BUDGET, allocation_budget
@@ -342,3 +344,57 @@ def test_dataset_summary_names_stay_inside_the_folder(tmp_path, name, folder):
     (ds / "dataset_mapping.pkl").write_bytes(pickle.dumps({name: folder}))
     [rec] = list(iter_scene_records(ds))
     assert not rec.ok and "bad scenario file name" in str(rec.error), rec.error
+
+
+# ------------------------------------------------------------------- objects shared across a pickle
+MiB = 1 << 20
+
+
+def _state(steps: int) -> dict:
+    ones = np.ones(steps, bool)
+    return {"position": np.zeros((steps, 2), bool), "heading": ones, "valid": ones,
+            "length": ones, "width": ones, "height": ones}
+
+
+def _load_peak(path):
+    from converters.scenarionet import load_scenarionet
+    from magail_sumo.errors import SceneFormatError
+
+    def run():
+        with pytest.raises(SceneFormatError) as err:
+            load_scenarionet(path)
+        return str(err.value)
+    return peak_memory(run)
+
+
+def test_tracks_sharing_one_state_cannot_blow_up(tmp_path):
+    """5000 tracks referencing one 20000-step state: a 300 kB pickle describing a 6 GB scene."""
+    import pickle
+
+    state = _state(20_000)
+    sd = {"id": "x", "length": 20_000, "map_features": {}, "dynamic_map_states": {},
+          "metadata": {"ts": np.arange(20_000, dtype=np.int32), "scenario_id": "x"},
+          "tracks": {str(i): {"type": "VEHICLE", "state": state} for i in range(5000)}}
+    path = tmp_path / "shared.pkl"
+    path.write_bytes(pickle.dumps(sd, protocol=4))
+    assert path.stat().st_size < 400_000
+    text, peak = _load_peak(path)
+    assert text.startswith(f"{path}: record 0: tracks: the scene would take more than 67108864 "
+                           "bytes of memory"), text
+    assert peak < 64 * MiB
+
+
+def test_map_features_sharing_one_polyline_cannot_blow_up(tmp_path):
+    import pickle
+
+    poly = np.zeros((100_000, 2), bool)
+    sd = {"id": "x", "length": 2, "dynamic_map_states": {},
+          "metadata": {"ts": np.arange(2.0), "scenario_id": "x"},
+          "tracks": {"1": {"type": "VEHICLE", "state": _state(2)}},
+          "map_features": {str(i): {"type": "ROAD_EDGE_BOUNDARY", "polyline": poly}
+                           for i in range(10, 20_000)}}
+    path = tmp_path / "shared_map.pkl"
+    path.write_bytes(pickle.dumps(sd, protocol=4))
+    text, peak = _load_peak(path)
+    assert "].polyline: the scene would take more than 67108864 bytes" in text, text
+    assert peak < 128 * MiB

@@ -1,4 +1,5 @@
-"""Issue 16 (hardening): output paths derived from data, output-folder ownership, atomic writes.
+"""Outputs (``magail_sumo.outputs``): paths derived from data, output-folder ownership, atomic
+writes (issue 16).
 
 Scene ids are data: an absolute id, ``..``, ``/``, an empty id, ``.``, NUL, a newline or 5,000
 characters must neither write outside the output folder nor end a batch with a traceback. One

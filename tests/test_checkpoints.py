@@ -1,5 +1,6 @@
-"""Hardening of training checkpoints and run directories: a checkpoint cannot run code, bad
-checkpoints give one-line errors naming the file, ``train --overwrite`` removes only a run."""
+"""Training checkpoints and run directories: a checkpoint cannot run code, bad checkpoints
+give one-line errors naming the file (in training and in evaluation), ``train --overwrite``
+removes only a run."""
 
 from __future__ import annotations
 
@@ -270,3 +271,15 @@ def test_failed_set_up_leaves_no_run_dir(setup, tmp_path):
         train(replace(cfg, algorithm="bc", expert_dir=str(tmp_path / "no_expert")),
               run_dir=tmp_path / "run", log=lambda s: None)
     assert not (tmp_path / "run").exists()
+
+
+# ----------------------------------------------------------------------------------------- evaluate
+def test_unloadable_checkpoint_is_one_line(tmp_path, capsys):
+    ckpt = tmp_path / "broken.pt"
+    ckpt.write_bytes(b"not a checkpoint")
+    rc = main(["evaluate", "--policy", str(ckpt), "--baselines", "none", "--scenes", str(SCENE),
+               "--out", str(tmp_path / "e")])
+    assert rc == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("error: magail-sumo evaluate: ")
+    assert str(ckpt) in err[0] and "Traceback" not in err[0]

@@ -1,4 +1,6 @@
-"""``magail-sumo inspect`` end to end: the installed console script on real and bad files."""
+"""The command line: ``magail-sumo inspect`` end to end (the installed console script on real
+and bad files, ``--skip-bad``), the top-level handler's one-line errors (``--debug`` for the
+traceback), argument checks shared by the commands."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import pytest
 
 from conftest import EXPECTED, WOMD_DIR
 from converters.tfrecord import encode_record, iter_records
+from magail_sumo.cli.main import main
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
@@ -89,3 +92,60 @@ def test_skip_bad_reads_the_rest_and_counts(tmp_path):
     assert f"read 2 scene(s) from {len(files)} file(s); skipped {len(bad)}" in summary
     for problem in ("truncated record", "data CRC mismatch", "unsafe pickle", "empty file"):
         assert problem in summary
+
+
+# ----------------------------------------------- the top-level handler, --skip-bad, argument checks
+SID = "850c48d8bbfa008f"  # the smallest bundled scene
+SCENE = WOMD_DIR / f"{SID}.tfrecord"
+
+
+def test_unexpected_error_is_one_line_naming_command_and_input(monkeypatch, capsys):
+    from magail_sumo.cli import inspect
+
+    def boom(args):
+        raise ValueError("something\nbroke")
+
+    monkeypatch.setattr(inspect, "run", boom)
+    assert main(["inspect", str(SCENE)]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"error: magail-sumo inspect: {SCENE}: ValueError: something broke"
+    assert err[1] == "(run with --debug for the traceback)" and len(err) == 2
+    assert main(["--debug", "inspect", str(SCENE)]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.rstrip().endswith("ValueError: something broke")
+    assert main(["inspect", str(SCENE), "--debug"]) == 1
+    assert "Traceback" in capsys.readouterr().err
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(inspect, "run", interrupted)
+    assert main(["inspect", str(SCENE)]) == 130
+
+
+def test_inspect_skip_bad_goes_on_past_a_failing_scene(monkeypatch, capsys):
+    from magail_sumo.scene import Scene
+
+    real = Scene.summary
+
+    def summary(self):
+        if self.scenario_id == SID:
+            raise KeyError("lost")
+        return real(self)
+
+    monkeypatch.setattr(Scene, "summary", summary)
+    other = WOMD_DIR / "2831b6fde0420b0d.tfrecord"
+    assert main(["inspect", "--skip-bad", "--json", str(SCENE), str(other)]) == 0
+    out, err = capsys.readouterr()
+    assert '"2831b6fde0420b0d"' in out
+    assert f"scene {SID}: KeyError: 'lost'" in err
+    assert main(["inspect", str(SCENE), str(other)]) == 1
+
+
+def test_timeout_flag_is_checked(capsys):
+    for cmd in (["convert", str(SCENE), "--out", "x"],
+                ["evaluate", "--policy", "constvel", "--scenes", str(SCENE), "--out", "x"],
+                ["expert", str(SCENE), "--out", "x"]):
+        with pytest.raises(SystemExit):
+            main([*cmd, "--timeout-s", "0"])
+        assert "argument --timeout-s: 0 is outside" in capsys.readouterr().err
