@@ -161,14 +161,14 @@ def test_no_cycle_between_packages():
 
 
 def _says_why(lines: list[str], line: int) -> bool:
-    """Whether the import at ``line`` (1-based) or a line above it in the same run of imports
-    and comments carries ``# lazy: <reason>``."""
+    """Whether the import at ``line`` (1-based) or a line above it in the same run of imports,
+    comments and blank lines carries ``# lazy: <reason>``."""
     k = line - 1
     while k >= 0:
         text = lines[k].strip()
         if LAZY_REASON.search(text):
             return True
-        if k < line - 1 and not (text.startswith(("from ", "import ", "#"))
+        if k < line - 1 and not (text == "" or text.startswith(("from ", "import ", "#"))
                                  or text.endswith((",", ")"))):
             return False
         k -= 1

@@ -58,7 +58,7 @@ from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSu
                                                          summarise)
 from magail_sumo.outputs import (claim_output_dir, inside, one_line, printable, safe_name,
                                  write_text)
-from magail_sumo.policies import BASELINES, make_policy, method_name
+from magail_sumo.agents.specs import BASELINES
 from magail_sumo.sim.session import SessionConfig
 from magail_sumo.workers import run_one
 
@@ -168,6 +168,9 @@ def check_policy(spec: str, deterministic: bool = False,
         raise EvaluationError(f"--policy {spec}: a city needs a driving policy (random, "
                               "pretrained[:NAME], a checkpoint or module:factory); SUMO's "
                               "default drivers run alongside as method 'sumo'")
+    # lazy: the report imports this module (city.json) in workers that run without torch
+    from magail_sumo.policies import make_policy
+
     make_policy(spec, 0, deterministic, noise_scale)
 
 
@@ -175,6 +178,9 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     """Worker entry point (module level, picklable): the policy drives the city for the
     window (module doc); SUMO writes its outputs into ``job.out_dir``."""
     st = job.settings
+    # lazy: the report imports this module (city.json) in workers that run without torch
+    from magail_sumo.policies import make_policy
+
     policy = make_policy(job.spec, rollout_seed(st.seed, 0), st.deterministic, st.noise_scale)
     # the env the policy needs: its optional features, action layout and gap guard
     cfg = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)), max_agents=st.max_agents,
@@ -260,6 +266,9 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
     st = settings or CitySettings()
     out = Path(out)
     check_policy(policy, st.deterministic, st.noise_scale)
+    # lazy: the report imports this module (city.json) in workers that run without torch
+    from magail_sumo.policies import method_name
+
     method = name if name is not None else method_name(policy)
     if not method.strip() or not method.isprintable() or len(method) > 100:
         raise EvaluationError(f"--name {printable(method)!r}: must be a non-empty printable "

@@ -35,11 +35,13 @@ has crashed when a second one starts after vehicle removals).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
+from converters.scene_files import find_scene
 from magail_sumo.agents import Policy, env_settings, rollout
 from magail_sumo.agents import constant_velocity as _cv
 from magail_sumo.agents.constant_velocity import Track, current_state, fill_constant_velocity
@@ -50,7 +52,6 @@ from magail_sumo.evaluation.protocol import N_STEPS, EvaluationError, log, rollo
 from magail_sumo.evaluation.realism import log_replay
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
 from magail_sumo.outputs import printable
-from magail_sumo.policies import make_policy
 from magail_sumo.scene import Scene
 from magail_sumo.sim.dynamics import wrap_angle
 
@@ -216,6 +217,9 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
     elif method == "sumo":
         runs = [sumo_rollout(scene, Path(bundle_dir), s, ids, N_STEPS) for s in seeds]
     else:
+        # lazy: baseline batches run in worker processes that import no torch
+        from magail_sumo.policies import make_policy
+
         with PolicyRollouts(scene, bundle_dir,
                             lambda s: make_policy(method, s, deterministic, noise_scale)) as pr:
             runs = [pr.run(s, counts) for s in seeds]
@@ -229,3 +233,37 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
             action_counts[k] = action_counts.get(k, 0) + int(v)
     xs, ys, yaws = ([run[k] for run in runs] for k in range(3))
     return as_rollouts(scene, ids, xs, ys, yaws)
+
+
+# ------------------------------------------------------------------------------ worker batches
+@dataclass(frozen=True)
+class Batch:
+    """Work for one worker process: some rollouts of one method on one scene.
+
+    :param spec: method name or policy spec (see :func:`make_policy`).
+    :param deterministic: a checkpoint policy acts deterministically (see :func:`make_policy`).
+    :param noise_scale: its sampling noise's scale (None: the policy's own; see
+        :func:`make_policy`).
+    :param scene: the parsed scene (the worker reads ``scene_file`` when None).
+    """
+
+    scene_file: str
+    scenario_id: str
+    bundle_dir: str
+    spec: str
+    rollouts: tuple[int, ...]
+    seed: int
+    deterministic: bool = False
+    noise_scale: float | None = None
+    scene: Scene | None = field(default=None, compare=False, repr=False)
+
+
+def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
+    """Worker entry point (module level, picklable): the batch, its rollouts and the policy's
+    fixed-up action counts."""
+    scene = batch.scene if batch.scene is not None else \
+        find_scene(batch.scene_file, batch.scenario_id)
+    counts: dict[str, int] = {}
+    ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts,
+                  batch.deterministic, batch.noise_scale)
+    return replace(batch, scene=None), ro, counts

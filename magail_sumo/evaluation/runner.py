@@ -18,9 +18,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from converters.scene_files import find_scene
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.methods import needs_worker, simulate
+from magail_sumo.evaluation.methods import Batch, needs_worker, run_batch, simulate
 from magail_sumo.evaluation.protocol import (DEFAULT_TIMEOUT_S, N_STEPS, EvaluationError, Problems,
                                              span)
 from magail_sumo.evaluation.scenes import PreparedScene, read_scenes, with_bundles
@@ -29,43 +28,9 @@ from magail_sumo.evaluation.storage import (rollouts_path, to_frame, versions, w
 from magail_sumo.evaluation.submission import (ScenarioRollouts, sim_agent_ids, validate_rollouts,
                                                write_submission)
 from magail_sumo.outputs import NameRegistry, claim_output_dir, one_line, printable
-from magail_sumo.policies import BASELINES, BUILTIN_POLICIES, make_policy, method_name
-from magail_sumo.scene import Scene
+from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES
+from magail_sumo.policies import make_policy, method_name
 from magail_sumo.workers import run_jobs
-
-
-# ------------------------------------------------------------------------------ worker batches
-@dataclass(frozen=True)
-class Batch:
-    """Work for one worker process: some rollouts of one method on one scene.
-
-    :param spec: method name or policy spec (see :func:`make_policy`).
-    :param deterministic: a checkpoint policy acts deterministically (see :func:`make_policy`).
-    :param noise_scale: its sampling noise's scale (None: the policy's own; see
-        :func:`make_policy`).
-    :param scene: the parsed scene (the worker reads ``scene_file`` when None).
-    """
-
-    scene_file: str
-    scenario_id: str
-    bundle_dir: str
-    spec: str
-    rollouts: tuple[int, ...]
-    seed: int
-    deterministic: bool = False
-    noise_scale: float | None = None
-    scene: Scene | None = field(default=None, compare=False, repr=False)
-
-
-def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
-    """Worker entry point (module level, picklable): the batch, its rollouts and the policy's
-    fixed-up action counts."""
-    scene = batch.scene if batch.scene is not None else \
-        find_scene(batch.scene_file, batch.scenario_id)
-    counts: dict[str, int] = {}
-    ro = simulate(scene, batch.spec, batch.rollouts, batch.seed, batch.bundle_dir, counts,
-                  batch.deterministic, batch.noise_scale)
-    return replace(batch, scene=None), ro, counts
 
 
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S

@@ -17,11 +17,13 @@ Add a trained algorithm's policy: a module here with its loader, and one entry i
 :data:`CHECKPOINT_LOADERS` (or :func:`register_checkpoint_loader` from outside the package).
 """
 
+from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES, GUARDED, unguarded
+
 from .checkpoint import CheckpointPolicy, load_actor_policy, policy_observation
 from .gameformer import GameFormerPolicy, load_gameformer_policy
-from .registry import (BASELINES, BUILTIN_POLICIES, CHECKPOINT_LOADERS, GUARDED, POLICY_LOADERS,
-                       card_noise_scale, load_checkpoint_policy, load_training_checkpoint,
-                       make_policy, method_name, register_checkpoint_loader, unguarded)
+from .registry import (CHECKPOINT_LOADERS, POLICY_LOADERS, card_noise_scale,
+                       load_checkpoint_policy, load_training_checkpoint, make_policy, method_name,
+                       register_checkpoint_loader)
 from .sac import SacCheckpointPolicy, load_sac_checkpoint_policy
 
 __all__ = ["BASELINES", "BUILTIN_POLICIES", "CHECKPOINT_LOADERS", "CheckpointPolicy", "GUARDED",

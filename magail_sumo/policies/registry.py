@@ -23,6 +23,7 @@ import torch
 
 from magail_sumo.agents.base import Policy, PolicyError, check_noise_scale
 from magail_sumo.agents.random_policy import RandomPolicy
+from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES, GUARDED
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.guard import GuardConfig
 from magail_sumo.errors import MagailSumoError
@@ -33,13 +34,6 @@ from magail_sumo.pretrained import (PretrainedError, is_pretrained_spec, name_of
 from .checkpoint import load_actor_policy
 from .gameformer import load_gameformer_policy
 from .sac import load_sac_checkpoint_policy
-
-#: methods that are no env policy: whole-trajectory models (evaluation runs them itself)
-BASELINES = ("logreplay", "constvel", "sumo")
-BUILTIN_POLICIES = ("random",)
-#: ``make_policy`` spec prefix: the policy that follows, driven through the gap guard
-#: (:mod:`magail_sumo.env.guard`, default settings) in evaluation
-GUARDED = "guarded:"
 
 Loader = Union[Callable[..., Policy], str]
 
@@ -55,13 +49,6 @@ CHECKPOINT_LOADERS: dict[str, Loader] = {
     "sac_gail": load_sac_checkpoint_policy,
     "gameformer": load_gameformer_policy,
 }
-
-
-def unguarded(spec: str) -> str:
-    """``spec`` without its ``guarded:`` prefixes: the policy the gap guard drives."""
-    while spec.startswith(GUARDED):
-        spec = spec[len(GUARDED):]
-    return spec
 
 
 def register_checkpoint_loader(algorithm: str, loader: Loader) -> None:

@@ -30,13 +30,10 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from magail_sumo.agents.base import check_noise_scale
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import atomic_path, is_safe_name, printable, write_text
 from magail_sumo.splits import load_split, scene_stem
-from magail_sumo.training.checkpoints import load_checkpoint
 
 #: environment variable naming another registry folder (tests, a user's own policies)
 ENV_VAR = "MAGAIL_SUMO_PRETRAINED_DIR"
@@ -181,6 +178,11 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
     ``make_default`` names it in ``index.json``. ``noise_scale`` (with ``noise_note``, how it
     was chosen) is the card's ``sampling``. Files are written atomically.
     """
+    # lazy: reading the registry (the report's workers, the CLI) needs no torch; export does
+    import torch
+
+    from magail_sumo.training.checkpoints import load_checkpoint
+
     if not is_safe_name(name) or name in RESERVED:
         raise PretrainedError(f"{printable(name, 60)!r}: not a pretrained policy name "
                               "([A-Za-z0-9._-], not a built-in method's name)")

@@ -25,7 +25,7 @@ from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, read_rows
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
-from magail_sumo.policies import POLICY_LOADERS, unguarded
+from magail_sumo.agents.specs import unguarded
 from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.pretrained import is_pretrained_spec
 
@@ -64,6 +64,9 @@ def _action_mode(man: dict) -> str:
     """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled,
     with its noise scale when not 1), as the manifest records it; empty for other policies and
     older manifests."""
+    # lazy: the report's scoring workers import this package and run without torch
+    from magail_sumo.policies import POLICY_LOADERS
+
     spec = man.get("policy_spec")
     spec = unguarded(spec) if isinstance(spec, str) else spec
     if "deterministic" not in man or not isinstance(spec, str) \
