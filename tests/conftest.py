@@ -99,7 +99,7 @@ class BundledNetworks:
                 self._converted = claim_networks_dir(self._factory.mktemp("bundled_scenes"))
             (spec,) = scene_specs([str(path)], self._converted)
             folder = self._bundles[scenario_id] = Path(spec.bundle)
-            self._digests[folder] = _tree_digest(folder)
+            self._digests[folder] = tree_digest(folder)
         return self._bundles[scenario_id]
 
     def __call__(self, *scenario_ids: str) -> Path:
@@ -112,20 +112,20 @@ class BundledNetworks:
                 shutil.copytree(self.bundle(sid), root / sid)
             claim_networks_dir(root)
             self._sets[key] = root
-            self._digests[root] = _tree_digest(root)
+            self._digests[root] = tree_digest(root)
         return self._sets[key]
 
     def changed(self) -> list[str]:
         """Files added, changed or removed in the folders handed out since."""
         out = []
         for root, before in self._digests.items():
-            after = _tree_digest(root)
+            after = tree_digest(root)
             out += [str(root / p) for p in sorted(set(before) | set(after))
                     if before.get(p) != after.get(p)]
         return out
 
 
-def _tree_digest(root: Path) -> dict[str, str]:
+def tree_digest(root: Path) -> dict[str, str]:
     """Relative path -> SHA-256 of every file under ``root`` ("dir" for folders)."""
     out = {}
     for dirpath, dirs, files in os.walk(root):

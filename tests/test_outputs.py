@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import errno
-import hashlib
 import io
 import json
 import os
@@ -26,7 +25,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from conftest import ROOT, WOMD_DIR
+from conftest import ROOT, WOMD_DIR, tree_digest
 from converters import load_scene
 from converters.womd import write_womd
 from magail_sumo.cli.main import main
@@ -38,18 +37,6 @@ SID = "850c48d8bbfa008f"
 def _hostile_ids(canary: Path) -> list[str]:
     return [str(canary / "abs"),  # absolute: would land in the canary folder
             "../../esc", "..", "a/b", "", ".", "nul\x00id", "new\nline", "L" * 5000]
-
-
-def _tree(root: Path) -> dict[str, str]:
-    """Relative path -> content digest ("dir" for folders) of everything under ``root``."""
-    out = {}
-    for dirpath, dirs, files in os.walk(root):
-        for d in dirs:
-            out[os.path.relpath(os.path.join(dirpath, d), root)] = "dir"
-        for f in files:
-            p = os.path.join(dirpath, f)
-            out[os.path.relpath(p, root)] = hashlib.sha256(Path(p).read_bytes()).hexdigest()
-    return out
 
 
 def _changed_outside(before: dict[str, str], after: dict[str, str], allowed: list[str]
@@ -111,7 +98,7 @@ def test_pipeline_with_hostile_ids_stays_inside(world, capsys, monkeypatch):
     monkeypatch.chdir(work)
     out = work / "out"
     src = str(root / "inputs" / "hostile.tfrecord")
-    before = _tree(root)
+    before = tree_digest(root)
 
     assert main(["convert", src, "--out", str(out), "--no-baseline"]) == 0
     err = capsys.readouterr().err
@@ -151,7 +138,7 @@ def test_pipeline_with_hostile_ids_stays_inside(world, capsys, monkeypatch):
     assert (out / "eval" / "report" / "report.html").is_file()
     assert not list((out / "eval" / "report" / "img").glob("*/*"))  # image names are names
 
-    after = _tree(root)
+    after = tree_digest(root)
     assert _changed_outside(before, after, [os.path.join("work", "out")]) == []
     assert (root / "canary" / "keep.txt").read_text() == "do not touch\n"
     assert sorted(os.listdir(root / "canary")) == ["keep.txt"]
@@ -163,7 +150,7 @@ def test_replay_with_hostile_id(tmp_path):
     one = tmp_path / "one.tfrecord"
     write_womd(one, [dataclasses.replace(load_scene(WOMD_DIR / f"{SID}.tfrecord"),
                                          scenario_id="../../new\nline")])
-    before = _tree(tmp_path)
+    before = tree_digest(tmp_path)
     gif = tmp_path / "vid" / "r.gif"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
@@ -173,7 +160,7 @@ def test_replay_with_hostile_id(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("../../new\\nline: ")
     assert gif.stat().st_size > 0
-    assert _changed_outside(before, _tree(tmp_path), ["vid"]) == []
+    assert _changed_outside(before, tree_digest(tmp_path), ["vid"]) == []
     assert sorted(os.listdir(gif.parent)) == ["r.gif"]
 
 
@@ -254,11 +241,11 @@ def test_foreign_folder_is_refused(tmp_path, capsys, cmd, name):
     d = tmp_path / "theirs"
     d.mkdir()
     (d / name).write_text("someone else's file\n")
-    before = _tree(tmp_path)
+    before = tree_digest(tmp_path)
     assert main([a.replace("{d}", str(d)) for a in cmd]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "not empty and was not written by magail_sumo" in err
-    assert _tree(tmp_path) == before
+    assert tree_digest(tmp_path) == before
 
 
 def test_reruns_into_own_folders_are_accepted(tmp_path, capsys):
@@ -338,7 +325,7 @@ def _full_disk(monkeypatch, needle: str) -> None:
 
 
 def _partial_files(folder: Path) -> list[str]:
-    return sorted(p for p in _tree(folder) if p.endswith((".tmp", ".old")) or "/." in p
+    return sorted(p for p in tree_digest(folder) if p.endswith((".tmp", ".old")) or "/." in p
                   or p.startswith("."))
 
 
@@ -349,7 +336,7 @@ def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, mo
     src = str(WOMD_DIR / f"{SID}.tfrecord")
     fresh, again = tmp_path / "fresh", tmp_path / "again"
     assert main(["convert", src, "--out", str(again), "--no-baseline"]) == 0
-    old = _tree(again / SID)
+    old = tree_digest(again / SID)
     capsys.readouterr()
     _full_disk(monkeypatch, needle)
     for out in (fresh, again):  # --force: reconvert the bundle convert would skip as done
@@ -359,7 +346,7 @@ def test_full_disk_during_convert_leaves_old_bundle_or_none(tmp_path, capsys, mo
         assert "No space left on device" in err
     monkeypatch.undo()
     assert not (fresh / SID).exists()  # no half-written bundle
-    assert _tree(again / SID) == old  # the old bundle, untouched
+    assert tree_digest(again / SID) == old  # the old bundle, untouched
     assert _partial_files(fresh) == [MARKER] and _partial_files(again) == [MARKER]
 
 
@@ -390,7 +377,7 @@ def test_full_disk_on_summary_and_manifest_keeps_old_files(tmp_path, capsys, mon
     write_manifest(d, man)
     for name in ("metrics.csv", "report.html", "sub.binproto"):
         (d / name).write_text("old\n")
-    old = _tree(d)
+    old = tree_digest(d)
     _full_disk(monkeypatch, str(d))
     with pytest.raises(OSError):
         write_manifest(d, {**man, "methods": ["sumo"]})
@@ -401,18 +388,18 @@ def test_full_disk_on_summary_and_manifest_keeps_old_files(tmp_path, capsys, mon
     with pytest.raises(OSError):
         write_submission(d / "sub.binproto", [])
     monkeypatch.undo()
-    assert _tree(d) == old
+    assert tree_digest(d) == old
 
     from magail_sumo.expert import record_expert
 
     ex = tmp_path / "expert"
     record_expert([], ex)
-    old = _tree(ex)
+    old = tree_digest(ex)
     _full_disk(monkeypatch, "metadata.json")
     with pytest.raises(OSError):
         record_expert([], ex)
     monkeypatch.undo()
-    assert _tree(ex) == old
+    assert tree_digest(ex) == old
 
     class HalfFrame:  # a Parquet writer that fills the disk half-way
         def to_parquet(self, path, index=False):
@@ -442,6 +429,6 @@ def test_full_disk_on_real_tmpfs(tmp_path, capsys):
         _one_line_errors(err)
         assert "No space left on device" in err  # netconvert itself does not notice
         assert not (out / "637f20cafde22ff8").exists()
-        assert not [p for p in _tree(mnt) if p.endswith((".tmp", ".old"))]
+        assert not [p for p in tree_digest(mnt) if p.endswith((".tmp", ".old"))]
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True)
