@@ -81,12 +81,19 @@ def test_ensure_bundle_finds_a_complete_one_without_converting(scene_637f, netwo
     assert not (networks / ".locks").exists()
 
 
-def test_session_options_left_to_the_config():
-    default = SumoSession("a.sumocfg").command()
-    assert default == ["sumo", "-c", "a.sumocfg", "--step-length", "0.1", "--seed", "0",
-                       "--time-to-teleport", "-1", "--collision.action", "warn",
-                       "--no-step-log", "true", "--no-warnings", "true"]
+def test_session_options_left_to_the_config(networks):
+    """The configuration's behaviour options are kept (never ``-c``); the session's own
+    options, when set, replace them."""
+    cfg = BundleLayout.of(networks / SID, SID).sumocfg
+    default = SumoSession(cfg).command()
+    assert "-c" not in default and default[0] == "sumo"
+    opts = dict(zip(default[1::2], default[2::2]))
+    assert opts["--end"] == "9.1" and opts["--begin"] == "0"  # the configuration's
+    assert opts["--step-length"] == "0.1" and opts["--seed"] == "0"  # the session's
+    assert opts["--time-to-teleport"] == "-1" and opts["--collision.action"] == "warn"
+    assert opts["--net-file"].endswith(f"{SID}.net.xml")
     bare = SessionConfig(step_length=None, seed=None, time_to_teleport=None,
                          collision_action=None, extra_args=("--end", "5"), subscribe=False)
-    assert SumoSession("a.sumocfg", config=bare).command() == [
-        "sumo", "-c", "a.sumocfg", "--no-step-log", "true", "--no-warnings", "true", "--end", "5"]
+    opts = dict(zip(*[iter(SumoSession(cfg, config=bare).command()[1:])] * 2))
+    assert opts["--time-to-teleport"] == "30" and opts["--end"] == "5"  # config's, then ours
+    assert "--seed" not in opts and opts["--no-step-log"] == "true"

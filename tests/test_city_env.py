@@ -83,7 +83,7 @@ def test_bad_scenario_files(tmp_path):
         SumoCityEnv(tmp_path / "nope.sumocfg")
     bad = tmp_path / "bad.sumocfg"
     bad.write_text("<configuration><input><net-file value='missing.net.xml'/></input></configuration>")
-    with pytest.raises(MagailSumoError, match="missing.net.xml: SUMO network file not found"):
+    with pytest.raises(MagailSumoError, match="bad.sumocfg: net-file missing.net.xml: not found"):
         SumoCityEnv(bad)
 
 

@@ -146,7 +146,7 @@ def test_manifest_of_another_run_setting_keeps_the_city_entry(tmp_path):
     ([], "nothing to evaluate: give --scenes FILE..., --city SUMOCFG... or both"),
     (["--city", "missing.sumocfg"], "missing.sumocfg: SUMO config file not found"),
     (["--city", "bad.sumocfg"], "bad.sumocfg: not valid XML"),
-    (["--city", "nonet.sumocfg"], "nonet.sumocfg: no input/net-file"),
+    (["--city", "nonet.sumocfg"], "nonet.sumocfg: names no net-file"),
     (["--city", str(CFG.with_suffix(".net.xml"))], "needs a SUMO scenario's .sumocfg file"),
     (["--city", str(CFG), "--policy", "constvel"], "--policy constvel: a city needs a "
                                                     "driving policy"),

@@ -61,7 +61,7 @@ def test_bad_configs_are_refused_with_the_key(tmp_path, text, message):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(ConfigError, match="nope.yaml: cannot read"):
+    with pytest.raises(ConfigError, match="nope.yaml: no such file"):
         load_config(tmp_path / "nope.yaml", Outer)
 
 
@@ -226,3 +226,19 @@ def test_batch_size_larger_than_the_rollout_refused(bundled_networks):
     with pytest.raises(ConfigError, match=r"ppo\.batch_size: 4096 is larger than a rollout "
                                           r"\(ppo\.n_steps 4 x \d+ agent slots"):
         GailRun(cfg, None)
+
+
+def test_config_that_is_a_fifo_or_device_is_refused_at_once(tmp_path):
+    """A FIFO would block ``open`` forever and a device stream: one line, in seconds."""
+    import os
+
+    fifo = tmp_path / "train.yaml"
+    os.mkfifo(fifo)
+    dev = tmp_path / "zero.yaml"
+    dev.symlink_to("/dev/zero")
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match=r"train.yaml: is a FIFO \(named pipe\)"):
+        load_config(fifo, TrainConfig)
+    with pytest.raises(ConfigError, match=r"zero.yaml: is a character device"):
+        load_config(dev, TrainConfig)
+    assert time.monotonic() - t0 < 5

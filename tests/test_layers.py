@@ -20,6 +20,7 @@ PACKAGES = ("magail_sumo", "converters")
 LAYERS = (
     "magail_sumo",  # the root package: its version only
     "magail_sumo.errors",
+    "magail_sumo.inputs",
     "magail_sumo.outputs",
     "magail_sumo.config",
     "magail_sumo.splits",

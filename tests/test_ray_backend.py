@@ -1,11 +1,18 @@
 """Ray backend of the scene workers on a real two-node Ray cluster on this machine: actors on
 both nodes, the same rollouts as the process backend, training with an actor killed
-mid-rollout, and an unreachable cluster refused in one line."""
+mid-rollout, an unreachable cluster or a service that is not Ray refused in one line, and a
+local Ray whose sockets all listen on loopback."""
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +59,168 @@ def test_unreachable_cluster_is_one_line(tmp_path, capsys, bundled_networks):
     assert len(err) == 1 and err[0].startswith("error: magail-sumo train: workers.ray.address "
                                                "127.0.0.1:9: no Ray cluster answers there")
     assert not ray.is_initialized()
+
+
+def _listeners(pids: set[int]) -> list[tuple[str, int, int]]:
+    """(address, port, pid) of every listening TCP socket (IPv4 and IPv6) held by ``pids``,
+    read from /proc (an IPv4-mapped IPv6 address is given as IPv4)."""
+    inodes = {}
+    for table, v6 in (("/proc/net/tcp", False), ("/proc/net/tcp6", True)):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] != "0A":  # TCP_LISTEN
+                continue
+            hexip, hexport = f[1].split(":")
+            raw = bytes.fromhex(hexip)
+            raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))
+            ip = ipaddress.ip_address(raw)
+            if v6 and ip.ipv4_mapped is not None:
+                ip = ip.ipv4_mapped
+            inodes[f[9]] = (str(ip), int(hexport, 16))
+    found = []
+    for pid in pids:
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                target = os.readlink(f"/proc/{pid}/fd/{fd}")
+            except OSError:
+                continue
+            if target.startswith("socket:[") and target[8:-1] in inodes:
+                found.append((*inodes[target[8:-1]], pid))
+    return found
+
+
+def _tree(root: int) -> set[int]:
+    """``root`` and all its live descendants."""
+    children: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rpartition(")")[2].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d))
+    tree, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        tree.add(pid)
+        todo.extend(children.get(pid, []))
+    return tree
+
+
+_LOCAL_RAY = """
+import sys
+import ray
+from magail_sumo.env.ray_workers import init_ray
+init_ray(None, 1)
+@ray.remote(num_cpus=1)
+class Probe:
+    def ping(self):
+        return 1
+p = Probe.remote()
+assert ray.get(p.ping.remote(), timeout=60) == 1
+print("ready", flush=True)
+sys.stdin.readline()
+ray.shutdown()
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="needs Linux /proc")
+def test_local_ray_listens_on_loopback_only():
+    """Every listening socket of a local Ray started by init_ray (driver, GCS, raylet,
+    runtime-env agent, a worker with an actor) is on 127.0.0.1 or ::1."""
+    proc = subprocess.Popen([sys.executable, "-c", _LOCAL_RAY], cwd=ROOT, text=True,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL)
+    watchdog = threading.Timer(180, proc.kill)
+    watchdog.start()
+    try:
+        assert proc.stdout.readline().strip() == "ready", "the local Ray did not start"
+        found = _listeners(_tree(proc.pid))
+        owners = {Path(f"/proc/{pid}/comm").read_text().strip() for _, _, pid in found}
+        assert {"gcs_server", "raylet"} <= owners, found
+        exposed = [(ip, port, Path(f"/proc/{pid}/comm").read_text().strip())
+                   for ip, port, pid in found if not ipaddress.ip_address(ip).is_loopback]
+        assert not exposed, f"Ray sockets listening beyond loopback: {exposed}"
+    finally:
+        try:
+            proc.stdin.close()
+            proc.wait(timeout=60)
+        except (OSError, subprocess.TimeoutExpired):
+            proc.kill()
+        watchdog.cancel()
+
+
+def _tcp_service(mode: str) -> tuple[socket.socket, int]:
+    """A plain TCP service on 127.0.0.1 that is not Ray: ``silent`` accepts and never
+    answers; ``redis`` answers any bytes with a Redis error line."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    conns: list[socket.socket] = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:  # closed: the test is over
+                break
+            conns.append(conn)
+            if mode == "redis":
+                try:
+                    if conn.recv(4096):
+                        conn.sendall(b"-ERR unknown command\r\n")
+                except OSError:
+                    pass
+        for c in conns:
+            c.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    return server, server.getsockname()[1]
+
+
+_CONNECT = """
+import sys
+from magail_sumo.env.ray_workers import RayUnavailable, init_ray
+try:
+    init_ray(sys.argv[1])
+except RayUnavailable as exc:
+    print(exc, file=sys.stderr)
+    sys.exit(3)
+"""
+
+
+@pytest.mark.parametrize("mode", ["silent", "redis"])
+def test_a_service_that_is_not_ray_is_refused_in_one_line(mode):
+    server, port = _tcp_service(mode)
+    address = f"127.0.0.1:{port}"
+    t0 = time.monotonic()
+    try:
+        done = subprocess.run([sys.executable, "-c", _CONNECT, address], cwd=ROOT, text=True,
+                              capture_output=True, timeout=20, check=False)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"ray address {address} ({mode} non-Ray service) still pending after 20 s")
+    finally:
+        server.close()
+    assert time.monotonic() - t0 < 20
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 3 and len(err) == 1, done.stderr
+    assert err[0].startswith(f"workers.ray.address {address}: the service there is not a Ray "
+                             "cluster ("), err[0]
+
+
+def test_node_ip_must_be_an_address():
+    from magail_sumo.config import ConfigError
+    from magail_sumo.training.config import RayConfig
+
+    assert from_dict(RayConfig, {"node_ip": "10.1.2.3"}).node_ip == "10.1.2.3"
+    assert from_dict(RayConfig, {}).node_ip is None
+    for bad in ("0.0.0.0", "::", "head-node", ""):
+        with pytest.raises(ConfigError, match=r"node_ip: must be an IP address of this machine"):
+            from_dict(RayConfig, {"node_ip": bad})
 
 
 @pytest.fixture(scope="module")
@@ -151,6 +320,20 @@ def test_ray_training_goes_on_past_a_killed_actor(cluster, tmp_path, bundled_net
     assert any(m.startswith("worker 0 ") and "Ray actor died" in m and "replaced" in m
                for m in logs), logs
     assert any(m.startswith("scene pool: 3 scene(s) over 2 ray worker(s)") for m in logs)
+
+
+def test_a_ray_head_passes_the_probe_and_a_driver_joins(cluster):
+    from magail_sumo.env.ray_workers import _probe_head
+
+    assert _probe_head(cluster.address) is None
+    node = next(n for n in ray.nodes() if n["Alive"])  # a raylet: gRPC, but not the head
+    why = _probe_head(f"{node['NodeManagerAddress']}:{node['NodeManagerPort']}")
+    assert why is not None and why.startswith("it is a gRPC service without a Ray head's")
+    join = ("import sys, ray\nfrom magail_sumo.env.ray_workers import init_ray\n"
+            "init_ray(sys.argv[1])\nprint(ray.cluster_resources()['CPU'])\nray.shutdown()\n")
+    done = subprocess.run([sys.executable, "-c", join, cluster.address], cwd=ROOT, text=True,
+                          capture_output=True, timeout=120, check=False)
+    assert done.returncode == 0 and done.stdout.split() == ["2.0"], done.stderr[-2000:]
 
 
 def test_too_few_cluster_cpus_is_one_line(cluster, tmp_path):

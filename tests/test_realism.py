@@ -243,3 +243,18 @@ def test_huge_finite_coordinate_is_out_of_range_not_non_finite(scene_637f):
     assert (f"rollout 3 agent {int(good.object_id[1])}: x 1e+308 out of range (|x| > 1e+07 m) "
             "at simulated step 7") in text, text
     assert "non-finite" not in text
+
+
+def test_submission_that_is_a_device_or_fifo_is_refused_at_once(tmp_path):
+    """``realism --submission /dev/zero`` (or a FIFO) is one line, not a read until memory
+    runs out or a hang."""
+    import os
+    import time
+
+    fifo = tmp_path / "sub.binproto"
+    os.mkfifo(fifo)
+    t0 = time.monotonic()
+    for path, what in (("/dev/zero", "is a character device"), (fifo, "is a FIFO")):
+        with pytest.raises(SubmissionError, match=what):
+            list(iter_submission(path))
+    assert time.monotonic() - t0 < 5

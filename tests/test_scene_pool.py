@@ -84,6 +84,54 @@ def test_skipped_file_is_not_repeated(tmp_path):
     assert f.read_text().splitlines() == ["scene\treason", "a.pkl\tbad", "b.pkl\tworse line"]
 
 
+def test_large_shard_reads_only_its_first_scenes_at_start(tmp_path):
+    """A worker sizes its slots from the first SCAN_RECORDS records of its order; the rest are
+    read when played (a 100,000-file pool starts as fast as a 64-file one), and a scene that
+    needs more slots than that is skipped then, with the reason."""
+    from magail_sumo.env.scene_pool import SCAN_RECORDS
+
+    real = sorted(SN.glob("*.pkl"))
+    refs = [RecordRef(str(tmp_path / f"gone{i}.pkl")) for i in range(3 * SCAN_RECORDS)]
+    refs[::16] = [RecordRef(str(f)) for f in real[:len(refs[::16])]]
+    cur = PoolCursor(refs, tmp_path / "nets", seed=1, make_env=None,
+                     config=EnvConfig(start_window="random", max_steps=15))
+    slots = cur.scan()
+    first = set(cur.order(0)[:SCAN_RECORDS].tolist())
+    assert slots == cur.slots >= 1
+    assert set(cur.failed) <= first  # nothing outside the first 64 was read
+    assert len(cur.failed) == sum(not Path(refs[k].path).exists() for k in first)
+    big = max(range(len(real)), key=lambda i: agent_bound(read_record(RecordRef(str(real[i]))),
+                                                          cur.config))
+    k = refs.index(RecordRef(str(real[big])))
+    cur.slots = 1
+    with pytest.raises(Exception, match=r"env start: up to \d+ agents alive at once, more "
+                                        r"than the worker's 1 slots"):
+        cur.env(k)
+
+
+def test_bad_bundles_in_a_pool_folder_are_skipped_not_fatal(tmp_path):
+    """A deeply nested or endless ``conversion.json`` (a FIFO, /dev/zero) skips its bundle in
+    seconds; the pool goes on with the rest."""
+    import time
+
+    nets = tmp_path / "nets"
+    for name in ("deep", "fifo", "zero", "good"):
+        (nets / name).mkdir(parents=True)
+    (nets / "deep" / "conversion.json").write_text("[" * 200_000 + "]" * 200_000)
+    os.mkfifo(nets / "fifo" / "conversion.json")
+    (nets / "zero" / "conversion.json").symlink_to("/dev/zero")
+    (nets / "good" / "conversion.json").write_text(json.dumps(
+        {"status": "ok", "source": {"file": str(SMALL[1]), "record": 0}}))
+    skipped = []
+    t0 = time.monotonic()
+    refs = resolve_pool([str(nets)], skipped)
+    assert time.monotonic() - t0 < 10
+    assert refs == [RecordRef(str(SMALL[1]), 0)]
+    why = {Path(s.what).name: s.reason for s in skipped}
+    assert "JSON nested deeper than 64 levels" in why["deep"]
+    assert "is a FIFO" in why["fifo"] and "is a character device" in why["zero"]
+
+
 # ------------------------------------------------------------------ real SUMO
 @pytest.mark.sumo
 def test_agent_bound_covers_every_window(tmp_path):

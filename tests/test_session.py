@@ -68,7 +68,7 @@ def test_bad_inputs(tmp_path, bundle):
         SumoSession(tmp_path / "missing.sumocfg").start()
     broken = tmp_path / "broken.sumocfg"
     broken.write_text("<configuration><input><net-file value='nope.net.xml'/></input>")
-    with pytest.raises(SimulationError, match="broken.sumocfg: SUMO failed to start"):
+    with pytest.raises(SimulationError, match="broken.sumocfg: not valid XML"):
         SumoSession(broken).start()
     bad_routes = tmp_path / "bad.rou.xml"
     bad_routes.write_text('<routes><vehicle id="v" depart="0"><route edges="no_such_edge"/>'

@@ -61,6 +61,8 @@ from typing import Any, BinaryIO, Callable
 
 import numpy as np
 
+from magail_sumo.inputs import open_regular
+
 _NUMPY_CORE = getattr(np, "_core", None) or np.core  # numpy 1 vs 2
 
 #: smallest allocation budget of one file, bytes
@@ -516,5 +518,5 @@ def safe_loads(data: bytes, budget: int | None = None) -> Any:
 
 def safe_load_path(path: str | os.PathLike) -> Any:
     """Unpickle plain data from the file at ``path``; see module doc."""
-    with open(path, "rb") as fh:
+    with open_regular(path, expected="a pickle file") as fh:  # no FIFO, device or socket
         return safe_load(fh)

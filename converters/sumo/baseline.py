@@ -62,6 +62,7 @@ from magail_sumo.scene import Scene
 from magail_sumo.scene.types import STEP_LENGTH
 from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
 from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
+from magail_sumo.sim.sumo_config import SumoInputs
 
 from .bundle import SceneBundle
 from .routes import VehicleRoute
@@ -80,20 +81,23 @@ QUEUED_MATCH = 5.0
 LATERAL_OFFSET_TAU: float | None = 1.0
 
 
-def bundle_session(sumocfg: str | Path, seed: int | None = None) -> SumoSession:
+def bundle_session(sumocfg: str | Path, seed: int | None = None,
+                   inputs: SumoInputs | None = None) -> SumoSession:
     """The SUMO run of a bundle's configuration (not started; use it as a context manager).
 
     ``seed`` None: as ``sumo -c sumocfg`` runs it, with the configuration's own step length,
     seed and teleport time, queried through the session's ``api`` only (no subscriptions; the
     quality run). Else SUMO seeded with ``seed`` at :data:`DT` s steps, no teleports, every
     vehicle subscribed (:meth:`~magail_sumo.sim.session.SumoSession.vehicles`; a rollout).
+    ``inputs``: the configuration already read (a loaded bundle's
+    :attr:`~.bundle.SceneBundle.inputs`).
     """
     if seed is None:
         config = SessionConfig(step_length=None, seed=None, time_to_teleport=None,
                                subscribe=False)
     else:
         config = SessionConfig(seed=seed)
-    return SumoSession(sumocfg, config=config)
+    return SumoSession(None if inputs is not None else sumocfg, inputs=inputs, config=config)
 
 
 # ------------------------------------------------------------------ the converter's quality run
@@ -338,7 +342,7 @@ def drive_from_current(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarra
     obs = np.zeros(0, np.int64)
     offsets = np.zeros(len(ids))  # each agent's recorded lateral offset from its lane's centre
     ox, oy, oyaw = future  # the future of every agent SUMO does not drive
-    with bundle_session(bundle.sumocfg, seed) as sess:
+    with bundle_session(bundle.sumocfg, seed, bundle.inputs) as sess:
         api = sess.api  # the running simulation's TraCI-style domains
         for k in range(cur + 1 + n_steps):  # after k + 1 steps SUMO shows log step k
             if k == cur:  # start the future from the recorded state: pose and speed

@@ -34,9 +34,11 @@ from typing import Any
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
                                  read_marker, safe_name, write_text)
 from magail_sumo.scene import Scene
+from magail_sumo.sim.sumo_config import SumoConfigError, SumoInputs, read_config
 
 #: the conversion report of a bundle folder
 REPORT_FILE = "conversion.json"
@@ -98,6 +100,17 @@ class BundleLayout:
         """The files every complete bundle has, in the order they are checked."""
         return self.sumocfg, self.net, self.routes, self.report
 
+    def sumo_inputs(self) -> SumoInputs:
+        """What SUMO runs of this bundle are started with: its configuration read
+        (:func:`~magail_sumo.sim.sumo_config.read_config`: outputs, logs and ports dropped)
+        naming only the bundle's own network, routes and signal programs;
+        :class:`BundleError` (one line) otherwise."""
+        own = {str(p.resolve()) for p in (self.net, self.routes, self.signals)}
+        try:
+            return read_config(self.sumocfg, allowed=own)
+        except SumoConfigError as exc:
+            raise BundleError(str(exc)) from None
+
 
 def is_bundle_dir(path: Path) -> bool:
     """Whether ``path`` is a bundle folder (a real folder with a conversion report; complete
@@ -108,11 +121,10 @@ def is_bundle_dir(path: Path) -> bool:
 def read_report(folder: str | Path) -> dict[str, Any]:
     """The ``conversion.json`` of a bundle folder; :class:`BundleError` when unreadable."""
     path = Path(folder) / REPORT_FILE
-    try:
-        report = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise BundleError(f"{Path(folder)}: unreadable bundle file: "
-                          f"{' '.join(str(exc).split())}") from None
+    try:  # a regular file of at most 64 MiB, JSON nested at most 64 deep
+        report = read_json(path, expected="a conversion report")
+    except InputFileError as exc:
+        raise BundleError(f"{Path(folder)}: unreadable bundle file: {exc}") from None
     if not isinstance(report, dict):
         raise BundleError(f"{path}: not a conversion report")
     return report
@@ -163,6 +175,7 @@ class SceneBundle:
     :param sumo_ids: SUMO id of each of those vehicles.
     :param unconverted: ``conversion.json``'s list of objects left out of SUMO.
     :param parked: ids of the route vehicles with a parking stop.
+    :param inputs: what SUMO runs of the bundle start with (:meth:`BundleLayout.sumo_inputs`).
     """
 
     scene: Scene
@@ -172,6 +185,7 @@ class SceneBundle:
     sumo_ids: tuple[str, ...]
     unconverted: tuple[dict, ...]
     parked: frozenset[str] = frozenset()
+    inputs: SumoInputs | None = None
 
     @property
     def files(self) -> BundleLayout:
@@ -199,7 +213,7 @@ class SceneBundle:
         rows = np.array([row_of[int(i)] for i in ids], np.int64)
         parked = frozenset(v.get("id") for v in root.iter("vehicle") if v.find("stop") is not None)
         return cls(scene, files.folder, files.sumocfg, rows, ids,
-                   tuple(report.get("unconverted", ())), parked)
+                   tuple(report.get("unconverted", ())), parked, files.sumo_inputs())
 
 
 def _networks_entry(path: Path) -> bool:

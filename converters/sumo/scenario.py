@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
+from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.outputs import OutputError, one_line, printable, safe_name
 from magail_sumo.scene import LaneType, Scene
 from magail_sumo.scene.signal_sanity import checked_signal_sanity
@@ -153,8 +154,8 @@ def _check_replaceable(folder: Path, sid: str) -> None:
     if not conv.is_file():
         raise OutputError(f"{folder}: holds files that are not a converted bundle; not replaced")
     try:
-        other = json.loads(conv.read_text()).get("scenario_id", sid)
-    except (ValueError, AttributeError, UnicodeDecodeError):
+        other = read_json(conv, expected="a conversion report").get("scenario_id", sid)
+    except (InputFileError, AttributeError):
         return  # a damaged report of ours: replace the bundle
     if other != sid:
         raise OutputError(f"{folder}: holds the bundle of scenario {printable(str(other))!r}, "

@@ -1,33 +1,15 @@
-"""Locating and running the SUMO binaries (from the eclipse-sumo wheel, else PATH)."""
+"""Running the SUMO binaries (located by :func:`magail_sumo.sim.binaries.binary`)."""
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 from pathlib import Path
+
+from magail_sumo.sim.binaries import SumoBinaryMissing, binary
 
 
 class SumoToolError(RuntimeError):
     """A SUMO binary is missing or failed; the message is one line."""
-
-
-def binary(name: str) -> str:
-    """Path of SUMO binary ``name`` (``netconvert``, ``sumo``)."""
-    try:
-        import sumo  # eclipse-sumo wheel
-        path = Path(sumo.SUMO_HOME) / "bin" / name
-        if path.exists():
-            return str(path)
-    except ImportError:
-        pass
-    home = os.environ.get("SUMO_HOME")
-    if home and (Path(home) / "bin" / name).exists():
-        return str(Path(home) / "bin" / name)
-    found = shutil.which(name)
-    if not found:
-        raise SumoToolError(f"{name} not found (install eclipse-sumo or set SUMO_HOME)")
-    return found
 
 
 def run_tool(name: str, args: list[str], cwd: Path | None = None,
@@ -35,7 +17,11 @@ def run_tool(name: str, args: list[str], cwd: Path | None = None,
     """Run a SUMO binary; returns its warning lines; raises :class:`SumoToolError` on failure
     (or when it runs longer than ``timeout_s`` seconds: it is killed then)."""
     try:
-        proc = subprocess.run([binary(name), *args], cwd=cwd, capture_output=True, text=True,
+        exe = binary(name)
+    except SumoBinaryMissing as exc:
+        raise SumoToolError(str(exc)) from None
+    try:
+        proc = subprocess.run([exe, *args], cwd=cwd, capture_output=True, text=True,
                               timeout=timeout_s)
     except subprocess.TimeoutExpired:
         raise SumoToolError(f"{name} timed out after {timeout_s:.0f} s (killed)") from None

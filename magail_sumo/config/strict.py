@@ -22,6 +22,7 @@ from typing import Any, TypeVar
 import yaml
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import InputFileError, open_regular
 
 T = TypeVar("T")
 
@@ -245,9 +246,11 @@ def _cap(message: str, limit: int = MAX_MESSAGE) -> str:
 def _read_mapping(p: Path, shown: str) -> dict[str, Any]:
     """The top-level mapping of the YAML file ``p`` (shown as ``shown`` in messages), with
     every check of the module doc."""
-    try:
-        with open(p, "rb") as fh:
+    try:  # a regular file only: a FIFO would block, a device stream
+        with open_regular(p, expected="a config file") as fh:
             raw = fh.read(MAX_CONFIG_BYTES + 1)
+    except InputFileError as exc:
+        raise ConfigError(f"{shown}: {exc.problem}") from None
     except OSError as exc:
         raise ConfigError(f"{shown}: cannot read ({exc.strerror or exc})") from None
     if len(raw) > MAX_CONFIG_BYTES:

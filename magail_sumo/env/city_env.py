@@ -33,7 +33,6 @@ from __future__ import annotations
 import hashlib
 import tempfile
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +47,7 @@ from magail_sumo.sensors.observation import (
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
+from magail_sumo.sim.sumo_config import SumoConfigError, SumoInputs, check_demand, read_config
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
 from .actions import ACTION_COUNTS
@@ -122,29 +122,14 @@ class CityEnvConfig:
             raise ValueError(f"unknown events in terminate_on: {sorted(bad)}")
 
 
-def _scenario_files(sumocfg: Path) -> tuple[Path, list[str]]:
-    """Net file and vehicle ids of the route files named by a ``.sumocfg``."""
-    if not sumocfg.is_file():
-        raise MagailSumoError(f"{sumocfg}: SUMO config file not found")
+def scenario_inputs(sumocfg: Path) -> tuple[SumoInputs, list[str]]:
+    """The scenario's :class:`~magail_sumo.sim.sumo_config.SumoInputs` (its configuration
+    read, inputs checked, outputs and ports dropped) and the vehicle ids of its route files."""
     try:
-        root = ET.parse(sumocfg).getroot()
-    except ET.ParseError as exc:
-        raise MagailSumoError(f"{sumocfg}: not valid XML ({exc})") from None
-    net = root.find("./input/net-file")
-    if net is None or not net.get("value"):
-        raise MagailSumoError(f"{sumocfg}: no input/net-file")
-    ids: list[str] = []
-    routes = root.find("./input/route-files")
-    for name in (routes.get("value", "").split(",") if routes is not None else []):
-        path = sumocfg.parent / name.strip()
-        try:
-            for _, el in ET.iterparse(path):
-                if el.tag in ("vehicle", "trip", "flow") and el.get("id"):
-                    ids.append(el.get("id"))
-                el.clear()
-        except (OSError, ET.ParseError) as exc:
-            raise MagailSumoError(f"{path}: cannot read route file ({exc})") from None
-    return sumocfg.parent / net.get("value"), ids
+        inputs = read_config(sumocfg)
+        return inputs, check_demand(inputs.routes)
+    except SumoConfigError as exc:
+        raise MagailSumoError(str(exc)) from None
 
 
 class SumoCityEnv(FleetEnv):
@@ -168,8 +153,9 @@ class SumoCityEnv(FleetEnv):
         self.config = cfg = config or CityEnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
-        net_file, vehicle_ids = _scenario_files(self.sumocfg)
-        self.net_file = net_file
+        #: what SUMO is started with (:func:`~magail_sumo.sim.sumo_config.read_config`)
+        self.inputs, vehicle_ids = scenario_inputs(self.sumocfg)
+        self.net_file = net_file = self.inputs.net
         #: FCD recording (:meth:`record_fcd`)
         self._fcd = EpisodeFcd(STEP_LENGTH, self._fcd_frame, self._fcd_replay)
         self.network: NetworkMap = network_map(net_file)
@@ -203,7 +189,8 @@ class SumoCityEnv(FleetEnv):
         if cfg.warmup_s <= 0:
             return None
         if self._state_file is None:
-            sim = SumoSession(self.sumocfg, config=SessionConfig(step_length=1.0, seed=cfg.sumo_seed))
+            sim = SumoSession(inputs=self.inputs,
+                             config=SessionConfig(step_length=1.0, seed=cfg.sumo_seed))
             with sim:
                 begin = sim.time
                 target = begin + cfg.warmup_s
@@ -221,7 +208,7 @@ class SumoCityEnv(FleetEnv):
         state = self.warm_state()
         extra = (("--load-state", str(state)) if state is not None else ()) + self.sumo_args
         self._seed = 0 if seed is None else int(seed)
-        self._session = SumoSession(self.sumocfg, config=SessionConfig(
+        self._session = SumoSession(inputs=self.inputs, config=SessionConfig(
             seed=cfg.sumo_seed + self._seed, extra_args=extra)).start()
         n_max = 64
         #: the agents' state (rows appended as they join, :class:`Fleet`)

@@ -257,7 +257,7 @@ class SumoDrivingEnv(FleetEnv):
         if not cfg.sumo_mirror:  # nothing of a log-background episode reads SUMO
             self._session = _NO_MIRROR
         else:
-            self._session = SumoSession(self.bundle.sumocfg, config=SessionConfig(
+            self._session = SumoSession(inputs=self.bundle.inputs, config=SessionConfig(
                 seed=cfg.sumo_seed + (seed or 0)))
             self._session.start()
         self._obstacles = None if not cfg.sumo_mirror else Obstacles(

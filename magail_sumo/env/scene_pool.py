@@ -36,9 +36,12 @@ two workers from converting one scene at once). A worker keeps only its most rec
 Slots: a city scenario needs ``max_agents`` slots; a worker holding one recorded scene sizes
 its slots exactly (the scene's most concurrent agents,
 :func:`max_concurrent_agents`); a worker holding several sizes them to
-the largest :func:`agent_bound` of its scenes, computed from each scene alone when the worker
-starts (no conversion needed): the vehicles and cyclists alive at once that the controlled
-setting can pick.
+the largest :func:`agent_bound` of the first :data:`SCAN_RECORDS` records of its order (the
+scenes it plays first), computed from each scene alone when the worker starts (no conversion
+needed): the vehicles and cyclists alive at once that the controlled setting can pick. The
+rest of a large shard is read only when the worker resets into it (a pool of 100,000 files
+starts as fast as one of 64); a scene that turns out to need more slots than the worker has is
+skipped then, with that reason (``env.controlled: K`` caps the agents of every scene).
 """
 
 from __future__ import annotations
@@ -66,6 +69,8 @@ from .city_env import CityEnvConfig, SumoCityEnv
 POOL_STREAM = 0x5CE4E
 _SCENE_SUFFIXES = (".pkl",)
 _GLOB_CHARS = set("*?[")
+#: records a worker reads at start-up to size its slots (module doc)
+SCAN_RECORDS = 64
 
 
 def max_concurrent_agents(env) -> int:
@@ -274,6 +279,9 @@ class PoolCursor:
         self.city = city
         self.cache = max(1, cache)
         self.convert_budget_s = convert_budget_s
+        #: the worker's slot count when sized from :func:`agent_bound` (several records): a
+        #: scene whose bound is larger is skipped when played; None: no such check
+        self.slots: int | None = None
         self.failed: dict[int, str] = {}  #: record position -> reason (skipped from then on)
         self.new_failures: list[PoolSkip] = []  #: failures not yet reported to the trainer
         self._envs: OrderedDict[int, object] = OrderedDict()
@@ -306,6 +314,11 @@ class PoolCursor:
             scene = read_record(ref)
             if (problem := start_problem(scene, self.config)) is not None:
                 raise MagailSumoError(f"env start: {problem}")
+            if self.slots is not None and (need := agent_bound(scene, self.config)) > self.slots:
+                raise MagailSumoError(
+                    f"env start: up to {need} agents alive at once, more than the worker's "
+                    f"{self.slots} slots (sized from the first {SCAN_RECORDS} scenes it plays; "
+                    "env.controlled: K caps the agents of every scene)")
             bundle = ensure_bundle(scene, self.networks, ref, self.convert_budget_s)
             env = self.make_env(scene, bundle)
         self._envs[k] = env
@@ -333,14 +346,17 @@ class PoolCursor:
                              f"{self.refs[min(self.failed)]}: {self.failed[min(self.failed)]}")
 
     def scan(self) -> int:
-        """The worker's slot count: exact for one record, else the largest :func:`agent_bound`
-        (records that cannot be read are failed here)."""
+        """The worker's slot count: exact for one record, else (:attr:`slots`) the largest
+        :func:`agent_bound` of the first :data:`SCAN_RECORDS` records of its order (those that
+        cannot be read are failed here; the others are read when played, module doc)."""
         if len(self.refs) == 1 and not is_city(self.refs[0]):
             _, env = self.env_for(0)
-            return max_concurrent_agents(env)
+            return max_concurrent_agents(env)  # exact: no bound to check against
         most = 0
         seen: dict[RecordRef, int | BaseException] = {}  # a pool may repeat a record
-        for k, ref in enumerate(self.refs):
+        first = self.order(0)[:SCAN_RECORDS].tolist()
+        for k in sorted(first):
+            ref = self.refs[k]
             if ref not in seen and is_city(ref):
                 seen[ref] = city_slots(self.city, ref)
             if ref not in seen:
@@ -359,7 +375,22 @@ class PoolCursor:
         if len(self.failed) == len(self.refs):
             raise ScenePoolError(f"every scene of this worker failed; first: "
                                  f"{self.refs[0]}: {self.failed[0]}")
-        return max(1, most)
+        if len(self.failed) == len(first) and len(first) < len(self.refs):
+            # every scanned record failed: size from the next readable ones, in order
+            for k in self.order(0)[SCAN_RECORDS:].tolist():
+                try:
+                    scene = read_record(self.refs[k])
+                    if start_problem(scene, self.config) is None:
+                        most = agent_bound(scene, self.config)
+                        break
+                except (MagailSumoError, OSError, ValueError) as exc:
+                    self._fail(k, exc)
+            else:
+                raise ScenePoolError(f"every scene of this worker failed; first: "
+                                     f"{self.refs[min(self.failed)]}: "
+                                     f"{self.failed[min(self.failed)]}")
+        self.slots = max(1, most)
+        return self.slots
 
     def close(self) -> None:
         for env in self._envs.values():

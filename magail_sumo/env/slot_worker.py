@@ -125,6 +125,8 @@ class SlotWorker:
             self.cursor = _FixedScene(source, make_env)
         self.config = config
         self.slots = slots or self.cursor.scan()
+        if isinstance(self.cursor, PoolCursor) and len(self.cursor.refs) > 1:
+            self.cursor.slots = self.slots  # a scene needing more is skipped when played
 
         self.dim = int(observation_bounds(config.observation)[0].shape[0])
         self.base_seed = seed

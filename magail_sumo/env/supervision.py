@@ -86,10 +86,14 @@ class WorkerSupervisor:
                 self._handles.append(self._new_handle(k))
             hello = []
             for k in range(len(self.specs)):
-                try:
-                    hello.append(self._recv(k))
-                except VecEnvWorkerError as exc:
-                    raise WorkerStartError(str(exc), k) from None
+                try:  # the hello comes once the worker sized its slots and built its first env
+                    hello.append(self._handles[k].recv(self.start_timeout_s))
+                except (WorkerLost, WorkerFailed) as exc:
+                    why = str(exc)
+                    if "did not answer" in why:
+                        why += (" while starting (importing, reading the first scenes of its "
+                                "shard to size its slots, building its first env)")
+                    raise WorkerStartError(why, k) from None
         except BaseException:
             self._kill_all()
             raise

@@ -73,7 +73,7 @@ class MultiSceneVecEnv(WorkerSupervisor, VecEnv):
         Meant for a machine dedicated to one run: concurrent runs pinning their workers would
         stack them on the same cores. Linux and the process backend only, ignored elsewhere.
     :param backend: worker backend (:data:`magail_sumo.env.transport.BACKENDS`).
-    :param backend_options: its options (Ray: ``address``, ``num_cpus``).
+    :param backend_options: its options (Ray: ``address``, ``num_cpus``, ``node_ip``).
     :param max_restarts: how many times in a row a worker that dies or stops answering is
         replaced (its episode replayed from its seed and logged actions, so the rollout goes on
         exactly as it would have) before the env gives up with :class:`VecEnvWorkerError`;

@@ -47,8 +47,9 @@ import shutil
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.agents import env_settings, rollout
-from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv, _scenario_files
+from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv, scenario_inputs
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, EvaluationError, log, rollout_seed
@@ -155,9 +156,7 @@ def check_sumocfg(path: str | Path) -> Path:
     path = Path(path)
     if path.suffix != ".sumocfg":
         raise EvaluationError(f"{path}: --city needs a SUMO scenario's .sumocfg file")
-    net, _ = _scenario_files(path)
-    if not net.is_file():
-        raise EvaluationError(f"{path}: its net-file {net.name} is not found")
+    scenario_inputs(path)
     return path
 
 
@@ -356,9 +355,9 @@ def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
     if not path.is_file():
         return [], path
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise EvaluationError(f"{path}: unreadable ({one_line(exc, 200)})") from None
+        data = read_json(path, expected="a city.json")
+    except InputFileError as exc:
+        raise EvaluationError(f"unreadable: {one_line(exc, 300)}") from None
     if not isinstance(data, list):
         raise EvaluationError(f"{path}: expected a list of rows, got {type(data).__name__}")
     rows = []

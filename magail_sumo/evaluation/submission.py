@@ -13,16 +13,20 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 from os import PathLike
-from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
 from converters.womd.protos import sim_agents_submission_pb2 as pb
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import GiB, InputFileError, read_bytes
 from magail_sumo.outputs import write_bytes
 from magail_sumo.scene import Scene
 from magail_sumo.scene.validation import MAX_COORDINATE
+
+
+#: the largest submission file read (protobuf's own message limit)
+SUBMISSION_LIMIT = 2 * GiB
 
 
 class SubmissionError(MagailSumoError):
@@ -141,8 +145,13 @@ def iter_submission(paths: str | PathLike | Iterable[str | PathLike]) -> Iterato
     index = 0
     for path in paths:
         try:
-            sub = pb.SimAgentsChallengeSubmission.FromString(Path(path).read_bytes())
-        except (OSError, Exception) as exc:  # DecodeError has no stable public class
+            # a regular file of at most 2 GiB (protobuf's own limit)
+            data = read_bytes(path, SUBMISSION_LIMIT, "a submission file")
+        except InputFileError as exc:
+            raise SubmissionError("", str(exc)) from None
+        try:
+            sub = pb.SimAgentsChallengeSubmission.FromString(data)
+        except Exception as exc:  # DecodeError has no stable public class
             raise SubmissionError("", f"{path}: not a readable SimAgentsChallengeSubmission "
                                       f"({type(exc).__name__}: {exc})") from None
         for msg in sub.scenario_rollouts:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -11,6 +10,7 @@ import numpy as np
 
 from magail_sumo.config import to_dict
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.sensors.observation import ObservationConfig, observation_names as names_of
 
 from .record import EXPERT_FORMAT, READABLE_FORMATS, observation_hash
@@ -111,9 +111,11 @@ class ExpertDataset:
             raise ExpertDataError(f"{d}: not an expert directory (no metadata.json; record one "
                                   "with `magail-sumo expert SCENES... --out DIR`)")
         try:
-            meta = json.loads(meta_path.read_text())
-        except ValueError as exc:
-            raise ExpertDataError(f"{meta_path}: unreadable ({exc})") from None
+            meta = read_json(meta_path, expected="expert metadata")
+        except InputFileError as exc:
+            raise ExpertDataError(f"unreadable: {exc}") from None
+        if not isinstance(meta, dict):
+            raise ExpertDataError(f"{meta_path}: not a JSON object")
         if meta.get("format") not in READABLE_FORMATS:
             raise ExpertDataError(f"{meta_path}: format {meta.get('format')!r}, expected "
                                   f"{EXPERT_FORMAT!r}")

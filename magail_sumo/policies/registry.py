@@ -27,6 +27,7 @@ from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES, GUARDED
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.guard import GuardConfig
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import regular_file
 from magail_sumo.outputs import one_line
 from magail_sumo.pretrained import (PretrainedError, is_pretrained_spec, name_of,
                                     resolve as resolve_pretrained)
@@ -68,6 +69,7 @@ def checkpoint_algorithm(path: str | Path) -> str | None:
     """The algorithm a training checkpoint records (``config.algorithm``), None when the file
     cannot be read as one or records none (read with ``torch.load(weights_only=True)``)."""
     try:
+        regular_file(path, "a checkpoint")  # not a FIFO (torch.load would block) or device
         state = torch.load(Path(path), map_location="cpu", weights_only=True)
         algorithm = state["config"].get("algorithm")
     except Exception:  # noqa: BLE001 - the default loader names what is wrong with the file

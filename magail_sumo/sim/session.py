@@ -9,6 +9,7 @@ vehicle state comes from libsumo subscriptions, returned as arrays in the scene 
 from __future__ import annotations
 
 import re
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -18,6 +19,7 @@ import numpy as np
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.scene.types import STEP_LENGTH, ObjectType
 from magail_sumo.sim.frames import centre_to_front, front_to_centre, sumo_angle_to_yaw, yaw_to_sumo_angle
+from magail_sumo.sim.sumo_config import SumoConfigError, SumoInputs, read_config
 
 
 
@@ -86,16 +88,26 @@ _SUBSCRIBED_VARS: tuple[int, ...] = ()
 
 
 class SumoSession:
-    """A running SUMO simulation of a ``.sumocfg`` (or a net file plus route files).
+    """A running SUMO simulation of a configuration (or a net file plus route files).
 
-    Use as a context manager, or call :meth:`start` / :meth:`close`.
+    SUMO is never given the configuration itself: it is read by
+    :func:`~magail_sumo.sim.sumo_config.read_config` (inputs checked; outputs, logs and ports
+    dropped) and the command line built from what it kept (:meth:`command`). libsumo never
+    listens on a port. Use as a context manager, or call :meth:`start` / :meth:`close`.
+
+    :param sumocfg: a SUMO configuration file (any name, flat or sectioned).
+    :param inputs: the configuration already read (:class:`SumoInputs`), e.g. by an env that
+        starts many sessions of one scenario; takes the place of ``sumocfg``.
     """
 
     def __init__(self, sumocfg: str | Path | None = None, *, net: str | Path | None = None,
-                 routes: Sequence[str | Path] = (), config: SessionConfig | None = None) -> None:
-        if sumocfg is None and net is None:
-            raise ValueError("give a .sumocfg or a net file")
-        self.sumocfg = Path(sumocfg) if sumocfg is not None else None
+                 routes: Sequence[str | Path] = (), config: SessionConfig | None = None,
+                 inputs: SumoInputs | None = None) -> None:
+        if sumocfg is None and net is None and inputs is None:
+            raise ValueError("give a .sumocfg, its SumoInputs or a net file")
+        self.sumocfg = Path(sumocfg) if sumocfg is not None else (
+            inputs.source if inputs is not None else None)
+        self.inputs = inputs
         self.net = Path(net) if net is not None else None
         self.routes = [Path(r) for r in routes]
         self.config = config or SessionConfig()
@@ -103,28 +115,44 @@ class SumoSession:
         self._running = False
         self._walkable: bool | None = None
         self._walk_edge: str | None = None
+        self._private: tempfile.TemporaryDirectory | None = None
+        self._copies: dict[Path, Path] = {}
 
     # ------------------------------------------------------------------ lifecycle
-    def command(self) -> list[str]:
-        """The SUMO command line this session starts."""
+    def _overrides(self) -> dict[str, str]:
+        """The session's own options (those not None) and ``extra_args`` (option-value
+        pairs), by option name; they replace a configuration's values."""
         cfg = self.config
+        out = {name: str(value) for name, value in (
+            ("step-length", cfg.step_length), ("seed", cfg.seed),
+            ("time-to-teleport", cfg.time_to_teleport),
+            ("collision.action", cfg.collision_action)) if value is not None}
+        extra = list(cfg.extra_args)
+        if len(extra) % 2 or any(not str(a).startswith("--") for a in extra[::2]):
+            raise ValueError(f"extra_args must be '--option value' pairs, got {extra}")
+        out.update((str(k)[2:], str(v)) for k, v in zip(extra[::2], extra[1::2]))
+        return {**out, "no-step-log": "true", "no-warnings": "true"}
+
+    def command(self) -> list[str]:
+        """The SUMO command line this session starts (reads the configuration when not read
+        yet; :class:`SimulationError` when it cannot be used)."""
+        if self.inputs is None and self.sumocfg is not None:
+            try:
+                self.inputs = read_config(self.sumocfg)
+            except SumoConfigError as exc:
+                raise SimulationError(str(exc)) from None
         cmd = ["sumo"]
-        if self.sumocfg is not None:
-            cmd += ["-c", str(self.sumocfg)]
-        if self.net is not None:
-            cmd += ["-n", str(self.net)]
+        if self.inputs is not None:
+            return cmd + self.inputs.args(self._overrides(), self._copies)
+        cmd += ["--net-file", str(self.net)]
         if self.routes:
-            cmd += ["-r", ",".join(str(r) for r in self.routes)]
-        for option, value in (("--step-length", cfg.step_length), ("--seed", cfg.seed),
-                              ("--time-to-teleport", cfg.time_to_teleport),
-                              ("--collision.action", cfg.collision_action)):
-            if value is not None:
-                cmd += [option, str(value)]
-        return cmd + ["--no-step-log", "true", "--no-warnings", "true", *cfg.extra_args]
+            cmd += ["--route-files", ",".join(str(r) for r in self.routes)]
+        for name, value in self._overrides().items():
+            cmd += [f"--{name}", value]
+        return cmd
 
     def _check_inputs(self) -> None:
-        for label, path in (("config", self.sumocfg), ("network", self.net),
-                            *(("routes", r) for r in self.routes)):
+        for label, path in (("network", self.net), *(("routes", r) for r in self.routes)):
             if path is not None and not path.is_file():
                 raise SimulationError(f"{path}: SUMO {label} file not found")
 
@@ -135,10 +163,16 @@ class SumoSession:
             raise SimulationError("a SUMO simulation is already running in this process "
                                   "(libsumo allows one; use one worker process per simulation)")
         self._check_inputs()
+        command = self.command()
+        if self.inputs is not None and self.inputs.cleaned:
+            self._private = tempfile.TemporaryDirectory(prefix="magail_sumo_inputs_")
+            self._copies = self.inputs.materialise(self._private.name)
+            command = self.command()
         ls = _libsumo()
         try:
-            ls.start(self.command())
+            ls.start(command)
         except Exception as exc:  # libsumo raises its own exception types
+            self._drop_private()
             target = self.sumocfg or self.net
             raise SimulationError(f"{target}: SUMO failed to start: {_one_line(exc)}") from None
         self._running = True
@@ -155,8 +189,14 @@ class SumoSession:
         return (ls.VAR_POSITION, ls.VAR_ANGLE, ls.VAR_SPEED, ls.VAR_LENGTH, ls.VAR_WIDTH,
                 ls.VAR_ROAD_ID)
 
+    def _drop_private(self) -> None:
+        if self._private is not None:
+            self._private.cleanup()
+            self._private, self._copies = None, {}
+
     def close(self) -> None:
         if not self._running:
+            self._drop_private()
             return
         try:
             _libsumo().close()
@@ -164,6 +204,7 @@ class SumoSession:
             pass
         self._running = False
         _ACTIVE.remove(self)
+        self._drop_private()
 
     @property
     def api(self):

@@ -140,15 +140,32 @@ class RayConfig:
     :param address: None: start a local Ray in the trainer; else a running cluster's
         ``HOST:PORT`` (or ``auto``).
     :param num_cpus: CPUs each scene-worker actor reserves.
+    :param node_ip: the IP address (of one of this machine's interfaces) that the trainer's
+        Ray gives the cluster to reach it. None: a local Ray (``address`` None) is bound to
+        127.0.0.1, so nothing outside this machine can reach or join it; with an ``address``,
+        Ray's own choice (the interface that reaches the head). An address: a local Ray is
+        started on that interface (its servers then listen on every interface, as Ray's do,
+        and other machines can join it); with an ``address``, the trainer's Ray is reached on
+        it (name the private network's interface on a machine with several).
     """
 
     address: str | None = None
     num_cpus: float = 1.0
+    node_ip: str | None = None
 
     def __post_init__(self) -> None:
+        import ipaddress
+
         check_positive(self, "num_cpus")
         check(self.address is None or bool(str(self.address).strip()), "address",
               "must be HOST:PORT, 'auto' or null")
+        if self.node_ip is not None:
+            try:
+                ip = ipaddress.ip_address(str(self.node_ip))
+            except ValueError:
+                ip = None
+            check(ip is not None and not ip.is_unspecified, "node_ip",
+                  f"must be an IP address of this machine or null, got {show(self.node_ip)}")
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
         convert_budget_s=cfg.scenes.effective_convert_budget_s, log=log,
         timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
         backend=w.backend, backend_options={"address": w.ray.address,
-                                            "num_cpus": w.ray.num_cpus},
+                                            "num_cpus": w.ray.num_cpus, "node_ip": w.ray.node_ip},
         max_restarts=w.max_restarts)
     venv.skipped[:0] = [(s.what, s.reason) for s in skipped]
     venv.new_skipped[:0] = [(s.what, s.reason) for s in skipped]

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import importlib
 import subprocess
+import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,7 +27,9 @@ from typing import Collection, Sequence
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sim.binaries import SumoBinaryMissing, binary
 from magail_sumo.sim.session import SessionConfig, SumoSession
+from magail_sumo.sim.sumo_config import SumoConfigError, read_config
 from magail_sumo.workers import run_one
 
 
@@ -86,10 +89,21 @@ def sumo_options(out: Path, begin: float | None, end: float | None, seed: int,
 
 
 def sumo_command(sumocfg: Path, out: Path, begin: float | None, end: float | None, seed: int,
-                 extra_args: Sequence[str] = ()) -> list[str]:
-    """``sumo`` command line writing the three outputs into ``out``."""
-    return ["sumo", "-c", str(sumocfg), "--no-step-log", "true", "--no-warnings", "true",
-            *sumo_options(out, begin, end, seed, extra_args)]
+                 extra_args: Sequence[str] = (), private: Path | None = None) -> list[str]:
+    """The installed ``sumo`` binary's command line running ``sumocfg`` as the tool reads it
+    (:func:`~magail_sumo.sim.sumo_config.read_config`: never ``-c``; outputs, logs and ports
+    of the file dropped), writing the three outputs into ``out``; cleaned additional files
+    go into the folder ``private``.
+
+    :raises SumoConfigError: the configuration cannot be used.
+    :raises SumoBinaryMissing: no ``sumo`` binary.
+    """
+    inputs = read_config(sumocfg)
+    copies = inputs.materialise(private) if private is not None and inputs.cleaned else {}
+    opts = sumo_options(out, begin, end, seed, extra_args)
+    over = {k[2:]: v for k, v in zip(opts[::2], opts[1::2])}
+    over |= {"no-step-log": "true", "no-warnings": "true"}
+    return [binary("sumo"), *inputs.args(over, copies)]
 
 
 def _controlled(sumocfg: str, options: list[str], controller: str) -> None:
@@ -132,14 +146,19 @@ def run_sumo_outputs(sumocfg: str | Path, out_dir: str | Path, *, begin: float |
         raise SumoRunError(f"{cfg}: SUMO config not found")
     out.mkdir(parents=True, exist_ok=True)
     if controller is None:
-        cmd = sumo_command(cfg, out, begin, end, seed, extra_args)
-        try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            raise SumoRunError(f"{cfg}: SUMO timed out after {timeout_s:.0f} s") from None
-        if res.returncode != 0:
-            msg = " ".join((res.stderr or res.stdout).split())[-300:]
-            raise SumoRunError(f"{cfg}: SUMO failed (exit {res.returncode}): {msg}")
+        with tempfile.TemporaryDirectory(prefix="magail_sumo_inputs_") as private:
+            try:
+                cmd = sumo_command(cfg, out, begin, end, seed, extra_args, Path(private))
+            except (SumoConfigError, SumoBinaryMissing) as exc:
+                raise SumoRunError(str(exc)) from None
+            try:
+                res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
+                                     stdin=subprocess.DEVNULL)
+            except subprocess.TimeoutExpired:
+                raise SumoRunError(f"{cfg}: SUMO timed out after {timeout_s:.0f} s") from None
+            if res.returncode != 0:
+                msg = " ".join((res.stderr or res.stdout).split())[-300:]
+                raise SumoRunError(f"{cfg}: SUMO failed (exit {res.returncode}): {msg}")
     else:
         res = run_one(_controlled_job, (str(cfg), sumo_options(out, begin, end, seed, extra_args),
                                         controller), timeout_s=timeout_s)

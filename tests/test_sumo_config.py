@@ -1,0 +1,282 @@
+"""SUMO is started only with options the tool chose (magail_sumo/sim/sumo_config.py).
+
+Crafted configurations carry every kind of SUMO output, a log, a TraCI port and files that make
+SUMO write; real SUMO runs them (libsumo and the ``sumo`` binary) and nothing may appear
+outside the output folder, no port may open, and the files SUMO must not read are refused.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from magail_sumo.inputs import InputFileError, read_json
+from magail_sumo.sim.binaries import binary
+from magail_sumo.sim.session import SessionConfig, SimulationError, SumoSession
+from magail_sumo.sim.sumo_config import (OPTIONS_FILE, SumoConfigError, check_demand, option,
+                                         read_config, template_table)
+
+ROOT = Path(__file__).resolve().parents[1]
+SID = "637f20cafde22ff8"
+PORT = 45999
+
+#: every kind of option a configuration could use to write, log or listen
+HOSTILE_OPTIONS = {
+    "tripinfo-output": "{out}/precious.txt", "fcd-output": "{out}/fcd.xml",
+    "summary-output": "{out}/summary.xml", "netstate-dump": "{out}/netstate.xml",
+    "vehroute-output": "{out}/vehroutes.xml", "statistic-output": "{out}/stats.xml",
+    "log": "{out}/log.txt", "message-log": "{out}/messages.txt",
+    "error-log": "{out}/errors.txt", "save-state.times": "1",
+    "save-state.files": "{out}/state.xml", "save-configuration": "{out}/saved.sumocfg",
+    "output-prefix": "{out}/prefix_", "remote-port": str(PORT),
+    "device.rerouting.output": "{out}/weights.xml", "device.ssm.probability": "1",
+    "device.ssm.file": "{out}/ssm.xml", "random": "true",
+}
+
+
+def _listening(port: int) -> bool:
+    """Whether anything on this machine accepts TCP connections on ``port``."""
+    for family, host in ((socket.AF_INET, "127.0.0.1"), (socket.AF_INET6, "::1")):
+        with socket.socket(family) as s:
+            s.settimeout(0.5)
+            try:
+                if s.connect_ex((host, port)) == 0:
+                    return True
+            except OSError:
+                pass
+    return False
+
+
+def _listening_ports() -> set[int]:
+    """Ports of every listening TCP socket of this machine (``/proc/net/tcp{,6}``)."""
+    ports = set()
+    for name in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(name).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            cols = line.split()
+            if cols[3] == "0A":  # TCP_LISTEN
+                ports.add(int(cols[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
+@pytest.fixture()
+def crafted(tmp_path):
+    """(bundle folder, its hostile .sumocfg, the outside folder, the precious file)."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    precious = outside / "precious.txt"
+    precious.write_text("keep me\n")
+    bundle = tmp_path / "nets" / SID
+    shutil.copytree(ROOT / "networks" / SID, bundle)
+    cfg = bundle / f"{SID}.sumocfg"
+    text = cfg.read_text()
+    extra = "".join(f'  <{k} value="{v.format(out=outside)}"/>\n' for k, v in HOSTILE_OPTIONS.items())
+    cfg.write_text(text.replace("</configuration>", f"  <output>\n{extra}  </output>\n"
+                                "</configuration>"))
+    return bundle, cfg, outside, precious
+
+
+def _outside_intact(outside: Path, precious: Path) -> None:
+    assert precious.read_text() == "keep me\n"
+    assert sorted(p.name for p in outside.iterdir()) == ["precious.txt"]
+
+
+@pytest.mark.sumo
+def test_libsumo_session_of_a_hostile_config_writes_nothing_and_listens_nowhere(crafted):
+    bundle, cfg, outside, precious = crafted
+    before = sorted(p.name for p in bundle.iterdir())
+    ports = _listening_ports()
+    inputs = read_config(cfg)
+    for name in HOSTILE_OPTIONS:
+        assert any(d.startswith(option(name).name + " ") for d in inputs.dropped), name
+    with SumoSession(cfg, config=SessionConfig(seed=1)) as sim:
+        assert not _listening(PORT)
+        assert _listening_ports() <= ports  # libsumo opened no port at all
+        for _ in range(40):
+            sim.step()
+    _outside_intact(outside, precious)
+    assert sorted(p.name for p in bundle.iterdir()) == before
+
+
+@pytest.mark.sumo
+def test_sumo_binary_run_of_a_hostile_config_writes_only_its_own_outputs(crafted, tmp_path):
+    from magail_sumo.evaluation.traffic.sumo_outputs import run_sumo_outputs
+
+    _, cfg, outside, precious = crafted
+    out = tmp_path / "out"
+    done = threading.Event()
+    seen = []
+
+    def watch():  # the port must never open while the run goes on
+        while not done.is_set():
+            seen.append(_listening(PORT))
+            time.sleep(0.05)
+
+    t = threading.Thread(target=watch)
+    t.start()
+    try:
+        summary = run_sumo_outputs(cfg, out, seed=0)
+    finally:
+        done.set()
+        t.join()
+    assert not any(seen)
+    assert summary.arrived > 0
+    _outside_intact(outside, precious)
+    assert sorted(p.name for p in out.iterdir()) == ["edgedata.xml", "statistics.xml",
+                                                      "tripinfo.xml"]
+
+
+@pytest.mark.sumo
+def test_additional_outputs_are_silenced_includes_followed(tmp_path):
+    """An additional file's detectors and edge data (also through an ``<include>``, also a
+    ``host:port`` 'file') run with their outputs to SUMO's null device."""
+    bundle = tmp_path / SID
+    shutil.copytree(ROOT / "networks" / SID, bundle)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    sub = bundle / "sub"
+    sub.mkdir()
+    lanes = _lanes(bundle / f"{SID}.net.xml")
+    lane = max((x for x in lanes if not x.startswith(":")), key=lanes.get)
+    (sub / "inner.add.xml").write_text(
+        f'<additional><edgeData id="inner" file="{outside}/inner.xml"/>'
+        f'<e1Detector id="d1" lane="{lane}" pos="1" period="1" file="det.xml"/></additional>')
+    (bundle / "outer.add.xml").write_text(
+        '<additional xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" '
+        'xsi:noNamespaceSchemaLocation="http://sumo.dlr.de/xsd/additional_file.xsd">'
+        '<include href="sub/inner.add.xml"/>'
+        f'<edgeData id="outer" file="{outside}/outer.xml"/>'
+        '<laneData id="net" file="127.0.0.1:9"/></additional>')
+    cfg = bundle / f"{SID}.sumocfg"
+    cfg.write_text(cfg.read_text().replace(f"{SID}.tll.xml", f"{SID}.tll.xml,outer.add.xml"))
+    inputs = read_config(cfg)
+    notes = " | ".join(inputs.dropped)
+    for what in ("edgeData 'outer'", "laneData 'net'", "edgeData 'inner'", "e1Detector 'd1'"):
+        assert what in notes
+    assert "-c" not in SumoSession(cfg).command()
+    with SumoSession(cfg) as sim:
+        for _ in range(20):
+            sim.step()
+        private = sim._private.name
+        assert Path(private).is_dir()
+    assert not Path(private).exists()  # the cleaned copies go with the session
+    assert list(outside.iterdir()) == []
+    assert not (sub / "det.xml").exists() and not (bundle / "det.xml").exists()
+
+
+def _lanes(net: Path) -> dict[str, float]:
+    import xml.etree.ElementTree as ET
+
+    return {el.get("id"): float(el.get("length")) for el in ET.parse(net).getroot().iter("lane")}
+
+
+@pytest.mark.parametrize("key", ["has.ssm.device", "has.toc.device", "device.ssm.file",
+                                 "device.fcd.output"])
+def test_device_params_that_write_are_refused(tmp_path, key):
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text(f'<routes><vType id="t"><param key="{key}" value="x.xml"/></vType>'
+                      '<vehicle id="v" type="t" depart="0"><route edges="a"/></vehicle></routes>')
+    with pytest.raises(SumoConfigError, match=rf"r.rou.xml: vType 't' param '{key}'"):
+        check_demand([routes])
+    add = tmp_path / "a.add.xml"
+    add.write_text(f'<additional><vType id="u"><param key="{key}" value="1"/></vType></additional>')
+    net = ROOT / "networks" / SID / f"{SID}.net.xml"
+    cfg = tmp_path / "c.sumocfg"
+    cfg.write_text(f'<configuration><net-file value="{net}"/>'
+                   '<additional-files value="a.add.xml"/></configuration>')
+    with pytest.raises(SumoConfigError, match=rf"a.add.xml: vType 'u' param '{key}'"):
+        read_config(cfg)
+
+
+def test_flat_layout_synonyms_gzip_and_any_name(tmp_path):
+    """As SUMO's loader: options at any depth, synonyms, gzipped inputs, any file name."""
+    import gzip
+
+    src = ROOT / "networks" / SID
+    (tmp_path / "n.net.xml.gz").write_bytes(gzip.compress((src / f"{SID}.net.xml").read_bytes()))
+    shutil.copy(src / f"{SID}.rou.xml", tmp_path / "r.rou.xml")
+    cfg = tmp_path / "run.sumo.cfg"
+    cfg.write_text('<sumoConfiguration><net value="n.net.xml.gz"/><r v="r.rou.xml"/>'
+                   '<begin value="3"/><verbose value="true"/><not-an-option value="1"/>'
+                   "</sumoConfiguration>")
+    inputs = read_config(cfg)
+    assert inputs.net == (tmp_path / "n.net.xml.gz").absolute()
+    assert inputs.routes == ((tmp_path / "r.rou.xml").absolute(),)
+    assert inputs.options == (("begin", "3"),)
+    assert "verbose (report)" in inputs.dropped
+    assert "not-an-option (not an option of this SUMO)" in inputs.dropped
+    ids = check_demand(inputs.routes)
+    assert len(ids) > 5
+
+
+def test_missing_and_odd_inputs_are_one_line(tmp_path):
+    net = tmp_path / "n.net.xml"
+    cfg = tmp_path / "c.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="n.net.xml"/>'
+                   '<route-files value="gone.rou.xml"/></input></configuration>')
+    with pytest.raises(SumoConfigError, match=r"c.sumocfg: net-file n.net.xml: not found$"):
+        read_config(cfg)
+    os.mkfifo(net)  # a FIFO would block SUMO forever
+    t0 = time.monotonic()
+    with pytest.raises(SumoConfigError, match=r"net-file n.net.xml: is a FIFO"):
+        read_config(cfg)
+    assert time.monotonic() - t0 < 5
+    net.unlink()
+    net.symlink_to("/dev/zero")
+    with pytest.raises(SumoConfigError, match=r"net-file n.net.xml: is a character device"):
+        read_config(cfg)
+    net.unlink()
+    shutil.copy(ROOT / "networks" / SID / f"{SID}.net.xml", net)
+    with pytest.raises(SumoConfigError, match=r"c.sumocfg: route-files gone.rou.xml: not found"):
+        read_config(cfg)
+    (tmp_path / "z.sumocfg").symlink_to("/dev/zero")
+    with pytest.raises(SumoConfigError, match=r"z.sumocfg: is a character device"):
+        read_config(tmp_path / "z.sumocfg")
+    with pytest.raises(SimulationError, match=r"z.sumocfg: is a character device"):
+        SumoSession(tmp_path / "z.sumocfg").start()
+
+
+def test_bundle_config_may_name_only_its_own_files(tmp_path):
+    from converters.sumo.bundle import BundleError, BundleLayout
+
+    bundle = tmp_path / SID
+    shutil.copytree(ROOT / "networks" / SID, bundle)
+    elsewhere = tmp_path / "other.rou.xml"
+    shutil.copy(bundle / f"{SID}.rou.xml", elsewhere)
+    cfg = bundle / f"{SID}.sumocfg"
+    cfg.write_text(cfg.read_text().replace(f"{SID}.rou.xml", str(elsewhere)))
+    with pytest.raises(BundleError, match="not one of its bundle's own files"):
+        BundleLayout.of(bundle, SID).sumo_inputs()
+
+
+def test_option_table_matches_the_installed_sumo(tmp_path):
+    """``sumo_options.json`` is the installed ``sumo``'s option table (regenerate it with
+    ``python -m magail_sumo.sim.sumo_config`` after a SUMO upgrade)."""
+    template = tmp_path / "t.xml"
+    subprocess.run([binary("sumo"), "--save-template", str(template)], check=True,
+                   capture_output=True)
+    shipped = read_json(OPTIONS_FILE)
+    assert shipped["options"] == template_table(template.read_text())
+
+
+def test_read_json_guards(tmp_path):
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(InputFileError, match=r"deep.json: JSON nested deeper than 64 levels"):
+        read_json(deep)
+    with pytest.raises(InputFileError, match=r"is a character device"):
+        read_json("/dev/zero")
+    big = tmp_path / "big.json"
+    big.write_text("[" + "0," * 1000 + "0]")
+    with pytest.raises(InputFileError, match=r"big.json: is 1.96 KiB, more than the 1 KiB"):
+        read_json(big, limit=1024)
