@@ -32,6 +32,14 @@ from typing import Any, Callable, Iterable, Iterator
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import one_line
 
+#: ``progress(phase, done, total)``: told after each unit of a long job (a batch of rollouts, a
+#: scene, an env step of a training update); ``magail-sumo`` draws it as a bar on a terminal
+Progress = Callable[[str, int, int], None]
+
+
+def no_progress(phase: str, done: int, total: int) -> None:
+    """The :data:`Progress` that shows nothing."""
+
 #: seconds a worker gets to exit after its answer before it is killed
 _EXIT_GRACE_S = 5.0
 

@@ -3,10 +3,12 @@ converted bundles (converted once per session), and helpers used by several test
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -219,6 +221,22 @@ def peak_memory(fn):
         return result, tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
+
+
+@contextlib.contextmanager
+def small_tmpfs(path: Path, size: str):
+    """A real tmpfs of ``size`` (``"256k"``) mounted on the new folder ``path`` for the block (a
+    full disk without mocking anything); the test is skipped where mounting is not allowed
+    (not root, no mount capability)."""
+    path.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
+                       capture_output=True)
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", str(path)], capture_output=True)
 
 
 def tiny_checkpoint(path, env: dict):

@@ -1,9 +1,12 @@
 """Training checkpoints and run directories: a checkpoint cannot run code, bad checkpoints
 give one-line errors naming the file (in training and in evaluation), ``train --overwrite``
-removes only a run."""
+removes only a run (and nothing when the folder's marker is not valid), nothing is written
+through a symbolic link out of a run directory, and a full disk is one line naming the file."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import shutil
 from dataclasses import replace
@@ -14,11 +17,12 @@ import pytest
 import torch
 import yaml
 
-from conftest import WOMD_DIR
+from conftest import WOMD_DIR, tree_digest
 from magail_sumo.cli.main import main
 from magail_sumo.config import from_dict, to_dict
 from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.expert import record_expert
+from magail_sumo.outputs import MARKER, OutputError
 from magail_sumo.training.config import TrainConfig
 from magail_sumo.training.trainer import (CHECKPOINT_FORMAT, CheckpointError, _rng_state,
                                           load_checkpoint, load_policy, make_policy, train,
@@ -283,3 +287,187 @@ def test_unloadable_checkpoint_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith("error: magail-sumo evaluate: ")
     assert str(ckpt) in err[0] and "Traceback" not in err[0]
+
+
+# --- writes stay in the run directory ------------------------------------------------------
+def _outside(tmp_path: Path) -> Path:
+    """tmp/outside/: a sibling of the run directory holding a file that must never change."""
+    o = tmp_path / "outside"
+    o.mkdir()
+    (o / "precious.tsv").write_text("my data\n")
+    return o
+
+
+def _refused(err: str, path: Path) -> None:
+    line = _one_line_error(err, str(path))
+    assert f"{path}: would be written outside" in line, line
+
+
+def _yaml(cfg, path: Path) -> Path:
+    path.write_text(yaml.safe_dump(to_dict(cfg)))
+    return path
+
+
+@pytest.mark.parametrize("name", ["checkpoints", "skipped_scenes.tsv", "tb", "config.yaml",
+                                  "environment.json"])
+def test_run_dir_write_sites_refuse_links_out(tmp_path, name):
+    """Each place a run writes (checkpoints, the skipped-scenes append, TensorBoard, the run
+    record) refuses a symbolic link out of the run directory; nothing outside changes."""
+    from types import SimpleNamespace
+
+    from magail_sumo.config import record_run
+    from magail_sumo.training.trainer import note_skipped, save_checkpoint
+
+    def tb_logger(d: Path):
+        from magail_sumo.training.loop import tb_logger
+
+        return tb_logger(d)
+
+    run, outside = tmp_path / "run", _outside(tmp_path)
+    run.mkdir()
+    link = run / name
+    link.symlink_to(outside / "precious.tsv" if "." in name else outside)
+    before = tree_digest(outside)
+    write = {"checkpoints": lambda: save_checkpoint(run, {"update": 1}, 1),
+             "skipped_scenes.tsv": lambda: note_skipped(
+                 SimpleNamespace(new_skipped=[("a.pkl", "unreadable")]), run),
+             "tb": lambda: tb_logger(run),
+             "config.yaml": lambda: record_run(run, TrainConfig()),
+             "environment.json": lambda: record_run(run, TrainConfig())}[name]
+    with pytest.raises(OutputError, match=f"{link}: would be written outside") as e:
+        write()
+    assert "\n" not in str(e.value)
+    assert tree_digest(outside) == before
+
+
+@pytest.fixture(scope="module")
+def pool_run(setup, tmp_path_factory):
+    """A 1-update gail run on a pool folder (scene 850c and a file that is not a scene: the
+    run lists it in skipped_scenes.tsv), and its config."""
+    root, cfg, _ = setup
+    pool = tmp_path_factory.mktemp("pool")
+    shutil.copy(SCENE, pool / Path(SCENE).name)
+    (pool / "broken.pkl").write_bytes(b"\x80\x04not a pickle at all")
+    pcfg = replace(cfg, scenes=replace(cfg.scenes, files=[str(pool)]))
+    run = train(pcfg, run_dir=root / "pool_run", log=lambda s: None)
+    assert len((run / "skipped_scenes.tsv").read_text().splitlines()) == 2
+    assert (run / "tb").is_dir() and (run / "checkpoints" / "latest.pt").is_file()
+    return run, pcfg
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("name", ["skipped_scenes.tsv", "tb", "checkpoints"])
+def test_resume_refuses_links_out_of_the_run_dir(pool_run, tmp_path, capsys, name):
+    """``train --resume RUN`` where RUN/skipped_scenes.tsv is a link to a file outside (it
+    would gain the skipped scene's line), or RUN/tb or RUN/checkpoints a link to the run's own
+    folder moved outside (new event files, new checkpoints): refused in one line naming the
+    link, before the set-up; nothing outside changes."""
+    run, pcfg = pool_run
+    d = tmp_path / "run"
+    shutil.copytree(run, d)
+    outside = _outside(tmp_path)
+    if name == "skipped_scenes.tsv":
+        (d / name).unlink()
+        (d / name).symlink_to(outside / "precious.tsv")
+    else:
+        shutil.move(d / name, outside / name)
+        (d / name).symlink_to(outside / name)
+    before = tree_digest(outside)
+    cfg = _yaml(replace(pcfg, updates=2), tmp_path / "cfg.yaml")
+    assert main(["train", "--config", str(cfg), "--resume", str(d)]) == 1
+    _refused(capsys.readouterr().err, d / name)
+    assert tree_digest(outside) == before
+
+
+@pytest.mark.sumo
+def test_new_run_refuses_a_dangling_link_out(pool_run, tmp_path, capsys):
+    """A new run into a folder marked as train's holding only a dangling
+    skipped_scenes.tsv link out of it: refused; the link's target is not created."""
+    _, pcfg = pool_run
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / MARKER).write_text(json.dumps({"tools": {"train": []}}))
+    outside = _outside(tmp_path)
+    (d / "skipped_scenes.tsv").symlink_to(outside / "new.tsv")
+    cfg = _yaml(pcfg, tmp_path / "cfg.yaml")
+    assert main(["train", "--config", str(cfg), "--run-dir", str(d)]) == 1
+    _refused(capsys.readouterr().err, d / "skipped_scenes.tsv")
+    assert sorted(os.listdir(outside)) == ["precious.tsv"]
+    assert sorted(os.listdir(d)) == [MARKER, "skipped_scenes.tsv"]
+
+
+@pytest.mark.sumo
+def test_bc_checkpoint_refuses_a_link_out(setup, tmp_path):
+    """Behavioural cloning's own checkpoint write (train_bc, past the run-directory checks)."""
+    from magail_sumo.training.bc import train_bc
+
+    _, cfg, _ = setup
+    run, outside = tmp_path / "run", _outside(tmp_path)
+    run.mkdir()
+    (run / MARKER).write_text(json.dumps({"tools": {"train": []}}))
+    (run / "checkpoints").symlink_to(outside)
+    before = tree_digest(outside)
+    with pytest.raises(OutputError, match="checkpoints: would be written outside"):
+        train_bc(replace(cfg, algorithm="bc"), run, None, lambda s: None,
+                 lambda *a: None)
+    assert tree_digest(outside) == before
+
+
+# --- markers and full disks: one line naming the file ------------------------------------
+@pytest.mark.sumo
+def test_overwrite_with_an_invalid_marker_names_the_marker(setup, tmp_path, capsys):
+    cfg = _bc_config(setup, tmp_path)
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / MARKER).write_text("[" * 100000)  # too deep for the JSON parser
+    (d / "config.yaml").write_text("mine\n")
+    before = tree_digest(d)
+    assert main(["train", "--config", str(cfg), "--run-dir", str(d), "--overwrite"]) == 1
+    line = _one_line_error(capsys.readouterr().err, str(d / MARKER))
+    assert "not a valid magail_sumo marker (nested too deep)" in line
+    assert "nothing removed" in line and str(cfg) not in line
+    assert tree_digest(d) == before
+
+
+def _big_bc_config(setup, tmp_path) -> Path:
+    """Behavioural cloning of a policy whose checkpoint is a few MiB."""
+    _, cfg, _ = setup
+    big = replace(cfg, algorithm="bc", policy=replace(cfg.policy, actor_hidden=[512, 512],
+                                                      critic_hidden=[512, 512]))
+    return _yaml(big, tmp_path / "bc.yaml")
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("how", ["tmpfs", "file-size limit"])
+def test_full_disk_during_train_is_one_line_naming_the_file(setup, tmp_path, capsys, how):
+    """A checkpoint write that fails for a real OS reason (a full 256 KiB tmpfs: ENOSPC; a
+    256 KiB file-size limit, RLIMIT_FSIZE: EFBIG) ends train with one line naming the
+    checkpoint and the reason; no partial file is left."""
+    import errno
+    import resource
+    import signal
+
+    from conftest import small_tmpfs
+
+    cfg = _big_bc_config(setup, tmp_path)
+    with contextlib.ExitStack() as stack:
+        if how == "tmpfs":
+            base = stack.enter_context(small_tmpfs(tmp_path / "small", "256k"))
+            reason = os.strerror(errno.ENOSPC)
+        else:
+            base = tmp_path
+            reason = os.strerror(errno.EFBIG)
+            soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+            old = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+            stack.callback(signal.signal, signal.SIGXFSZ, old)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (256 << 10, hard))
+            stack.callback(resource.setrlimit, resource.RLIMIT_FSIZE, (soft, hard))
+        run = base / "run"
+        rc = main(["train", "--config", str(cfg), "--run-dir", str(run)])
+        err = capsys.readouterr().err
+        assert rc == 1
+        line = _one_line_error(err, str(run / "checkpoints" / "latest.pt"))
+        assert line.endswith(f"{run / 'checkpoints' / 'latest.pt'}: cannot write ({reason})")
+        assert len(err.strip().splitlines()) == 1
+        assert os.listdir(run / "checkpoints") == []  # no temporary file left
+        assert yaml.safe_load((run / "config.yaml").read_text())["algorithm"] == "bc"

@@ -161,3 +161,18 @@ def test_bad_city_input_is_one_line(tmp_path, monkeypatch, capsys, args, message
     assert rc == 1 and len(err) == 1, err
     assert err[0].startswith("error: magail-sumo evaluate: ") and message in err[0]
     assert not (tmp_path / "out").exists()  # refused before anything ran
+
+
+def test_city_outputs_refuse_a_link_out_of_the_folder(tmp_path):
+    """``OUT/city`` linked elsewhere: refused in one line before any SUMO run, nothing written
+    there."""
+    from magail_sumo.evaluation.city import CitySettings, evaluate_city
+    from magail_sumo.outputs import OutputError, claim_output_dir
+
+    out, outside = tmp_path / "out", tmp_path / "outside"
+    outside.mkdir()
+    claim_output_dir(out, "evaluate", ["manifest.json", "city", "city.json"])
+    (out / "city").symlink_to(outside, target_is_directory=True)
+    with pytest.raises(OutputError, match="would be written outside"):
+        evaluate_city("random", [CFG], out, CitySettings(steps=5, warmup_s=0))
+    assert list(outside.iterdir()) == []

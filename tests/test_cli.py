@@ -149,3 +149,24 @@ def test_timeout_flag_is_checked(capsys):
         with pytest.raises(SystemExit):
             main([*cmd, "--timeout-s", "0"])
         assert "argument --timeout-s: 0 is outside" in capsys.readouterr().err
+
+
+def test_phase_bars_draw_on_a_terminal_only_and_restart_a_phase(capsys):
+    from magail_sumo.cli.progress import PhaseBars
+
+    quiet = PhaseBars(enabled=False)
+    quiet("rollouts", 1, 4)
+    assert capsys.readouterr().err == ""
+    bars = PhaseBars(enabled=True)
+    seen = []
+    for update in range(2):
+        for k in range(1, 4):
+            bars("steps", k, 3)  # counts anew each update: a new bar, never a negative step
+        seen.append((bars.bars["steps"], bars.bars["steps"].n))
+    bars("rollouts", 2, 8)
+    bars("rollouts", 8, 8)
+    assert seen[0][0] is not seen[1][0] and seen[0][1] == seen[1][1] == 3
+    assert bars.bars["rollouts"].n == 8
+    bars.close()
+    err = capsys.readouterr().err
+    assert "env steps of the update" in err and "rollouts" in err

@@ -206,6 +206,16 @@ def test_method_names(tmp_path):
                     n_rollouts=1, baselines=["logreplay"], name="logreplay")
 
 
+def test_progress_counts_every_rollout(tmp_path):
+    """``progress("rollouts", done, total)`` after each method of a scene: the last call is
+    the total, the counts never go back."""
+    calls = []
+    runner.evaluate([str(WOMD_DIR / f"{SID}.tfrecord")], "constvel", tmp_path / "ev",
+                    n_rollouts=3, baselines=["logreplay"], progress=lambda *c: calls.append(c))
+    assert [c[0] for c in calls] == ["rollouts"] * len(calls) and calls[-1][1:] == (6, 6)
+    assert [c[1] for c in calls] == sorted(c[1] for c in calls)
+
+
 # ------------------------------------------- faults: stopped workers, bad policies, missing actions
 SCENE = WOMD_DIR / f"{SID}.tfrecord"
 
@@ -293,3 +303,22 @@ def test_evaluate_logs_a_policys_missing_actions(tmp_path, bundled_networks, cap
     assert main(["report", str(tmp_path / "e")]) == 0
     html = (tmp_path / "e" / "report" / "report.html").read_text()
     assert "Policy actions fixed up by the env" in html
+
+
+def test_export_submission_into_a_folder_is_refused_before_the_rollouts(tmp_path, capsys):
+    """``--export-submission DIR`` (a folder) or under a file: one line naming the path given
+    and the problem (not a temporary file), before any rollout; nothing is written."""
+    folder, blocker = tmp_path / "subs", tmp_path / "file"
+    folder.mkdir()
+    blocker.write_text("x")
+    for given, problem in ((folder, "is a folder (give a file name like sub.binproto)"),
+                           (blocker / "s.binproto", f"cannot be written ({blocker} is not a "
+                                                    "folder)")):
+        out = tmp_path / "eval"
+        assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts",
+                     "1", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"), "--out", str(out),
+                     "--export-submission", str(given)]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"error: magail-sumo evaluate: {given}: {problem}"], err
+        assert not out.exists()
+    assert sorted(os.listdir(tmp_path)) == ["file", "subs"] and os.listdir(folder) == []

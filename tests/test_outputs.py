@@ -432,3 +432,214 @@ def test_full_disk_on_real_tmpfs(tmp_path, capsys):
         assert not [p for p in tree_digest(mnt) if p.endswith((".tmp", ".old"))]
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+# ---------------------------------------------------------- symbolic links out of the folder
+def _outside(tmp_path: Path) -> Path:
+    """tmp/outside/: a sibling of the output folder holding a file that must never change."""
+    o = tmp_path / "outside"
+    o.mkdir()
+    (o / "precious.txt").write_text("precious\n")
+    return o
+
+
+def _refused(err: str, path: Path) -> str:
+    """The one error line of ``err``: a refusal naming ``path`` (no traceback)."""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert f"{path}: would be written outside" in lines[0], err
+    return lines[0]
+
+
+def test_inside_follows_links_only_within_the_folder(tmp_path):
+    from magail_sumo.outputs import inside, inside_dir
+
+    out, outside = tmp_path / "out", _outside(tmp_path)
+    out.mkdir()
+    (out / "real").mkdir()
+    (out / "in_link").symlink_to(out / "real")  # stays inside: accepted
+    (out / "out_link").symlink_to(outside)
+    (out / "dangling").symlink_to(outside / "new.txt")
+    (out / "file").write_text("x")
+    assert inside(out, "in_link", "a.txt") == out / "in_link" / "a.txt"
+    assert inside_dir(out, "in_link", "sub") == out / "in_link" / "sub"
+    assert (out / "real" / "sub").is_dir()
+    for parts in (("out_link",), ("out_link", "a.txt"), ("dangling",), ("..", "x")):
+        with pytest.raises(OutputError, match="would be written outside") as e:
+            inside_dir(out, *parts)
+        assert "\n" not in str(e.value) and str(out.joinpath(*parts)) in str(e.value)
+    with pytest.raises(OutputError, match="file: exists and is not a folder"):
+        inside_dir(out, "file")
+    assert tree_digest(outside) == {"precious.txt": tree_digest(outside)["precious.txt"]}
+    assert not (outside / "new.txt").exists()
+
+
+def _planted(out: Path, name: str, outside: Path) -> Path:
+    """``out/name``, made a symbolic link to ``outside`` (a folder) or, for a file name, to
+    ``outside/precious.txt``."""
+    link = out / name
+    link.parent.mkdir(parents=True, exist_ok=True)
+    link.symlink_to(outside if "." not in name else outside / "precious.txt")
+    return link
+
+
+def test_report_figures_refuse_a_link_out(tmp_path):
+    """The report's figure writer (report/img, the Markdown's images)."""
+    from magail_sumo.evaluation.report.render import Document
+
+    out, outside = tmp_path / "report", _outside(tmp_path)
+    link = _planted(out, "img", outside)
+    before = tree_digest(outside)
+    with pytest.raises(OutputError, match=f"{link}: would be written outside"):
+        Document("t", out / "img").image(b"\x89PNG", "bars", "bars")
+    assert tree_digest(outside) == before
+
+
+@pytest.mark.parametrize("name", ["networks", "manifest.json"])
+def test_evaluation_write_sites_refuse_links_out(tmp_path, name):
+    """The bundles of evaluate (OUT/networks, handed to the converter; the outside folder a
+    networks folder, so only the link stands in the way) and its manifest."""
+    from converters.sumo.scenario import claim_networks_dir
+    from magail_sumo.evaluation.scenes import bundle
+    from magail_sumo.evaluation.storage import write_manifest
+
+    out, outside = tmp_path / "eval", claim_networks_dir(tmp_path / "outside")
+    (outside / "precious.txt").write_text("precious\n")
+    link = _planted(out, name, outside)
+    before = tree_digest(outside)
+    with pytest.raises(OutputError, match=f"{link}: would be written outside"):
+        if name == "networks":
+            bundle(load_scene(WOMD_DIR / f"{SID}.tfrecord"), None, out)
+        else:
+            write_manifest(out, {"scenes": [], "methods": [], "rollouts": 1, "seed": 0})
+    assert tree_digest(outside) == before
+
+
+def test_expert_metadata_refuses_a_link_out(tmp_path):
+    from magail_sumo.expert import record_expert
+
+    out, outside = tmp_path / "expert", _outside(tmp_path)
+    out.mkdir()
+    (out / MARKER).write_text(json.dumps({"tools": {"expert": ["metadata.json"]}}))
+    link = _planted(out, "metadata.json", outside)
+    before = tree_digest(outside)
+    with pytest.raises(OutputError, match=f"{link}: would be written outside"):
+        record_expert([], out)
+    assert tree_digest(outside) == before and os.path.islink(link)
+
+
+@pytest.fixture(scope="module")
+def eval_dir(tmp_path_factory):
+    """An evaluate folder: constvel on scene 850c, one rollout (no SUMO run)."""
+    out = tmp_path_factory.mktemp("linked") / "eval"
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+                 "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"), "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("name", ["report", "report/img", "report/report.html"])
+def test_report_refuses_links_out_of_its_folder(eval_dir, tmp_path, capsys, name):
+    """``report DIR`` with DIR/report, DIR/report/img or a report file a symbolic link out of
+    DIR (the outside folder marked as a report's, so only the link stands in the way): refused
+    in one line naming the link before any scoring; nothing outside changes."""
+    d = tmp_path / "eval"
+    shutil.copytree(eval_dir, d)
+    outside = _outside(tmp_path)
+    (outside / MARKER).write_text(json.dumps({"tools": {"report": ["report.html"]}}))
+    (outside / "report.html").write_text("precious\n")
+    (outside / "01_bars.png").write_text("precious\n")
+    if name != "report":
+        (d / "report").mkdir()
+        (d / "report" / MARKER).write_text(json.dumps({"tools": {"report": []}}))
+    link = _planted(d, name, outside)
+    before = tree_digest(outside)
+    capsys.readouterr()
+    assert main(["report", str(d)]) == 1
+    _refused(capsys.readouterr().err, link)
+    assert tree_digest(outside) == before
+
+
+@pytest.mark.sumo
+def test_evaluate_refuses_a_networks_link_out_of_its_folder(tmp_path, capsys):
+    """``evaluate --out OUT`` (OUT marked as evaluate's) whose OUT/networks is a symbolic link
+    to a networks folder outside: refused before any conversion or rollout; nothing is
+    converted into the outside folder."""
+    from converters.sumo.scenario import claim_networks_dir
+
+    out, outside = tmp_path / "eval", claim_networks_dir(tmp_path / "outside")
+    (outside / "precious.txt").write_text("precious\n")
+    out.mkdir()
+    (out / MARKER).write_text(json.dumps({"tools": {"evaluate": ["networks"]}}))
+    link = _planted(out, "networks", outside)
+    before = tree_digest(outside)
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+                 "--fcd-rollouts", "1", "--scenes", str(WOMD_DIR / f"{SID}.tfrecord"),
+                 "--out", str(out)]) == 1
+    _refused(capsys.readouterr().err, link)
+    assert tree_digest(outside) == before
+    assert sorted(os.listdir(out)) == [MARKER, "networks"]
+
+
+# ------------------------------------------------------------------------- invalid markers
+@pytest.mark.parametrize("content,why", [
+    ("[" * 100000, "nested too deep"),
+    ('{"tools": {"train": "abc"}}', "expected"),  # a string: its letters are not file names
+    ('{"tools": {"train": [1, null]}}', "expected"),
+    ('{"tools": ["train"]}', "expected"),
+    ('"tools"', "expected"),
+    ('{"tools": {', "not JSON"),
+    (b"\xff\xfe{}", "not JSON"),
+])
+def test_invalid_marker_is_one_line_naming_it_and_nothing_is_removed(tmp_path, content, why):
+    from magail_sumo.outputs import claim_output_dir, remove_owned
+
+    d = tmp_path / "run"
+    d.mkdir()
+    for name in ("a", "b", "c", "train"):
+        (d / name).write_text(name)
+    marker = d / MARKER
+    marker.write_bytes(content if isinstance(content, bytes) else content.encode())
+    before = tree_digest(d)
+    for call in (read_marker, lambda f: remove_owned(f, "train"),
+                 lambda f: claim_output_dir(f, "train", ["a"])):
+        with pytest.raises(OutputError) as e:
+            call(d)
+        msg = str(e.value)
+        assert msg.startswith(f"{marker}: not a valid magail_sumo marker (") and why in msg
+        assert "\n" not in msg and len(msg) < 400
+    assert tree_digest(d) == before
+
+
+# ------------------------------------------------------------------- atomic writes' errors
+def test_failed_atomic_write_names_the_target_not_a_temporary_file(tmp_path):
+    from magail_sumo.outputs import atomic_path, write_bytes
+
+    (tmp_path / "d").mkdir()
+    with pytest.raises(OutputError, match=r"d: is a folder \(give a file name\)"):
+        write_bytes(tmp_path / "d", b"x")
+    assert os.listdir(tmp_path) == ["d"] and os.listdir(tmp_path / "d") == []
+    for target in (tmp_path / "no" / "f.bin", tmp_path / "d" / "f.bin"):
+        with pytest.raises(OSError) as e:
+            if target.parent.name == "no":
+                write_bytes(target, b"x")
+            else:
+                with atomic_path(target) as tmp:  # a writer failing on its temporary file
+                    os.mkdir(tmp)
+        assert e.value.filename == str(target), e.value
+    assert os.listdir(tmp_path / "d") == []
+    with pytest.raises(OSError) as e:  # an error about another file (one read) is left as is
+        with atomic_path(tmp_path / "d" / "f.bin"):
+            open(tmp_path / "absent.txt")
+    assert e.value.filename == str(tmp_path / "absent.txt")
+
+
+def test_full_disk_names_the_file_being_written(tmp_path):
+    """A real full disk (a 64 KiB tmpfs): the OSError names the target, ENOSPC."""
+    from conftest import small_tmpfs
+    from magail_sumo.outputs import write_bytes
+
+    with small_tmpfs(tmp_path / "small", "64k") as mnt:
+        with pytest.raises(OSError) as e:
+            write_bytes(mnt / "big.bin", b"x" * (1 << 20))
+        assert e.value.errno == errno.ENOSPC and e.value.filename == str(mnt / "big.bin")
+        assert os.listdir(mnt) == []

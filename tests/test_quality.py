@@ -66,6 +66,85 @@ def test_registry_errors_name_the_spec_and_the_available(tmp_path, monkeypatch):
         policies.make_policy("pretrained:zz", 0)
 
 
+@pytest.fixture
+def pretrained_cli(capsys):
+    """``python -m magail_sumo.pretrained ARGS`` (its ``main``, in this process): exit status,
+    stderr lines."""
+    from magail_sumo.pretrained.__main__ import main as pretrained_main
+
+    def run(*args: str) -> tuple[int, list[str]]:
+        capsys.readouterr()
+        rc = pretrained_main(list(args))
+        return rc, capsys.readouterr().err.strip().splitlines()
+
+    return run
+
+
+def test_export_checks_everything_before_replacing_a_registered_policy(tmp_path,
+                                                                      pretrained_cli):
+    """Exporting again under a registered name with a bad --noise-scale (or a bad figures
+    file) is refused before NAME.pt is touched: the registered policy still resolves, its
+    card's checksum matching."""
+    from conftest import tiny_checkpoint
+
+    first, second = tiny_checkpoint(tmp_path / "a.pt", {}), tmp_path / "b.pt"
+    torch.manual_seed(7)
+    tiny_checkpoint(second, {"max_steps": 30})  # another policy: other weights
+    reg = tmp_path / "reg"
+    pt.export(first, "mine", reg, make_default=True)
+    before = {f: (reg / f).read_bytes() for f in sorted(os.listdir(reg))}
+    (tmp_path / "deep.json").write_text("[" * 100000)
+    for bad in (["--noise-scale", "-1"], ["--noise-scale", "nan"],
+                ["--figures", str(tmp_path / "deep.json")]):
+        rc, err = pretrained_cli("export", str(second), "--name", "mine", "--dir", str(reg),
+                                 "--default", *bad)
+        assert rc == 1 and len(err) == 1 and err[0].startswith("error: "), err
+        assert {f: (reg / f).read_bytes() for f in sorted(os.listdir(reg))} == before, bad
+    assert pt.resolve("pretrained:mine", reg).card["checkpoint"]["source"] == str(first)
+    # a good export replaces the three files together (no temporary left)
+    pt.export(second, "mine", reg, noise_scale=0.5, make_default=True)
+    assert sorted(os.listdir(reg)) == ["index.json", "mine.json", "mine.pt"]
+    entry = pt.resolve("pretrained:mine", reg)
+    assert entry.card["checkpoint"]["source"] == str(second)
+    assert entry.card["sampling"]["noise_scale"] == 0.5
+
+
+def test_pretrained_cli_errors_are_one_line_naming_the_file(tmp_path, pretrained_cli):
+    """``python -m magail_sumo.pretrained``: every error one line naming the file the user gave
+    (no traceback; --debug prints it)."""
+    from conftest import tiny_checkpoint
+
+    ckpt = tiny_checkpoint(tmp_path / "c.pt", {})
+    (tmp_path / "deep.json").write_text("[" * 100000)
+    (tmp_path / "afile").write_text("x")
+    reg, deep = str(tmp_path / "reg"), tmp_path / "deep.json"
+    cases = [
+        (["export", str(ckpt), "--name", "a", "--dir", reg, "--figures", str(deep)],
+         f"{deep}: figures file is nested too deep"),
+        (["export", str(ckpt), "--name", "a", "--dir", reg, "--figures", str(tmp_path)],
+         f"{tmp_path}: cannot read the figures file"),
+        (["export", str(tmp_path), "--name", "a", "--dir", reg], f"{tmp_path}: "),
+        (["export", str(ckpt), "--name", "a", "--dir", str(tmp_path / "afile")],
+         f"{tmp_path / 'afile'}: not a folder"),
+        (["export", str(ckpt), "--name", "../a", "--dir", reg], "not a pretrained policy name"),
+        (["list", "--dir", str(tmp_path / "afile" / "x")], None),
+    ]
+    (tmp_path / "bad_index").mkdir()
+    (tmp_path / "bad_index" / "index.json").write_text("[" * 100000)
+    cases.append((["list", "--dir", str(tmp_path / "bad_index")],
+                  f"{tmp_path / 'bad_index' / 'index.json'}: index is nested too deep"))
+    for args, want in cases:
+        rc, err = pretrained_cli(*args)
+        if want is None:
+            assert rc == 0, err
+            continue
+        assert rc == 1 and len(err) == 1, (args, err)
+        assert err[0].startswith("error: ") and want in err[0], (args, err)
+    rc, err = pretrained_cli("--debug", *cases[0][0])
+    assert rc == 1 and err[0].startswith("Traceback") and err[-1].startswith("error: ")
+    assert not (tmp_path / "reg").exists() or os.listdir(tmp_path / "reg") == []
+
+
 def test_shipped_registry_and_package_data():
     folder = Path(pt.__file__).parent
     default = pt.default_name(folder)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -79,3 +80,25 @@ def test_replay_refuses_an_unwritable_out_before_the_slow_work(tmp_path, capsys,
     (tmp_path / "d.gif").mkdir()
     assert main(["replay", str(SCENE), "--out", str(tmp_path / "d.gif")]) == 1
     assert "d.gif: is a folder" in capsys.readouterr().err
+
+
+def test_replay_refuses_an_fcd_folder_before_the_slow_work(tmp_path, capsys, monkeypatch):
+    """``--fcd DIR`` with an existing folder: one line asking for a file name; nothing is
+    written beside the folder (no DIR.fcd.xml, DIR.types.add.xml, DIR.sumocfg)."""
+    from magail_sumo.cli import replay
+
+    def slow_work(*args, **kwargs):  # the scene is read first of the slow work
+        raise AssertionError("replay started its slow work")
+
+    monkeypatch.setattr(replay, "load_scene", slow_work)
+    (tmp_path / "fcd").mkdir()
+    assert main(["replay", str(SCENE), "--out", str(tmp_path / "v.gif"), "--fcd",
+                 str(tmp_path / "fcd")]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"error: magail-sumo replay: {tmp_path / 'fcd'}: is a folder (give a file "
+                   "name like run.fcd.xml)"], err
+    (tmp_path / "x.sumocfg").mkdir()  # a file beside the FCD that could not be written
+    assert main(["replay", str(SCENE), "--out", str(tmp_path / "v.gif"), "--fcd",
+                 str(tmp_path / "x.fcd.xml")]) == 1
+    assert f"{tmp_path / 'x.sumocfg'}: is a folder" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path)) == ["fcd", "x.sumocfg"]

@@ -129,7 +129,13 @@ def test_scoring_workers_draw_the_same_views(folder):
     from magail_sumo.evaluation.report import animation, figures
     from magail_sumo.evaluation.report.scoring import collect
 
-    sc = collect(folder, workers=2)
+    calls = []
+    sc = collect(folder, workers=2, progress=lambda *c: calls.append(c))
+    pairs = len(SCENES) * len(sc.methods)
+    assert calls[-1] == ("scored", pairs, pairs) and all(c[0] == "scored" for c in calls)
+    serial = []
+    collect(folder, workers=1, progress=lambda *c: serial.append(c))
+    assert serial == [("scored", k, pairs) for k in range(1, pairs + 1)]
     assert set(sc.views) == set(SCENES)
     for sid, view in sc.views.items():
         assert view.methods == tuple(sc.methods)

@@ -380,3 +380,17 @@ def test_rng_round_trip_is_exact():
     assert torch.equal(draws[2], again[2])
     with pytest.raises((ValueError, TypeError)):
         decode_rng({**encode_rng(saved), "numpy": ["MT19937", torch.zeros(3), 0, 0, 0.0]})
+
+
+def test_progress_reports_the_env_steps_of_each_update_and_the_updates(setup, tmp_path):
+    """``progress`` hears every behavioural-cloning epoch, every env step of each update
+    (``ppo.n_steps`` of them, counting anew per update) and every update."""
+    root, cfg = setup
+    calls = []
+    train(replace(cfg, updates=2), run_dir=tmp_path / "run", log=lambda s: None,
+          progress=lambda *c: calls.append(c))
+    steps = [done for phase, done, total in calls if phase == "steps"]
+    assert {total for phase, _, total in calls if phase == "steps"} == {cfg.ppo.n_steps}
+    assert steps == list(range(1, cfg.ppo.n_steps + 1)) * 2
+    assert [c for c in calls if c[0] == "updates"] == [("updates", 1, 2), ("updates", 2, 2)]
+    assert [c[1] for c in calls if c[0] == "bc"] == [1, 2]

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from converters.scene_files import SceneRecord, iter_scene_records
-from magail_sumo.outputs import NameRegistry, OutputError, atomic_write, printable
+from magail_sumo.outputs import NameRegistry, OutputError, atomic_write, inside, printable
 from magail_sumo.scene import Scene
 from magail_sumo.workers import run_jobs
 
@@ -168,8 +168,9 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
 
 
 def write_summary(path: Path, rows: list[BatchRow]) -> None:
-    """Write the summary CSV (one line per record), atomically."""
-    with atomic_write(path, "w") as fh:
+    """Write the summary CSV (one line per record), atomically, refused
+    (:class:`~magail_sumo.outputs.OutputError`) through a link out of its folder."""
+    with atomic_write(inside(path.parent, path.name), "w") as fh:
         w = csv.writer(fh)
         w.writerow(SUMMARY_COLUMNS)
         for row in rows:

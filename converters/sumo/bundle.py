@@ -240,5 +240,5 @@ def claim_networks_dir(folder: str | Path, owned: list[str] | tuple[str, ...] = 
         entries = [p for p in d.iterdir() if p.name != MARKER]
         bundles = [p for p in entries if p.is_dir() and not p.is_symlink()]
         if bundles and all(_networks_entry(p) for p in entries):
-            write_text(d / MARKER, json.dumps({"tools": {}}, indent=1))
+            write_text(inside(d, MARKER), json.dumps({"tools": {}}, indent=1))
     return claim_output_dir(d, "convert", owned)

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 from magail_sumo.inputs import InputFileError, read_json
-from magail_sumo.outputs import OutputError, one_line, printable, safe_name
+from magail_sumo.outputs import OutputError, inside, inside_dir, one_line, printable, safe_name
 from magail_sumo.scene import LaneType, Scene
 from magail_sumo.scene.signal_sanity import checked_signal_sanity
 from magail_sumo.scene.types import STEP_LENGTH
@@ -390,9 +390,8 @@ def ensure_bundle(scene: Scene, networks: str | Path, source: RecordRef | None =
         claim_networks_dir(networks)
     networks = Path(networks)
     name = safe_name(sid)
-    locks = networks / LOCKS
-    locks.mkdir(parents=True, exist_ok=True)
-    with open(locks / name, "a") as fh:
+    locks = inside_dir(networks, LOCKS)
+    with open(inside(locks, name), "a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             if (found := complete_bundle(networks, sid)) is not None:

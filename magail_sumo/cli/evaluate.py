@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 
 from magail_sumo.cli.argtypes import bounded, timeout_s
-from magail_sumo.outputs import OutputError
+from magail_sumo.outputs import OutputError, check_writable_file
+from magail_sumo.cli.progress import PhaseBars
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -58,7 +59,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="folder of converted bundles DIR/<scenario_id>/ to reuse (else scenes "
                         "are converted into OUT/networks)")
     p.add_argument("--export-submission", type=Path, metavar="FILE.binproto",
-                   help="also write the policy's rollouts as a SimAgentsChallengeSubmission")
+                   help="also write the policy's rollouts as a SimAgentsChallengeSubmission "
+                        "(a file name, not a folder; checked before the rollouts)")
     p.add_argument("--fcd-rollouts", type=int, default=0, metavar="K",
                    help="also write the first K rollouts of every scene and method as SUMO FCD "
                         "with a replay config: sumo-gui -c DIR/fcd/<method>/<scenario>/"
@@ -89,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.scenes and not args.city:
         raise EvaluationError("nothing to evaluate: give --scenes FILE..., --city SUMOCFG... "
                               "or both")
+    if args.export_submission is not None:  # before the rollouts: a folder, an unwritable place
+        check_writable_file(args.export_submission, "give a file name like sub.binproto")
     city = None
     if args.city:  # every city input checked before any scene runs
         city = CitySettings(steps=args.city_steps, warmup_s=args.city_warmup_s,
@@ -124,12 +128,16 @@ def _scenes(args: argparse.Namespace) -> tuple[int, int]:
 
     base = [] if args.baselines.strip().lower() == "none" else \
         [b.strip() for b in args.baselines.split(",") if b.strip()]
-    res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
-                   baselines=base, seed=args.seed, workers=args.workers,
-                   networks=args.networks, submission=args.export_submission,
-                   timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
-                   name=args.name, deterministic=args.deterministic,
-                   noise_scale=args.noise_scale)
+    bars = PhaseBars()
+    try:
+        res = evaluate(args.scenes, args.policy, args.out, n_rollouts=args.rollouts,
+                       baselines=base, seed=args.seed, workers=args.workers,
+                       networks=args.networks, submission=args.export_submission,
+                       timeout_s=args.timeout_s, fcd_rollouts=args.fcd_rollouts,
+                       name=args.name, deterministic=args.deterministic,
+                       noise_scale=args.noise_scale, progress=bars)
+    finally:
+        bars.close()
     return len(res.done), len(res.errors)
 
 

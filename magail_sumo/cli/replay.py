@@ -14,7 +14,7 @@ from converters.sumo.bundle import BundleLayout, bundle_folder
 from magail_sumo.cli.argtypes import bounded
 from magail_sumo.cli.progress import progress
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import OutputError, atomic_path, printable
+from magail_sumo.outputs import OutputError, atomic_path, check_writable_file, printable
 
 POLICIES = ("log", "random")
 MAX_FPS = 100  #: GIF frame durations are whole 10 ms
@@ -22,24 +22,27 @@ MIN_SIZE, MAX_SIZE = 64, 4096  #: frame side (px); 4096² RGB frames are 48 MiB 
 
 
 def check_writable(out: Path) -> None:
-    """Refuse ``out`` before any slow work when the video could not be written there (an
-    existing folder, a parent that cannot be made, a folder that is not writable): its folder
-    is made and a temporary file is written there and removed."""
-    import tempfile
+    """Refuse the video ``out`` before any slow work when it could not be written there
+    (:func:`~magail_sumo.outputs.check_writable_file`: an existing folder, a parent that cannot
+    be made, a folder that is not writable)."""
+    check_writable_file(out, "give a FILE.gif or FILE.mp4")
 
 
-    if out.is_dir():
-        raise MagailSumoError(f"{out}: is a folder (give a FILE.gif or FILE.mp4)")
-    blocker = next((p for p in out.absolute().parents if p.exists()), None)
-    if blocker is not None and not blocker.is_dir():
-        raise MagailSumoError(f"{out}: cannot be written ({blocker} is not a folder)")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=out.parent):
-            pass
-    except OSError as exc:
-        why = exc.strerror or type(exc).__name__
-        raise MagailSumoError(f"{out}: cannot be written ({why})") from None
+def check_fcd(fcd: Path) -> Path:
+    """The ``--fcd`` file name ``NAME.fcd.xml`` (``.fcd.xml`` added when missing), checked
+    before any slow work: an existing folder is refused (``DIR: is a folder (give a file name
+    like run.fcd.xml)``) rather than written beside, as is a place where the FCD or the two
+    files beside it (``NAME.types.add.xml``, ``NAME.sumocfg``) could not be written."""
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
+    from magail_sumo.sim.fcd import replay_paths
+
+    hint = "give a file name like run.fcd.xml"
+    if fcd.is_dir():
+        raise OutputError(f"{printable(str(fcd))}: is a folder ({hint})")
+    paths = replay_paths(fcd)
+    for p in paths:
+        check_writable_file(p, hint)
+    return paths[0]
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -58,8 +61,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=bounded(int, MIN_SIZE, MAX_SIZE), default=512,
                    help=f"frame height and width in pixels ({MIN_SIZE}..{MAX_SIZE})")
     p.add_argument("--fcd", type=Path, metavar="FILE.fcd.xml",
-                   help="also record the run as SUMO FCD, with FILE.sumocfg replaying it on the "
-                        "converted network: sumo-gui -c FILE.sumocfg")
+                   help="also record the run as SUMO FCD (a file name, not a folder; "
+                        "'.fcd.xml' added when missing), with FILE.types.add.xml and "
+                        "FILE.sumocfg beside it replaying it on the converted network: "
+                        "sumo-gui -c FILE.sumocfg")
     p.set_defaults(func=run)
 
 
@@ -144,11 +149,7 @@ def run(args: argparse.Namespace) -> int:
         raise MagailSumoError(f"{args.out}: unsupported video format (use {' or '.join(FORMATS)})")
     check_writable(args.out)
     if args.fcd is not None:
-        # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
-        from magail_sumo.sim.fcd import replay_paths
-
-        args.fcd = replay_paths(args.fcd)[0]
-        check_writable(args.fcd)
+        args.fcd = check_fcd(args.fcd)
     scene = load_scene(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
         shipped = bundle_folder("networks", scene.scenario_id)  # a safe name: never a path

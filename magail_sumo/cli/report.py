@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from magail_sumo.outputs import OutputError, printable
+from magail_sumo.cli.progress import PhaseBars
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -37,11 +38,14 @@ def run(args: argparse.Namespace) -> int:
     subs: dict[str, list[str]] = {}
     for name, path in args.submission:
         subs.setdefault(name, []).append(path)
+    bars = PhaseBars()
     try:
-        res = build_report(args.folder, args.out, subs, args.workers)
+        res = build_report(args.folder, args.out, subs, args.workers, progress=bars)
     except OSError as exc:  # a full disk, a read-only folder: one line, no traceback
         raise OutputError(f"{exc.filename or args.out or args.folder}: cannot write "
                           f"({exc.strerror or type(exc).__name__})") from None
+    finally:
+        bars.close()
     for e in res.errors:
         print(f"error: {e if e.isprintable() else printable(e, 2000)}", file=sys.stderr)
     city = f", {res.city_csv.name}" if res.city_csv is not None else ""

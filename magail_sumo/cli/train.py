@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from magail_sumo.config import load_config, to_dict
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import MARKER, read_marker, remove_owned, write_text
+from magail_sumo.outputs import MARKER, inside, os_error, read_marker, remove_owned, write_text
+from magail_sumo.cli.progress import PhaseBars
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -63,41 +63,7 @@ def _clear_run_dir(d: Path) -> None:
         return
     remove_owned(d, "train")
     if d.is_dir() and read_marker(d) is None:  # files of the user's left: keep it ours
-        write_text(d / MARKER, json.dumps({"tools": {"train": []}}, indent=1))
-
-
-class _Bars:
-    """One tqdm bar per training phase (behavioural cloning epochs, PPO updates) on stderr,
-    shown only when stderr is a terminal; log lines are printed above the bars."""
-
-    def __init__(self) -> None:
-        self.bars: dict = {}
-        self.enabled = sys.stderr.isatty()
-
-    def log(self, line: str) -> None:
-        from tqdm import tqdm
-
-        tqdm.write(line, file=sys.stdout)
-
-    def __call__(self, phase: str, done: int, total: int) -> None:
-        if not self.enabled:
-            return
-        from tqdm import tqdm
-
-        bar = self.bars.get(phase)
-        if bar is None:
-            desc = {"bc": "behavioural cloning", "updates": "PPO updates",
-                    "sac_updates": "SAC updates"}.get(phase, phase)
-            unit = "epoch" if phase == "bc" else "update"
-            bar = self.bars[phase] = tqdm(total=total, initial=done - 1, desc=desc, unit=unit,
-                                          file=sys.stderr, leave=False)
-        bar.update(done - bar.n)
-        if done >= total:
-            bar.close()
-
-    def close(self) -> None:
-        for bar in self.bars.values():
-            bar.close()
+        write_text(inside(d, MARKER), json.dumps({"tools": {"train": []}}, indent=1))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -127,12 +93,14 @@ def run(args: argparse.Namespace) -> int:
         print(yaml.safe_dump(to_dict(cfg), sort_keys=False), end="")
         return 0
     check_train_config(cfg, args.config)  # device, scene files, start_step: before any set-up
-    if args.overwrite and args.run_dir is not None and args.resume is None:
-        _clear_run_dir(args.run_dir)
-    bars = _Bars()
+    bars = PhaseBars()
     try:
+        if args.overwrite and args.run_dir is not None and args.resume is None:
+            _clear_run_dir(args.run_dir)
         run_dir = train(cfg, run_dir=args.run_dir, resume=args.resume, log=bars.log,
                         progress=bars)
+    except OSError as exc:  # a full disk, a read-only folder: one line naming the file
+        raise os_error(exc, args.run_dir or args.resume or cfg.out_dir) from exc
     finally:
         bars.close()
     print(f"run: {run_dir}")

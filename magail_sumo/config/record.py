@@ -13,7 +13,7 @@ from typing import Any
 
 import yaml
 
-from magail_sumo.outputs import write_text
+from magail_sumo.outputs import inside, write_text
 
 from .strict import to_dict
 
@@ -46,11 +46,13 @@ def git_commit(repo: str | PathLike | None = None) -> str | None:
 
 
 def record_run(run_dir: str | PathLike, config: Any) -> Path:
-    """Write ``config.yaml`` and ``environment.json`` (versions, git commit) into ``run_dir``."""
+    """Write ``config.yaml`` and ``environment.json`` (versions, git commit) into ``run_dir``
+    (made when missing); :class:`~magail_sumo.outputs.OutputError` when either is a symbolic
+    link out of it (:func:`~magail_sumo.outputs.inside`)."""
     d = Path(run_dir)
     d.mkdir(parents=True, exist_ok=True)
-    write_text(d / "config.yaml", yaml.safe_dump(to_dict(config), sort_keys=False))
+    write_text(inside(d, "config.yaml"), yaml.safe_dump(to_dict(config), sort_keys=False))
     env = {"versions": environment_versions(), "git_commit": git_commit(),
            "command": sys.argv}
-    write_text(d / "environment.json", json.dumps(env, indent=2))
+    write_text(inside(d, "environment.json"), json.dumps(env, indent=2))
     return d

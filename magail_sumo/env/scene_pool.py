@@ -59,7 +59,8 @@ from converters.scene_files import RecordRef, list_records, read_record
 from converters.sumo.bundle import REPORT_FILE, BundleError, read_report
 from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import one_line, printable
+from magail_sumo.inputs import MiB, InputFileError, read_text
+from magail_sumo.outputs import OutputError, one_line, printable
 from magail_sumo.scene import ObjectType
 
 from .config import SCENE_CACHE, EnvConfig
@@ -71,6 +72,8 @@ _SCENE_SUFFIXES = (".pkl",)
 _GLOB_CHARS = set("*?[")
 #: records a worker reads at start-up to size its slots (module doc)
 SCAN_RECORDS = 64
+#: the largest ``skipped_scenes.tsv`` read back (a line per skipped record)
+SKIPPED_LIMIT = 256 * MiB
 
 
 def max_concurrent_agents(env) -> int:
@@ -400,13 +403,23 @@ class PoolCursor:
 
 def write_skipped(path: str | Path, skips: Iterable[PoolSkip]) -> None:
     """Append ``skips`` to the run's ``skipped_scenes`` file (tab-separated: scene, reason;
-    a line already there is not repeated, e.g. after a resume)."""
-    new = not Path(path).exists()
-    have = set() if new else set(Path(path).read_text(encoding="utf-8").splitlines())
+    a line already there is not repeated, e.g. after a resume). The file is opened without
+    following a link (``O_NOFOLLOW``: a link swapped in after the caller's
+    :func:`~magail_sumo.outputs.inside` check is refused, not written through)."""
+    new = not os.path.lexists(path)
+    try:
+        have = set() if new else set(read_text(path, SKIPPED_LIMIT).splitlines())
+    except InputFileError as exc:
+        raise OutputError(f"cannot append to {exc}") from None
     skips = [s for s in skips if s.line().replace("\n", " ") not in have]
     if not skips:
         return
-    with open(path, "a", encoding="utf-8") as fh:
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot append ({exc.strerror or exc})") from None
+    with os.fdopen(fd, "a", encoding="utf-8") as fh:
         if new:
             fh.write("scene\treason\n")
         for s in skips:

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 from collections import Counter
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -117,6 +117,9 @@ class MultiSceneVecEnv(WorkerSupervisor, VecEnv):
         #: the poses of the observation before the last step (those of s of the last transition)
         self.prev_slot_pos = np.zeros((n, 3), np.float32)
         self.agent_steps = 0  #: agent-steps stepped so far (active slots only)
+        self.steps = 0  #: vector steps so far (every slot of every scene at once)
+        #: called with :attr:`steps` after each vector step (a trainer's progress), or None
+        self.on_step: Callable[[int], None] | None = None
         self.episodes = 0  #: scene episodes finished so far
         #: agent-steps whose acceleration the gap guard lowered so far (``env.guard``)
         self.guarded = 0
@@ -198,6 +201,9 @@ class MultiSceneVecEnv(WorkerSupervisor, VecEnv):
             else:
                 self._ep_actions[k].append(acts[k].copy())
         obs, dones, infos = self._collect(packets, step=True)
+        self.steps += 1
+        if self.on_step is not None:
+            self.on_step(self.steps)
         return obs, np.zeros(self.num_envs, np.float32), dones, infos
 
     def get_state(self) -> list[tuple[int, list[np.ndarray]]]:

@@ -57,8 +57,8 @@ from magail_sumo.evaluation.storage import previous_manifest, versions
 from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSummary,
                                                          output_args, run_sumo_outputs,
                                                          summarise)
-from magail_sumo.outputs import (claim_output_dir, inside, one_line, printable, safe_name,
-                                 write_text)
+from magail_sumo.outputs import (claim_output_dir, inside, inside_dir, one_line, printable,
+                                 safe_name, write_text)
 from magail_sumo.agents.specs import BASELINES
 from magail_sumo.sim.session import SessionConfig
 from magail_sumo.workers import run_one
@@ -150,14 +150,16 @@ class PolicyRun:
     state: str | None = None
 
 
-def check_sumocfg(path: str | Path) -> Path:
-    """``path`` as a usable city scenario (an existing ``.sumocfg`` naming its net and route
-    files); :class:`~magail_sumo.errors.MagailSumoError` naming the file otherwise."""
+def check_sumocfg(path: str | Path) -> tuple[str, ...]:
+    """Check ``path`` is a usable city scenario (an existing ``.sumocfg`` naming its net and
+    route files, :func:`~magail_sumo.env.city_env.scenario_inputs`); returns what of its
+    configuration SUMO will not be given (outputs, logs, ports, ...);
+    :class:`~magail_sumo.errors.MagailSumoError` naming the file otherwise."""
     path = Path(path)
     if path.suffix != ".sumocfg":
         raise EvaluationError(f"{path}: --city needs a SUMO scenario's .sumocfg file")
-    scenario_inputs(path)
-    return path
+    inputs, _ = scenario_inputs(path)
+    return inputs.dropped
 
 
 def check_policy(spec: str, deterministic: bool = False,
@@ -275,8 +277,13 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
     if method == SUMO_METHOD:
         raise EvaluationError(f"--name {method}: is the name of SUMO's default drivers")
     cfgs: dict[str, Path] = {}
+    dropped: dict[str, tuple[str, ...]] = {}
     for f in sumocfgs:
-        path = check_sumocfg(f)
+        path = Path(f)
+        dropped[path.stem] = check_sumocfg(path)
+        if dropped[path.stem]:
+            log(f"city {printable(path.stem)}: not given to SUMO from its configuration: "
+                + printable("; ".join(dropped[path.stem]), 600))
         if path.stem in cfgs:
             raise EvaluationError(f"{path}: scenario {path.stem} given twice "
                                   f"({cfgs[path.stem]})")
@@ -288,10 +295,11 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
     for sid, cfg in cfgs.items():
         base = inside(out, "city", safe_name(sid))
         mine = inside(base, safe_name(method))
-        for d in (mine, base / SUMO_METHOD):
+        sumo_dir = inside(base, SUMO_METHOD)
+        for d in (mine, sumo_dir):
             shutil.rmtree(d, ignore_errors=True)  # a failed run leaves no stale outputs
-        mine.mkdir(parents=True, exist_ok=True)
-        state = base / "warm.xml.gz"
+        inside_dir(out, "city", safe_name(sid), safe_name(method))
+        state = inside(base, "warm.xml.gz")
         state.unlink(missing_ok=True)
         log(f"city {printable(sid)}: {method} driving up to {st.max_agents} agents for "
             f"{st.steps} steps after a {st.warmup_s:g} s warm-up")
@@ -308,7 +316,7 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
             mine_sum = summarise(mine, run.completed)
             log(f"city {printable(sid)}: {SUMO_METHOD} over the same window "
                 f"({run.begin_s:.1f}-{run.end_s:.1f} s)")
-            sumo_sum = _sumo_default(cfg, base / SUMO_METHOD, run, st)
+            sumo_sum = _sumo_default(cfg, inside_dir(base, SUMO_METHOD), run, st)
         except (SumoRunError, MagailSumoError) as exc:
             errors.append(one_line(exc, 600))
             log(f"error: {errors[-1]}")
@@ -316,7 +324,8 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
         rows += [_row(sid, method, run, st, mine_sum, True),
                  _row(sid, SUMO_METHOD, run, st, sumo_sum, False)]
         windows[sid] = {"scenario": sid, "sumocfg": str(cfg.resolve()), "begin_s": run.begin_s,
-                        "end_s": run.end_s, "action_fixes": run.action_counts}
+                        "end_s": run.end_s, "action_fixes": run.action_counts,
+                        "sumo_options_dropped": list(dropped[sid])}
     if rows:
         write_rows(out, rows)
         _record(out, policy, method, st, windows)
@@ -331,7 +340,7 @@ def _json_value(v):
 def write_rows(out: Path, rows: list[dict]) -> Path:
     """Merge ``rows`` into ``out/city.json``: an old row is kept unless the new rows have its
     scenario and method, or its scenario with another window or seed."""
-    path = out / CITY_FILE
+    path = inside(out, CITY_FILE)
     old: list[dict] = []
     if path.is_file():
         try:
@@ -392,7 +401,7 @@ def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
 
 def _record(out: Path, policy: str, method: str, st: CitySettings, windows: dict) -> None:
     """Record the city run in ``out/manifest.json`` (created minimal when absent)."""
-    path = out / "manifest.json"
+    path = inside(out, "manifest.json")
     man = previous_manifest(out)
     if not man:
         man = {"scenes": [], "methods": [], "policy": method, "policy_spec": policy,

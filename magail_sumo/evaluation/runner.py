@@ -27,10 +27,10 @@ from magail_sumo.evaluation.storage import (rollouts_path, to_frame, versions, w
                                             write_parquet, write_rollout_fcd)
 from magail_sumo.evaluation.submission import (ScenarioRollouts, sim_agent_ids, validate_rollouts,
                                                write_submission)
-from magail_sumo.outputs import NameRegistry, claim_output_dir, one_line, printable
+from magail_sumo.outputs import NameRegistry, claim_output_dir, inside, one_line, printable
 from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES
 from magail_sumo.policies import make_policy, method_name
-from magail_sumo.workers import run_jobs
+from magail_sumo.workers import Progress, no_progress, run_jobs
 
 
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
@@ -138,11 +138,15 @@ def method_names(specs: list[str], policy: str, name: str | None) -> dict[str, s
 
 def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: int, seed: int,
                 workers: int, timeout_s: float | None, deterministic: bool,
-                noise_scale: float | None, error: Problems) -> MethodRuns:
+                noise_scale: float | None, error: Problems,
+                progress: Progress = no_progress) -> MethodRuns:
     """Every method's rollouts of every scene: the in-process methods here, the SUMO ones in
     :class:`Batch` es of :func:`batch_size` rollouts (each worker gets the prepared scene);
-    failures are reported (``error``) and their pairs marked failed."""
+    failures are reported (``error``) and their pairs marked failed. ``progress("rollouts",
+    done, total)`` after each method of a scene or batch."""
     runs = MethodRuns()
+    total = len(scenes) * len(specs) * n_rollouts
+    done = 0
     batches = []
     size = batch_size(n_rollouts, workers)
     for sid, ps in scenes.items():
@@ -155,7 +159,11 @@ def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: 
                     runs.parts[(sid, s)] = [(0, simulate(ps.scene, s, range(n_rollouts), seed))]
                 except Exception as exc:  # noqa: BLE001 - one scene's failure
                     error(f"scenario {sid}: method {s}: {type(exc).__name__}: {one_line(exc)}")
+                done += n_rollouts
+                progress("rollouts", done, total)
     for b, ro, err, counts in run_batches(batches, workers, timeout_s):
+        done += len(b.rollouts)
+        progress("rollouts", done, total)
         if err is not None:
             error(err)
             runs.failed.add((b.scenario_id, b.spec))
@@ -225,7 +233,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
              networks: str | Path | None = None, submission: str | Path | None = None,
              timeout_s: float | None = DEFAULT_TIMEOUT_S, fcd_rollouts: int = 0,
              name: str | None = None, deterministic: bool = False,
-             noise_scale: float | None = None) -> EvaluationResult:
+             noise_scale: float | None = None,
+             progress: Progress = no_progress) -> EvaluationResult:
     """Rollouts of ``policy`` and ``baselines`` on every scene, written as Parquet under
     ``out/rollouts/<method>/<scenario_id>.parquet`` plus ``out/manifest.json``; with
     ``fcd_rollouts`` > 0 the first that many rollouts of every scene and method also as SUMO
@@ -234,7 +243,8 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
 
     ``out`` must be new, empty or written by magail_sumo
     (:func:`~magail_sumo.outputs.claim_output_dir`, else
-    :class:`~magail_sumo.outputs.OutputError`); file names come from
+    :class:`~magail_sumo.outputs.OutputError`), and what it writes there must not lead out of
+    it through a symbolic link (:func:`~magail_sumo.outputs.inside`); file names come from
     :func:`~magail_sumo.evaluation.storage.rollouts_path`, the manifest and the Parquet
     ``scenario_id`` column keep the original ids, and every file is written atomically. Bad
     scenes, failed conversions and failed rollouts (any exception, a worker that dies, or one
@@ -248,6 +258,7 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
         recorded in the manifest.
     :param noise_scale: a sampling policy's noise scale (``tanh(mu + k·sigma·eps)``; None: the
         policy's own, 1 or a pretrained card's); the one used is recorded in the manifest.
+    :param progress: told ``("rollouts", done, total)`` as rollouts finish (a CLI bar).
     :raises EvaluationError: an unknown baseline, an unusable policy spec, bad counts or a
         name that is empty, not printable or another method's.
     """
@@ -257,15 +268,17 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
                            noise_scale)
     specs = list(dict.fromkeys([policy, *baselines]))
     names = method_names(specs, policy, name)
-    claim_output_dir(out, "evaluate", ["manifest.json", "rollouts", "networks"]
-                     + (["fcd"] if fcd_rollouts else []))
+    owned = ["manifest.json", "rollouts", "networks"] + (["fcd"] if fcd_rollouts else [])
+    claim_output_dir(out, "evaluate", owned)
+    for name in owned:  # a symbolic link out of the folder: refused before any rollout
+        inside(out, name)
     error = Problems()
     scenes = read_scenes(scene_files, error)
     if any(needs_worker(s) for s in specs) or fcd_rollouts > 0:  # FCD: the network
         scenes = with_bundles(scenes, Path(networks) if networks else None, out, timeout_s,
                               error)
     runs = run_methods(scenes, specs, n_rollouts, seed, workers, timeout_s, deterministic,
-                       noise_scale, error)
+                       noise_scale, error, progress)
     written = write_rollouts(out, scenes, specs, names, runs, n_rollouts, fcd_rollouts, error)
     done = [(sid, names[s]) for sid, s in written]
     out.mkdir(parents=True, exist_ok=True)

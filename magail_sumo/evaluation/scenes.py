@@ -11,7 +11,7 @@ from converters.scene_files import iter_scene_records
 from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, N_STEPS, Problems
-from magail_sumo.outputs import NameRegistry, OutputError, one_line, printable
+from magail_sumo.outputs import NameRegistry, OutputError, inside, one_line, printable
 from magail_sumo.scene import Scene
 
 
@@ -70,8 +70,10 @@ def read_scenes(scene_files: list[str], error: Problems) -> dict[str, PreparedSc
 def bundle(scene: Scene, networks: Path | None, out: Path,
            timeout_s: float | None = DEFAULT_TIMEOUT_S) -> Path:
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
-    into ``out/networks`` (:func:`converters.sumo.scenario.ensure_bundle`)."""
-    return ensure_bundle(scene, out / "networks", time_budget_s=timeout_s,
+    into ``out/networks`` (:func:`converters.sumo.scenario.ensure_bundle`), refused
+    (:class:`~magail_sumo.outputs.OutputError`) when that leads out of ``out`` (a symbolic
+    link)."""
+    return ensure_bundle(scene, inside(out, "networks"), time_budget_s=timeout_s,
                          search=[networks] if networks else [], claim=True)
 
 

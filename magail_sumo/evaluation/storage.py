@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from converters.sumo.bundle import BundleLayout
+from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.config import environment_versions
 from magail_sumo.evaluation.protocol import DT, EvaluationError
 from magail_sumo.evaluation.submission import ScenarioRollouts
@@ -171,16 +172,17 @@ def previous_manifest(out: Path) -> dict:
     object; :func:`read_manifest` is the strict reader)."""
     path = out / "manifest.json"
     try:
-        man = json.loads(path.read_text()) if path.is_file() else {}
-    except (OSError, ValueError):
+        man = read_json(path, expected="a manifest") if path.is_file() else {}
+    except InputFileError:
         man = {}
     return man if isinstance(man, dict) else {}
 
 
 def write_manifest(out: Path, manifest: dict) -> None:
     """Merge ``manifest`` into ``out/manifest.json`` (methods and scenes accumulate; an
-    unreadable old manifest is replaced); written atomically."""
-    path = out / "manifest.json"
+    unreadable old manifest is replaced); written atomically, refused
+    (:class:`~magail_sumo.outputs.OutputError`) when it leads out of ``out``."""
+    path = inside(out, "manifest.json")
     old = previous_manifest(out)
     if old and (old.get("rollouts"), old.get("seed")) != (manifest["rollouts"], manifest["seed"]):
         # another run setting: start afresh (city results, evaluation.city, do not depend on it)
@@ -201,7 +203,7 @@ def read_manifest(out: str | Path) -> dict:
     if not path.is_file():
         raise EvaluationError(f"{path}: no manifest (run magail-sumo evaluate --out {out})")
     try:
-        return json.loads(path.read_text())
-    except ValueError as exc:
-        raise EvaluationError(f"{path}: unreadable manifest ({exc})") from None
+        return read_json(path, expected="a manifest")
+    except InputFileError as exc:
+        raise EvaluationError(f"unreadable manifest: {exc}") from None
 

@@ -168,6 +168,7 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     observation = observation or ObservationConfig()
     limits = limits or BicycleLimits()
     out = claim_output_dir(out_dir, "expert", ["metadata.json"])
+    meta_path = inside(out, "metadata.json")  # a link out of the folder: refused before recording
     names = NameRegistry()  # two scenes on one file name: refused before any is recorded
     parquets = [f"{names.name(spec.name if spec.scenario_id is None else spec.scenario_id)}"
                 ".parquet" for spec in specs]
@@ -192,7 +193,7 @@ def record_expert(specs: Sequence[SceneSpec], out_dir: str | Path,
     if failed:
         meta["failed"] = failed
     claim_output_dir(out, "expert", ["metadata.json", *parquets])
-    write_text(out / "metadata.json", json.dumps(meta, indent=2))
+    write_text(meta_path, json.dumps(meta, indent=2))
     if failed and on_error is None:
         raise MagailSumoError(f"{len(failed)} of {len(jobs)} scene(s) not recorded; first: "
                               f"{failed[0]['reason']}")

@@ -32,7 +32,7 @@ from typing import Any
 
 from magail_sumo.agents.base import check_noise_scale
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import atomic_path, is_safe_name, printable, write_text
+from magail_sumo.outputs import atomic_paths, inside, is_safe_name, printable
 from magail_sumo.splits import load_split, scene_stem
 
 #: environment variable naming another registry folder (tests, a user's own policies)
@@ -84,6 +84,9 @@ def available(root: str | PathLike | None = None) -> list[str]:
 
 
 def _read_json(path: Path, what: str) -> Any:
+    """The JSON value of ``path`` (at most :data:`MAX_CARD_BYTES`); :class:`PretrainedError`
+    naming ``path`` and the problem when it cannot be read, is larger, is not UTF-8 JSON or is
+    nested too deep to parse."""
     try:
         with open(path, "rb") as fh:
             raw = fh.read(MAX_CARD_BYTES + 1)
@@ -93,8 +96,16 @@ def _read_json(path: Path, what: str) -> Any:
         raise PretrainedError(f"{path}: {what} larger than {MAX_CARD_BYTES} bytes")
     try:
         return json.loads(raw.decode("utf-8"))
+    except RecursionError:
+        raise PretrainedError(f"{path}: {what} is nested too deep") from None
     except (UnicodeDecodeError, ValueError) as exc:
         raise PretrainedError(f"{path}: {what} is not JSON ({printable(str(exc), 100)})") from None
+
+
+def read_figures(path: str | PathLike) -> Any:
+    """A figures file for :func:`export` (JSON, e.g. ``benchmarks/quality.py --json``);
+    :class:`PretrainedError` naming it when it cannot be read or is not JSON."""
+    return _read_json(Path(path), "figures file")
 
 
 def default_name(root: str | PathLike | None = None) -> str | None:
@@ -176,45 +187,58 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
     ``split`` (a split file, :mod:`magail_sumo.splits`) the card records it, and a
     checkpoint whose config trains on one of its test scenes (same file name stem) is refused.
     ``make_default`` names it in ``index.json``. ``noise_scale`` (with ``noise_note``, how it
-    was chosen) is the card's ``sampling``. Files are written atomically.
+    was chosen) is the card's ``sampling``. Every argument is checked before anything is
+    written; then ``NAME.pt``, ``NAME.json`` (and ``index.json``) are written to temporary files
+    and replace the old ones only once all are written
+    (:func:`~magail_sumo.outputs.atomic_paths`): a bad argument, a crash or a full disk leaves
+    the registered policy as it was, its card's checksum matching.
     """
     # lazy: reading the registry (the report's workers, the CLI) needs no torch; export does
-    import torch
-
-    from magail_sumo.training.checkpoints import load_checkpoint
+    from magail_sumo.training.checkpoints import load_checkpoint, write_state
 
     if not is_safe_name(name) or name in RESERVED:
         raise PretrainedError(f"{printable(name, 60)!r}: not a pretrained policy name "
                               "([A-Za-z0-9._-], not a built-in method's name)")
+    sampling = None
+    if noise_scale is not None:
+        sampling = {"noise_scale": check_noise_scale(noise_scale, "--noise-scale"),
+                    "note": noise_note}
     state = load_checkpoint(checkpoint)
     split_rec = None
     if split is not None:
         sp = load_split(split)
-        files = (state["config"].get("scenes") or {}).get("files") or []
-        stems = {scene_stem(str(f)): f for f in files}
+        scenes = state["config"].get("scenes")
+        files = scenes.get("files") if isinstance(scenes, dict) else None
+        stems = {scene_stem(f): f for f in (files if isinstance(files, list) else [])
+                 if isinstance(f, str)}
         both = [f for f in sp.test if scene_stem(f) in stems]
         if both:
             raise PretrainedError(f"{checkpoint}: trained on {stems[scene_stem(both[0])]}, a test "
                                   f"scene of {split} ({both[0]})")
         split_rec = {"file": str(split), "train": list(sp.train), "test": list(sp.test)}
     d = registry_dir(root)
+    if d.exists() and not d.is_dir():
+        raise PretrainedError(f"{d}: not a folder (the registry folder to export into)")
     d.mkdir(parents=True, exist_ok=True)
-    ckpt = d / f"{name}.pt"
+    ckpt = inside(d, f"{name}.pt")
     slim = {k: state[k] for k in ("format", "config", "policy", "update")}
-    with atomic_path(ckpt) as tmp:
-        torch.save(slim, tmp)
     card = {"format": CARD_FORMAT, "name": name, "description": description,
-            "checkpoint": {"file": ckpt.name, "sha256": sha256(ckpt),
+            "checkpoint": {"file": ckpt.name, "sha256": None,
                            "source": str(checkpoint), "update": state["update"]},
             "config": state["config"], "split": split_rec, "figures": figures}
-    if noise_scale is not None:
-        card["sampling"] = {"noise_scale": check_noise_scale(noise_scale, "--noise-scale"),
-                            "note": noise_note}
-    write_text(d / f"{name}.json", json.dumps(card, indent=2) + "\n")
-    if make_default:
-        write_text(d / INDEX, json.dumps({"default": name}, indent=2) + "\n")
+    if sampling is not None:
+        card["sampling"] = sampling
+    targets = [ckpt, inside(d, f"{name}.json")] + ([inside(d, INDEX)] if make_default else [])
+    # every check above; the checkpoint, its card (and the index) replace the old ones together
+    with atomic_paths(*targets) as tmps:
+        with open(tmps[0], "wb") as fh:
+            write_state(slim, fh)
+        card["checkpoint"]["sha256"] = sha256(tmps[0])
+        tmps[1].write_text(json.dumps(card, indent=2) + "\n", encoding="utf-8")
+        if make_default:
+            tmps[2].write_text(json.dumps({"default": name}, indent=2) + "\n", encoding="utf-8")
     return resolve(f"{PREFIX}:{name}", d)
 
 
 __all__ = ["ENV_VAR", "PREFIX", "Pretrained", "PretrainedError", "available", "default_name",
-           "export", "is_pretrained_spec", "name_of", "registry_dir", "resolve"]
+           "export", "is_pretrained_spec", "name_of", "read_figures", "registry_dir", "resolve"]

@@ -1,7 +1,7 @@
 """``python -m magail_sumo.pretrained list | export``: show or add registry entries.
 
-    python -m magail_sumo.pretrained list [--dir DIR]
-    python -m magail_sumo.pretrained export RUN/checkpoints/latest.pt --name NAME
+    python -m magail_sumo.pretrained [--debug] list [--dir DIR]
+    python -m magail_sumo.pretrained [--debug] export RUN/checkpoints/latest.pt --name NAME
         [--description TEXT] [--split configs/splits/womd14.yaml] [--figures FILE.json]
         [--default] [--noise-scale K [--noise-note TEXT]] [--dir DIR]
 """
@@ -9,17 +9,34 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
+import traceback
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.outputs import os_error, printable
 
-from . import available, default_name, export, registry_dir
+from . import available, default_name, export, read_figures, registry_dir
+
+
+def _error_line(args: argparse.Namespace, exc: Exception) -> str:
+    """``error: problem`` on one line: ours (and an ``OSError``) name their file; another
+    exception is named by type and prefixed with the file the user gave (the checkpoint for
+    ``export``, the registry folder for ``list``)."""
+    if isinstance(exc, OSError):
+        exc = os_error(exc, args.checkpoint if args.command == "export" else
+                       registry_dir(args.dir))
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if not isinstance(exc, MagailSumoError):
+        src = str(args.checkpoint if args.command == "export" else registry_dir(args.dir))
+        text = f"{src}: {type(exc).__name__}: {text}"
+    return f"error: {printable(text, 1000)}"
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Every error is one line on stderr (``--debug``: its traceback first) and exit status 1."""
     ap = argparse.ArgumentParser(prog="python -m magail_sumo.pretrained",
                                  description="list or add pretrained policies")
+    ap.add_argument("--debug", action="store_true", help="print the traceback of an error")
     sub = ap.add_subparsers(dest="command", required=True)
     ls = sub.add_parser("list", help="the available names and the default")
     ex = sub.add_parser("export", help="add a training checkpoint as NAME.pt + NAME.json")
@@ -37,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     for p in (ls, ex):
         p.add_argument("--dir", help="registry folder (default: $MAGAIL_SUMO_PRETRAINED_DIR or "
                                      "the package's folder)")
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help="print the traceback of an error")
     args = ap.parse_args(argv)
     try:
         if args.command == "list":
@@ -45,17 +64,19 @@ def main(argv: list[str] | None = None) -> int:
             for name in available(args.dir):
                 print(name)
             return 0
-        figures = None
-        if args.figures:
-            with open(args.figures, encoding="utf-8") as fh:
-                figures = json.load(fh)
+        figures = read_figures(args.figures) if args.figures else None
         entry = export(args.checkpoint, args.name, args.dir, description=args.description,
                        split=args.split, figures=figures, make_default=args.default,
                        noise_scale=args.noise_scale, noise_note=args.noise_note)
         print(f"{entry.checkpoint} (+ {entry.checkpoint.with_suffix('.json').name})")
         return 0
-    except (MagailSumoError, OSError, ValueError) as exc:
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("python -m magail_sumo.pretrained: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the one top-level handler
+        if args.debug:
+            traceback.print_exc()
+        print(_error_line(args, exc), file=sys.stderr)
         return 1
 
 

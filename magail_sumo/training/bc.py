@@ -17,6 +17,7 @@ import torch
 from magail_sumo.config import record_run, to_dict
 from magail_sumo.expert import ExpertDataset
 from magail_sumo.models.policies import TanhGaussianPolicy
+from magail_sumo.outputs import inside, inside_dir
 
 from .algorithms import load_expert
 from .checkpoints import CHECKPOINT_FORMAT, encode_state, save_state
@@ -97,9 +98,9 @@ def train_bc(cfg: TrainConfig, run_dir: Path, ckpt: dict | None, log: Callable[[
 
     behavioural_cloning(policy, expert, cfg.bc.epochs, cfg.bc.batch_size, cfg.bc.learning_rate,
                         cfg.seed, log=bc_log)
-    (run_dir / "checkpoints").mkdir(exist_ok=True)
+    inside_dir(run_dir, "checkpoints")
     state = encode_state({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
                            "policy": policy.state_dict(), "rng": rng_state()})
-    save_state(state, run_dir / "checkpoints" / "latest.pt")
+    save_state(state, inside(run_dir, "checkpoints", "latest.pt"))
     log(f"{run_dir}: policy saved")
     return run_dir

@@ -26,7 +26,7 @@ import torch
 
 from magail_sumo.config import ConfigError, from_dict
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import atomic_path, one_line, printable
+from magail_sumo.outputs import atomic_write, inside, inside_dir, one_line, printable
 
 from .config import TrainConfig
 from .rng import encode_rng
@@ -156,20 +156,54 @@ def load_into(obj: Any, state: Any, what: str, where: Path) -> None:
                               f"({summarise_load_error(exc)})") from None
 
 
+class _Sink:
+    """A binary file for ``torch.save`` that keeps the ``OSError`` of a failed write: torch
+    turns it into a RuntimeError of its own that names no file and no reason."""
+
+    def __init__(self, fh) -> None:
+        self.fh = fh
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        try:
+            return self.fh.write(data)
+        except OSError as exc:
+            self.error = exc
+            raise
+
+    def flush(self) -> None:
+        self.fh.flush()
+
+
+def write_state(state: dict, fh) -> None:
+    """``torch.save(state)`` into the open binary file ``fh``; a failed write (a full disk)
+    is raised as its ``OSError`` (errno and reason), not as torch's RuntimeError."""
+    sink = _Sink(fh)
+    try:
+        torch.save(state, sink)
+    except RuntimeError:
+        if sink.error is not None:
+            raise sink.error from None
+        raise
+
+
 def save_state(state: dict, path: Path) -> None:
-    """Write a checkpoint atomically (a crash leaves the old file or none)."""
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    """Write a checkpoint atomically (:func:`~magail_sumo.outputs.atomic_write`: a crash or a
+    full disk leaves the old file or none); a failed write is an ``OSError`` naming ``path``
+    and the reason (e.g. ``No space left on device``)."""
+    with atomic_write(path, "wb") as fh:
+        write_state(state, fh)
 
 
 def save_checkpoint(run_dir: Path, state: dict, update: int) -> Path:
     """A run's checkpoint at ``update``: ``checkpoints/update_<update>.pt`` and, the same,
-    ``checkpoints/latest.pt`` (both atomic); the first path."""
-    d = run_dir / "checkpoints"
-    d.mkdir(parents=True, exist_ok=True)
-    path = d / f"update_{update:06d}.pt"
+    ``checkpoints/latest.pt`` (both atomic); the first path. Both go through
+    :func:`~magail_sumo.outputs.inside`: an :class:`~magail_sumo.outputs.OutputError` when
+    ``checkpoints`` or a file in it is a symbolic link out of ``run_dir``."""
+    inside_dir(run_dir, "checkpoints")
+    path = inside(run_dir, "checkpoints", f"update_{update:06d}.pt")
     save_state(state, path)
-    save_state(state, d / "latest.pt")
+    save_state(state, inside(run_dir, "checkpoints", "latest.pt"))
     return path
 
 

@@ -26,12 +26,12 @@ from typing import Any, Callable, Protocol
 from stable_baselines3.common.logger import Logger, configure
 
 from magail_sumo.config import record_run
+from magail_sumo.outputs import inside_dir
 
 from .config import TrainConfig
 from .run_dir import claim_run_dir, note_skipped
 
-#: ``progress(phase, done, total)``: a progress callback (``magail-sumo train`` draws bars)
-Progress = Callable[[str, int, int], None]
+from magail_sumo.workers import Progress  # noqa: F401 - the loop's progress protocol
 
 
 class Run(Protocol):
@@ -41,12 +41,15 @@ class Run(Protocol):
     :ivar update: updates done so far.
     :ivar venv: the scene-pool vector env (``agent_steps``, ``skipped``; closed by :meth:`close`).
     :ivar progress_phase: the progress phase its updates are reported under.
+    :ivar steps_per_update: vector env steps of one update (0: not reported), reported as
+        progress phase ``"steps"`` while the update collects them.
     """
 
     cfg: TrainConfig
     update: int
     venv: Any
     progress_phase: str
+    steps_per_update: int
 
     def begin(self, progress: Progress) -> None:
         """Start a new run (warm starts, normalisers, the first reset)."""
@@ -73,6 +76,13 @@ class Run(Protocol):
         """Release the env (worker processes)."""
 
 
+def tb_logger(run_dir: Path) -> Logger:
+    """The run's TensorBoard logger, writing into ``run_dir/tb``
+    (:func:`~magail_sumo.outputs.inside_dir`: refused when ``tb`` is a symbolic link out of
+    ``run_dir``)."""
+    return configure(str(inside_dir(run_dir, "tb")), ["tensorboard"])
+
+
 def run_loop(run: Run, run_dir: Path, ckpt: dict | None, log: Callable[[str], None],
              progress: Progress) -> Path:
     """Run (or resume, from ``ckpt``) ``run`` in ``run_dir`` until ``cfg.updates`` (module doc);
@@ -87,9 +97,14 @@ def run_loop(run: Run, run_dir: Path, ckpt: dict | None, log: Callable[[str], No
         claim_run_dir(run_dir, resumed=ckpt is not None)
         record_run(run_dir, cfg)
         note_skipped(run.venv, run_dir)
-        logger = configure(str(run_dir / "tb"), ["tensorboard"])
+        logger = tb_logger(run_dir)
         run.attach_logger(logger)
+        per = getattr(run, "steps_per_update", 0)
+        first = run.venv.steps
+        if per:
+            run.venv.on_step = lambda n: progress("steps", min(n - first, per), per)
         while run.update < cfg.updates:
+            first = run.venv.steps
             t0 = time.perf_counter()
             steps0 = run.venv.agent_steps
             run.run_update()
@@ -107,4 +122,4 @@ def run_loop(run: Run, run_dir: Path, ckpt: dict | None, log: Callable[[str], No
     return run_dir
 
 
-__all__ = ["Progress", "Run", "run_loop"]
+__all__ = ["Progress", "Run", "run_loop", "tb_logger"]

@@ -31,19 +31,19 @@ from .preflight import check_train_config
 from .policies import load_policy, make_policy, policy_kwargs, spaces_of
 from .resume import RESUMABLE_CHANGES, check_resume_config, resume_worker_count
 from .rng import rng_state, seed_everything
-from .run_dir import (RUN_OUTPUTS, SKIPPED_FILE, check_run_dir, claim_run_dir, default_run_dir,
-                      note_skipped)
+from .run_dir import (RUN_OUTPUTS, SKIPPED_FILE, check_run_dir, check_run_outputs, claim_run_dir,
+                      default_run_dir, note_skipped)
 
 # earlier private names, kept for callers (tests, scripts)
 _rng_state, _check_resume_config, _encode_state = rng_state, check_resume_config, encode_state
 
 __all__ = ["AdversarialReward", "BC_STREAM", "CHECKPOINT_FORMAT", "CheckpointError", "GailRun",
            "OLD_CHECKPOINT_FORMATS", "RESUMABLE_CHANGES", "RUN_OUTPUTS", "SB3_RESUME_STATE",
-           "SKIPPED_FILE", "check_run_dir", "checkpoint_config", "claim_run_dir",
-           "decode_env_state", "encode_env_state", "load_checkpoint", "load_into", "load_policy",
-           "make_discriminator", "make_policy", "make_pool_env", "note_skipped", "policy_kwargs",
-           "resume_worker_count", "save_checkpoint", "save_state", "spaces_of", "train",
-           "upgrade_checkpoint"]
+           "SKIPPED_FILE", "check_run_dir", "check_run_outputs", "checkpoint_config",
+           "claim_run_dir", "decode_env_state", "encode_env_state", "load_checkpoint", "load_into",
+           "load_policy", "make_discriminator", "make_policy", "make_pool_env", "note_skipped",
+           "policy_kwargs", "resume_worker_count", "save_checkpoint", "save_state", "spaces_of",
+           "train", "upgrade_checkpoint"]
 
 
 def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
@@ -60,7 +60,7 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: str | Pat
     check_train_config(cfg)
     ckpt = None
     if resume is not None:
-        rd = Path(resume)
+        rd = check_run_outputs(Path(resume))
         where = rd / "checkpoints" / "latest.pt"
         ckpt = load_checkpoint(where)
         checkpoint_config(ckpt, where)  # a valid config, or an error naming the file

@@ -7,7 +7,9 @@ scene and method, every field), ``agents.csv`` (one row per scene, method and ev
 realism likelihoods, ADE / minADE, collision and off-road rates) and ``summary.csv`` (mean
 over scenes per method). The report folder must be new, empty or written
 by magail_sumo (:func:`~magail_sumo.outputs.claim_output_dir`); every file is written
-atomically and image names from scenario ids go through :func:`~magail_sumo.outputs.safe_name`.
+atomically, inside it (:func:`~magail_sumo.outputs.inside`: a symbolic link out of it, such as
+``DIR/report`` or ``report/img``, is refused) and image names from scenario ids go through
+:func:`~magail_sumo.outputs.safe_name`.
 
 A folder with city results (``DIR/city.json``, :mod:`magail_sumo.evaluation.city`) also gets a
 "City scenarios (SUMO outputs)" table and ``city.csv``; a folder with only city results (no
@@ -24,10 +26,11 @@ from pathlib import Path
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, read_rows
 from magail_sumo.evaluation.traffic import METRICS
-from magail_sumo.outputs import atomic_write, claim_output_dir, printable, safe_name
+from magail_sumo.outputs import atomic_write, claim_output_dir, inside, printable, safe_name
 from magail_sumo.agents.specs import unguarded
 from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.pretrained import is_pretrained_spec
+from magail_sumo.workers import Progress, no_progress
 
 from . import animation, figures
 from .render import REALISM_FIELDS, Document
@@ -81,14 +84,18 @@ def _action_mode(man: dict) -> str:
 
 def build_report(folder: str | Path, out: str | Path | None = None,
                  submissions: dict[str, list[str]] | None = None,
-                 workers: int | None = None) -> ReportFiles:
+                 workers: int | None = None, progress: Progress = no_progress) -> ReportFiles:
     """Score ``folder`` (see :func:`~magail_sumo.evaluation.report.scoring.collect`, scored in
-    ``workers`` processes) and write the report into ``out`` (default ``folder/report``)."""
+    ``workers`` processes, ``progress`` told as pairs are scored) and write the report into
+    ``out`` (default ``folder/report``)."""
     folder = Path(folder)
-    out = Path(out) if out else folder / "report"
-    claim_output_dir(out, "report", ["report.html", "report.md", "metrics.csv", "summary.csv",
-                                     "agents.csv", "city.csv", "img"])
-    sc = collect(folder, submissions, workers)
+    out = Path(out) if out else inside(folder, "report")
+    owned = ["report.html", "report.md", "metrics.csv", "summary.csv", "agents.csv", "city.csv",
+             "img"]
+    claim_output_dir(out, "report", owned)
+    for name in owned:  # a symbolic link out of the report folder: refused before scoring
+        inside(out, name)
+    sc = collect(folder, submissions, workers, progress)
     city_rows = _city_rows(folder, sc.errors)
     units = {n: METRICS[n].unit for n in METRICS}
     means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
@@ -101,13 +108,13 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     if sc.errors:
         doc.heading("Problems")
         doc.errors(sc.errors)
-    html_path, md_path = out / "report.html", out / "report.md"
+    html_path, md_path = inside(out, "report.html"), inside(out, "report.md")
     doc.write(html_path, md_path)
     all_fields = ["scenario_id", "method", "rollouts"] + list(METRICS) + \
         [f for f in sc.rows[0] if f not in METRICS and f not in ("scenario_id", "method",
                                                                   "rollouts")] if sc.rows else []
-    metrics_csv, summary_csv = out / "metrics.csv", out / "summary.csv"
-    agents_csv = out / "agents.csv"
+    metrics_csv, summary_csv = inside(out, "metrics.csv"), inside(out, "summary.csv")
+    agents_csv = inside(out, "agents.csv")
     afields = ["scenario_id", "method", "object_id", "type", "sdc", *AGENT_FIELDS]
     _write_csv(agents_csv, afields, [[r[f] for f in afields] for r in sc.agent_rows])
     _write_csv(metrics_csv, all_fields, [[r.get(f) for f in all_fields] for r in sc.rows])
@@ -116,7 +123,7 @@ def build_report(folder: str | Path, out: str | Path | None = None,
                [[m, *(means[m][f] for f in sfields)] for m in sc.methods])
     city_csv = None
     if city_rows:
-        city_csv = out / "city.csv"
+        city_csv = inside(out, "city.csv")
         _write_csv(city_csv, [*CITY_COLUMNS, *(f"terminations_{e}" for e in CITY_EVENTS)],
                    [[r[c] for c in CITY_COLUMNS]
                     + [r["terminations"].get(e, 0) for e in CITY_EVENTS] for r in city_rows])

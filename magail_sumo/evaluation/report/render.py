@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 
 from magail_sumo.evaluation.realism import METRIC_FIELDS
-from magail_sumo.outputs import write_bytes
+from magail_sumo.outputs import inside, inside_dir, write_bytes
 
 
 def fmt(v: object) -> str:
@@ -73,10 +73,13 @@ class Document:
         self.md.append(md_table(header, rows))
 
     def image(self, png: bytes, name: str, alt: str) -> None:
-        self.img_dir.mkdir(parents=True, exist_ok=True)
+        """A figure: inlined in the HTML, written as ``img_dir/NN_name.png`` for the Markdown
+        (:class:`~magail_sumo.outputs.OutputError` when ``img_dir`` or the file leads out of
+        the report folder, ``img_dir``'s parent, through a symbolic link)."""
+        img_dir = inside_dir(self.img_dir.parent, self.img_dir.name)
         self._n += 1
         fname = f"{self._n:02d}_{name}.png"
-        write_bytes(self.img_dir / fname, png)
+        write_bytes(inside(img_dir, fname), png)
         self.html.append(img_tag(png, alt))
         self.md.append(f"![{alt}]({self.img_dir.name}/{fname})")
 

@@ -40,7 +40,7 @@ from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
 from magail_sumo.evaluation.traffic.distributions import BINS
 from magail_sumo.outputs import OutputError, printable
 from magail_sumo.scene import ObjectType, Scene
-from magail_sumo.workers import run_jobs
+from magail_sumo.workers import Progress, no_progress, run_jobs
 
 from . import animation, figures
 from .scores import SceneView, Scores
@@ -349,14 +349,15 @@ def default_workers() -> int:
 
 
 def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
-            workers: int | None = None) -> Scores:
+            workers: int | None = None, progress: Progress = no_progress) -> Scores:
     """Score every method and scene of an evaluation folder, plus named external submissions
     (``{method name: [submission files]}``; a scenario not among the folder's scenes is an
     error).
 
     :param workers: > 1: the (scene, method) pairs are scored in that many worker processes
         (:func:`magail_sumo.workers.run_jobs`; jobs of a few methods of one scene each); the
-        result is the same as in-process scoring (default :func:`default_workers`)."""
+        result is the same as in-process scoring (default :func:`default_workers`).
+    :param progress: told ``("scored", done, total)`` as (scene, method) pairs are scored."""
     folder = Path(folder)
     manifest = read_manifest(folder)
     errors: list[str] = []
@@ -374,7 +375,10 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
         jobs = [(str(folder), [(entries[sid]["file"], sid, ms, len(ms) == len(methods))
                                for sid, ms in units])
                 for units in plan_jobs(costs, methods, workers)]
+        total, done = len(scenes) * len(methods), 0
         for res in run_jobs(_score_job, jobs, workers=workers):
+            done += sum(len(u[2]) for u in res.job[1])
+            progress("scored", done, total)
             for k, (_, sid, ms, _) in enumerate(res.job[1]):
                 items, view = res.value[k] if res.ok else (
                     [("error", f"method {printable(m)}: scenario {printable(sid)}: cannot "
@@ -382,6 +386,8 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
                 results.update({(m, sid): item for m, item in zip(ms, items)})
                 if view is not None:
                     scores.views[sid] = view
+    total = len(scenes) * len(methods)
+    scored = sum(1 for m in methods for sid in scenes if (m, sid) in results)  # by the workers
     for method in methods:
         for sid in scenes:
             if (method, sid) in results:
@@ -390,6 +396,8 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
                 got = _read_pair(folder, method, scenes[sid])
                 item = ("error", got) if isinstance(got, str) else \
                     ("ok", score_pair(scenes[sid], method, got[0], logs[sid]), *got)
+                scored += 1
+                progress("scored", scored, total)
             if item[0] == "error":
                 scores.errors.append(item[1])
             else:

@@ -138,6 +138,11 @@ class GailRun:
     progress_phase = "updates"
 
     @property
+    def steps_per_update(self) -> int:
+        """Vector env steps of one PPO rollout (``ppo.n_steps``)."""
+        return self.cfg.ppo.n_steps
+
+    @property
     def policy(self) -> TanhGaussianPolicy:
         return self.model.policy
 

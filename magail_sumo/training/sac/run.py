@@ -77,6 +77,11 @@ class SacRun:
 
     progress_phase = "sac_updates"
 
+    @property
+    def steps_per_update(self) -> int:
+        """Vector env steps of one update (``sac.train_freq``)."""
+        return self.cfg.sac.train_freq
+
     def start(self) -> None:
         """Reset the env (a new run)."""
         self.last_obs = self.env.reset()
