@@ -102,7 +102,17 @@ def test_report_city_table(city):
     assert "<td>coast</td>" in table and "<td>sumo</td>" in table
     assert "travel time (s)" in table and "agent off road" in table
     assert "Metrics against the baselines" not in html  # no recorded scenes here
-    assert "<img" not in html or "data:image/png;base64" in html  # still self-contained
+    # one figure per city (vehicles over time, travel times, speeds), PNG inlined, SVG beside
+    assert html.count('<img alt="vehicles over time, travel times and speeds of city') == 1
+    assert "data:image/png;base64" in html
+    assert sorted(p.suffix for p in (rep / "img").iterdir()) == [".png", ".svg"]
+    from magail_sumo.evaluation.city import completed_ids
+    from magail_sumo.evaluation.traffic.sumo_outputs import run_distributions
+
+    for method in ("coast", "sumo"):
+        d = run_distributions(city / "city" / CFG.stem / method,
+                              completed_ids(city / "city" / CFG.stem / method))
+        assert d["running"].size > 0 and d["edge_speed_mps"][0].size > 0
     csv = (rep / "city.csv").read_text().splitlines()
     assert len(csv) == 3 and csv[0].startswith("scenario,method,begin_s,end_s,arrived")
     man = json.loads((city / "manifest.json").read_text())

@@ -83,6 +83,109 @@ def test_report_renders_in_headless_chromium(folder, tmp_path):
     assert pix.shape[0] >= 1000 and pix[..., :3].std() > 0.05  # not blank
 
 
+#: run in the page after load: what does not fit, what overlaps, what did not load
+LAYOUT_CHECK = r"""
+window.addEventListener('load', () => setTimeout(() => {
+  const W = document.documentElement.clientWidth, out = {width: W, wide: [], overlaps: [],
+    broken: [], page: document.documentElement.scrollWidth};
+  for (const el of document.body.querySelectorAll('*')) {
+    if (el.closest('.table-wrap') && !el.classList.contains('table-wrap')) continue;
+    const r = el.getBoundingClientRect();
+    if (r.width && r.right > W + 1) out.wide.push(el.tagName + '.' + el.className);
+  }
+  for (const img of document.images)
+    if (!img.complete || img.naturalWidth === 0) out.broken.push(img.alt);
+  const boxes = [];
+  for (const el of document.body.querySelectorAll('h1,h2,h3,p,li,th,td')) {
+    const r = el.getBoundingClientRect();
+    if (r.width && r.height) boxes.push([r.top, r.bottom, r.left, r.right, el]);
+  }
+  boxes.sort((a, b) => a[0] - b[0]);
+  for (let i = 0; i < boxes.length; i++)
+    for (let j = i + 1; j < boxes.length && boxes[j][0] < boxes[i][1] - 1; j++) {
+      const a = boxes[i], b = boxes[j];
+      if (a[4].contains(b[4]) || b[4].contains(a[4])) continue;
+      const w = Math.min(a[3], b[3]) - Math.max(a[2], b[2]);
+      const h = Math.min(a[1], b[1]) - Math.max(a[0], b[0]);
+      if (w > 1 && h > 1) out.overlaps.push(a[4].tagName + '/' + b[4].tagName + ': ' +
+                                             a[4].textContent.slice(0, 30));
+    }
+  const pre = document.createElement('pre');
+  pre.id = 'layout-check';
+  pre.textContent = JSON.stringify(out);
+  document.body.appendChild(pre);
+}, 300));
+"""
+
+
+@pytest.mark.parametrize("width", [1280, 1920])
+def test_report_fits_the_page_with_no_overlap_and_every_image_loaded(folder, tmp_path, width):
+    """At common widths no element is wider than the page (wide tables scroll inside their own
+    box), no two text boxes overlap, and every image loaded."""
+    import json
+
+    exe = _chromium()
+    page = tmp_path / "report.html"
+    html = (folder / "report" / "report.html").read_text()
+    page.write_text(html.replace("</body>", f"<script>{LAYOUT_CHECK}</script></body>"))
+    dom = subprocess.run(
+        [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+         "--no-first-run", f"--user-data-dir={tmp_path / 'p'}", f"--window-size={width},1200",
+         "--dump-dom", "--virtual-time-budget=4000", page.as_uri()],
+        capture_output=True, text=True, timeout=120).stdout
+    found = re.search(r'<pre id="layout-check">(.*?)</pre>', dom, re.S)
+    assert found, "the layout check did not run"
+    got = json.loads(found.group(1).replace("&amp;", "&").replace("&lt;", "<")
+                     .replace("&gt;", ">").replace("&quot;", '"'))
+    assert got["width"] >= width - 20
+    assert got["page"] <= got["width"], f"the page scrolls sideways: {got['page']} px"
+    assert got["wide"] == [] and got["overlaps"] == [] and got["broken"] == [], got
+
+
+def test_bar_chart_labels_never_overlap():
+    """Long method names and many panels: tick labels and titles keep apart."""
+    from matplotlib.transforms import Bbox
+
+    from magail_sumo.evaluation.report import figures
+
+    methods = ["logreplay", "constvel", "sumo", "pretrained:decomposed_social_womd14",
+               "a_very_long_method_name_from_a_checkpoint_path"]
+    fields = ["metametric", "ade", "collision_rate", "offroad_rate", "hard_braking_rate",
+              "route_completion", "speed_js", "ttc_js"]
+    rng = np.random.default_rng(0)
+    means = {m: {f: float(rng.random()) for f in fields} for m in methods}
+    cis = {m: {f: 0.1 for f in fields} for m in methods}
+    fig = figures.bar_chart_figure(means, fields, {"ade": "m"}, "Methods compared", cis)
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    texts = [t for ax in fig.axes for t in (*ax.get_yticklabels(), *ax.get_xticklabels(),
+                                             ax.title) if t.get_visible() and t.get_text()]
+    boxes = [t.get_window_extent(r) for t in texts]
+    page = Bbox([[0, 0], [fig.bbox.width, fig.bbox.height]])
+    for k, (a, ta) in enumerate(zip(boxes, texts)):
+        assert page.contains(a.x0 + 1, a.y0 + 1) and page.contains(a.x1 - 1, a.y1 - 1), \
+            f"{ta.get_text()!r} is cut off"
+        for b, tb in zip(boxes[k + 1:], texts[k + 1:]):
+            inter = Bbox.intersection(a, b)
+            assert inter is None or inter.width < 1 or inter.height < 1, \
+                f"{ta.get_text()!r} overlaps {tb.get_text()!r}"
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    svg = figures.bar_chart(means, fields, {}, "t", cis).svg
+    assert svg.lstrip().startswith(b"<?xml") and b"<svg" in svg
+
+
+def test_confidence_intervals():
+    from magail_sumo.evaluation.report.intervals import mean_ci, t975, with_ci
+
+    assert t975(1) == 12.706 and abs(t975(100) - 1.984) < 1e-3
+    m, h = mean_ci([1.0, 2.0, 3.0, float("nan")])
+    assert m == 2.0 and abs(h - 4.303 * 1.0 / 3 ** 0.5) < 1e-9
+    assert np.isnan(mean_ci([5.0])[1]) and np.isnan(mean_ci([])[0])
+    assert with_ci(0.61234, 0.031) == "0.6123 ± 0.031" and with_ci(1.0, float("nan")) == "1"
+
+
 def test_invalid_states_never_drawn(folder):
     """Issue 14: log replay carries (0, 0) at the log's invalid states; neither the static
     panels nor the animated view draw a vertex there (NaN breaks the lines / null)."""

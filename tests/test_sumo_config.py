@@ -133,7 +133,7 @@ def test_sumo_binary_run_of_a_hostile_config_writes_only_its_own_outputs(crafted
     assert summary.arrived > 0
     _outside_intact(outside, precious)
     assert sorted(p.name for p in out.iterdir()) == ["edgedata.xml", "statistics.xml",
-                                                      "tripinfo.xml"]
+                                                      "summary.xml", "tripinfo.xml"]
 
 
 @pytest.mark.sumo

@@ -150,6 +150,20 @@ class PolicyRun:
     state: str | None = None
 
 
+#: in a method's city folder: the ids of the agents that ended at their destination
+COMPLETED_FILE = "completed.json"
+
+
+def completed_ids(method_dir: str | Path) -> list[str]:
+    """The :data:`COMPLETED_FILE` ids of a method's city folder ([] when absent or unusable)."""
+    path = Path(method_dir) / COMPLETED_FILE
+    try:
+        ids = read_json(path, expected="a list of vehicle ids") if path.exists() else []
+    except InputFileError:
+        return []
+    return [i for i in ids if isinstance(i, str)] if isinstance(ids, list) else []
+
+
 def check_sumocfg(path: str | Path) -> tuple[str, ...]:
     """Check ``path`` is a usable city scenario (an existing ``.sumocfg`` naming its net and
     route files, :func:`~magail_sumo.env.city_env.scenario_inputs`); returns what of its
@@ -313,6 +327,9 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
             continue
         run: PolicyRun = res.value
         try:
+            # the agents that reached their destination (their trips count as arrived): the
+            # report's travel-time figure reads them
+            write_text(inside(mine, COMPLETED_FILE), json.dumps(sorted(run.completed)))
             mine_sum = summarise(mine, run.completed)
             log(f"city {printable(sid)}: {SUMO_METHOD} over the same window "
                 f"({run.begin_s:.1f}-{run.end_s:.1f} s)")

@@ -24,9 +24,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, read_rows
+from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, completed_ids, read_rows
 from magail_sumo.evaluation.traffic import METRICS
-from magail_sumo.outputs import atomic_write, claim_output_dir, inside, printable, safe_name
+from magail_sumo.evaluation.traffic.sumo_outputs import run_distributions
+from magail_sumo.outputs import (OutputError, atomic_write, claim_output_dir, inside, printable,
+                                 safe_name)
 from magail_sumo.agents.specs import unguarded
 from magail_sumo.sensors.road_edge import has_road_edges
 from magail_sumo.pretrained import is_pretrained_spec
@@ -35,7 +37,8 @@ from magail_sumo.workers import Progress, no_progress
 from . import animation, figures
 from .render import REALISM_FIELDS, Document
 from .scores import SceneView, Scores
-from .scoring import AGENT_FIELDS, collect, method_means, scene_view
+from .intervals import with_ci
+from .scoring import AGENT_FIELDS, collect, method_intervals, method_means, scene_view
 
 #: Traffic metrics in the main table, in order.
 MAIN = ["ade", "min_ade", "fde", "collision_rate", "offroad_rate", "red_light_rate",
@@ -99,12 +102,13 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     city_rows = _city_rows(folder, sc.errors)
     units = {n: METRICS[n].unit for n in METRICS}
     means = method_means(sc, ["metametric", *MAIN, *REALISM_FIELDS])
+    cis = method_intervals(sc, ["metametric", *MAIN, *REALISM_FIELDS])
     man = sc.manifest
     doc = Document("magail_sumo evaluation report", out / "img")
     if sc.scenes or sc.methods or not city_rows:
-        _scene_sections(doc, sc, means, units, man)
+        _scene_sections(doc, sc, means, cis, units, man)
     if city_rows:
-        _city_section(doc, city_rows, man)
+        _city_section(doc, city_rows, man, folder)
     if sc.errors:
         doc.heading("Problems")
         doc.errors(sc.errors)
@@ -119,8 +123,9 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     _write_csv(agents_csv, afields, [[r[f] for f in afields] for r in sc.agent_rows])
     _write_csv(metrics_csv, all_fields, [[r.get(f) for f in all_fields] for r in sc.rows])
     sfields = ["metametric", *MAIN, *REALISM_FIELDS]
-    _write_csv(summary_csv, ["method", *sfields],
-               [[m, *(means[m][f] for f in sfields)] for m in sc.methods])
+    _write_csv(summary_csv, ["method", *sfields, *(f"{f}_ci95" for f in sfields)],
+               [[m, *(means[m][f] for f in sfields), *(cis[m][f] for f in sfields)]
+                for m in sc.methods])
     city_csv = None
     if city_rows:
         city_csv = inside(out, "city.csv")
@@ -131,7 +136,18 @@ def build_report(folder: str | Path, out: str | Path | None = None,
                        tuple(sc.errors), sc, city_csv)
 
 
-def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: dict) -> None:
+#: what the log-replay row is (the report's note under the metrics table)
+REFERENCE_NOTE = (
+    "logreplay replays the recording itself: it is the reference the other methods are "
+    "measured against, not a competitor. Its collision and off-road rates are not zero because "
+    "they are the recording's own: boxes of recorded tracks that overlap (dense queues, "
+    "merges, box sizes estimated by the perception system) and recorded positions the map "
+    "puts off the road (driveways, parking lots, map polygons a metre off). A method is "
+    "realistic as far as its figures approach these, not zero.")
+
+
+def _scene_sections(doc: Document, sc: Scores, means: dict, cis: dict, units: dict,
+                    man: dict) -> None:
     """The recorded scenes' sections: metrics, realism, figures, per-agent rows, fixes."""
     doc.para(f"Scenes: {len(sc.scenes)} · methods: {', '.join(sc.methods) or 'none'} · "
              f"rollouts: {man.get('rollouts')} (WOSAC: 32) × {man.get('steps', 80)} steps "
@@ -139,15 +155,21 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: di
              f"{man.get('policy')}{_action_mode(man)}")
     doc.heading("Metrics against the baselines (mean over scenes)")
     header = ["method", "metametric"] + MAIN
-    doc.table(header, [[m, means[m]["metametric"], *(means[m][f] for f in MAIN)]
+    doc.table(header, [[m, *(with_ci(means[m][f], cis[m][f]) for f in ["metametric", *MAIN])]
                        for m in sc.methods], "metrics")
+    doc.note(f"mean ± half-width of its 95 % confidence interval over the {len(sc.scenes)} "
+             "scene(s) (Student's t; no interval with one scene). The rollouts of a scene are "
+             "seeded: a second evaluation seed gives a second sample of the same scenes.")
+    if "logreplay" in sc.methods:
+        doc.note(REFERENCE_NOTE)
     doc.table(["metric", "unit", "definition"],
               [[n, units[n], METRICS[n].description] for n in MAIN], "units")
     if sc.methods:
         doc.image(figures.bar_chart(means, ["metametric", "ade", "collision_rate",
                                             "offroad_rate", "hard_braking_rate",
                                             "route_completion", "speed_js", "ttc_js"],
-                                    {**units, "metametric": "WOSAC"}, "Methods compared"),
+                                    {**units, "metametric": "WOSAC"}, "Methods compared",
+                                    cis),
                   "bars", "bar charts of the main metrics per method")
     doc.heading("Realism (WOSAC 2025) breakdown")
     bare = [printable(s) for s in sorted(sc.scenes) if not has_road_edges(sc.scenes[s])]
@@ -155,9 +177,12 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, units: dict, man: di
         doc.para(f"No road edges in the map of {len(bare)} scene(s) ({', '.join(bare)}): their "
                  "distance-to-road-edge and off-road fields and their meta-metric are NaN (not "
                  "comparable); the means of those fields are over the other scenes.")
-    doc.table(["method", "metametric"] + REALISM_FIELDS,
-              [[m, means[m]["metametric"], *(means[m][f] for f in REALISM_FIELDS)]
+    doc.table(["method", "metametric"] + [f.replace("_likelihood", "") for f in REALISM_FIELDS],
+              [[m, *(with_ci(means[m][f], cis[m][f]) for f in ["metametric", *REALISM_FIELDS])]
                for m in sc.methods], "realism")
+    doc.note("Each field is the likelihood of the logged values under the method's rollouts "
+             "(the WOSAC 2025 definitions; higher is better), mean ± 95 % interval over "
+             "scenes.")
     sids = sorted(sc.scenes)
     per = {(r["scenario_id"], r["method"]): r for r in sc.rows}
     doc.para("Meta-metric per scene:")
@@ -242,8 +267,9 @@ def _count(v: float | int) -> int | float:
     return int(v) if math.isfinite(v) else float("nan")
 
 
-def _city_section(doc: Document, rows: list[dict], man: dict) -> None:
-    """The "City scenarios (SUMO outputs)" table: per scenario, each method's SUMO figures."""
+def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path) -> None:
+    """The "City scenarios (SUMO outputs)" table: per scenario, each method's SUMO figures;
+    then per scenario a figure of the methods' runs (:func:`.figures.city_figure`)."""
     city = man.get("city") if isinstance(man.get("city"), dict) else {}
     policies = ", ".join(dict.fromkeys(printable(r["method"], 40) for r in rows
                                        if r["method"] != "sumo"))
@@ -275,3 +301,16 @@ def _city_section(doc: Document, rows: list[dict], man: dict) -> None:
                      _count(r["teleports"]), _count(r["collisions"]),
                      *(own if mine else [""] * len(own))])
     doc.table(header, body, "city")
+    for scenario in dict.fromkeys(r["scenario"] for r in rows):
+        runs = {}
+        for r in rows:
+            if r["scenario"] != scenario:
+                continue
+            try:
+                d = inside(folder, "city", safe_name(scenario), safe_name(r["method"]))
+            except OutputError:
+                continue  # a link out of the folder: nothing of it is read
+            runs[r["method"]] = run_distributions(d, completed_ids(d))
+        if any(v["travel_time_s"].size or v["time_s"].size for v in runs.values()):
+            doc.image(figures.city_figure(runs, scenario), f"city_{safe_name(scenario)}",
+                      f"vehicles over time, travel times and speeds of city {scenario}")

@@ -1,8 +1,10 @@
-"""Report figures (matplotlib, Agg backend) returned as PNG bytes."""
+"""Report figures (matplotlib, Agg backend): :class:`Figure` (PNG and SVG), the scenes'
+trajectories as PNG bytes."""
 
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 
 import matplotlib
 
@@ -25,34 +27,100 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def bar_chart(means: dict[str, dict[str, float]], fields: list[str], units: dict[str, str],
-              title: str) -> bytes:
-    """One small bar panel per field, one bar per method."""
+@dataclass(frozen=True)
+class Figure:
+    """A drawn report figure: PNG (inlined in the HTML) and SVG (a vector copy for papers,
+    written beside the PNG)."""
+
+    png: bytes
+    svg: bytes
+
+
+def _figure(fig) -> Figure:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="svg")
+    svg = buf.getvalue()
+    return Figure(_png(fig), svg)
+
+
+#: the method whose figures are the recording's own (the reference, drawn grey)
+REFERENCE = "logreplay"
+
+
+def _method_colors(methods: list[str]) -> list[str]:
+    out, k = [], 0
+    for m in methods:
+        if m == REFERENCE:
+            out.append("#999999")
+        else:
+            out.append(COLORS[k % len(COLORS)])
+            k += 1
+    return out
+
+
+def bar_chart_figure(means: dict[str, dict[str, float]], fields: list[str],
+                     units: dict[str, str], title: str,
+                     cis: dict[str, dict[str, float]] | None = None):
+    """The matplotlib figure of :func:`bar_chart` (for tests: its labels' extents)."""
     methods = list(means)
     n = len(fields)
     cols = min(4, n)
     rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), squeeze=False)
+    longest = max((len(m) for m in methods), default=1)
+    height = 0.9 + 0.28 * max(1, len(methods))
+    fig, axes = plt.subplots(rows, cols, figsize=(2.4 * cols + 0.07 * longest, height * rows),
+                             squeeze=False, sharey=True)
+    colors = _method_colors(methods)
+    ypos = np.arange(len(methods))[::-1]
     for ax, f in zip(axes.ravel(), fields):
-        vals = [means[m][f] for m in methods]
-        ax.bar(range(len(methods)), np.nan_to_num(vals), color=COLORS[:len(methods)])
-        ax.set_xticks(range(len(methods)), methods, rotation=30, fontsize=7)
-        ax.set_title(f"{f} ({units.get(f, '')})", fontsize=8)
-        ax.tick_params(axis="y", labelsize=7)
+        vals = np.array([means[m][f] for m in methods], np.float64)
+        err = None if cis is None else np.array([cis[m][f] for m in methods], np.float64)
+        ax.barh(ypos, np.nan_to_num(vals), color=colors, height=0.7,
+                xerr=None if err is None else np.nan_to_num(err), ecolor="#333333",
+                capsize=2, error_kw={"lw": 0.8})
+        ax.set_yticks(ypos, methods, fontsize=7)
+        unit = units.get(f, "")
+        ax.set_title(f"{f}" + (f" ({unit})" if unit else ""), fontsize=8)
+        ax.tick_params(axis="x", labelsize=6)
+        ax.xaxis.set_major_locator(plt.MaxNLocator(3, prune="upper"))  # clear of the next panel
+        lo = np.nanmin(np.concatenate([[0.0], vals - (0 if err is None else np.nan_to_num(err))]))
+        if np.isfinite(lo) and lo >= 0:
+            ax.set_xlim(left=0)
     for ax in axes.ravel()[n:]:
         ax.axis("off")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    return _png(fig)
+    note = " (bars: mean over scenes, whiskers: 95 % interval)" if cis is not None else ""
+    fig.suptitle(title + note, fontsize=9)
+    fig.tight_layout(w_pad=4.0)
+    return fig
 
 
-def distributions(scores: Scores, features: list[tuple[str, str]]) -> bytes:
-    """Log vs each method's histograms (pooled over scenes) of the given (feature, label)."""
-    fig, axes = plt.subplots(1, len(features), figsize=(4.2 * len(features), 3.0),
+def bar_chart(means: dict[str, dict[str, float]], fields: list[str], units: dict[str, str],
+              title: str, cis: dict[str, dict[str, float]] | None = None) -> Figure:
+    """One small horizontal-bar panel per field, one bar per method (names on the shared
+    y axis, never rotated or overlapping), whiskers the 95 % interval over scenes (``cis``:
+    half-widths); the log-replay reference is grey."""
+    return _figure(bar_chart_figure(means, fields, units, title, cis))
+
+
+def _at_cap(hist: np.ndarray) -> float:
+    return float(hist[-1] / max(hist.sum(), 1.0))
+
+
+def distributions(scores: Scores, features: list[tuple[str, str]]) -> Figure:
+    """Log vs each method's histograms (pooled over scenes) of the given (feature, label).
+
+    Time to collision is capped (5 s: no conflict ahead) and most of its mass sits in the
+    cap's bin, which would flatten the rest: its panel shows the distribution below the cap
+    (each curve normalised over its values below the cap) and the share at the cap in the
+    legend."""
+    fig, axes = plt.subplots(1, len(features), figsize=(4.2 * len(features), 3.2),
                              squeeze=False)
+    colors = _method_colors(scores.methods)
     for ax, (feat, label) in zip(axes[0], features):
         lo, hi, n = BINS[feat]
         centres = lo + (np.arange(n) + 0.5) * (hi - lo) / n
+        capped = feat == "time_to_collision"
+        keep = slice(0, n - 1) if capped else slice(0, n)
         log_by_scene: dict[str, np.ndarray] = {}
         for k, m in enumerate(scores.methods):
             sims = []
@@ -63,16 +131,20 @@ def distributions(scores: Scores, features: list[tuple[str, str]]) -> bytes:
                     log_by_scene.setdefault(sid, lc)
             if sims:  # pooled over scenes: the summed counts, normalised
                 h = np.sum(sims, axis=0).astype(np.float64)
-                ax.plot(centres, h / max(h.sum(), 1.0), color=COLORS[k % 7], label=m, lw=1.3)
+                name = m + (f" ({_at_cap(h):.0%} at cap)" if capped else "")
+                ax.plot(centres[keep], h[keep] / max(h[keep].sum(), 1.0), color=colors[k],
+                        label=name, lw=1.3)
         if log_by_scene:
             h = np.sum(list(log_by_scene.values()), axis=0).astype(np.float64)
-            ax.plot(centres, h / max(h.sum(), 1.0), "k--", label="log", lw=1.6)
-        ax.set_title(label, fontsize=9)
+            name = "log" + (f" ({_at_cap(h):.0%} at cap)" if capped else "")
+            ax.plot(centres[keep], h[keep] / max(h[keep].sum(), 1.0), "k--", label=name,
+                    lw=1.6)
+        ax.set_title(label + (f", below the {hi:g}-s cap" if capped else ""), fontsize=9)
         ax.set_ylabel("share", fontsize=8)
         ax.tick_params(labelsize=7)
-    axes[0][0].legend(fontsize=7)
+        ax.legend(fontsize=6)
     fig.tight_layout()
-    return _png(fig)
+    return _figure(fig)
 
 
 def _joined(x: np.ndarray, y: np.ndarray, valid: np.ndarray | None = None
@@ -142,3 +214,41 @@ def trajectories(scores: Scores, sid: str, max_rollouts: int = 8) -> bytes:
     dashed) and the rollouts (colour) of every method, one panel per method; states a method or
     the log marks invalid are not drawn (the lines break there)."""
     return _png(trajectory_figure(scores, sid, max_rollouts))
+
+
+def city_figure(runs: dict[str, dict], scenario: str) -> Figure:
+    """One city scenario, one colour per method (SUMO's default drivers grey): vehicles in the
+    network over the window, the distribution of completed trips' travel times, and of the
+    edges' mean speeds weighted by the time vehicles spent on them (``runs``: method ->
+    :func:`~magail_sumo.evaluation.traffic.sumo_outputs.run_distributions`)."""
+    fig, axes = plt.subplots(1, 3, figsize=(12.6, 3.2), squeeze=False)
+    ax_n, ax_t, ax_v = axes[0]
+    methods = list(runs)
+    colors = ["#999999" if m == "sumo" else COLORS[k % len(COLORS)]
+              for k, m in enumerate(methods)]
+    times = np.concatenate([r["travel_time_s"] for r in runs.values()] or [np.zeros(0)])
+    t_edges = np.histogram_bin_edges(times, bins=30) if times.size else np.linspace(0, 1, 2)
+    for m, c in zip(methods, colors):
+        r = runs[m]
+        if r["time_s"].size:
+            ax_n.plot(r["time_s"] - r["time_s"][0], r["running"], color=c, lw=1.2, label=m)
+        if r["travel_time_s"].size:
+            ax_t.hist(r["travel_time_s"], bins=t_edges, histtype="step", color=c, lw=1.3,
+                      label=f"{m} ({r['travel_time_s'].size} trips)")
+        v, w = r["edge_speed_mps"]
+        if v.size and w.sum() > 0:
+            ax_v.hist(v, bins=np.linspace(0, max(15.0, float(np.nanmax(v))), 31), weights=w,
+                      density=True, histtype="step", color=c, lw=1.3, label=m)
+    ax_n.set_title("vehicles in the network", fontsize=9)
+    ax_n.set_xlabel("time in the window (s)", fontsize=8)
+    ax_t.set_title("travel time of completed trips", fontsize=9)
+    ax_t.set_xlabel("s", fontsize=8)
+    ax_v.set_title("edge mean speed (time-weighted)", fontsize=9)
+    ax_v.set_xlabel("m/s", fontsize=8)
+    for ax in axes[0]:
+        ax.tick_params(labelsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+    fig.suptitle(f"city {printable(scenario, 60)}", fontsize=10)
+    fig.tight_layout()
+    return _figure(fig)

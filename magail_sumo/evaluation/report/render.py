@@ -11,6 +11,8 @@ from pathlib import Path
 from magail_sumo.evaluation.realism import METRIC_FIELDS
 from magail_sumo.outputs import inside, inside_dir, write_bytes
 
+from .figures import Figure
+
 
 def fmt(v: object) -> str:
     if isinstance(v, float):
@@ -22,7 +24,8 @@ def html_table(header: list[str], rows: list[list[object]], cls: str) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(fmt(c))}</td>" for c in r) + "</tr>"
                    for r in rows)
-    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+    return (f'<div class="table-wrap"><table class="{cls}"><thead><tr>{head}</tr></thead>'
+            f'<tbody>{body}</tbody></table></div>')
 
 
 def md_table(header: list[str], rows: list[list[object]]) -> str:
@@ -36,11 +39,15 @@ def img_tag(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
-CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px}
-table{border-collapse:collapse;margin:1em 0;font-size:13px}
-th,td{border:1px solid #bbb;padding:3px 8px;text-align:right}
-th{background:#eee}td:first-child,th:first-child{text-align:left}
-img{max-width:100%;display:block;margin:0.5em 0}.errors li{color:#a00}"""
+#: a page that fits any width: tables scroll inside their own box (never the page), long
+#: words break, images scale down
+CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px;overflow-wrap:anywhere}
+.table-wrap{max-width:100%;overflow-x:auto;margin:1em 0}
+table{border-collapse:collapse;font-size:13px}
+th,td{border:1px solid #bbb;padding:3px 8px;text-align:right;overflow-wrap:normal}
+th{background:#eee;vertical-align:bottom}td:first-child,th:first-child{text-align:left}
+img{max-width:100%;height:auto;display:block;margin:0.5em 0}.errors li{color:#a00}
+.note{color:#555;font-size:13px}"""
 
 
 class Document:
@@ -72,14 +79,23 @@ class Document:
         self.html.append(html_table(header, rows, cls))
         self.md.append(md_table(header, rows))
 
-    def image(self, png: bytes, name: str, alt: str) -> None:
+    def note(self, text: str) -> None:
+        """A paragraph set apart as an explanation (smaller, grey)."""
+        self.html.append(f'<p class="note">{html.escape(text)}</p>')
+        self.md.append(f"*{text}*")
+
+    def image(self, figure: "bytes | Figure", name: str, alt: str) -> None:
         """A figure: inlined in the HTML, written as ``img_dir/NN_name.png`` for the Markdown
-        (:class:`~magail_sumo.outputs.OutputError` when ``img_dir`` or the file leads out of
-        the report folder, ``img_dir``'s parent, through a symbolic link)."""
+        and, for a :class:`~.figures.Figure`, as ``NN_name.svg`` beside it (a vector copy for
+        papers) (:class:`~magail_sumo.outputs.OutputError` when ``img_dir`` or a file leads
+        out of the report folder, ``img_dir``'s parent, through a symbolic link)."""
         img_dir = inside_dir(self.img_dir.parent, self.img_dir.name)
+        png = figure if isinstance(figure, bytes) else figure.png
         self._n += 1
         fname = f"{self._n:02d}_{name}.png"
         write_bytes(inside(img_dir, fname), png)
+        if not isinstance(figure, bytes):
+            write_bytes(inside(img_dir, f"{self._n:02d}_{name}.svg"), figure.svg)
         self.html.append(img_tag(png, alt))
         self.md.append(f"![{alt}]({self.img_dir.name}/{fname})")
 

@@ -42,6 +42,7 @@ from magail_sumo.outputs import OutputError, printable
 from magail_sumo.scene import ObjectType, Scene
 from magail_sumo.workers import Progress, no_progress, run_jobs
 
+from .intervals import mean_ci
 from . import animation, figures
 from .scores import SceneView, Scores
 
@@ -416,6 +417,16 @@ def collect(folder: str | Path, submissions: dict[str, list[str]] | None = None,
         except SubmissionError as exc:
             scores.errors.append(f"method {method}: {exc}")
     return scores
+
+
+def method_intervals(scores: Scores, fields: list[str]) -> dict[str, dict[str, float]]:
+    """Per method, the half-width of the 95 % interval of each field's mean over its scored
+    scenes (:func:`~.intervals.mean_ci`; NaN with fewer than two finite values)."""
+    out = {}
+    for m in scores.methods:
+        rows = [r for r in scores.rows if r["method"] == m]
+        out[m] = {f: mean_ci([r[f] for r in rows])[1] for f in fields}
+    return out
 
 
 def method_means(scores: Scores, fields: list[str]) -> dict[str, dict[str, float]]:

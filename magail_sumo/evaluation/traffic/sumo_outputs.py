@@ -27,6 +27,7 @@ from typing import Collection, Sequence
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import InputFileError, regular_file
 from magail_sumo.sim.binaries import SumoBinaryMissing, binary
 from magail_sumo.sim.session import SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import SumoConfigError, read_config
@@ -69,11 +70,17 @@ def _outputs(out: Path) -> dict[str, Path]:
             "statistics": out / "statistics.xml"}
 
 
+#: SUMO's per-step summary (vehicles running, waiting, ...): the report's vehicles-over-time
+#: figure; optional (runs before it was written have none)
+SUMMARY_FILE = "summary.xml"
+
+
 def output_args(out: str | Path) -> list[str]:
-    """SUMO options writing the three outputs into the folder ``out``."""
+    """SUMO options writing the three outputs (and the per-step summary) into ``out``."""
     o = _outputs(Path(out))
     return ["--tripinfo-output", str(o["tripinfo"]), "--edgedata-output", str(o["edgedata"]),
-            "--statistic-output", str(o["statistics"])]
+            "--statistic-output", str(o["statistics"]),
+            "--summary-output", str(Path(out) / SUMMARY_FILE)]
 
 
 def sumo_options(out: Path, begin: float | None, end: float | None, seed: int,
@@ -198,7 +205,7 @@ def summarise(out_dir: str | Path, completed: Collection[str] = ()) -> SumoRunSu
         out (module doc).
     """
     import pandas as pd
-    from sumolib.output import parse_fast, parse_fast_nested
+    from sumolib.output import parse_fast
 
     o = _outputs(Path(out_dir))
     for path in o.values():
@@ -206,14 +213,7 @@ def summarise(out_dir: str | Path, completed: Collection[str] = ()) -> SumoRunSu
             raise SumoRunError(f"{path}: SUMO output missing")
     trips = pd.DataFrame(_trips(o["tripinfo"], set(completed)),
                          columns=["duration", "waiting", "loss"])
-    speeds, weights = [], []
-    duration = 0.0
-    for interval, edge in parse_fast_nested(str(o["edgedata"]), "interval", ["begin", "end"],
-                                            "edge", ["sampledSeconds", "speed"]):
-        duration = max(duration, float(interval.end) - float(interval.begin))
-        speeds.append(float(edge.speed))
-        weights.append(float(edge.sampledSeconds))
-    w = np.asarray(weights)
+    speeds, w, duration = _edge_speeds(o["edgedata"])
     mean_speed = float(np.average(speeds, weights=w)) if w.sum() > 0 else float("nan")
     teleports = collisions = 0
     for tel in parse_fast(str(o["statistics"]), "teleports", ["total"]):
@@ -225,6 +225,53 @@ def summarise(out_dir: str | Path, completed: Collection[str] = ()) -> SumoRunSu
     return SumoRunSummary(n, mean("duration"), mean("waiting"), mean("loss"),
                           n * 3600.0 / duration if duration > 0 else float("nan"), mean_speed,
                           teleports, duration, collisions)
+
+
+def _edge_speeds(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
+    """(mean speed of each edge and interval (m/s), its sampled seconds, the longest
+    interval (s)) of an edgeData file."""
+    from sumolib.output import parse_fast_nested
+
+    speeds, weights = [], []
+    duration = 0.0
+    for interval, edge in parse_fast_nested(str(path), "interval", ["begin", "end"],
+                                            "edge", ["sampledSeconds", "speed"]):
+        duration = max(duration, float(interval.end) - float(interval.begin))
+        speeds.append(float(edge.speed))
+        weights.append(float(edge.sampledSeconds))
+    return np.asarray(speeds, np.float64), np.asarray(weights, np.float64), duration
+
+
+def _regular(path: Path) -> bool:
+    """Whether ``path`` is a regular file (not a FIFO a reader would block on)."""
+    try:
+        regular_file(path)
+        return True
+    except InputFileError:
+        return False
+
+
+def run_distributions(out_dir: str | Path, completed: Collection[str] = ()) -> dict:
+    """What the report draws of one run of :func:`run_sumo_outputs` in ``out_dir``:
+    ``{"travel_time_s": durations of the arrived trips (as :func:`summarise` counts them),
+    "edge_speed_mps": (speeds, sampled seconds) of the edgeData, "time_s", "running": the
+    vehicles in the network at each step (empty without the summary file)}``; a missing or
+    non-regular file gives empty arrays."""
+    out = Path(out_dir)
+    o = _outputs(out)
+    trips = _trips(o["tripinfo"], set(completed)) if _regular(o["tripinfo"]) else []
+    speeds, weights = (_edge_speeds(o["edgedata"])[:2] if _regular(o["edgedata"])
+                       else (np.zeros(0), np.zeros(0)))
+    t, running = [], []
+    if _regular(out / SUMMARY_FILE):
+        from sumolib.output import parse_fast
+
+        for step in parse_fast(str(out / SUMMARY_FILE), "step", ["time", "running"]):
+            t.append(float(step.time))
+            running.append(float(step.running))
+    return {"travel_time_s": np.asarray([d for d, _, _ in trips], np.float64),
+            "edge_speed_mps": (speeds, weights),
+            "time_s": np.asarray(t, np.float64), "running": np.asarray(running, np.float64)}
 
 
 def compare_runs(runs: dict[str, SumoRunSummary]):
