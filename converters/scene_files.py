@@ -20,6 +20,7 @@ from converters.womd.reader import iter_womd, parse_record
 from magail_sumo.errors import SceneFormatError
 from magail_sumo.outputs import printable
 from magail_sumo.scene import Scene
+from magail_sumo.sim.sumo_config import SumoConfigError, find_config, is_sumo_config
 
 _PICKLE_MAGIC = (b"\x80\x02", b"\x80\x03", b"\x80\x04", b"\x80\x05")
 
@@ -38,6 +39,11 @@ class SceneRecord:
         return self.error is None
 
 
+#: a SUMO scenario given where a recorded scene is expected
+CITY_NOT_SCENE = ("a SUMO scenario (city), not a recorded scene: evaluate it with "
+                  "`magail-sumo evaluate --city`, train on it by listing it in scenes.files")
+
+
 def detect_format(path: str | PathLike) -> str:
     """``"womd"``, ``"scenarionet"`` or ``"scenarionet-dataset"``.
 
@@ -52,12 +58,20 @@ def detect_format(path: str | PathLike) -> str:
     if stat.S_ISDIR(st.st_mode):  # type: ignore[union-attr]
         if (p / SUMMARY_FILE).exists():
             return "scenarionet-dataset"
+        try:
+            city = find_config(p)
+        except SumoConfigError:
+            city = p
+        if city is not None:
+            raise SceneFormatError(p, None, CITY_NOT_SCENE)
         raise SceneFormatError(p, None, "is a directory, expected a scene file "
                                         "(or a ScenarioNet dataset folder with dataset_summary.pkl)")
     with open_regular(p) as fh:
         head = fh.read(2)
     if p.suffix == ".pkl" or head in _PICKLE_MAGIC:
         return "scenarionet"
+    if is_sumo_config(p):
+        raise SceneFormatError(p, None, CITY_NOT_SCENE)
     return "womd"
 
 

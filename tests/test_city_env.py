@@ -107,3 +107,105 @@ def test_agent_cap_refills_from_waiting_vehicles():
     env.close()
     # agents ended, yet the city kept (nearly) 25: waiting vehicles joined mid-trip
     assert ended > 25 and max(counts[:-1]) == 25
+
+
+# ------------------------------------------------------------------ any scenario SUMO runs
+SHARED_SUMO = ROOT.parent / "shared" / "data" / "sumo"
+#: every city scenario here, and in ../shared when present: each loads unedited
+SCENARIOS = sorted((ROOT / "data" / "sumo").glob("*/*.sumocfg")) + (
+    sorted(SHARED_SUMO.rglob("*.sumocfg")) if SHARED_SUMO.is_dir() else [])
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("cfg", SCENARIOS, ids=lambda p: str(p.relative_to(p.parents[2])))
+def test_every_city_scenario_loads_unedited_or_names_what_is_missing(cfg):
+    """Each runs a few steps with its own layout, begin time, gzip, additional files, public
+    transport and pedestrians, or fails in one line naming the configuration and the file SUMO
+    would also miss (some DLR configurations name route files their tools generate)."""
+    import re
+    from magail_sumo.sim.sumo_config import read_config
+
+    missing = None
+    try:
+        read_config(cfg)
+    except MagailSumoError as exc:
+        missing = str(exc)
+    if missing is not None:
+        assert "\n" not in missing and str(cfg) in missing
+        assert re.search(r": (route-files|additional-files|net-file) \S.*: not found$", missing)
+        name = missing.split(": ")[-2].split(" ", 1)[1]
+        assert not (cfg.parent / name).exists()  # SUMO would miss it too
+        return
+    env = SumoCityEnv(cfg, CityEnvConfig(warmup_s=0, max_steps=10, max_agents=8))
+    try:
+        env.reset(seed=0)
+        for _ in range(10):
+            env.step({a: np.zeros(2, np.float32) for a in env.agents})
+        assert env.sumo_time is not None
+    finally:
+        env.close()
+
+
+@pytest.mark.sumo
+def test_any_config_name_a_folder_and_a_config_where_a_scene_is_expected(tmp_path):
+    """``run.sumo.cfg`` in a folder, a flat layout with a gzipped route file: the city env,
+    evaluate --city and a training pool take it; inspect names it a city."""
+    import gzip
+    import shutil
+
+    from converters.scene_files import detect_format
+    from magail_sumo.env.scene_pool import is_city, resolve_pool
+    from magail_sumo.errors import SceneFormatError
+    from magail_sumo.evaluation.city import city_config
+
+    city = tmp_path / "monaco"
+    city.mkdir()
+    shutil.copy(CITY / "ingolstadt21.net.xml", city / "net.net.xml")
+    (city / "demand.rou.xml.gz").write_bytes(
+        gzip.compress((CITY / "ingolstadt21.rou.xml").read_bytes()))
+    cfg = city / "run.sumo.cfg"
+    cfg.write_text('<configuration><net-file value="net.net.xml"/>'
+                   '<route-files value="demand.rou.xml.gz"/><begin value="25200"/>'
+                   "</configuration>")
+    assert city_config(city) == cfg and city_config(cfg) == cfg
+    refs = resolve_pool([str(city)])
+    assert [r.path for r in refs] == [str(cfg)] and is_city(refs[0])
+    env = SumoCityEnv(cfg, CityEnvConfig(warmup_s=0, max_steps=5))
+    assert env.scenario_id == "monaco" and len(env.possible_agents) > 100
+    env.reset(seed=0)
+    env.close()
+    for where in (cfg, city):
+        with pytest.raises(SceneFormatError, match="a SUMO scenario \\(city\\), not a recorded "
+                                                   "scene: evaluate it with `magail-sumo "
+                                                   "evaluate --city`"):
+            detect_format(where)
+
+
+@pytest.mark.sumo
+def test_only_the_chosen_classes_without_stops_become_agents(tmp_path):
+    """Buses (and any vehicle with stops) stay SUMO-driven by default; choosing the class
+    makes buses without stops agents."""
+    import re
+
+    text = (CITY / "ingolstadt21.rou.xml").read_text()
+    buses = set(re.findall(r'<(?:vehicle|trip) id="([^"]+)" type="bus"', text))
+    assert buses, "ingolstadt21 has buses"
+    env = SumoCityEnv(CFG, CityEnvConfig(warmup_s=0, max_steps=600))
+    seen: set[str] = set()
+    env.reset(seed=0)
+    for _ in range(600):
+        seen.update(env.agents)
+        env.step({a: np.zeros(2, np.float32) for a in env.agents})
+    env.close()
+    assert seen and not (seen & buses)
+    env = SumoCityEnv(CFG, CityEnvConfig(warmup_s=0, max_steps=600,
+                                         agent_classes=("passenger", "bus")))
+    both: set[str] = set()
+    env.reset(seed=0)
+    for _ in range(600):
+        both.update(env.agents)
+        env.step({a: np.zeros(2, np.float32) for a in env.agents})
+    env.close()
+    assert both & buses
+    with pytest.raises(ValueError, match="agent_classes must be SUMO vehicle classes"):
+        CityEnvConfig(agent_classes=("lorry",))

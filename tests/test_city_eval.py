@@ -154,10 +154,12 @@ def test_manifest_of_another_run_setting_keeps_the_city_entry(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     ([], "nothing to evaluate: give --scenes FILE..., --city SUMOCFG... or both"),
-    (["--city", "missing.sumocfg"], "missing.sumocfg: SUMO config file not found"),
+    (["--city", "missing.sumocfg"], "missing.sumocfg: not found (--city takes a SUMO "
+                                    "scenario's configuration"),
     (["--city", "bad.sumocfg"], "bad.sumocfg: not valid XML"),
     (["--city", "nonet.sumocfg"], "nonet.sumocfg: names no net-file"),
-    (["--city", str(CFG.with_suffix(".net.xml"))], "needs a SUMO scenario's .sumocfg file"),
+    (["--city", str(CFG.with_suffix(".net.xml"))], "cologne8.net.xml: is not a SUMO "
+                                                    "configuration"),
     (["--city", str(CFG), "--policy", "constvel"], "--policy constvel: a city needs a "
                                                     "driving policy"),
 ])

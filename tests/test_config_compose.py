@@ -99,9 +99,11 @@ def test_the_frozen_flat_configs_are_the_34_of_the_table():
     assert [p.name for p in CONFIGS.glob("*.yaml")] == ["demo.yaml"]
 
 
-#: settings added to TrainConfig after the flat files were frozen, with the value that keeps a
-#: published config's behaviour (what it trained with, before the setting existed)
-ADDED_SINCE = {"workers.ray.node_ip": None}
+#: settings added to TrainConfig after the flat files were frozen, with their defaults. The
+#: node_ip default keeps the old behaviour; city.agent_classes does not where a city has other
+#: classes: before it every vehicle could become an agent (ingolstadt21's buses did in the
+#: published city runs), now only passenger cars (issue 32)
+ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"]}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}

@@ -50,6 +50,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--city-control-fraction", type=bounded(float, 0.0, 1.0), default=1.0,
                    metavar="F", help="share of a city's vehicles that may become agents "
                                      "(seeded; default 1)")
+    p.add_argument("--city-agent-classes", default="passenger", metavar="C,C",
+                   help="SUMO vehicle classes that may become agents (default passenger: "
+                        "buses, trams, trucks, bicycles and every vehicle with stops stay "
+                        "SUMO-driven)")
     p.add_argument("--rollouts", type=int, default=32, metavar="R", help="rollouts per scene")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--baselines", default="logreplay,constvel,sumo", metavar="LIST",
@@ -98,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         city = CitySettings(steps=args.city_steps, warmup_s=args.city_warmup_s,
                             max_agents=args.city_max_agents,
                             control_fraction=args.city_control_fraction, seed=args.seed,
+                            agent_classes=tuple(c.strip() for c in
+                                                args.city_agent_classes.split(",") if c.strip()),
                             deterministic=args.deterministic, noise_scale=args.noise_scale,
                             timeout_s=args.timeout_s)
         for f in args.city:

@@ -47,7 +47,8 @@ from magail_sumo.sensors.observation import (
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
-from magail_sumo.sim.sumo_config import SumoConfigError, SumoInputs, check_demand, read_config
+from magail_sumo.sim.sumo_config import (SumoConfigError, SumoInputs, check_demand, read_config,
+                                         scenario_name)
 from magail_sumo.sim.sumo_map import NetworkMap, network_map
 
 from .actions import ACTION_COUNTS
@@ -58,6 +59,13 @@ from .step import END_OF_EPISODE, FleetEnv
 
 #: Events of the city env, in the order the first one found becomes the reason.
 CITY_EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination")
+#: SUMO's vehicle classes (``vClass``)
+VEHICLE_CLASSES: tuple[str, ...] = (
+    "passenger", "private", "taxi", "hov", "emergency", "authority", "army", "vip",
+    "delivery", "truck", "trailer", "coach", "bus", "motorcycle", "moped", "bicycle",
+    "scooter", "evehicle", "tram", "rail_urban", "rail", "rail_electric", "rail_fast", "ship",
+    "container", "cable_car", "subway", "aircraft", "wheelchair", "drone", "pedestrian",
+    "custom1", "custom2")
 _LIGHT = {"G": 1, "g": 1, "y": 2, "Y": 2, "r": 3, "R": 3, "u": 3, "s": 3, "o": 0, "O": 0}
 
 
@@ -80,6 +88,10 @@ class CityEnvConfig:
         SUMO-driven until a place frees, then joins mid-trip (first come, first served), so
         the city keeps ``max_agents`` agents while its demand allows.
     :param guard: the gap guard on the agents' accelerations (:mod:`magail_sumo.env.guard`).
+    :param agent_classes: SUMO vehicle classes (``vClass`` of a vehicle's type) that may
+        become agents; the others (buses, trams, trucks, bicycles, ... by default) stay
+        SUMO-driven. A vehicle with stops on its route (a bus line, a delivery) stays
+        SUMO-driven whatever its class: the policy cannot serve stops.
     """
 
     control_fraction: float = 1.0
@@ -95,10 +107,12 @@ class CityEnvConfig:
     action_layout: str = "accel_steer"
     max_agents: int | None = None
     guard: GuardConfig = field(default_factory=GuardConfig)
+    agent_classes: tuple[str, ...] = ("passenger",)
 
     @classmethod
     def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
-                 warmup_s: float, max_steps: int) -> "CityEnvConfig":
+                 warmup_s: float, max_steps: int,
+                 agent_classes: tuple[str, ...] = ("passenger",)) -> "CityEnvConfig":
         """A city's settings with the observation, limits, event rules (the city's events of
         ``env.terminate_on``), SUMO seed and action layout of a recorded-scene
         :class:`~magail_sumo.env.config.EnvConfig` ``env``, so one policy drives both."""
@@ -107,7 +121,8 @@ class CityEnvConfig:
                    observation=env.observation, limits=env.limits, lane_width=env.lane_width,
                    off_road_margin=env.off_road_margin,
                    destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
-                   action_layout=env.action_layout, max_agents=max_agents, guard=env.guard)
+                   action_layout=env.action_layout, max_agents=max_agents, guard=env.guard,
+                   agent_classes=tuple(agent_classes))
 
     def __post_init__(self) -> None:
         if self.max_agents is not None and self.max_agents < 1:
@@ -120,6 +135,10 @@ class CityEnvConfig:
         bad = set(self.terminate_on) - set(CITY_EVENTS)
         if bad:
             raise ValueError(f"unknown events in terminate_on: {sorted(bad)}")
+        unknown = sorted(set(self.agent_classes) - set(VEHICLE_CLASSES))
+        if unknown or not self.agent_classes:
+            raise ValueError(f"agent_classes must be SUMO vehicle classes, got {unknown or '[]'}"
+                             f" (e.g. {', '.join(VEHICLE_CLASSES[:8])})")
 
 
 def scenario_inputs(sumocfg: Path) -> tuple[SumoInputs, list[str]]:
@@ -148,7 +167,7 @@ class SumoCityEnv(FleetEnv):
                  sumo_args: tuple[str, ...] = ()) -> None:
         self.sumocfg = Path(sumocfg)
         #: the scenario's name (its ``.sumocfg`` stem)
-        self.scenario_id = self.sumocfg.stem
+        self.scenario_id = scenario_name(self.sumocfg)
         self.sumo_args = tuple(sumo_args)
         self.config = cfg = config or CityEnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
@@ -244,7 +263,12 @@ class SumoCityEnv(FleetEnv):
 
     # ------------------------------------------------------------------ agents
     def _controlled(self, vid: str) -> bool:
-        """Seeded, order-independent choice of controlled vehicles."""
+        """Seeded, order-independent choice of controlled vehicles, among those of
+        ``agent_classes`` with no stops on their route."""
+        api = self._session.api
+        if api.vehicle.getVehicleClass(vid) not in self.config.agent_classes or \
+                api.vehicle.getStops(vid):
+            return False
         if self.config.control_fraction >= 1.0:
             return True
         h = hashlib.blake2b(f"{self._seed}:{vid}".encode(), digest_size=8).digest()

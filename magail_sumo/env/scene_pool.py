@@ -49,6 +49,7 @@ from __future__ import annotations
 import glob
 import os
 from collections import OrderedDict
+from functools import lru_cache
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
@@ -62,6 +63,7 @@ from magail_sumo.errors import MagailSumoError
 from magail_sumo.inputs import MiB, InputFileError, read_text
 from magail_sumo.outputs import OutputError, one_line, printable
 from magail_sumo.scene import ObjectType
+from magail_sumo.sim.sumo_config import find_config, is_sumo_config
 
 from .config import SCENE_CACHE, EnvConfig
 from .city_env import CityEnvConfig, SumoCityEnv
@@ -165,12 +167,13 @@ def resolve_pool(entries: Iterable[str], skipped: list[PoolSkip] | None = None
             paths = [Path(entry)]
         for p in paths:
             try:
-                if p.suffix == ".sumocfg" and p.is_file():  # a plain SUMO (city) scenario
+                if p.is_file() and is_sumo_config(p):  # a plain SUMO (city) scenario
                     out.append(RecordRef(str(p)))
                     continue
                 if p.is_dir() and not (p / REPORT_FILE).exists() \
-                        and len(cfgs := sorted(p.glob("*.sumocfg"))) == 1:
-                    out.append(RecordRef(str(cfgs[0])))  # a city scenario folder
+                        and not (p / "dataset_summary.pkl").exists() \
+                        and (cfg := find_config(p)) is not None:
+                    out.append(RecordRef(str(cfg)))  # a city scenario folder
                     continue
                 if p.is_dir() and not (p / "dataset_summary.pkl").exists():
                     if any(p.glob(f"*/{REPORT_FILE}")):
@@ -234,8 +237,14 @@ def agent_bound(scene, config: EnvConfig) -> int:
 
 
 def is_city(ref: RecordRef) -> bool:
-    """Whether ``ref`` is a plain SUMO (city) scenario rather than a recorded scene."""
-    return ref.path.endswith(".sumocfg")
+    """Whether ``ref`` is a plain SUMO (city) scenario rather than a recorded scene (its file
+    a SUMO configuration, :func:`~magail_sumo.sim.sumo_config.is_sumo_config`; cached)."""
+    return _is_config(ref.path)
+
+
+@lru_cache(maxsize=4096)
+def _is_config(path: str) -> bool:
+    return is_sumo_config(path)
 
 
 def city_slots(city, ref: RecordRef) -> int:

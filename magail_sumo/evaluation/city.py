@@ -47,9 +47,11 @@ import shutil
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+from magail_sumo.sim.sumo_config import (SumoConfigError, find_config, is_sumo_config,
+                                         scenario_name)
 from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.agents import env_settings, rollout
-from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv, scenario_inputs
+from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig, SumoCityEnv, scenario_inputs
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, EvaluationError, log, rollout_seed
@@ -92,6 +94,8 @@ class CitySettings:
     :param noise_scale: a sampling policy's noise scale (None: the policy's own; see
         :func:`~magail_sumo.policies.make_policy`).
     :param timeout_s: seconds each run may take (None: no limit).
+    :param agent_classes: SUMO vehicle classes that may become agents (the rest, and every
+        vehicle with stops, stay SUMO-driven).
     """
 
     steps: int = 3000
@@ -102,8 +106,13 @@ class CitySettings:
     deterministic: bool = False
     noise_scale: float | None = None
     timeout_s: float | None = DEFAULT_TIMEOUT_S
+    agent_classes: tuple[str, ...] = ("passenger",)
 
     def __post_init__(self) -> None:
+        bad = sorted(set(self.agent_classes) - set(VEHICLE_CLASSES))
+        if bad or not self.agent_classes:
+            raise EvaluationError(f"--city-agent-classes: not SUMO vehicle classes: "
+                                  f"{', '.join(bad) or '(none given)'}")
         for ok, what in ((self.steps >= 1, f"--city-steps must be >= 1, got {self.steps}"),
                          (self.warmup_s >= 0, f"--city-warmup-s must be >= 0, got "
                                               f"{self.warmup_s}"),
@@ -164,15 +173,30 @@ def completed_ids(method_dir: str | Path) -> list[str]:
     return [i for i in ids if isinstance(i, str)] if isinstance(ids, list) else []
 
 
-def check_sumocfg(path: str | Path) -> tuple[str, ...]:
-    """Check ``path`` is a usable city scenario (an existing ``.sumocfg`` naming its net and
-    route files, :func:`~magail_sumo.env.city_env.scenario_inputs`); returns what of its
-    configuration SUMO will not be given (outputs, logs, ports, ...);
-    :class:`~magail_sumo.errors.MagailSumoError` naming the file otherwise."""
+def city_config(path: str | Path) -> Path:
+    """The SUMO configuration ``path`` names: the file itself (any name SUMO's scenarios use:
+    ``*.sumocfg``, ``run.sumo.cfg``, or an XML ``<configuration>``) or the one a scenario
+    folder holds; :class:`EvaluationError` (one line) otherwise."""
     path = Path(path)
-    if path.suffix != ".sumocfg":
-        raise EvaluationError(f"{path}: --city needs a SUMO scenario's .sumocfg file")
-    inputs, _ = scenario_inputs(path)
+    try:
+        found = find_config(path) if path.is_dir() else (path if is_sumo_config(path) else None)
+    except SumoConfigError as exc:
+        raise EvaluationError(str(exc)) from None
+    if found is None:
+        what = ("holds no SUMO configuration" if path.is_dir() else
+                "not found" if not path.exists() else "is not a SUMO configuration")
+        raise EvaluationError(f"{path}: {what} (--city takes a SUMO scenario's configuration, "
+                              "e.g. its .sumocfg, or the folder holding it)")
+    return found
+
+
+def check_sumocfg(path: str | Path) -> tuple[str, ...]:
+    """Check ``path`` is a usable city scenario (a SUMO configuration or a folder holding one,
+    :func:`city_config`, naming its net and route files,
+    :func:`~magail_sumo.env.city_env.scenario_inputs`); returns what of its configuration
+    SUMO will not be given (outputs, logs, ports, ...);
+    :class:`~magail_sumo.errors.MagailSumoError` naming the file otherwise."""
+    inputs, _ = scenario_inputs(city_config(path))
     return inputs.dropped
 
 
@@ -200,6 +224,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     # the env the policy needs: its optional features, action layout and gap guard
     cfg = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)), max_agents=st.max_agents,
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
+                                 agent_classes=st.agent_classes,
                                  max_steps=st.steps)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
     state = env.warm_state()
@@ -293,15 +318,15 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
     cfgs: dict[str, Path] = {}
     dropped: dict[str, tuple[str, ...]] = {}
     for f in sumocfgs:
-        path = Path(f)
-        dropped[path.stem] = check_sumocfg(path)
-        if dropped[path.stem]:
-            log(f"city {printable(path.stem)}: not given to SUMO from its configuration: "
-                + printable("; ".join(dropped[path.stem]), 600))
-        if path.stem in cfgs:
-            raise EvaluationError(f"{path}: scenario {path.stem} given twice "
-                                  f"({cfgs[path.stem]})")
-        cfgs[path.stem] = path
+        path = city_config(f)
+        sid = scenario_name(path)
+        if sid in cfgs:
+            raise EvaluationError(f"{path}: scenario {sid} given twice ({cfgs[sid]})")
+        dropped[sid] = check_sumocfg(path)
+        if dropped[sid]:
+            log(f"city {printable(sid)}: not given to SUMO from its configuration: "
+                + printable("; ".join(dropped[sid]), 600))
+        cfgs[sid] = path
     claim_output_dir(out, "evaluate", ["manifest.json", "city", CITY_FILE])
     rows: list[dict] = []
     errors: list[str] = []

@@ -87,6 +87,71 @@ MAX_INCLUDE_DEPTH = 8
 OPTIONS_FILE = Path(__file__).with_name("sumo_options.json")
 
 
+#: file names SUMO scenario configurations go by (``run.sumo.cfg`` included)
+CONFIG_SUFFIXES = (".sumocfg", ".sumo.cfg")
+_CONFIG_ROOT = re.compile(rb"<\s*(configuration|sumoConfiguration)[\s>/]")
+
+
+def is_sumo_config(path: str | PathLike) -> bool:
+    """Whether ``path`` is a SUMO scenario configuration: named ``*.sumocfg`` / ``*.sumo.cfg``,
+    or an XML file (gzipped or not) whose root element is ``configuration`` /
+    ``sumoConfiguration`` (its first 4 KiB after the XML declaration and comments); a
+    directory, a missing path or a FIFO / device is not."""
+    p = Path(path)
+    try:
+        regular_file(p)
+    except InputFileError:
+        return False
+    if p.name.lower().endswith(CONFIG_SUFFIXES):
+        return True
+    try:
+        with open_regular(p) as fh:
+            head = fh.read(4096)
+        if head[:2] == b"\x1f\x8b":
+            head = gzip.GzipFile(fileobj=io.BytesIO(read_bytes(p, CONFIG_LIMIT))).read(4096)
+    except (InputFileError, OSError, EOFError):
+        return False
+    head = re.sub(rb"<\?.*?\?>|<!--.*?-->", b"", head, flags=re.S).lstrip()
+    return bool(_CONFIG_ROOT.match(head))
+
+
+#: configuration names that say nothing of the scenario: its folder names it instead
+GENERIC_NAMES = frozenset({"osm", "run", "config", "configuration", "scenario", "simulation",
+                           "sim", "sumo", "main", "default"})
+
+
+def scenario_name(config: str | PathLike) -> str:
+    """A city scenario's name: its configuration's file name without ``.sumocfg`` /
+    ``.sumo.cfg`` / ``.cfg`` / ``.xml`` (``cologne8.sumocfg`` -> ``cologne8``), or its folder's
+    name when that says nothing (``port_cologne/osm.sumocfg`` -> ``port_cologne``,
+    ``monaco/run.sumo.cfg`` -> ``monaco``)."""
+    p = Path(config)
+    name = p.name
+    for suffix in (*CONFIG_SUFFIXES, ".cfg", ".xml", ".gz"):
+        if name.lower().endswith(suffix):
+            name = name[:-len(suffix)]
+    if name.lower() in GENERIC_NAMES or not name:
+        return p.absolute().parent.name or name
+    return name
+
+
+def find_config(folder: str | PathLike) -> Path | None:
+    """The SUMO configuration a scenario folder holds: the one file directly in it that
+    :func:`is_sumo_config` names by its name (else by its content); None when it holds none;
+    :class:`SumoConfigError` naming them when it holds several."""
+    d = Path(folder)
+    if not d.is_dir():
+        return None
+    files = sorted(f for f in d.iterdir() if f.is_file())
+    named = [f for f in files if f.name.lower().endswith(CONFIG_SUFFIXES)]
+    found = named or [f for f in files if f.suffix.lower() in (".cfg", ".xml")
+                      and is_sumo_config(f)]
+    if len(found) > 1:
+        raise SumoConfigError(f"{d}: holds {len(found)} SUMO configurations "
+                              f"({', '.join(f.name for f in found[:5])}); name one")
+    return found[0] if found else None
+
+
 @dataclass(frozen=True)
 class SumoOption:
     """One option of the installed ``sumo``: its section in ``--save-template``, its type

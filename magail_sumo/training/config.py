@@ -17,7 +17,7 @@ from typing import Any, Literal
 import torch
 
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
-from magail_sumo.env.city_env import CityEnvConfig
+from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
@@ -112,15 +112,21 @@ class CityConfig:
     :param control_fraction: share of the departing vehicles that may become agents (seeded).
     :param warmup_s: seconds SUMO runs alone before each episode (traffic already flowing).
     :param max_steps: 0.1-s steps per city episode.
+    :param agent_classes: SUMO vehicle classes that may become agents (the rest, and every
+        vehicle with stops, stay SUMO-driven).
     """
 
     max_agents: int = 256
     control_fraction: float = 1.0
     warmup_s: float = 600.0
     max_steps: int = 200
+    agent_classes: tuple[str, ...] = ("passenger",)
 
     def __post_init__(self) -> None:
         check(self.max_agents >= 1, "max_agents", f"must be >= 1, got {self.max_agents}")
+        bad = sorted(set(self.agent_classes) - set(VEHICLE_CLASSES))
+        check(bool(self.agent_classes) and not bad, "agent_classes",
+              f"must be SUMO vehicle classes, got {bad or '[]'}")
         check(0.0 < self.control_fraction <= 1.0, "control_fraction",
               f"must be in (0, 1], got {self.control_fraction}")
         check(self.warmup_s >= 0, "warmup_s", f"must be >= 0, got {self.warmup_s}")
@@ -130,7 +136,8 @@ class CityConfig:
         """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
         return CityEnvConfig.from_env(env, max_agents=self.max_agents,
                                       control_fraction=self.control_fraction,
-                                      warmup_s=self.warmup_s, max_steps=self.max_steps)
+                                      warmup_s=self.warmup_s, max_steps=self.max_steps,
+                                      agent_classes=self.agent_classes)
 
 
 @dataclass(frozen=True)
