@@ -4,6 +4,7 @@ drivers over the same window, from SUMO's outputs; the report's city table."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import math
 import shutil
 import xml.etree.ElementTree as ET
@@ -37,10 +38,54 @@ def city(tmp_path_factory):
     out = tmp_path_factory.mktemp("city")
     rc = main(["evaluate", "--policy", f"{__name__}:coast", "--city", str(CFG),
                "--city-steps", str(STEPS), "--city-warmup-s", str(WARMUP),
-               "--city-max-agents", "6", "--seed", str(SEED), "--out", str(out)])
+               "--city-max-agents", "6", "--seed", str(SEED), "--fcd-rollouts", "1",
+               "--out", str(out)])
     assert rc == 0
     assert main(["report", str(out), "--workers", "1"]) == 0
     return out
+
+
+@pytest.mark.sumo
+def test_city_run_fcd_replays_in_sumo(city, tmp_path):
+    """``--fcd-rollouts`` records the city run: FCD and a .sumocfg that plain SUMO runs (the
+    agents and SUMO's vehicles of the window, on the city's network)."""
+    import subprocess
+
+    from magail_sumo.sim.binaries import binary
+
+    man = json.loads((city / "manifest.json").read_text())
+    (entry,) = man["city"]["scenarios"]
+    fcd = Path(entry["fcd"])
+    assert fcd.is_file() and fcd.parent == city / "city" / "cologne8" / "coast" / "fcd"
+    cfg = fcd.with_name("cologne8.sumocfg")
+    from magail_sumo.sim.fcd import KIND_COLORS
+
+    types = fcd.with_name("cologne8.types.add.xml").read_text()  # colour: who drove it
+    assert KIND_COLORS["agent"] in types and KIND_COLORS["sumo"] in types
+    res = subprocess.run([binary("sumo"), "-c", str(cfg), "--end", "5", "--no-step-log",
+                          "--fcd-output", str(tmp_path / "back.xml")],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-500:]
+
+
+@pytest.mark.sumo
+def test_city_training_episodes_are_recorded_with_fcd_dir(tmp_path):
+    """``env.fcd_dir`` reaches city episodes (it was silently ignored): episode 0 of each env
+    is written when it ends."""
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+    from magail_sumo.env.config import EnvConfig
+
+    cfg = CityEnvConfig.from_env(EnvConfig(fcd_dir=str(tmp_path / "fcd"), fcd_every=2),
+                                 max_agents=4, control_fraction=1.0, warmup_s=0, max_steps=20)
+    env = SumoCityEnv(CFG, cfg)
+    for episode in range(3):
+        env.reset(seed=episode)
+        while env.t < 20:
+            env.step({a: np.zeros(2, np.float32) for a in env.agents})
+    env.close()
+    names = sorted(p.name for p in (tmp_path / "fcd").glob("*.fcd.xml"))
+    assert len(names) == 2 and names[0].endswith("ep00000.fcd.xml") \
+        and names[1].endswith("ep00002.fcd.xml")
 
 
 @pytest.mark.sumo

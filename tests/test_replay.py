@@ -102,3 +102,26 @@ def test_replay_refuses_an_fcd_folder_before_the_slow_work(tmp_path, capsys, mon
                  str(tmp_path / "x.fcd.xml")]) == 1
     assert f"{tmp_path / 'x.sumocfg'}: is a folder" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == ["fcd", "x.sumocfg"]
+
+
+@pytest.mark.sumo
+def test_replay_a_policy_in_a_city_as_fcd(tmp_path, capsys):
+    """A city (its folder) driven by a policy for N steps, recorded as FCD with the config that
+    replays it in sumo-gui; a city without --fcd, or a recorded scene with a policy other than
+    log / random, is one line."""
+    from magail_sumo.cli.main import main as cli
+
+    city = ROOT / "data" / "sumo" / "cologne8"
+    fcd = tmp_path / "city.fcd.xml"
+    assert cli(["replay", str(city), "--policy", "random", "--steps", "30",
+                "--city-warmup-s", "30", "--fcd", str(fcd)]) == 0
+    err = capsys.readouterr().err
+    assert "cologne8: random drove 30 steps" in err and "sumo-gui -c" in err
+    assert fcd.is_file() and (tmp_path / "city.sumocfg").is_file()
+    assert "<timestep" in fcd.read_text()
+    assert cli(["replay", str(city), "--policy", "random"]) == 1
+    assert "a city is watched in sumo-gui: give --fcd" in capsys.readouterr().err
+    scene = ROOT / "data" / "womd" / "637f20cafde22ff8.tfrecord"
+    assert cli(["replay", str(scene), "--policy", "pretrained", "--out",
+                str(tmp_path / "x.gif")]) == 1
+    assert "a recorded scene replays with log or random" in capsys.readouterr().err

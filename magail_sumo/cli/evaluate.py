@@ -68,7 +68,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fcd-rollouts", type=int, default=0, metavar="K",
                    help="also write the first K rollouts of every scene and method as SUMO FCD "
                         "with a replay config: sumo-gui -c DIR/fcd/<method>/<scenario>/"
-                        "rollout000.sumocfg (default 0: none)")
+                        "rollout000.sumocfg (default 0: none); K > 0 also records each city "
+                        "run: DIR/city/<city>/<method>/fcd/<city>.sumocfg")
     p.add_argument("--seed", type=int, default=0, help="run seed (rollout r uses a seed "
                                                        "derived from it and r)")
     p.add_argument("--deterministic", action="store_true",
@@ -104,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
                             control_fraction=args.city_control_fraction, seed=args.seed,
                             agent_classes=tuple(c.strip() for c in
                                                 args.city_agent_classes.split(",") if c.strip()),
+                            fcd=args.fcd_rollouts > 0,
                             deterministic=args.deterministic, noise_scale=args.noise_scale,
                             timeout_s=args.timeout_s)
         for f in args.city:

@@ -1,4 +1,5 @@
-"""``magail-sumo replay``: drive a recorded scene through the env and write a top-down video."""
+"""``magail-sumo replay``: drive a recorded scene through the env and write a top-down video;
+or drive a SUMO city with a policy and record it as FCD to watch in ``sumo-gui``."""
 
 from __future__ import annotations
 
@@ -49,12 +50,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="render a scene run through the env as a video",
                        description="Run one recorded scene through the SUMO env (log replay: every "
                                    "vehicle follows its recording by inverse dynamics; random: "
-                                   "uniform random actions) and write a top-down GIF or MP4.")
-    p.add_argument("scene", type=Path, metavar="SCENE", help="scene file (WOMD / ScenarioNet)")
-    p.add_argument("--out", required=True, type=Path, metavar="FILE", help="FILE.gif or FILE.mp4")
+                                   "uniform random actions) and write a top-down GIF or MP4. "
+                                   "Given a SUMO city (its configuration or folder), a policy "
+                                   "(any --policy spec of evaluate) drives it and the run is "
+                                   "recorded as FCD to open in sumo-gui (--fcd).")
+    p.add_argument("scene", type=Path, metavar="SCENE",
+                   help="scene file (WOMD / ScenarioNet), or a SUMO city's configuration or folder")
+    p.add_argument("--out", type=Path, metavar="FILE",
+                   help="FILE.gif or FILE.mp4 (recorded scenes; required for them)")
     p.add_argument("--bundle", type=Path, help="converted scenario folder "
                    "(default: networks/<id> when present, else converted on the fly)")
-    p.add_argument("--policy", choices=POLICIES, default="log")
+    p.add_argument("--policy", default="log", metavar="SPEC",
+                   help="recorded scenes: log or random; a city: random, pretrained[:NAME], a "
+                        "checkpoint or module:factory (default log)")
+    p.add_argument("--steps", type=bounded(int, 1, 10**6), default=600,
+                   help="a city: 0.1-s steps to drive (default 600: one minute)")
+    p.add_argument("--city-warmup-s", type=bounded(float, 0.0, 86400.0), default=0.0,
+                   metavar="S", help="a city: seconds SUMO drives alone first (default 0)")
+    p.add_argument("--city-max-agents", type=bounded(int, 1, 10**5), default=64, metavar="K",
+                   help="a city: policy-driven vehicles alive at once (default 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fps", type=bounded(int, 1, MAX_FPS), default=10,
                    help=f"frames per second of the video (1..{MAX_FPS})")
@@ -145,6 +159,14 @@ def run(args: argparse.Namespace) -> int:
     from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv
     from magail_sumo.env.video import FORMATS
 
+    city = _city(args.scene)
+    if city is not None:
+        return _replay_city(args, city)
+    if args.policy not in POLICIES:
+        raise MagailSumoError(f"--policy {args.policy}: a recorded scene replays with "
+                              f"{' or '.join(POLICIES)} (a city takes any policy)")
+    if args.out is None:
+        raise MagailSumoError("--out FILE.gif or FILE.mp4 is required for a recorded scene")
     if args.out.suffix.lower() not in FORMATS:
         raise MagailSumoError(f"{args.out}: unsupported video format (use {' or '.join(FORMATS)})")
     check_writable(args.out)
@@ -186,5 +208,49 @@ def run(args: argparse.Namespace) -> int:
         raise OutputError(f"{args.out}: cannot write ({exc.strerror or type(exc).__name__})") \
             from None
     print(f"{printable(scene.scenario_id)}: {n} frames ({args.policy}) -> {args.out}",
+          file=sys.stderr)
+    return 0
+
+
+def _city(path: Path) -> Path | None:
+    """The SUMO configuration ``path`` names (a configuration or its folder), or None."""
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
+    from magail_sumo.sim.sumo_config import find_config, is_sumo_config
+
+    return find_config(path) if path.is_dir() else (path if is_sumo_config(path) else None)
+
+
+def _replay_city(args: argparse.Namespace, cfg: Path) -> int:
+    """A policy drives the city ``cfg`` for ``--steps`` steps; the run is written as FCD with
+    its ``sumo-gui`` replay config (``--fcd``, required: a city has no top-down video)."""
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
+    from magail_sumo.agents import env_settings, rollout
+    from magail_sumo.env import EnvConfig
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+    from magail_sumo.evaluation.protocol import rollout_seed
+    from magail_sumo.policies import make_policy
+
+    if args.fcd is None:
+        raise MagailSumoError(f"{cfg}: a city is watched in sumo-gui: give --fcd FILE.fcd.xml "
+                              "(a city has no top-down video)")
+    if args.out is not None:
+        raise MagailSumoError(f"--out {args.out}: a city has no top-down video; its run is "
+                              "the --fcd recording")
+    fcd = check_fcd(args.fcd)
+    policy = make_policy(args.policy, rollout_seed(args.seed, 0), False, None)
+    city = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)),
+                                  max_agents=args.city_max_agents, control_fraction=1.0,
+                                  warmup_s=args.city_warmup_s, max_steps=args.steps)
+    env = SumoCityEnv(cfg, city)
+    env.record_fcd()
+    bar = progress(range(args.steps), desc="steps", unit="step")
+    try:
+        rollout(env, policy, lambda *_: next(bar, None), seed=args.seed, max_steps=args.steps,
+                until_empty=False, live_only=True)
+    finally:
+        env.close()
+    files = env.write_fcd(fcd)
+    print(f"{printable(env.scenario_id)}: {args.policy} drove {args.steps} steps; "
+          f"{files.records} FCD records -> {files.fcd}; replay: sumo-gui -c {files.sumocfg}",
           file=sys.stderr)
     return 0

@@ -35,6 +35,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -92,6 +93,10 @@ class CityEnvConfig:
         become agents; the others (buses, trams, trucks, bicycles, ... by default) stay
         SUMO-driven. A vehicle with stops on its route (a bus line, a delivery) stays
         SUMO-driven whatever its class: the policy cannot serve stops.
+    :param fcd_dir: folder for SUMO FCD recordings of episodes, each with a ``.sumocfg`` that
+        replays it in ``sumo-gui`` on the city's network (None: none; as ``EnvConfig.fcd_dir``).
+    :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
+        (0: none).
     """
 
     control_fraction: float = 1.0
@@ -108,6 +113,8 @@ class CityEnvConfig:
     max_agents: int | None = None
     guard: GuardConfig = field(default_factory=GuardConfig)
     agent_classes: tuple[str, ...] = ("passenger",)
+    fcd_dir: str | None = None
+    fcd_every: int = 0
 
     @classmethod
     def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
@@ -122,7 +129,8 @@ class CityEnvConfig:
                    off_road_margin=env.off_road_margin,
                    destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
                    action_layout=env.action_layout, max_agents=max_agents, guard=env.guard,
-                   agent_classes=tuple(agent_classes))
+                   agent_classes=tuple(agent_classes), fcd_dir=env.fcd_dir,
+                   fcd_every=env.fcd_every)
 
     def __post_init__(self) -> None:
         if self.max_agents is not None and self.max_agents < 1:
@@ -176,7 +184,8 @@ class SumoCityEnv(FleetEnv):
         self.inputs, vehicle_ids = scenario_inputs(self.sumocfg)
         self.net_file = net_file = self.inputs.net
         #: FCD recording (:meth:`record_fcd`)
-        self._fcd = EpisodeFcd(STEP_LENGTH, self._fcd_frame, self._fcd_replay)
+        self._fcd = EpisodeFcd(STEP_LENGTH, self._fcd_frame, self._fcd_replay, cfg.fcd_dir,
+                               cfg.fcd_every)
         self.network: NetworkMap = network_map(net_file)
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         # no recorded signals: _observe passes each agent's live SUMO light
@@ -224,6 +233,7 @@ class SumoCityEnv(FleetEnv):
               ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
         cfg = self.config
         self.close()
+        self._fcd.begin_episode(self.scenario_id)
         state = self.warm_state()
         extra = (("--load-state", str(state)) if state is not None else ()) + self.sumo_args
         self._seed = 0 if seed is None else int(seed)
@@ -257,9 +267,18 @@ class SumoCityEnv(FleetEnv):
         return None if self._session is None else self._session.time
 
     def close(self) -> None:
+        self._fcd.end_episode()
         if self._session is not None:
             self._session.close()
             self._session = None
+
+    def step(self, actions: dict[str, Any]):
+        """One step (the stages: :class:`~magail_sumo.env.step.FleetEnv`); the episode's
+        automatic FCD recording is written when its last step is taken."""
+        out = super().step(actions)
+        if self.t >= self._end:
+            self._fcd.end_episode()
+        return out
 
     # ------------------------------------------------------------------ agents
     def _controlled(self, vid: str) -> bool:

@@ -96,6 +96,8 @@ class CitySettings:
     :param timeout_s: seconds each run may take (None: no limit).
     :param agent_classes: SUMO vehicle classes that may become agents (the rest, and every
         vehicle with stops, stay SUMO-driven).
+    :param fcd: record the policy's run as SUMO FCD (``city/<scenario>/<method>/fcd/``) with a
+        ``.sumocfg`` that replays it in ``sumo-gui`` on the city's network.
     """
 
     steps: int = 3000
@@ -107,6 +109,7 @@ class CitySettings:
     noise_scale: float | None = None
     timeout_s: float | None = DEFAULT_TIMEOUT_S
     agent_classes: tuple[str, ...] = ("passenger",)
+    fcd: bool = False
 
     def __post_init__(self) -> None:
         bad = sorted(set(self.agent_classes) - set(VEHICLE_CLASSES))
@@ -147,6 +150,8 @@ class PolicyRun:
     :param completed: agents ended at their destination (their trips count as arrived).
     :param action_counts: the env's fixed-up actions (missing, unknown, non-finite, clipped).
     :param state: the saved warm state (None: no warm-up).
+    :param fcd: the run's SUMO FCD file and the ``.sumocfg`` that replays it in ``sumo-gui``,
+        or None when not recorded.
     """
 
     begin_s: float
@@ -157,6 +162,7 @@ class PolicyRun:
     completed: list[str]
     action_counts: dict[str, int] = field(default_factory=dict)
     state: str | None = None
+    fcd: tuple[str, str] | None = None
 
 
 #: in a method's city folder: the ids of the agents that ended at their destination
@@ -247,6 +253,8 @@ def run_policy(job: PolicyJob) -> PolicyRun:
                 if reason == "destination":
                     completed.append(a)
 
+    if st.fcd:
+        env.record_fcd()
     try:  # the reset makes one SUMO step: the window begins a step before its time
         rollout(env, policy, count, seed=st.seed, max_steps=st.steps, until_empty=False,
                 live_only=True,
@@ -256,8 +264,13 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         counts = dict(env.action_counts)
     finally:
         env.close()  # SUMO writes its outputs here
+    fcd = None
+    if st.fcd:
+        folder = inside_dir(job.out_dir, "fcd")
+        files = env.write_fcd(inside(folder, f"{safe_name(env.scenario_id)}.fcd.xml"))
+        fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
-                     job.state_copy if state is not None else None)
+                     job.state_copy if state is not None else None, fcd)
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
@@ -368,6 +381,10 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
         windows[sid] = {"scenario": sid, "sumocfg": str(cfg.resolve()), "begin_s": run.begin_s,
                         "end_s": run.end_s, "action_fixes": run.action_counts,
                         "sumo_options_dropped": list(dropped[sid])}
+        if run.fcd is not None:
+            windows[sid]["fcd"] = run.fcd[0]
+            log(f"city {printable(sid)}: FCD of the {method} run -> {run.fcd[0]} (replay: "
+                f"sumo-gui -c {run.fcd[1]})")
     if rows:
         write_rows(out, rows)
         _record(out, policy, method, st, windows)
