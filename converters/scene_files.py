@@ -1,7 +1,8 @@
 """Open any supported recorded-scene file: format detection and lazy iteration.
 
 Supported: WOMD ``Scenario`` TFRecord files/shards (optionally gzip-compressed), ScenarioNet
-scenario pickles, and ScenarioNet dataset folders (with ``dataset_summary.pkl``).
+scenario pickles, ScenarioNet dataset folders (with ``dataset_summary.pkl``) and GPUDrive /
+Nocturne JSON scenes (``*.json``, one scene each: :mod:`converters.gpudrive`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from converters.files import open_regular, path_problem
+from converters.gpudrive.reader import iter_gpudrive, load_gpudrive
 from converters.scenarionet.reader import (SUMMARY_FILE, dataset_files, iter_scenarionet,
                                            load_scenarionet)
 from converters.tfrecord import iter_records
@@ -45,7 +47,8 @@ CITY_NOT_SCENE = ("a SUMO scenario (city), not a recorded scene: evaluate it wit
 
 
 def detect_format(path: str | PathLike) -> str:
-    """``"womd"``, ``"scenarionet"`` or ``"scenarionet-dataset"``.
+    """``"womd"``, ``"scenarionet"``, ``"scenarionet-dataset"`` or ``"gpudrive"`` (a ``.json``
+    file, or a file starting with ``{``).
 
     :raises SceneFormatError: missing path, symlink loop, a FIFO / device / socket (refused
         without reading: it could block or never end), or a directory that is not a
@@ -70,6 +73,8 @@ def detect_format(path: str | PathLike) -> str:
         head = fh.read(2)
     if p.suffix == ".pkl" or head in _PICKLE_MAGIC:
         return "scenarionet"
+    if p.suffix.lower() == ".json" or head[:1] == b"{":
+        return "gpudrive"
     if is_sumo_config(p):
         raise SceneFormatError(p, None, CITY_NOT_SCENE)
     return "womd"
@@ -83,7 +88,7 @@ def iter_scene_records(path: str | PathLike) -> Iterator[SceneRecord]:
     p = Path(path)
     try:
         fmt = detect_format(p)
-        it = iter_womd(p) if fmt == "womd" else iter_scenarionet(p)
+        it = {"womd": iter_womd, "gpudrive": iter_gpudrive}.get(fmt, iter_scenarionet)(p)
         for index, item in it:
             if isinstance(item, SceneFormatError):
                 yield SceneRecord(p, index, error=item)
@@ -148,7 +153,7 @@ def list_records(path: str | PathLike) -> list[RecordRef]:
     cannot be opened raises :class:`SceneFormatError`."""
     p = Path(path)
     fmt = detect_format(p)
-    if fmt == "scenarionet":
+    if fmt in ("scenarionet", "gpudrive"):
         return [RecordRef(str(p), 0)]
     if fmt == "scenarionet-dataset":
         return [RecordRef(str(f), 0) for f in dataset_files(p)]
@@ -167,6 +172,10 @@ def read_record(ref: RecordRef) -> Scene:
     fmt = detect_format(p)
     if fmt == "scenarionet":
         return load_scenarionet(p)
+    if fmt == "gpudrive":
+        if ref.index != 0:
+            raise SceneFormatError(p, ref.index, "no such record (a JSON file holds one scene)")
+        return load_gpudrive(p)
     if fmt == "scenarionet-dataset":
         files = dataset_files(p)
         if not 0 <= ref.index < len(files):

@@ -31,6 +31,7 @@ LAYERS = (
     "converters.tfrecord",
     "converters.womd",
     "converters.scenarionet",
+    "converters.gpudrive",
     "converters.scene_files",
     "converters.sumo",
     "converters",

@@ -11,7 +11,7 @@ A pool is listed once, cheaply, in the trainer (:func:`resolve_pool`: no scene i
 * a plain SUMO scenario (a city: its ``.sumocfg``, or a folder holding one ``.sumocfg``, e.g.
   ``data/sumo/ingolstadt21``), played by :class:`~magail_sumo.env.city_env.SumoCityEnv` with
   at most ``max_agents`` policy-driven vehicles alive at once and SUMO's drivers for the rest;
-* any other folder: the scene files in it (``*.pkl``, ``*.tfrecord*``; sorted, not recursive).
+* any other folder: the scene files in it (``*.pkl``, ``*.tfrecord*``, ``*.json``; sorted, not recursive).
 
 Entries that match nothing or cannot be listed are *skipped* with a one-line reason (the run
 goes on with the rest); an empty pool is an error.
@@ -70,7 +70,7 @@ from .city_env import CityEnvConfig, SumoCityEnv
 
 #: SeedSequence stream of the per-pass scene order (apart from the start-window stream)
 POOL_STREAM = 0x5CE4E
-_SCENE_SUFFIXES = (".pkl",)
+_SCENE_SUFFIXES = (".pkl", ".json")
 _GLOB_CHARS = set("*?[")
 #: records a worker reads at start-up to size its slots (module doc)
 SCAN_RECORDS = 64
