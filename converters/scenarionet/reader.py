@@ -317,11 +317,14 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
     keys = list(features)
     ids = Ids(keys, "map_features")
     ftypes = []
+    junction = set()  # features of a type read as interpolating lanes
     for key in keys:
         path = f"map_features[{describe(key)}]"
         ftype = required(features[key], "type", path)
         if not isinstance(ftype, str):
             raise SceneValidationError(f"{path}.type: expected a string, got {describe(ftype)}")
+        if ftype in schema.INTERPOLATING_LANE_TYPES:
+            junction.add(key)
         ftypes.append(_FEATURE_ALIASES.get(ftype, ftype))
     lane_ids = {fid for fid, t in zip(ids.ids, ftypes) if t in _LANE_TYPES}
     refs = _Refs(ids, lane_ids, set(ids.ids), dropped)
@@ -333,7 +336,8 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
                 id=fid, polyline=as_points(required(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
                 speed_limit_mph=_speed_mph(f, path),
-                interpolating=as_bool(f.get("interpolating", False), path + ".interpolating"),
+                interpolating=key in junction or as_bool(f.get("interpolating", False),
+                                                         path + ".interpolating"),
                 entry_lanes=refs.lanes(f.get("entry_lanes"), fid, "entry_lanes",
                                        path + ".entry_lanes"),
                 exit_lanes=refs.lanes(f.get("exit_lanes"), fid, "exit_lanes", path + ".exit_lanes"),
@@ -350,7 +354,13 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
             line = as_points(required(f, "polyline", path), path + ".polyline")
             kinds["road_lines"].append(RoadLine(fid, line, _LINE_TYPES[ftype]))
         elif ftype in _EDGE_TYPES:
-            line = as_points(required(f, "polyline", path), path + ".polyline")
+            if isinstance(f, dict) and f.get("polyline") is None and f.get("polygon") is not None:
+                # nuScenes trainval sidewalks (ROAD_EDGE_SIDEWALK) come as areas: the edge is
+                # their closed outline
+                area = as_points(f["polygon"], path + ".polygon")
+                line = np.concatenate([area, area[:1]]) if len(area) else area
+            else:
+                line = as_points(required(f, "polyline", path), path + ".polyline")
             kinds["road_edges"].append(RoadEdge(fid, line, _EDGE_TYPES[ftype]))
         elif ftype == schema.STOP_SIGN:
             pos = as_array(required(f, "position", path), (-1,), np.float64, path + ".position")
