@@ -80,15 +80,20 @@ def detect_format(path: str | PathLike) -> str:
     return "womd"
 
 
-def iter_scene_records(path: str | PathLike) -> Iterator[SceneRecord]:
+def iter_scene_records(path: str | PathLike, keep_synthetic: bool = False
+                       ) -> Iterator[SceneRecord]:
     """Every record of one file (or ScenarioNet dataset folder), lazily; never raises on bad data.
 
     Errors about the file as a whole come back as one record with ``index=None``.
+    ``keep_synthetic``: keep a track the source marks as generated, not recorded (ScenarioNet
+    ``metadata.selected_adv_id``; dropped by default,
+    :func:`~converters.scenarionet.reader.scene_from_scenarionet`).
     """
     p = Path(path)
     try:
         fmt = detect_format(p)
-        it = {"womd": iter_womd, "gpudrive": iter_gpudrive}.get(fmt, iter_scenarionet)(p)
+        it = ({"womd": iter_womd, "gpudrive": iter_gpudrive}[fmt](p) if fmt in
+              ("womd", "gpudrive") else iter_scenarionet(p, keep_synthetic))
         for index, item in it:
             if isinstance(item, SceneFormatError):
                 yield SceneRecord(p, index, error=item)

@@ -262,3 +262,49 @@ def test_sideways_recording_vehicle_box_is_set_upright():
         break
     womd = load_scenarionet(OLDER)
     assert not any("swapped" in n for n in womd.data_quality.notes)
+
+
+def test_synthetic_track_is_dropped_unless_kept(tmp_path):
+    """A track named by metadata.selected_adv_id (a generated adversary) is not human driving:
+    dropped by default with a note, every reference to it kept consistent; kept on request."""
+    from converters.scenarionet import scene_from_scenarionet
+
+    path = BUNDLED / "2a1e44d405a6833f.pkl"  # newer layout, with tracks to predict
+    sd = safe_loads(path.read_bytes())
+    base = scene_from_scenarionet(sd)
+    ttp = base.tracks_to_predict
+    adv = ttp[0].track_index  # a track to predict becomes the "adversary"
+    adv_id = int(base.tracks.id[adv])
+    sd["metadata"]["selected_adv_id"] = str(adv_id)
+    sd["metadata"]["objects_of_interest"] = [str(adv_id)]
+    dropped = scene_from_scenarionet(sd)
+    assert dropped.tracks.num_tracks == base.tracks.num_tracks - 1
+    assert adv_id not in dropped.tracks.id.tolist() and dropped.objects_of_interest == ()
+    assert len(dropped.tracks_to_predict) == len(ttp) - 1
+    for p in dropped.tracks_to_predict:  # renumbered: still the same tracks
+        assert int(dropped.tracks.id[p.track_index]) in base.tracks.id[[q.track_index
+                                                                        for q in ttp]]
+    sdc_id = int(base.tracks.id[base.sdc_track_index])
+    assert int(dropped.tracks.id[dropped.sdc_track_index]) == sdc_id
+    assert any(f"synthetic track(s) {adv_id}" in n and "dropped" in n
+               for n in dropped.data_quality.notes)
+    kept = scene_from_scenarionet(sd, keep_synthetic=True)
+    assert kept.tracks.num_tracks == base.tracks.num_tracks
+    assert any("kept on request" in n for n in kept.data_quality.notes)
+    plain = scene_to_scenarionet(base)  # plain numpy: a file as a converter would write it
+    plain["metadata"]["selected_adv_id"] = str(adv_id)
+    out = tmp_path / "adv.pkl"
+    with open(out, "wb") as fh:
+        pickle.dump(plain, fh)
+    assert "synthetic track(s)" in run_cli("inspect", out).stdout
+    assert "kept on request" in run_cli("inspect", "--keep-synthetic", out).stdout
+
+
+@pytest.mark.parametrize("path", [p for p in SHARED_FILES if "womd_metavqa" in str(p)][:5],
+                         ids=lambda p: p.stem)
+def test_shared_adversarial_scenes_lose_their_generated_track(path):
+    from converters.scenarionet import load_scenarionet
+
+    scene, kept = load_scenarionet(path), load_scenarionet(path, keep_synthetic=True)
+    assert scene.tracks.num_tracks == kept.tracks.num_tracks - 1
+    assert "dropped: not human driving" in scene.data_quality.notes[-1]

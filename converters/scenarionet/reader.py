@@ -30,7 +30,8 @@ from magail_sumo.scene.connectivity import MAX_LANES as MAX_INFERRED_LANES
 from magail_sumo.scene import (
     BoundarySegment, Crosswalk, DataQuality, DroppedReference, Driveway, Lane, LaneNeighbor,
     ObjectType, RequiredPrediction, RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError,
-    SignalState, SignalStates, SourceIds, SpeedBump, StopSign, Tracks, infer_lane_connectivity,
+    SignalState, SignalStates, SourceIds, SpeedBump, StopSign, Tracks, drop_tracks,
+    infer_lane_connectivity,
     validate_scene,
 )
 
@@ -50,7 +51,8 @@ _AREA_TYPES = {schema.CROSSWALK: ("crosswalks", Crosswalk), schema.SPEED_BUMP: (
                schema.DRIVEWAY: ("driveways", Driveway)}
 
 
-def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
+def scene_from_scenarionet(sd: Any, budget: int | None = None,
+                           keep_synthetic: bool = False) -> Scene:
     """Convert a ScenarioNet scenario dict (no validation beyond structure).
 
     Both layouts are read: the newer ScenarioNet one (``state.length/width/height``,
@@ -64,14 +66,35 @@ def scene_from_scenarionet(sd: Any, budget: int | None = None) -> Scene:
     connectivity is inferred from geometry for a map that has none
     (:func:`~magail_sumo.scene.infer_lane_connectivity`).
 
+    A track the source marks as synthetic (``metadata.selected_adv_id``: safety-critical
+    scenes whose adversary's trajectory was generated, not recorded) is not human driving: it
+    is dropped (:func:`~magail_sumo.scene.drop_tracks`, noted in ``data_quality``) unless
+    ``keep_synthetic``, when it stays with a note naming it.
+
     :param budget: bytes of memory the scene may take (None: unlimited); exceeding it is a
         :class:`SceneValidationError` raised before the memory is allocated.
     """
     with memory_budget(budget):
-        return _scene(sd)
+        return _scene(sd, keep_synthetic)
 
 
-def _scene(sd: Any) -> Scene:
+def _synthetic_rows(meta: dict, index_of: dict[str, int]) -> list[tuple[int, str]]:
+    """(row, original id) of the tracks ``metadata.selected_adv_id`` names (one id or a
+    list); ids that are not tracks are ignored."""
+    raw = meta.get("selected_adv_id")
+    if raw is None:
+        return []
+    values = raw if isinstance(raw, (list, tuple)) else [raw]
+    out = []
+    for v in values:
+        key = as_text(v, "metadata.selected_adv_id") if not isinstance(v, (int, np.integer)) \
+            else str(int(v))
+        if key in index_of:
+            out.append((index_of[key], key))
+    return out
+
+
+def _scene(sd: Any, keep_synthetic: bool = False) -> Scene:
     if not isinstance(sd, dict):
         raise SceneValidationError(f"expected a scenario dict, got {type(sd).__name__}")
     meta = sd.get("metadata")
@@ -138,7 +161,7 @@ def _scene(sd: Any) -> Scene:
         inferred, successors, neighbors = infer_lane_connectivity(lanes, successors=no_links,
                                                                   neighbors=no_neighbors)
         roadmap = dataclasses.replace(roadmap, lanes=inferred)
-    return Scene(
+    scene = Scene(
         scenario_id=as_text(sid, "metadata.scenario_id"),
         timestamps=ts,
         tracks=tracks,
@@ -151,6 +174,17 @@ def _scene(sd: Any) -> Scene:
         source_ids=SourceIds(track_ids.pairs(), feature_ids.pairs()),
         data_quality=DataQuality(tuple(dropped), successors, neighbors, tuple(notes)),
     )
+    synthetic = _synthetic_rows(meta, index_of)
+    if not synthetic:
+        return scene
+    names = ", ".join(k for _, k in synthetic)
+    if keep_synthetic:
+        return dataclasses.replace(scene, data_quality=dataclasses.replace(
+            scene.data_quality, notes=(*scene.data_quality.notes, f"synthetic track(s) {names} "
+                                       "(metadata.selected_adv_id) kept on request")))
+    return drop_tracks(scene, [r for r, _ in synthetic],
+                       f"synthetic track(s) {names} (metadata.selected_adv_id: generated, not "
+                       "recorded) dropped: not human driving")
 
 
 def _upright_sdc_box(tracks: Tracks, sdc: int, notes: list[str]) -> Tracks:
@@ -453,7 +487,7 @@ def _signals(dyn: Any, length: int, map_ids: Ids, dropped: list[DroppedReference
 
 # ------------------------------------------------------------------ files
 
-def load_scenarionet(path: str | PathLike) -> Scene:
+def load_scenarionet(path: str | PathLike, keep_synthetic: bool = False) -> Scene:
     """Load and validate one ScenarioNet pickle (restricted unpickler).
 
     :raises SceneFormatError: naming the file and the problem (one line).
@@ -469,7 +503,7 @@ def load_scenarionet(path: str | PathLike) -> Scene:
     except Exception as exc:  # LOAD_ERRORS, or anything else a malformed file provokes
         raise SceneFormatError(p, 0, f"unreadable pickle ({_reason(exc)})") from None
     try:
-        scene = scene_from_scenarionet(sd, allocation_budget(len(data)))
+        scene = scene_from_scenarionet(sd, allocation_budget(len(data)), keep_synthetic)
         validate_scene(scene)
     except SceneValidationError as exc:
         raise SceneFormatError(p, 0, printable(str(exc), 300)) from None
@@ -519,13 +553,15 @@ def dataset_files(folder: str | PathLike) -> list[Path]:
     return files
 
 
-def iter_scenarionet(path: str | PathLike) -> Iterator[tuple[int, Scene | SceneFormatError]]:
-    """Yield ``(index, Scene or SceneFormatError)`` for a pickle or a dataset folder."""
+def iter_scenarionet(path: str | PathLike, keep_synthetic: bool = False
+                     ) -> Iterator[tuple[int, Scene | SceneFormatError]]:
+    """Yield ``(index, Scene or SceneFormatError)`` for a pickle or a dataset folder
+    (``keep_synthetic``: :func:`scene_from_scenarionet`)."""
     p = Path(path)
     files = dataset_files(p) if p.is_dir() else [p]
     for i, f in enumerate(files):
         try:
-            yield i, load_scenarionet(f)
+            yield i, load_scenarionet(f, keep_synthetic)
         except SceneFormatError as exc:
             yield i, exc
         except OSError as exc:

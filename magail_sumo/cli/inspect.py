@@ -20,6 +20,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "pickles or ScenarioNet dataset folders.")
     p.add_argument("files", nargs="+", metavar="FILE", help="scene files")
     p.add_argument("--json", action="store_true", help="one JSON object per scene on stdout")
+    p.add_argument("--keep-synthetic", action="store_true",
+                   help="keep tracks a source marks as generated, not recorded (ScenarioNet "
+                        "metadata.selected_adv_id: safety-critical scenes' adversaries); "
+                        "dropped by default, as everywhere human driving is used")
     p.add_argument("--skip-bad", action="store_true",
                    help="report unreadable records and go on (default: stop at the first)")
     p.set_defaults(func=run)
@@ -73,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     skipped: Counter[str] = Counter()
     many = len(args.files) > 1
     records = (rec for path in progress(args.files, desc="files", unit="file", enabled=many)
-               for rec in iter_scene_records(path))
+               for rec in iter_scene_records(path, args.keep_synthetic))
     for rec in progress(records, desc="scenes", unit="scene"):
         if rec.error is not None:
             print(f"error: {rec.error}", file=sys.stderr)

@@ -11,6 +11,7 @@ from .roadmap import (
 from .quality import DataQuality, DroppedReference, SourceIds
 from .scene import RequiredPrediction, Scene
 from .connectivity import infer_lane_connectivity
+from .edit import drop_tracks
 from .signals import SignalStates
 from .tracks import STATE_FIELDS, Tracks
 from .types import Difficulty, LaneType, ObjectType, RoadEdgeType, RoadLineType, SignalState
@@ -22,6 +23,6 @@ __all__ = [
     "Difficulty", "DroppedReference", "Driveway", "Lane", "LaneNeighbor", "LaneType", "ObjectType", "RequiredPrediction",
     "RoadEdge", "RoadEdgeType", "RoadLine", "RoadLineType", "RoadMap", "Scene",
     "SceneValidationError", "SignalState", "SignalStates", "SourceIds", "SpeedBump", "StopSign",
-    "Tracks", "WindowError", "choose_tracks_to_predict", "infer_lane_connectivity",
+    "Tracks", "WindowError", "choose_tracks_to_predict", "drop_tracks", "infer_lane_connectivity",
     "validate_scene", "window", "window_id",
 ]
