@@ -280,3 +280,78 @@ def test_read_json_guards(tmp_path):
     big.write_text("[" + "0," * 1000 + "0]")
     with pytest.raises(InputFileError, match=r"big.json: is 1.96 KiB, more than the 1 KiB"):
         read_json(big, limit=1024)
+
+
+@pytest.mark.sumo
+def test_traffic_light_detector_files_are_silenced_or_refused(tmp_path):
+    """An actuated program's ``<param key="file">`` makes SUMO write detector output: in an
+    additional file it goes to NUL (the run works, nothing written); in a network (not
+    rewritten) it is refused in one line."""
+    bundle = tmp_path / SID
+    shutil.copytree(ROOT / "networks" / SID, bundle)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    tll = bundle / f"{SID}.tll.xml"
+    tll.write_text(tll.read_text().replace(
+        'type="static" programID="womd" offset="0">',
+        f'type="actuated" programID="womd" offset="0"><param key="file" '
+        f'value="{outside}/det.xml"/><param key="freq" value="1"/>'))
+    cfg = bundle / f"{SID}.sumocfg"
+    inputs = read_config(cfg)
+    assert any("tlLogic 'n18' param file=" in d for d in inputs.dropped)
+    with SumoSession(cfg) as sim:
+        for _ in range(30):
+            sim.step()
+    assert list(outside.iterdir()) == []
+    net = bundle / f"{SID}.net.xml"
+    net.write_text(net.read_text().replace(
+        '<tlLogic id="n18" type="static" programID="0" offset="0">',
+        f'<tlLogic id="n18" type="actuated" programID="0" offset="0"><param key="file" '
+        f'value="{outside}/net_det.xml"/>'))
+    with pytest.raises(SumoConfigError, match=r"net.xml: tlLogic 'n18' param file=.*SUMO would "
+                                              r"write detector output there"):
+        read_config(cfg)
+
+
+def test_route_includes_doctype_and_loops(tmp_path):
+    """Route files are followed into their includes (a device param there is refused); a
+    DOCTYPE (entities SUMO would expand) and an include loop are refused in one line."""
+    inner = tmp_path / "types.xml"
+    inner.write_text('<routes><vType id="t"><param key="has.ssm.device" value="true"/></vType>'
+                     "</routes>")
+    outer = tmp_path / "r.rou.xml"
+    outer.write_text('<routes><include href="types.xml"/></routes>')
+    with pytest.raises(SumoConfigError, match=r"types.xml: vType 't' param 'has.ssm.device'"):
+        check_demand([outer])
+    doc = tmp_path / "d.rou.xml"
+    doc.write_text('<?xml version="1.0"?><!DOCTYPE routes [<!ENTITY x SYSTEM "file:///etc/x">]>'
+                   "<routes>&x;</routes>")
+    with pytest.raises(SumoConfigError, match=r"d.rou.xml: declares a DOCTYPE / ENTITY"):
+        check_demand([doc])
+    a, b = tmp_path / "a.rou.xml", tmp_path / "b.rou.xml"
+    a.write_text('<routes><include href="b.rou.xml"/></routes>')
+    b.write_text('<routes><include href="a.rou.xml"/></routes>')
+    with pytest.raises(SumoConfigError, match=r"includes itself \(an include loop\)"):
+        check_demand([a])
+    net = ROOT / "networks" / SID / f"{SID}.net.xml"
+    add = tmp_path / "e.add.xml"
+    add.write_text('<!DOCTYPE additional [<!ENTITY e "x">]><additional/>')
+    cfg = tmp_path / "c.sumocfg"
+    cfg.write_text(f'<configuration><net-file value="{net}"/>'
+                   '<additional-files value="e.add.xml"/></configuration>')
+    with pytest.raises(SumoConfigError, match=r"e.add.xml: declares a DOCTYPE / ENTITY"):
+        read_config(cfg)
+
+
+def test_a_bundles_route_file_is_checked_too(tmp_path):
+    from converters.sumo.bundle import BundleError, BundleLayout
+
+    bundle = tmp_path / SID
+    shutil.copytree(ROOT / "networks" / SID, bundle)
+    routes = bundle / f"{SID}.rou.xml"
+    text = routes.read_text()
+    i = text.index(">", text.index("<routes")) + 1
+    routes.write_text(text[:i] + '<vType id="x"><param key="device.ssm.file" value="/tmp/o.xml"/>'
+                      "</vType>" + text[i:])
+    with pytest.raises(BundleError, match=r"rou.xml: vType 'x' param 'device.ssm.file'"):
+        BundleLayout.of(bundle, SID).sumo_inputs()

@@ -78,6 +78,8 @@ _READS_FILE = frozenset({"variableSpeedSign", "vss", "rerouter"})
 _INPUT_ATTRS = ("href", "imgFile")
 #: where a silenced output goes: SUMO's null device (nothing is written)
 NULL_OUTPUT = "NUL"
+#: ``<tlLogic>`` parameters naming a file SUMO writes (actuated / delay-based detectors)
+TLS_OUTPUTS = frozenset({"file", "output"})
 #: caps on what is read here: a configuration, one additional file (per include)
 CONFIG_LIMIT = 16 * MiB
 ADDITIONAL_LIMIT = 1 * GiB
@@ -290,8 +292,20 @@ def _resolve(cfg: Path, name: str, value: str) -> tuple[Path, ...]:
     return tuple(paths)
 
 
+_DOCTYPE = re.compile(rb"<!(DOCTYPE|ENTITY)", re.I)
+
+
+def _no_doctype(head: bytes, path: Path) -> None:
+    """Refuse a document type declaration: SUMO's XML parser resolves its entities (an external
+    entity pulls in content no check saw) and no SUMO file needs one."""
+    if _DOCTYPE.search(head):
+        raise SumoConfigError(f"{path}: declares a DOCTYPE / ENTITY (SUMO would expand entities "
+                              "the tool cannot check); SUMO files need none")
+
+
 def _open_xml(path: Path, limit: int) -> io.BytesIO:
-    """The bytes of XML file ``path`` (gzipped or not) as a stream, at most ``limit``."""
+    """The bytes of XML file ``path`` (gzipped or not) as a stream, at most ``limit``; a
+    DOCTYPE / ENTITY declaration is refused."""
     data = read_bytes(path, limit, "a SUMO XML file")
     if data[:2] == b"\x1f\x8b":
         try:
@@ -301,6 +315,7 @@ def _open_xml(path: Path, limit: int) -> io.BytesIO:
             raise SumoConfigError(f"{path}: not a readable gzip file ({exc})") from None
         if len(data) > limit:
             raise SumoConfigError(f"{path}: unpacks to more than {limit >> 20} MiB")
+    _no_doctype(data, path)
     return io.BytesIO(data)
 
 
@@ -345,6 +360,8 @@ def read_config(path: str | PathLike, *, allowed: set[str] | None = None) -> Sum
                 if str(p.resolve()) not in allowed:
                     raise SumoConfigError(f"{cfg}: names {p}, which is not one of its "
                                           "bundle's own files")
+    check_network(files["net-file"][0])
+    check_demand([*files.get("route-files", ()), *files.get("load-state", ())])
     cleaned: list[tuple[Path, bytes]] = []
     for add in files.get("additional-files", ()):
         _clean(add, cleaned, dropped, depth=0)
@@ -377,6 +394,13 @@ def _clean(path: Path, cleaned: list, dropped: list[str], depth: int) -> bool:
         tag = el.tag
         if tag == "param":
             parent = parents.get(el)
+            if parent is not None and parent.tag == "tlLogic" and el.get("key") in TLS_OUTPUTS:
+                # actuated / delay-based programs write detector output to this file
+                dropped.append(f"{path.name}: tlLogic {parent.get('id', '')!r} param "
+                               f"{el.get('key')}={el.get('value')}")
+                el.set("value", NULL_OUTPUT)
+                changed = True
+                continue
             _check_param(path, el, f"{parent.tag} {parent.get('id', '')!r}" if parent is not None
                          else "top-level")
             continue
@@ -415,35 +439,100 @@ def _clean(path: Path, cleaned: list, dropped: list[str], depth: int) -> bool:
     return changed
 
 
+def _scan(path: Path, on_end, depth: int = 0, seen: tuple[Path, ...] = ()) -> None:
+    """Stream XML file ``path`` (gzipped or not) calling ``on_end(element, parent)`` for every
+    element, following ``<include href>`` (relative to the including file, at most
+    :data:`MAX_INCLUDE_DEPTH` deep, no loops); a DOCTYPE / ENTITY declaration is refused."""
+    if depth > MAX_INCLUDE_DEPTH:
+        raise SumoConfigError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH}")
+    real = path.resolve()
+    if real in seen:
+        raise SumoConfigError(f"{path}: includes itself (an include loop)")
+    try:
+        with open_regular(path, expected="a SUMO XML file") as raw:
+            head = raw.read(2)
+            raw.seek(0)
+            fh = gzip.GzipFile(fileobj=raw) if head == b"\x1f\x8b" else raw
+            _no_doctype(fh.read(65536), path)
+            fh.seek(0)
+            stack: list[ET.Element] = []
+            for event, el in ET.iterparse(fh, events=("start", "end")):
+                if event == "start":
+                    stack.append(el)
+                    continue
+                stack.pop()
+                if el.tag == "include" and el.get("href"):
+                    href = Path(el.get("href"))
+                    ref = href if href.is_absolute() else path.parent / href
+                    try:
+                        regular_file(ref, "a file")
+                    except InputFileError as exc:
+                        raise SumoConfigError(f"{path}: include {href}: {exc.problem}") from None
+                    _scan(ref, on_end, depth + 1, (*seen, real))
+                on_end(el, stack[-1] if stack else None, path)
+                if len(stack) <= 1:
+                    el.clear()
+    except InputFileError as exc:
+        raise SumoConfigError(str(exc)) from None
+    except (OSError, EOFError, ET.ParseError) as exc:
+        raise SumoConfigError(f"{path}: cannot read ({exc})") from None
+
+
+def _where(parent: ET.Element | None) -> str:
+    return f"{parent.tag} {parent.get('id', '')!r}" if parent is not None else "top-level"
+
+
 def check_demand(routes: tuple[Path, ...] | list[Path]) -> list[str]:
-    """Ids of the vehicles, trips and flows of route files ``routes`` (gzipped or not), after
-    refusing any device-writing ``<param>`` (module doc); one pass per file."""
+    """Ids of the vehicles, trips and flows of route files ``routes`` (gzipped or not,
+    includes followed), after refusing any device-writing ``<param>`` and any DOCTYPE (module
+    doc); one pass per file. Also for saved states (``load-state``: their vehicles and
+    types)."""
     ids: list[str] = []
     for path in routes:
-        try:
-            with open_regular(path, expected="a route file") as raw:
-                head = raw.read(2)
-                raw.seek(0)
-                fh = gzip.GzipFile(fileobj=raw) if head == b"\x1f\x8b" else raw
-                stack: list[ET.Element] = []
-                for event, el in ET.iterparse(fh, events=("start", "end")):
-                    if event == "start":
-                        stack.append(el)
-                        continue
-                    stack.pop()
-                    if el.tag == "param":
-                        parent = stack[-1] if stack else None
-                        _check_param(path, el, f"{parent.tag} {parent.get('id', '')!r}"
-                                     if parent is not None else "top-level")
-                    elif el.tag in ("vehicle", "trip", "flow") and el.get("id"):
-                        ids.append(el.get("id"))
-                    if len(stack) <= 1:
-                        el.clear()
-        except InputFileError as exc:
-            raise SumoConfigError(str(exc)) from None
-        except (OSError, EOFError, ET.ParseError) as exc:
-            raise SumoConfigError(f"{path}: cannot read route file ({exc})") from None
+        ids += _demand_ids(*_stamp(Path(path)))
     return ids
+
+
+def _stamp(path: Path) -> tuple[str, int, int]:
+    """(path, size, mtime) of a file: a cache key that changes when the file does."""
+    st = path.stat()
+    return str(path.absolute()), st.st_size, st.st_mtime_ns
+
+
+@lru_cache(maxsize=64)
+def _demand_ids(path: str, size: int, mtime_ns: int) -> tuple[str, ...]:
+    ids: list[str] = []
+
+    def on_end(el: ET.Element, parent: ET.Element | None, where: Path) -> None:
+        if el.tag == "param":
+            _check_param(where, el, _where(parent))
+        elif el.tag in ("vehicle", "trip", "flow") and el.get("id"):
+            ids.append(el.get("id"))
+
+    _scan(Path(path), on_end)
+    return tuple(ids)
+
+
+def check_network(path: Path) -> None:
+    """Refuse a network whose traffic-light programs write files (``<tlLogic>`` ``<param
+    key="file">`` of actuated / delay-based programs: SUMO writes detector output there) or
+    that declares a DOCTYPE; a network is not rewritten (it can be large), so such a parameter
+    is one line naming the file, program and value."""
+    _check_network(*_stamp(Path(path)))
+
+
+@lru_cache(maxsize=64)
+def _check_network(path: str, size: int, mtime_ns: int) -> None:
+
+    def on_end(el: ET.Element, parent: ET.Element | None, where: Path) -> None:
+        if el.tag == "param" and parent is not None and parent.tag == "tlLogic" and \
+                el.get("key") in TLS_OUTPUTS:
+            raise SumoConfigError(
+                f"{where}: tlLogic {parent.get('id', '')!r} param {el.get('key')}="
+                f"{el.get('value')}: SUMO would write detector output there; remove the "
+                "parameter (outputs are asked of magail-sumo, which writes them in its folder)")
+
+    _scan(Path(path), on_end)
 
 
 def write_table(path: Path = OPTIONS_FILE) -> int:
