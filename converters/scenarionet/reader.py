@@ -351,14 +351,11 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
     keys = list(features)
     ids = Ids(keys, "map_features")
     ftypes = []
-    junction = set()  # features of a type read as interpolating lanes
     for key in keys:
         path = f"map_features[{describe(key)}]"
         ftype = required(features[key], "type", path)
         if not isinstance(ftype, str):
             raise SceneValidationError(f"{path}.type: expected a string, got {describe(ftype)}")
-        if ftype in schema.INTERPOLATING_LANE_TYPES:
-            junction.add(key)
         ftypes.append(_FEATURE_ALIASES.get(ftype, ftype))
     lane_ids = {fid for fid, t in zip(ids.ids, ftypes) if t in _LANE_TYPES}
     refs = _Refs(ids, lane_ids, set(ids.ids), dropped)
@@ -370,8 +367,7 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
                 id=fid, polyline=as_points(required(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
                 speed_limit_mph=_speed_mph(f, path),
-                interpolating=key in junction or as_bool(f.get("interpolating", False),
-                                                         path + ".interpolating"),
+                interpolating=as_bool(f.get("interpolating", False), path + ".interpolating"),
                 entry_lanes=refs.lanes(f.get("entry_lanes"), fid, "entry_lanes",
                                        path + ".entry_lanes"),
                 exit_lanes=refs.lanes(f.get("exit_lanes"), fid, "exit_lanes", path + ".exit_lanes"),
