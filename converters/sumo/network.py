@@ -126,13 +126,17 @@ def write_plain(plan: NetworkPlan, types: dict[str, str], prefix: Path,
 
 def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | None = None,
                   timeout_s: float | None = None,
-                  pedestrians: PedestrianPlan | None = None) -> BuiltNetwork:
+                  pedestrians: PedestrianPlan | None = None,
+                  lefthand: bool = False) -> BuiltNetwork:
     """Write plain XML for ``plan`` into ``out_dir`` and run netconvert to ``<name>.net.xml``
     (killed after ``timeout_s`` seconds).
 
     :param pedestrians: sidewalks already in ``plan`` and the crossings to build
         (:func:`.pedestrians.plan_pedestrians`); walking areas are built then. None: no
         pedestrian network (the default conversion).
+    :param lefthand: traffic keeps left (netconvert ``--lefthand``: junction logic, turn
+        directions and SUMO's drivers for left-hand traffic;
+        :func:`magail_sumo.scene.driving_side.driving_side`).
     :param name: file name stem; default :func:`magail_sumo.outputs.safe_name` of the scene id
         (the id itself for every real WOMD id), so a scenario id never becomes a path.
     """
@@ -146,6 +150,8 @@ def build_network(scene: Scene, plan: NetworkPlan, out_dir: Path, name: str | No
     if pedestrians is not None:
         k = options.index("--walkingareas")
         options[k:k + 2] = NETCONVERT_WALKING
+    if lefthand:
+        options += ["--lefthand", "true"]
     # run in out_dir with bare file names: the net's header comment names no (temporary) folder
     warnings = run_tool("netconvert", [
         "--node-files", plain[0].name, "--edge-files", plain[1].name,

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.outputs import OutputError, inside, inside_dir, one_line, printable, safe_name
 from magail_sumo.scene import LaneType, Scene
+from magail_sumo.scene.driving_side import driving_side
 from magail_sumo.scene.signal_sanity import checked_signal_sanity
 from magail_sumo.scene.types import STEP_LENGTH
 
@@ -279,7 +280,10 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             peds = plan_pedestrians(scene, plan)
             lap("pedestrians")
         stage = "netconvert"
-        built = build_network(scene, plan, out, name, timeout_s=remaining(), pedestrians=peds)
+        side = driving_side(scene.roadmap)  # left: SUMO's left-hand network
+        rep.data_quality["driving_side"] = side.to_dict()
+        built = build_network(scene, plan, out, name, timeout_s=remaining(), pedestrians=peds,
+                              lefthand=side.side == "left")
         if peds is not None:
             check_built(peds, built.net_file, built.warnings)
             rep.pedestrians = peds.to_dict()
