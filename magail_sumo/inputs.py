@@ -124,8 +124,8 @@ def read_bytes(path: str | PathLike, limit: int, expected: str = "a file") -> by
         if size > limit:
             raise InputFileError(path, f"is {_size(size)}, more than the {_size(limit)} "
                                        f"expected of {expected}")
-        try:
-            data = fh.read(limit + 1)
+        try:  # read(n) allocates n bytes up front: the file's size, not the cap
+            data = fh.read(min(limit, size) + 1)
         except OSError as exc:
             raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
     if len(data) > limit:

@@ -233,3 +233,12 @@ def test_city_outputs_refuse_a_link_out_of_the_folder(tmp_path):
     with pytest.raises(OutputError, match="would be written outside"):
         evaluate_city("random", [CFG], out, CitySettings(steps=5, warmup_s=0))
     assert list(outside.iterdir()) == []
+
+
+def test_a_city_json_that_is_a_device_is_one_line(tmp_path):
+    from magail_sumo.evaluation.city import read_rows
+    from magail_sumo.evaluation.protocol import EvaluationError
+
+    (tmp_path / "city.json").symlink_to("/dev/zero")
+    with pytest.raises(EvaluationError, match=r"city.json: is a character device"):
+        read_rows(tmp_path)

@@ -118,7 +118,12 @@ def test_pretrained_cli_errors_are_one_line_naming_the_file(tmp_path, pretrained
     (tmp_path / "deep.json").write_text("[" * 100000)
     (tmp_path / "afile").write_text("x")
     reg, deep = str(tmp_path / "reg"), tmp_path / "deep.json"
+    import os
+
+    os.mkfifo(tmp_path / "fifo.json")  # would block open() forever
     cases = [
+        (["export", str(ckpt), "--name", "a", "--dir", reg, "--figures",
+          str(tmp_path / "fifo.json")], "fifo.json: cannot read the figures file (is a FIFO"),
         (["export", str(ckpt), "--name", "a", "--dir", reg, "--figures", str(deep)],
          f"{deep}: figures file is nested too deep"),
         (["export", str(ckpt), "--name", "a", "--dir", reg, "--figures", str(tmp_path)],

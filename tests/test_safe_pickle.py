@@ -398,3 +398,19 @@ def test_map_features_sharing_one_polyline_cannot_blow_up(tmp_path):
     text, peak = _load_peak(path)
     assert "].polyline: the scene would take more than 67108864 bytes" in text, text
     assert peak < 128 * MiB
+
+
+def test_a_pickle_larger_than_any_scene_is_refused_by_its_size(tmp_path):
+    """A 3 GiB (sparse) file is refused from its size, before a byte is read."""
+    import time
+
+    from converters.scenarionet import load_scenarionet
+    from magail_sumo.errors import SceneFormatError
+
+    big = tmp_path / "big.pkl"
+    with open(big, "wb") as fh:
+        fh.truncate(3 << 30)
+    t0 = time.monotonic()
+    with pytest.raises(SceneFormatError, match=r"big.pkl: record 0: 3.0 GiB, more than the 1 GiB"):
+        load_scenarionet(big)
+    assert time.monotonic() - t0 < 2

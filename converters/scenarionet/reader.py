@@ -9,6 +9,7 @@ for a wrong shape or type. This module builds the scene from those values.
 from __future__ import annotations
 
 import dataclasses
+import os
 from os import PathLike
 from pathlib import Path
 from typing import Any, Iterator
@@ -40,6 +41,8 @@ MAPPING_FILE = "dataset_mapping.pkl"
 
 _OBJECT_TYPES = {**schema.inverse(schema.OBJECT_TYPES),
                  **{name: ObjectType.OTHER for name in schema.OTHER_OBJECT_TYPES}}
+#: the largest scene pickle read (real ones are tens of MB; read whole into memory)
+MAX_PICKLE_BYTES = 1 << 30
 _FEATURE_ALIASES = schema.FEATURE_TYPE_ALIASES
 _KMH_PER_MPH = 1.609344
 _LANE_TYPES = schema.inverse(schema.LANE_TYPES)
@@ -490,7 +493,13 @@ def load_scenarionet(path: str | PathLike, keep_synthetic: bool = False) -> Scen
     """
     p = Path(path)
     with open_regular(p) as fh:  # SceneFormatError for a FIFO, device, loop...; OSError
-        data = fh.read()
+        size = os.fstat(fh.fileno()).st_size
+        if size > MAX_PICKLE_BYTES:
+            raise SceneFormatError(p, 0, f"{size / 2**30:.1f} GiB, more than the "
+                                         f"{MAX_PICKLE_BYTES >> 30} GiB a scene pickle may be")
+        data = fh.read(size + 1)  # not the cap: read(n) allocates n bytes up front
+    if len(data) > MAX_PICKLE_BYTES:
+        raise SceneFormatError(p, 0, "grew past the size a scene pickle may be while read")
     try:
         sd = safe_loads(data)
     except UnsafePickleError as exc:

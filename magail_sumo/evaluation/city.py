@@ -42,6 +42,7 @@ city-only folder).
 from __future__ import annotations
 
 import json
+import os
 import math
 import shutil
 from dataclasses import asdict, dataclass, field, fields
@@ -420,9 +421,9 @@ def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
     """The rows of ``folder/city.json`` ([] when there is none) and its path; null figures
     read as NaN. :class:`EvaluationError` naming the file and field for a bad file."""
     path = Path(folder) / CITY_FILE
-    if not path.is_file():
+    if not os.path.lexists(path):
         return [], path
-    try:
+    try:  # a FIFO, a device or a dangling link: one line, not silence
         data = read_json(path, expected="a city.json")
     except InputFileError as exc:
         raise EvaluationError(f"unreadable: {one_line(exc, 300)}") from None

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from converters.sumo.bundle import BundleLayout
-from magail_sumo.inputs import InputFileError, read_json
+from magail_sumo.inputs import InputFileError, read_json, regular_file
 from magail_sumo.config import environment_versions
 from magail_sumo.evaluation.protocol import DT, EvaluationError
 from magail_sumo.evaluation.submission import ScenarioRollouts
@@ -125,7 +125,10 @@ def read_rollouts(path: str | Path, scene: Scene) -> ScenarioRollouts:
 
     path = Path(path)
     try:
+        regular_file(path, "a rollouts Parquet file")  # a FIFO would block the reader
         df = pd.read_parquet(path)
+    except InputFileError as exc:
+        raise EvaluationError(str(exc)) from None
     except Exception as exc:
         raise EvaluationError(f"{path}: unreadable Parquet ({type(exc).__name__})") from None
     missing = [c for c in COLUMNS if c not in df.columns]

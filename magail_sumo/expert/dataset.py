@@ -10,7 +10,7 @@ import numpy as np
 
 from magail_sumo.config import to_dict
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.inputs import InputFileError, read_json
+from magail_sumo.inputs import InputFileError, read_json, regular_file
 from magail_sumo.sensors.observation import ObservationConfig, observation_names as names_of
 
 from .record import EXPERT_FORMAT, READABLE_FORMATS, observation_hash
@@ -144,7 +144,10 @@ class ExpertDataset:
         for sc in meta.get("scenes", []):
             path = d / sc["parquet"]
             try:
+                regular_file(path, "an expert Parquet file")  # a FIFO would block the reader
                 parts.append(pq.read_table(path))
+            except InputFileError as exc:
+                raise ExpertDataError(str(exc)) from None
             except (OSError, ValueError) as exc:
                 raise ExpertDataError(f"{path}: unreadable expert file ({exc})") from None
         rows = sum(p.num_rows for p in parts)

@@ -30,6 +30,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+from magail_sumo.inputs import InputFileError, open_regular
 from magail_sumo.agents.base import check_noise_scale
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import atomic_paths, inside, is_safe_name, printable
@@ -87,9 +88,11 @@ def _read_json(path: Path, what: str) -> Any:
     """The JSON value of ``path`` (at most :data:`MAX_CARD_BYTES`); :class:`PretrainedError`
     naming ``path`` and the problem when it cannot be read, is larger, is not UTF-8 JSON or is
     nested too deep to parse."""
-    try:
-        with open(path, "rb") as fh:
+    try:  # a regular file only: a FIFO would block, a device stream
+        with open_regular(path, expected=f"a {what}") as fh:
             raw = fh.read(MAX_CARD_BYTES + 1)
+    except InputFileError as exc:
+        raise PretrainedError(f"{path}: cannot read the {what} ({exc.problem})") from None
     except OSError as exc:
         raise PretrainedError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
     if len(raw) > MAX_CARD_BYTES:

@@ -38,6 +38,7 @@ from magail_sumo.evaluation.submission import (
 )
 from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
 from magail_sumo.evaluation.traffic.distributions import BINS
+from magail_sumo.inputs import regular_file
 from magail_sumo.outputs import OutputError, printable
 from magail_sumo.scene import ObjectType, Scene
 from magail_sumo.workers import Progress, no_progress, run_jobs
@@ -93,6 +94,7 @@ def read_valid(path: Path, scene: Scene, ro: ScenarioRollouts) -> np.ndarray | N
     import pandas as pd
 
     try:
+        regular_file(path)  # a FIFO would block the reader
         df = pd.read_parquet(path, columns=["rollout", "object_id", "step", "valid"])
         fut = df[df["step"] > scene.current_time_index]
         if bool(fut["valid"].all()):
