@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import PartialPolicy, WOMD_DIR
+from conftest import ROOT, PartialPolicy, WOMD_DIR
 from converters import load_scene
 from magail_sumo import agents, policies
 from magail_sumo.cli.main import main
@@ -322,3 +322,23 @@ def test_export_submission_into_a_folder_is_refused_before_the_rollouts(tmp_path
         assert err == [f"error: magail-sumo evaluate: {given}: {problem}"], err
         assert not out.exists()
     assert sorted(os.listdir(tmp_path)) == ["file", "subs"] and os.listdir(folder) == []
+
+
+@pytest.mark.sumo
+def test_an_unusable_bundle_in_networks_is_named_not_passed_over(tmp_path, capsys):
+    """--networks holding the scene's bundle with a FIFO for a file (or a deep report): one line
+    names it and why; the scene is converted anew and evaluated."""
+    import os
+    import shutil
+
+    sid = "637f20cafde22ff8"  # the shipped bundle
+    nets = tmp_path / "nets"
+    shutil.copytree(ROOT / "networks" / sid, nets / sid)
+    (nets / sid / "conversion.json").unlink()
+    os.mkfifo(nets / sid / "conversion.json")
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+                 "--scenes", str(WOMD_DIR / f"{sid}.tfrecord"), "--networks", str(nets),
+                 "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "conversion.json: bundle file is a FIFO (named pipe), expected a regular file: " \
+           "bundle not used" in err

@@ -26,6 +26,7 @@ bundle (of a successful or a failed conversion) or absent.
 from __future__ import annotations
 
 import json
+import stat
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.inputs import InputFileError, read_json
+from magail_sumo.inputs import InputFileError, path_problem, read_json
 from magail_sumo.outputs import (MARKER, OutputError, claim_output_dir, inside, printable,
                                  read_marker, safe_name, write_text)
 from magail_sumo.scene import Scene
@@ -135,9 +136,12 @@ def check_bundle(folder: str | Path, scenario_id: str) -> dict[str, Any]:
     :class:`BundleError` (one line naming the file) when it is not complete."""
     files = BundleLayout.of(folder, scenario_id)
     for path in files.required():
-        if not path.is_file():
+        problem, st = path_problem(path)
+        if problem == "no such file":
             raise BundleError(f"{path}: bundle file not found (convert the scene with "
                               "converters.sumo.scenario.convert_scene)")
+        if problem or stat.S_ISDIR(st.st_mode):  # type: ignore[union-attr]
+            raise BundleError(f"{path}: bundle file {problem or 'is a directory'}")
     report = read_report(files.folder)
     if report.get("scenario_id", scenario_id) != scenario_id:
         raise BundleError(f"{files.report}: bundle of scenario "

@@ -4,13 +4,15 @@ parsed scene, not its file to parse again)."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from converters.scene_files import iter_scene_records
+from converters.sumo.bundle import BundleError, bundle_folder, check_bundle, complete_bundle
 from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, N_STEPS, Problems
+from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, N_STEPS, Problems, log
 from magail_sumo.outputs import NameRegistry, OutputError, inside, one_line, printable
 from magail_sumo.scene import Scene
 
@@ -72,7 +74,17 @@ def bundle(scene: Scene, networks: Path | None, out: Path,
     """A converted bundle of ``scene``: reused from ``networks`` when complete, else converted
     into ``out/networks`` (:func:`converters.sumo.scenario.ensure_bundle`), refused
     (:class:`~magail_sumo.outputs.OutputError`) when that leads out of ``out`` (a symbolic
-    link)."""
+    link). A bundle of the scene in ``networks`` that cannot be used (incomplete, a FIFO or
+    device for a file, an unreadable report) is named in a log line with the reason, not
+    passed over in silence."""
+    if networks and complete_bundle(networks, scene.scenario_id) is None:
+        try:
+            folder = bundle_folder(networks, scene.scenario_id)
+            if os.path.lexists(folder):
+                check_bundle(folder, scene.scenario_id)
+        except (BundleError, OutputError, OSError) as exc:
+            log(f"{one_line(exc, 300)}: bundle not used; the scene is converted into "
+                f"{Path(out) / 'networks'}")
     return ensure_bundle(scene, inside(out, "networks"), time_budget_s=timeout_s,
                          search=[networks] if networks else [], claim=True)
 
