@@ -336,7 +336,7 @@ def test_an_unusable_bundle_in_networks_is_named_not_passed_over(tmp_path, capsy
     shutil.copytree(ROOT / "networks" / sid, nets / sid)
     (nets / sid / "conversion.json").unlink()
     os.mkfifo(nets / sid / "conversion.json")
-    assert main(["evaluate", "--policy", "constvel", "--baselines", "none", "--rollouts", "1",
+    assert main(["evaluate", "--policy", "constvel", "--baselines", "sumo", "--rollouts", "1",
                  "--scenes", str(WOMD_DIR / f"{sid}.tfrecord"), "--networks", str(nets),
                  "--out", str(tmp_path / "out")]) == 0
     err = capsys.readouterr().err
