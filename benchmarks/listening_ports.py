@@ -29,9 +29,11 @@ def listeners() -> set[str]:
 def is_loopback(addr: str) -> bool:
     host = addr.rsplit(":", 1)[0].strip("[]").split("%")[0]
     try:
-        return ipaddress.ip_address(host).is_loopback
+        ip = ipaddress.ip_address(host)
     except ValueError:  # '*' (every address) and names
         return False
+    mapped = getattr(ip, "ipv4_mapped", None)  # [::ffff:127.0.0.1]: IPv4 loopback over IPv6
+    return ip.is_loopback or (mapped is not None and mapped.is_loopback)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.inputs import InputFileError, open_regular
 
 #: longest name :func:`safe_name` returns (well inside every file system's 255-byte limit,
 #: leaving room for suffixes such as ``.net.xml``)
@@ -338,9 +339,11 @@ def read_marker(folder: str | PathLike) -> dict | None:
     def invalid(why: str) -> OutputError:
         return OutputError(f"{printable(str(path))}: not a valid magail_sumo marker ({why})")
 
-    try:
-        with open(path, "rb") as fh:
+    try:  # a regular file only: a FIFO would block, a device stream
+        with open_regular(path, expected="a marker file") as fh:
             raw = fh.read(MAX_MARKER_BYTES + 1)
+    except InputFileError as exc:
+        raise invalid(exc.problem) from None
     except OSError as exc:
         raise invalid(f"cannot read it: {exc.strerror or type(exc).__name__}") from None
     if len(raw) > MAX_MARKER_BYTES:

@@ -610,6 +610,22 @@ def test_invalid_marker_is_one_line_naming_it_and_nothing_is_removed(tmp_path, c
     assert tree_digest(d) == before
 
 
+def test_a_marker_that_is_a_fifo_is_refused_at_once(tmp_path):
+    """``convert --out DIR`` whose marker is a FIFO hung on open(); now one line."""
+    import time
+
+    from magail_sumo.outputs import claim_output_dir
+
+    d = tmp_path / "nets"
+    d.mkdir()
+    os.mkfifo(d / MARKER)
+    t0 = time.monotonic()
+    for call in (read_marker, lambda f: claim_output_dir(f, "convert")):
+        with pytest.raises(OutputError, match=r"not a valid magail_sumo marker \(is a FIFO"):
+            call(d)
+    assert time.monotonic() - t0 < 5
+
+
 # ------------------------------------------------------------------- atomic writes' errors
 def test_failed_atomic_write_names_the_target_not_a_temporary_file(tmp_path):
     from magail_sumo.outputs import atomic_path, write_bytes
