@@ -23,10 +23,13 @@ The job function and its argument must be picklable (a module-level function).
 from __future__ import annotations
 
 import multiprocessing as mp
+import pickle
+import threading
 import time
 import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import wait
+from multiprocessing.reduction import ForkingPickler
 from typing import Any, Callable, Iterable, Iterator
 
 from magail_sumo.errors import MagailSumoError
@@ -72,9 +75,12 @@ def _one_line(text: str, limit: int = 400) -> str:
     return one_line(text, limit)
 
 
-def _child(conn, fn: Callable[[Any], Any], arg: Any) -> None:
-    """Worker entry point: run ``fn(arg)`` and send ``("ok", value)`` or a failure."""
+def _child(conn, fn: Callable[[Any], Any], jobs) -> None:
+    """Worker entry point: receive the job on ``jobs``, run ``fn(job)`` and send ``("ok",
+    value)`` or a failure on ``conn``."""
     try:
+        arg = pickle.loads(jobs.recv_bytes())
+        jobs.close()
         value = fn(arg)
         msg: tuple = ("ok", value)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent
@@ -88,6 +94,17 @@ def _child(conn, fn: Callable[[Any], Any], arg: Any) -> None:
         conn.send(("error", _one_line(f"result not transferable: {type(exc).__name__}: {exc}"),
                    False, traceback.format_exc()))
     conn.close()
+
+
+def _send_job(conn, data: bytes) -> None:
+    """Send a pickled job to a worker (:func:`run_jobs`); a worker that is gone or killed
+    meanwhile ends the send."""
+    try:
+        conn.send_bytes(data)
+    except (OSError, EOFError, ValueError):
+        pass  # the worker died or was killed: its result says so
+    finally:
+        conn.close()
 
 
 def _kill(proc) -> None:
@@ -125,10 +142,19 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
                     exhausted = True
                     break
                 parent, child = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child, args=(child, fn, job), daemon=True,
+                job_in, job_out = ctx.Pipe(duplex=False)
+                # the job (a prepared scene: ~1 MB) goes over its own pipe after the start, from
+                # a thread: a worker stopped before it reads blocks that thread, not this loop,
+                # and is killed at its timeout like any other (which ends the thread's send)
+                proc = ctx.Process(target=_child, args=(child, fn, job_in), daemon=True,
                                    name=f"job-{k}")
                 proc.start()
                 child.close()
+                job_in.close()
+                # pickled here: a job that cannot be pickled fails in this process, as before
+                data = bytes(ForkingPickler.dumps(job))
+                threading.Thread(target=_send_job, args=(job_out, data), daemon=True,
+                                 name=f"job-{k}-send").start()
                 running[k] = (proc, parent, job, time.monotonic())
             if not running:
                 break

@@ -355,3 +355,15 @@ def test_a_bundles_route_file_is_checked_too(tmp_path):
                       "</vType>" + text[i:])
     with pytest.raises(BundleError, match=r"rou.xml: vType 'x' param 'device.ssm.file'"):
         BundleLayout.of(bundle, SID).sumo_inputs()
+
+
+def test_a_gzip_bomb_route_file_is_refused_at_the_cap(tmp_path, monkeypatch):
+    import gzip
+
+    from magail_sumo.sim import sumo_config
+
+    monkeypatch.setattr(sumo_config, "STREAM_LIMIT", 1 << 20)
+    bomb = tmp_path / "bomb.rou.xml.gz"
+    bomb.write_bytes(gzip.compress(b"<routes>" + b" " * (4 << 20) + b"</routes>"))
+    with pytest.raises(SumoConfigError, match=r"bomb.rou.xml.gz: unpacks to more than"):
+        sumo_config._scan(bomb, lambda *a: None)

@@ -41,3 +41,54 @@ def test_pool_reports_dead_and_stuck_workers_and_finishes_the_others():
     assert res[3].reason == "timed out after 15 s (worker killed)"
     assert res[5].reason == "ValueError: bad job second line 7" and not res[5].expected
     assert all("\n" not in r.reason for r in res)
+
+
+def _children() -> set[int]:
+    out = set()
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                if int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[1]) == \
+                        os.getpid():
+                    out.add(int(pid))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+def _nap(x):
+    time.sleep(30)
+
+
+def test_a_worker_stopped_while_it_starts_is_killed_at_its_timeout():
+    """A worker stopped (SIGSTOP) before it read its job (a prepared scene is ~1 MB, more than
+    a pipe holds) used to block the parent inside Process.start(), past every timeout; the job
+    now goes over its own pipe from a thread, and the stopped worker is killed at its
+    timeout."""
+    import signal
+    import threading
+
+    import numpy as np
+
+    from magail_sumo.workers import run_jobs
+
+    before = _children()
+    stop = threading.Event()
+
+    def stopper():
+        while not stop.is_set():
+            for pid in _children() - before:
+                try:
+                    os.kill(pid, signal.SIGSTOP)
+                except OSError:
+                    pass
+            time.sleep(0.02)
+
+    threading.Thread(target=stopper, daemon=True).start()
+    t0 = time.monotonic()
+    big = np.zeros(2_000_000)  # 16 MB
+    try:
+        kinds = [r.kind for r in run_jobs(_nap, [big, big], workers=2, timeout_s=6)]
+    finally:
+        stop.set()
+    assert kinds == ["timeout", "timeout"] and time.monotonic() - t0 < 30

@@ -347,6 +347,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if isinstance(exc, TimeBudgetExceeded):
             msg = f"time budget of {budget:g} s exceeded (ConvertOptions.time_budget_s / --timeout-s)"
+        elif isinstance(exc, OSError):  # a full disk: the file being written, in one line
+            where = exc.filename if exc.filename is not None else out
+            msg = f"{where}: cannot write ({exc.strerror or type(exc).__name__})"
         rep.reason = f"{printable(sid)}: {stage}: {printable(msg, 1000)}"
         if isinstance(exc, OSError):  # writing failed (a full disk): nothing is moved into place
             io_error = exc

@@ -15,7 +15,8 @@ from converters.sumo.bundle import BundleLayout, bundle_folder
 from magail_sumo.cli.argtypes import bounded
 from magail_sumo.cli.progress import progress
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.outputs import OutputError, atomic_path, check_writable_file, printable
+from magail_sumo.outputs import (OutputError, atomic_path, check_writable_file, os_error,
+                                 printable)
 
 POLICIES = ("log", "random")
 MAX_FPS = 100  #: GIF frame durations are whole 10 ms
@@ -197,8 +198,11 @@ def run(args: argparse.Namespace) -> int:
         finally:
             env.close()
         if args.fcd is not None:
-            fcd = _write_fcd(env, args.fcd, bundle, temporary=args.bundle is None
-                             and bundle != shipped)
+            try:  # a full disk: one line naming the file
+                fcd = _write_fcd(env, args.fcd, bundle, temporary=args.bundle is None
+                                 and bundle != shipped)
+            except OSError as exc:
+                raise os_error(exc, args.fcd) from None
     if args.fcd is not None:
         print(f"{printable(scene.scenario_id)}: {fcd.records} FCD records -> {fcd.fcd}; "
               f"replay: sumo-gui -c {fcd.sumocfg}", file=sys.stderr)
@@ -249,7 +253,10 @@ def _replay_city(args: argparse.Namespace, cfg: Path) -> int:
                 until_empty=False, live_only=True)
     finally:
         env.close()
-    files = env.write_fcd(fcd)
+    try:  # a full disk: one line naming the file
+        files = env.write_fcd(fcd)
+    except OSError as exc:
+        raise os_error(exc, fcd) from None
     print(f"{printable(env.scenario_id)}: {args.policy} drove {args.steps} steps; "
           f"{files.records} FCD records -> {files.fcd}; replay: sumo-gui -c {files.sumocfg}",
           file=sys.stderr)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import warnings
 from pathlib import Path
 from typing import Callable, Union
 
@@ -70,7 +71,9 @@ def checkpoint_algorithm(path: str | Path) -> str | None:
     cannot be read as one or records none (read with ``torch.load(weights_only=True)``)."""
     try:
         regular_file(path, "a checkpoint")  # not a FIFO (torch.load would block) or device
-        state = torch.load(Path(path), map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # the checkpoint loader reports what is wrong
+            warnings.simplefilter("ignore")
+            state = torch.load(Path(path), map_location="cpu", weights_only=True)
         algorithm = state["config"].get("algorithm")
     except Exception:  # noqa: BLE001 - the default loader names what is wrong with the file
         return None

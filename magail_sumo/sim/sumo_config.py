@@ -85,6 +85,24 @@ CONFIG_LIMIT = 16 * MiB
 ADDITIONAL_LIMIT = 1 * GiB
 #: include depth of additional files
 MAX_INCLUDE_DEPTH = 8
+#: the most a streamed SUMO input (routes, a saved state, a network) may unpack to: a city's
+#: demand is hundreds of MB; a gzip bomb is refused at this point, not read to the end
+STREAM_LIMIT = 4 * GiB
+
+
+class _Capped:
+    """A binary stream that refuses to yield more than ``limit`` bytes."""
+
+    def __init__(self, fh, limit: int, path: Path) -> None:
+        self.fh, self.left, self.path, self.limit = fh, limit, path, limit
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.fh.read(n if n is not None and n >= 0 else self.left + 1)
+        self.left -= len(data)
+        if self.left < 0:
+            raise SumoConfigError(f"{self.path}: unpacks to more than "
+                                  f"{self.limit >> 30} GiB")
+        return data
 #: the shipped option table (module doc)
 OPTIONS_FILE = Path(__file__).with_name("sumo_options.json")
 
@@ -456,7 +474,8 @@ def _scan(path: Path, on_end, depth: int = 0, seen: tuple[Path, ...] = ()) -> No
             _no_doctype(fh.read(65536), path)
             fh.seek(0)
             stack: list[ET.Element] = []
-            for event, el in ET.iterparse(fh, events=("start", "end")):
+            for event, el in ET.iterparse(_Capped(fh, STREAM_LIMIT, path),
+                                          events=("start", "end")):
                 if event == "start":
                     stack.append(el)
                     continue

@@ -17,6 +17,7 @@ RNG states) is stored as tensors / lists (:func:`encode_state`, format
 from __future__ import annotations
 
 import re
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -62,7 +63,9 @@ def load_checkpoint(path: str | Path) -> dict:
     if not p.is_file():
         raise CheckpointError(f"{p}: checkpoint not found")
     try:
-        state = torch.load(p, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns about legacy (non-zip) files: our line says it
+            warnings.simplefilter("ignore")
+            state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt or unsafe
         if any(pickle_mentions(p, f.encode()) for f in OLD_CHECKPOINT_FORMATS):
             raise CheckpointError(
@@ -74,8 +77,11 @@ def load_checkpoint(path: str | Path) -> dict:
             raise CheckpointError(f"{p}: refused: the file holds {printable(found[1] or found[2], 80)}"
                                   ", not only tensors and plain data (not a magail_sumo "
                                   "checkpoint, or a crafted one)") from None
+        # torch's own text advises weights_only=False, i.e. running the file's code: not here
+        why = one_line(str(exc).split("Weights only load failed")[0].split(
+            "(1) In PyTorch")[0], 200) or "the safe loader (weights_only) cannot read it"
         raise CheckpointError(f"{p}: corrupt or unreadable checkpoint ({type(exc).__name__}: "
-                              f"{one_line(exc, 200)})") from None
+                              f"{why}); refused, nothing in it was run") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{p}: not a magail_sumo checkpoint"
                               + (" (format " + printable(str(state.get("format")), 60) + ")"
