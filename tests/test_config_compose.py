@@ -429,3 +429,14 @@ def test_run_record_holds_the_resolved_config(tmp_path):
                            .read_text()))
     assert flat(recorded) == {**want, **ADDED_SINCE, "updates": 3}
     assert load_config(run / "config.yaml", TrainConfig) == cfg  # a plain config: loads as is
+
+
+def test_extends_naming_a_fifo_says_so(tmp_path):
+    """A FIFO named by ``extends:`` is refused as one (it was called missing), at once."""
+    import os
+
+    os.mkfifo(tmp_path / "base.yaml")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("extends: base.yaml\n")
+    with pytest.raises(ConfigError, match=r"c.yaml: extends: 'base.yaml': is a FIFO"):
+        load_config(cfg, TrainConfig)

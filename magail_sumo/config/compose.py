@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 import typing
 from os import PathLike
 from pathlib import Path
@@ -26,6 +27,7 @@ from typing import Any, Iterable
 
 import yaml
 
+from magail_sumo.inputs import path_problem
 
 from .strict import (MAX_MESSAGE, ConfigError, T, _cap, _check_keys, _dataclass_of,
                      _expand_own, _read_mapping, _StrictLoader, _yaml_problem, from_dict, show)
@@ -141,8 +143,10 @@ class _Composer:
         origin: dict[str, str] = {}
         for base in bases:
             bp = p.parent / base
-            if not bp.is_file():
-                raise ConfigError(_cap(f"{shown}: extends: {show(base)}: no such file "
+            problem, st = path_problem(bp)
+            if problem or stat.S_ISDIR(st.st_mode):  # a FIFO is named as one, not "missing"
+                raise ConfigError(_cap(f"{shown}: extends: {show(base)}: "
+                                       f"{problem or 'is a directory'} "
                                        f"({os.path.normpath(bp)})"))
             sub, sub_origin = self.resolve(bp, chain + (real,))
             merged = merge(merged, sub)
