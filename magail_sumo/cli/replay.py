@@ -219,9 +219,9 @@ def run(args: argparse.Namespace) -> int:
 def _city(path: Path) -> Path | None:
     """The SUMO configuration ``path`` names (a configuration or its folder), or None."""
     # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
-    from magail_sumo.sim.sumo_config import find_config, is_sumo_config
+    from magail_sumo.sim.sumo_config import config_of
 
-    return find_config(path) if path.is_dir() else (path if is_sumo_config(path) else None)
+    return config_of(path)
 
 
 def _replay_city(args: argparse.Namespace, cfg: Path) -> int:

@@ -48,8 +48,7 @@ import shutil
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from magail_sumo.sim.sumo_config import (SumoConfigError, find_config, is_sumo_config,
-                                         scenario_name)
+from magail_sumo.sim.sumo_config import SumoConfigError, config_of, scenario_name
 from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.agents import env_settings, rollout
 from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig, SumoCityEnv, scenario_inputs
@@ -186,7 +185,7 @@ def city_config(path: str | Path) -> Path:
     folder holds; :class:`EvaluationError` (one line) otherwise."""
     path = Path(path)
     try:
-        found = find_config(path) if path.is_dir() else (path if is_sumo_config(path) else None)
+        found = config_of(path)
     except SumoConfigError as exc:
         raise EvaluationError(str(exc)) from None
     if found is None:

@@ -155,6 +155,13 @@ def scenario_name(config: str | PathLike) -> str:
     return name
 
 
+def config_of(path: str | PathLike) -> Path | None:
+    """The SUMO configuration ``path`` names: the file itself when :func:`is_sumo_config`, or
+    the one a scenario folder holds (:func:`find_config`); None otherwise."""
+    p = Path(path)
+    return find_config(p) if p.is_dir() else (p if is_sumo_config(p) else None)
+
+
 def find_config(folder: str | PathLike) -> Path | None:
     """The SUMO configuration a scenario folder holds: the one file directly in it that
     :func:`is_sumo_config` names by its name (else by its content); None when it holds none;
