@@ -4,10 +4,15 @@ The city counterpart of :class:`~magail_sumo.env.driving_env.SumoDrivingEnv`: ev
 the SUMO demand that departs (or is present when the episode starts) becomes an agent with
 probability ``control_fraction`` (seeded); the rest stay SUMO-driven background traffic that
 reacts to the agents. Agents move by the kinematic bicycle model from normalised actions
-``[accel, steer]`` in [-1, 1]² and are placed in SUMO with ``moveToXY``; they see the same
-sensors as in recorded scenes, with the map taken from the SUMO network
-(:func:`~magail_sumo.sim.sumo_map.network_map`) and the current-lane light from SUMO's signal
-state. Their destination is the end of their SUMO route.
+in [-1, 1]² (``[accel, steer]``, or route-relative ``[accel, offset]`` in the ``accel_offset``
+layout: steered along their route's lanes, :mod:`magail_sumo.sim.tracking`) and are placed in
+SUMO with ``moveToXY``; they see the same sensors as in recorded scenes, with the map taken
+from the SUMO network (:func:`~magail_sumo.sim.sumo_map.network_map`) and the current-lane
+light from SUMO's signal state. Each agent's route, from where it joined, is its reference
+path (:func:`~magail_sumo.sim.lane_graph.LaneGraph.route_path`: the lane centrelines of its
+SUMO route through the junctions' internal lanes); the route look-ahead and route command
+features read it (``observation.route_points``, ``observation.command``). Their destination
+is the end of that path.
 
 An episode may start from a warmed-up network: ``warmup_s`` seconds are first simulated by
 SUMO alone (1 s steps), the state is saved once and every reset loads it, so agents start in
@@ -41,12 +46,15 @@ import numpy as np
 from gymnasium import spaces
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sensors.command import command_index, one_hot
 from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
+from magail_sumo.sim.lane_graph import LaneGraph
+from magail_sumo.sim.paths import Paths
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import (SumoConfigError, SumoInputs, check_demand, read_config,
                                          scenario_name)
@@ -83,7 +91,8 @@ class CityEnvConfig:
     :param off_road_margin: event rule (m).
     :param destination_radius: event rule (m).
     :param sumo_seed: added to the reset seed to seed SUMO.
-    :param action_layout: ``"accel_steer"`` or the seed's ``"steer_throttle"``.
+    :param action_layout: ``"accel_steer"``, the seed's ``"steer_throttle"`` or route-relative
+        ``"accel_offset"`` (:mod:`magail_sumo.sim.tracking`).
     :param max_agents: at most this many agents alive at once (None: no cap; a fixed number of
         slots for training); a vehicle chosen to be an agent while the cap is reached is
         SUMO-driven until a place frees, then joins mid-trip (first come, first served), so
@@ -245,6 +254,11 @@ class SumoCityEnv(FleetEnv):
         #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
+        #: the agents' reference paths (their SUMO routes' lanes from where they joined)
+        self.paths = Paths.empty(n_max)
+        self._graph = LaneGraph(self._session.api)
+        #: agents whose route's next edge could not be reached from their lanes (path cut)
+        self.cut_paths = 0
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()
@@ -323,11 +337,14 @@ class SumoCityEnv(FleetEnv):
             k = f.add(vid, v.x[i], v.y[i], v.yaw[i], v.speed[i], v.length[i], v.width[i])
             if f.capacity > self._lc.shape[0]:
                 self._lc, self._ld = resized(self._lc, f.capacity), resized(self._ld, f.capacity)
-            last_edge = api.vehicle.getRoute(vid)[-1]
-            shape = np.asarray(api.lane.getShape(f"{last_edge}_0"), np.float64)
-            f.dest[k] = shape[-1]
-            d = shape[-1] - shape[-2]
-            f.dest_yaw[k] = np.arctan2(d[1], d[0])
+            path = self._graph.route_path(vid)
+            self.cut_paths += not path.complete
+            f.path[k] = self.paths.add(path.points)
+            f.hint[k] = self.paths.project(f.path[k:k + 1], f.x[k:k + 1], f.y[k:k + 1])[0][0]
+            end = self.paths.length(f.path[k:k + 1])
+            px, py, heading = self.paths.at(f.path[k:k + 1], end)
+            f.dest[k] = px[0], py[0]
+            f.dest_yaw[k] = heading[0]
             f.join(k)
             f.in_sumo[k] = True
             new.append(k)
@@ -376,8 +393,18 @@ class SumoCityEnv(FleetEnv):
         world = self._world(agents)
         light, dist = self._next_lights(agents)
         self._lc[agents], self._ld[agents] = light, dist
+        ob = self.config.observation
+        cmd = route = None
+        if ob.command or ob.route_points:
+            paths = f.path[agents]
+            _, s = self.paths.project(paths, f.x[agents], f.y[agents], f.hint[agents])
+            if ob.command:
+                cmd = one_hot(command_index(self.paths.turn(paths, s, ob.command_lookahead)))
+            if ob.route_points:
+                route = self.paths.ahead(paths, s, f.x[agents], f.y[agents], f.yaw[agents],
+                                         ob.route_points)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
-                       f.dest[agents], f.dest_yaw[agents])
+                       f.dest[agents], f.dest_yaw[agents], cmd, route)
         obs = self.suite.observe(world[0], ego, 0, lanes,
                                  light=np.where(dist < 50.0, light, 0))
         self.sensor_time += time.perf_counter() - clock

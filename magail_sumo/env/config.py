@@ -63,8 +63,10 @@ class EnvConfig:
         ``start_window: random``, where it is the window length, e.g. WOSAC's 80).
     :param render_size: (height, width) of :meth:`render` frames in pixels.
     :param sumo_seed: added to the reset seed to seed SUMO.
-    :param action_layout: order of the normalised action: ``"accel_steer"`` or the seed's
-        ``"steer_throttle"``.
+    :param action_layout: the normalised action: ``"accel_steer"``, the seed's
+        ``"steer_throttle"``, or route-relative ``"accel_offset"`` (acceleration and lateral
+        offset from the agent's recorded route, steered by pure pursuit:
+        :mod:`magail_sumo.sim.tracking`).
     :param fcd_dir: folder for SUMO FCD recordings of episodes (with a ``.sumocfg`` replaying
         each in ``sumo-gui``; :mod:`magail_sumo.sim.fcd`); None: none.
     :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
@@ -156,7 +158,8 @@ class EnvConfig:
         check(len(self.render_size) == 2 and min(self.render_size) >= 1, "render_size",
               f"must be (height, width) >= 1, got {show(self.render_size)}")
         lim = self.limits
-        for name in ("max_accel", "max_brake", "max_steer", "max_speed", "max_reverse_speed"):
+        for name in ("max_accel", "max_brake", "max_steer", "max_speed", "max_reverse_speed",
+                     "max_offset"):
             v = getattr(lim, name)
             ok = math.isfinite(v) and (v >= 0 if name == "max_reverse_speed" else v > 0)
             check(ok, f"limits.{name}", f"must be {'>= 0' if name == 'max_reverse_speed' else '> 0'}"

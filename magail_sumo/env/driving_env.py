@@ -52,6 +52,7 @@ from magail_sumo.sensors.command import RouteCommands
 from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import SHAPES, FcdRecorder, ReplayFiles, write_replay
+from magail_sumo.sim.paths import Paths
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
 from .actions import ACTION_COUNTS
@@ -269,6 +270,9 @@ class SumoDrivingEnv(FleetEnv):
         #: the controlled vehicles' state (row k: ``self._ctrl[k]``, :class:`Fleet`)
         self.fleet = Fleet.roster(self._ctrl_names, self._length[ctrl], self._width[ctrl],
                                   self._dest[ctrl], self._dest_yaw[ctrl])
+        if cfg.action_layout == "accel_offset":  # route-relative control: recorded routes
+            self.paths = self._recorded_paths(ctrl)
+            self.fleet.path[:ctrl.size] = np.arange(ctrl.size)
         #: this episode's fixed-up actions (:data:`~magail_sumo.env.actions.ACTION_COUNTS`)
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
@@ -299,6 +303,14 @@ class SumoDrivingEnv(FleetEnv):
             self._session = None
 
     # ------------------------------------------------------------------ internals
+    def _recorded_paths(self, rows: np.ndarray) -> Paths:
+        """Reference paths of track ``rows`` (route-relative control): each one's recorded
+        route, its valid positions from first to last (the route the recorded route
+        look-ahead reads, :mod:`magail_sumo.sensors.command`)."""
+        tr = self.scene.tracks
+        return Paths.of([np.stack([tr.x[r, tr.valid[r]], tr.y[r, tr.valid[r]]], axis=1)
+                         if tr.valid[r].any() else np.zeros((1, 2)) for r in rows.tolist()])
+
     def _advance(self) -> None:
         """Place SUMO's controlled and log-replayed vehicles at log step t + 1, step SUMO."""
         self._push()
@@ -401,6 +413,8 @@ class SumoDrivingEnv(FleetEnv):
                 if hist.any():
                     f.prev_action[new[hist]] = self._log_prev_actions(t)[r[hist], t]
             f.join(new)
+            if self.paths is not None:
+                f.hint[new] = self.paths.project(f.path[new], f.x[new], f.y[new])[0]
         return new
 
     def _world(self, agents: np.ndarray) -> tuple[Boxes, np.ndarray]:

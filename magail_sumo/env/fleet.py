@@ -12,7 +12,10 @@ episode. Per row:
 * flags ``active`` (a live agent now), ``joined`` (was an agent this episode: a row that
   joined and is no longer active has left for good), ``in_sumo`` (a vehicle of that name is in
   the SUMO simulation, so the env places it there each step);
-* running counts ``nan_actions`` / ``clipped_actions`` of non-finite / out-of-range actions.
+* running counts ``nan_actions`` / ``clipped_actions`` of non-finite / out-of-range actions;
+* ``path``: the row of the vehicle's reference path in the env's
+  :class:`~magail_sumo.sim.paths.Paths` (-1: none) and ``hint``: its progress point's index on
+  it (route-relative control and the route look-ahead, :mod:`magail_sumo.sim.tracking`).
 
 Arrays may have spare rows beyond ``len(fleet)`` (zero, every flag False): a city fleet grows
 by doubling (:meth:`Fleet.add`) instead of reallocating per joiner. Methods are small and work
@@ -25,7 +28,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from magail_sumo.sim import dynamics
+from magail_sumo.sim import dynamics, tracking
+from magail_sumo.sim.paths import Paths
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,8 @@ class Fleet:
     in_sumo: np.ndarray
     nan_actions: np.ndarray
     clipped_actions: np.ndarray
+    path: np.ndarray
+    hint: np.ndarray
     #: name -> row
     index: dict[str, int] = field(default_factory=dict)
 
@@ -71,7 +77,7 @@ class Fleet:
         z = lambda dtype=np.float64: np.zeros(capacity, dtype)  # noqa: E731
         return cls([], z(), z(), z(), z(), z(), z(), np.zeros((capacity, 2)), z(),
                    np.zeros((capacity, dynamics.ACTION_SIZE)), z(bool), z(bool), z(bool),
-                   z(np.int64), z(np.int64))
+                   z(np.int64), z(np.int64), np.full(capacity, -1, np.int64), z(np.int64))
 
     @classmethod
     def roster(cls, names: list[str], length: np.ndarray, width: np.ndarray, dest: np.ndarray,
@@ -102,7 +108,7 @@ class Fleet:
         for f in fields(self):
             old = getattr(self, f.name)
             if isinstance(old, np.ndarray):
-                setattr(self, f.name, resized(old, new))
+                setattr(self, f.name, resized(old, new, -1 if f.name == "path" else 0))
 
     def add(self, name: str, x: float, y: float, yaw: float, speed: float, length: float,
             width: float) -> int:
@@ -155,13 +161,27 @@ class Fleet:
         self.joined[k] = self.active[k] = True
 
     def drive(self, k: np.ndarray, action: np.ndarray, limits: dynamics.BicycleLimits,
-              layout: str, dt: float) -> None:
+              layout: str, dt: float, paths: Paths | None = None) -> None:
         """Move rows ``k`` one step of ``dt`` s by the bicycle model under clean normalised
         (A, 2) ``action`` (in ``layout``, clipped to ``limits``); it becomes their previous
-        action."""
-        accel, steer = dynamics.denormalise(action, limits, layout)
-        self.set_state(k, dynamics.step(self.state(k), accel, steer, self.wheelbase(k), dt,
-                                        limits))
+        action. The ``accel_offset`` layout steers along the rows' reference paths in
+        ``paths`` (:func:`magail_sumo.sim.tracking.follow`); a row without one keeps its
+        heading."""
+        accel, second = dynamics.denormalise(action, limits, layout)
+        state, wheelbase = self.state(k), self.wheelbase(k)
+        if layout == "accel_offset":
+            accel = tracking.no_reverse(accel, state.speed, dt)
+            steer = np.zeros(k.size)
+            on = self.path[k] >= 0
+            if on.any() and paths is not None:
+                sub = dynamics.VehicleState(state.x[on], state.y[on], state.yaw[on],
+                                            state.speed[on])
+                steer[on], self.hint[k[on]] = tracking.follow(
+                    paths, self.path[k[on]], self.hint[k[on]], sub, wheelbase[on], second[on],
+                    limits)
+        else:
+            steer = second
+        self.set_state(k, dynamics.step(state, accel, steer, wheelbase, dt, limits))
         self.prev_action[k] = action
 
     def count_fixes(self, k: np.ndarray, nonfinite: np.ndarray, outside: np.ndarray) -> None:
@@ -174,9 +194,9 @@ class Fleet:
         return AgentStates(self.names_of(k), rows, self.state(k), self.wheelbase(k))
 
 
-def resized(arr: np.ndarray, n: int) -> np.ndarray:
-    """``arr`` with ``n`` rows: its rows first, then zero rows (same dtype; a copy)."""
-    out = np.zeros((n,) + arr.shape[1:], arr.dtype)
+def resized(arr: np.ndarray, n: int, fill=0) -> np.ndarray:
+    """``arr`` with ``n`` rows: its rows first, then rows of ``fill`` (same dtype; a copy)."""
+    out = np.full((n,) + arr.shape[1:], fill, arr.dtype)
     m = min(n, arr.shape[0])
     out[:m] = arr[:m]
     return out

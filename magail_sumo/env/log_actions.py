@@ -49,7 +49,14 @@ def replay_actions(env: SumoDrivingEnv, rows: np.ndarray, state: dynamics.Vehicl
     with the recorded heading as ``yaw_next``)."""
     x, y, yaw = log_targets(env, rows, min(step + 1, env.scene.num_steps - 1))
     accel, steer = dynamics.inverse(state, x, y, wheelbase, env.dt, yaw_next=yaw)
-    return dynamics.normalise(accel, steer, limits, layout).astype(np.float32)
+    return dynamics.normalise(accel, _second(steer, layout), limits, layout).astype(np.float32)
+
+
+def _second(steer: np.ndarray, layout: str) -> np.ndarray:
+    """The expert's second action entry from its steering (rad): the steering itself, or in
+    the route-relative ``accel_offset`` layout its lateral offset from its reference path,
+    0 m: a recorded vehicle's reference path is its own recorded route."""
+    return np.zeros_like(steer) if layout == "accel_offset" else steer
 
 
 def training_actions(actions: np.ndarray, limits: dynamics.BicycleLimits,
@@ -60,7 +67,7 @@ def training_actions(actions: np.ndarray, limits: dynamics.BicycleLimits,
     action a policy would have to output), plus the physical (A,) accel (m/s²) and steer
     (rad)."""
     accel, steer = dynamics.denormalise(np.asarray(actions, np.float64), REPLAY_LIMITS)
-    act = np.clip(dynamics.normalise(accel, steer, limits, layout), -1.0, 1.0)
+    act = np.clip(dynamics.normalise(accel, _second(steer, layout), limits, layout), -1.0, 1.0)
     return act.astype(np.float32), accel, steer
 
 

@@ -11,7 +11,8 @@
    stop behind its leader are lowered (:mod:`~magail_sumo.env.guard`; hook ``_world``: the
    road users at the step's start);
 3. **dynamics** — the live agents move one step by the bicycle model
-   (:meth:`~magail_sumo.env.fleet.Fleet.drive`);
+   (:meth:`~magail_sumo.env.fleet.Fleet.drive`; in the ``accel_offset`` layout steered along
+   their reference paths, :mod:`magail_sumo.sim.tracking`);
 4. **push to SUMO** — the env places its SUMO vehicles for the next step (hook ``_push``);
 5. **SUMO step** — SUMO advances one step (hook ``_sumo_step``: the env's bookkeeping of who
    entered and left SUMO);
@@ -48,6 +49,7 @@ from pettingzoo import ParallelEnv
 
 from magail_sumo.sensors.units.leader import nearest_ahead
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles
+from magail_sumo.sim.paths import Paths
 
 from .actions import checked_actions, count_actions
 from .collision import first_overlap
@@ -78,6 +80,9 @@ class FleetEnv(ParallelEnv):
     #: events that are a reason even outside ``terminate_on``
     always_reasons: tuple[str, ...] = ()
     fleet: Fleet
+    #: the agents' reference paths (fleet column ``path``): set by an env with the
+    #: ``accel_offset`` action layout (route-relative control) or a route look-ahead
+    paths: Paths | None = None
 
     # ------------------------------------------------------------------ the step
     def step(self, actions: dict[str, Any]):
@@ -128,9 +133,10 @@ class FleetEnv(ParallelEnv):
         return out
 
     def _dynamics(self, act: np.ndarray, clean: np.ndarray) -> None:
-        """Stage 3: the bicycle model moves rows ``act``."""
+        """Stage 3: the bicycle model moves rows ``act`` (steered along their reference paths
+        in the ``accel_offset`` layout)."""
         cfg = self.config
-        self.fleet.drive(act, clean, cfg.limits, cfg.action_layout, self.dt)
+        self.fleet.drive(act, clean, cfg.limits, cfg.action_layout, self.dt, self.paths)
 
     def _lane_query(self, agents: np.ndarray):
         """Lane query of rows ``agents`` (sensors and off-road share it; timed as sensors)."""

@@ -12,6 +12,7 @@ from magail_sumo.config import to_dict
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.inputs import InputFileError, read_json, regular_file
 from magail_sumo.sensors.observation import ObservationConfig, observation_names as names_of
+from magail_sumo.sim.dynamics import relayout
 
 from .record import EXPERT_FORMAT, READABLE_FORMATS, observation_hash
 
@@ -89,6 +90,9 @@ class ExpertDataset:
     :param directory: what ``magail-sumo expert`` wrote.
     :param observation_names: the training observation layout; a different stored layout is
         refused with :class:`ExpertDataError` naming the first mismatch.
+    :param action_layout: the policy's action layout: the recorded ``accel_steer`` actions
+        and the observations' previous-action entries (``prev_accel``, ``prev_steer``) are
+        given in it (:func:`~magail_sumo.sim.dynamics.relayout`).
     :param observation: the training observation config: data recorded with another (its
         ``observation_hash``: every field, sensor ranges included) is refused naming the
         differing fields (:func:`check_observation`); data recorded before the hash is checked
@@ -100,7 +104,8 @@ class ExpertDataset:
     """
 
     def __init__(self, directory: str | Path, observation_names: Sequence[str] | None = None,
-                 observation: ObservationConfig | None = None) -> None:
+                 observation: ObservationConfig | None = None,
+                 action_layout: str = "accel_steer") -> None:
         import pyarrow.parquet as pq
 
         d = Path(directory)
@@ -170,7 +175,11 @@ class ExpertDataset:
             raise ExpertDataError(f"{d}: stored observations have {self.s.shape[1]} values, "
                                   f"metadata names {self.obs_dim}")
         self.s_next = fixed("s_next", self.obs_dim)[order]
-        self.action = fixed("action", 2)[order]
+        self.action = relayout(fixed("action", 2)[order], action_layout)
+        prev = [names.index(n) for n in ("prev_accel", "prev_steer") if n in names]
+        if action_layout != "accel_steer" and len(prev) == 2:
+            for arr in (self.s, self.s_next):
+                arr[:, prev] = relayout(arr[:, prev], action_layout)
         self.done = table.column("done").to_numpy(zero_copy_only=False)[order]
         self.scene = scene_code[order]
         self.step = step[order]

@@ -34,6 +34,8 @@ class BicycleLimits:
     :param max_steer: largest front-wheel angle (rad).
     :param max_speed: forward speed cap (m/s).
     :param max_reverse_speed: reverse speed cap (m/s, positive number).
+    :param max_offset: largest lateral offset from the reference path (m) in the
+        ``accel_offset`` layout (:mod:`magail_sumo.sim.tracking`).
     """
 
     max_accel: float = 6.0
@@ -41,6 +43,7 @@ class BicycleLimits:
     max_steer: float = 0.7
     max_speed: float = 40.0
     max_reverse_speed: float = 5.0
+    max_offset: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -69,36 +72,58 @@ def clip_action(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits
     return a_c, d_c, bad | (a_c != a) | (d_c != d)
 
 
-#: Orders of the two entries of a normalised action: ours, and the seed's (steering first).
-ACTION_LAYOUTS: tuple[str, ...] = ("accel_steer", "steer_throttle")
+#: Layouts of the two entries of a normalised action: ours, the seed's (steering first), and
+#: route-relative control (acceleration, lateral offset from the reference path:
+#: :mod:`magail_sumo.sim.tracking`).
+ACTION_LAYOUTS: tuple[str, ...] = ("accel_steer", "steer_throttle", "accel_offset")
 #: components of one agent's normalised action in every layout (the two controls)
 ACTION_SIZE = 2
 
 
 def denormalise(action: np.ndarray, limits: BicycleLimits, layout: str = "accel_steer"
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Map a (V, 2) action in [-1, 1]² onto physical units (accel m/s², steer rad).
+    """Map a (V, 2) action in [-1, 1]² onto physical units: (accel m/s², steer rad), or in the
+    ``accel_offset`` layout (accel m/s², lateral offset m, left positive).
 
     ``layout="accel_steer"``: (accel, steer); ``"steer_throttle"`` (the seed's): (steer,
-    throttle/brake). Positive accel in [0, 1] scales ``max_accel``; negative scales ``max_brake``.
+    throttle/brake); ``"accel_offset"``: (accel, offset), offset scaling ``max_offset``.
+    Positive accel in [0, 1] scales ``max_accel``; negative scales ``max_brake``.
     """
     act = np.asarray(action, np.float64)
     if layout == "steer_throttle":
         act = act[:, ::-1]
-    elif layout != "accel_steer":
+    elif layout not in ACTION_LAYOUTS:
         raise ValueError(f"action layout must be one of {ACTION_LAYOUTS}, got {layout!r}")
     u = np.clip(act[:, 0], -1.0, 1.0)
     accel = np.where(u >= 0, u * limits.max_accel, u * limits.max_brake)
-    return accel, np.clip(act[:, 1], -1.0, 1.0) * limits.max_steer
+    scale = limits.max_offset if layout == "accel_offset" else limits.max_steer
+    return accel, np.clip(act[:, 1], -1.0, 1.0) * scale
 
 
 def normalise(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits,
               layout: str = "accel_steer") -> np.ndarray:
-    """Inverse of :func:`denormalise`: (V, 2) in [-1, 1]² in the given layout."""
+    """Inverse of :func:`denormalise`: (V, 2) in [-1, 1]² in the given layout (``steer``: the
+    lateral offset, m, in the ``accel_offset`` layout)."""
     a = np.asarray(accel, np.float64)
     u = np.where(a >= 0, a / limits.max_accel, a / limits.max_brake)
-    out = np.clip(np.stack([u, np.asarray(steer) / limits.max_steer], axis=1), -1.0, 1.0)
+    scale = limits.max_offset if layout == "accel_offset" else limits.max_steer
+    out = np.clip(np.stack([u, np.asarray(steer) / scale], axis=1), -1.0, 1.0)
     return out[:, ::-1].copy() if layout == "steer_throttle" else out
+
+
+def relayout(action: np.ndarray, layout: str) -> np.ndarray:
+    """(V, 2) normalised ``accel_steer`` actions in ``layout`` (a copy): ``steer_throttle``
+    swaps the entries; ``accel_offset`` keeps the acceleration and sets the lateral offset to
+    0 (recorded vehicles' actions: a recorded vehicle's reference path is its own recorded
+    route, :mod:`magail_sumo.sim.tracking`)."""
+    act = np.array(action, copy=True)
+    if layout == "steer_throttle":
+        return act[:, ::-1].copy()
+    if layout == "accel_offset":
+        act[:, 1] = 0.0
+    elif layout != "accel_steer":
+        raise ValueError(f"action layout must be one of {ACTION_LAYOUTS}, got {layout!r}")
+    return act
 
 
 def step(state: VehicleState, accel: np.ndarray, steer: np.ndarray, wheelbase: np.ndarray,

@@ -60,9 +60,11 @@ def get(name: str) -> Algorithm:
 
 
 def load_expert(cfg: "TrainConfig") -> "ExpertDataset":
-    """The run's expert demonstrations (``expert_dir``), columns in the observation's order;
-    data recorded with another observation config (any field) is refused."""
-    return ExpertDataset(cfg.expert_dir, observation=cfg.env.observation)
+    """The run's expert demonstrations (``expert_dir``), columns in the observation's order,
+    actions in the env's action layout; data recorded with another observation config (any
+    field) is refused."""
+    return ExpertDataset(cfg.expert_dir, observation=cfg.env.observation,
+                         action_layout=cfg.env.action_layout)
 
 
 register(Algorithm("gail", "magail_sumo.training.gail.run:train_gail", adversarial=True,

@@ -1,0 +1,188 @@
+"""The lanes a SUMO vehicle's route drives through, as one centreline polyline (its reference
+path for route-relative control, :mod:`magail_sumo.sim.tracking`).
+
+From the vehicle's current lane, a vehicle length behind its front, the path runs along the lane to its end, through
+the junction's internal lane(s) of the connection to the route's next edge, along the lane that
+connection reaches, and so on to the end of the route's last edge (SUMO's default arrival
+position). Where the current lane has no connection to the next edge, the path changes lane
+on the way: it leaves the current lane at the vehicle's position and joins, ``change_length``
+metres further (at most at the lane's end), the nearest lane of the edge that has one (a lane
+change SUMO's lane-change model would make). Only lanes the vehicle's class may use count.
+A route whose next edge cannot be reached from any usable lane (SUMO would teleport) ends the
+path there; :class:`RoutePath` says so.
+
+The network does not change during a run, so lane shapes and connections are read from SUMO
+once per lane (:class:`LaneGraph` caches them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: metres over which the path moves to a lane that connects to the route's next edge
+CHANGE_LENGTH = 25.0
+
+
+@dataclass(frozen=True)
+class RoutePath:
+    """A vehicle's reference path: ``points`` ((M, 2), m, network frame) and whether it runs
+    to the end of the route (``complete``; False: cut where the next edge is unreachable)."""
+
+    points: np.ndarray
+    complete: bool
+
+
+class LaneGraph:
+    """Lane shapes, lengths, permissions and connections of a running SUMO network, read
+    through libsumo's API once per lane.
+
+    :param api: the ``libsumo`` module of a started simulation.
+    """
+
+    def __init__(self, api) -> None:
+        self.api = api
+        self._shape: dict[str, np.ndarray] = {}
+        self._links: dict[str, list[tuple[str, str]]] = {}
+        self._lanes: dict[str, list[str]] = {}
+        self._allows: dict[tuple[str, str], bool] = {}
+
+    def shape(self, lane: str) -> np.ndarray:
+        """(M, 2) centreline of ``lane`` (m)."""
+        out = self._shape.get(lane)
+        if out is None:
+            out = self._shape[lane] = np.asarray(self.api.lane.getShape(lane), np.float64)
+        return out
+
+    def links(self, lane: str) -> list[tuple[str, str]]:
+        """(lane reached, first internal lane on the way or "") of each connection of
+        ``lane``."""
+        out = self._links.get(lane)
+        if out is None:
+            out = self._links[lane] = [(link[0], link[4]) for link in self.api.lane.getLinks(lane)]
+        return out
+
+    def lanes(self, edge: str) -> list[str]:
+        """Lane ids of ``edge``, rightmost first."""
+        out = self._lanes.get(edge)
+        if out is None:
+            out = self._lanes[edge] = [f"{edge}_{i}"
+                                       for i in range(self.api.edge.getLaneNumber(edge))]
+        return out
+
+    def allows(self, lane: str, vclass: str) -> bool:
+        """Whether vehicles of class ``vclass`` may use ``lane``."""
+        key = (lane, vclass)
+        out = self._allows.get(key)
+        if out is None:
+            allowed = self.api.lane.getAllowed(lane)
+            out = vclass in allowed if allowed else \
+                vclass not in self.api.lane.getDisallowed(lane)
+            self._allows[key] = out
+        return out
+
+    def _via(self, lane: str, edge: str) -> tuple[str, list[str]] | None:
+        """(lane of ``edge`` reached, internal lanes on the way) of ``lane``'s connection to
+        ``edge``; None when it has none."""
+        for reached, internal in self.links(lane):
+            if reached.rsplit("_", 1)[0] != edge:
+                continue
+            chain = []
+            while internal and internal.startswith(":") and len(chain) < 8:
+                chain.append(internal)
+                nxt = self.links(internal)
+                internal = nxt[0][0] if nxt else ""
+            return reached, chain
+        return None
+
+    def route_path(self, vehicle: str, change_length: float = CHANGE_LENGTH) -> RoutePath:
+        """The reference path of SUMO vehicle ``vehicle`` from where it is now (module doc)."""
+        v = self.api.vehicle
+        lane, pos = v.getLaneID(vehicle), float(v.getLanePosition(vehicle))
+        # SUMO's position is the front bumper's: start a length behind it (the box centre is
+        # behind the front; before the lane's start, the path runs straight back from it)
+        pos -= float(v.getLength(vehicle)) + 1.0
+        before = max(0.0, -pos)
+        pos = max(pos, 0.0)
+        route = list(v.getRoute(vehicle))
+        i = max(int(v.getRouteIndex(vehicle)), 0)
+        vclass = v.getVehicleClass(vehicle)
+        parts: list[np.ndarray] = []
+        if lane.startswith(":"):  # inside a junction: finish its internal lane(s) first
+            parts.append(_from(self.shape(lane), pos, self.api.lane.getLength(lane)))
+            steps = 0
+            while lane.startswith(":") and steps < 8:
+                nxt = self.links(lane)
+                if not nxt:
+                    return RoutePath(np.concatenate(parts), False)
+                lane = nxt[0][0]
+                if lane.startswith(":"):
+                    parts.append(self.shape(lane))
+                steps += 1
+            pos = 0.0
+            edge = lane.rsplit("_", 1)[0]
+            i = route.index(edge, i) if edge in route[i:] else i + 1
+        elif before > 0:
+            shape = self.shape(lane)
+            d = shape[1] - shape[0]
+            n = float(np.hypot(*d))
+            if n > 0:
+                parts.append(shape[:1] - d / n * before)
+        complete = True
+        while True:
+            shape = self.shape(lane)
+            length = self.api.lane.getLength(lane)
+            last = i + 1 >= len(route)
+            via = None if last else self._via(lane, route[i + 1])
+            if not last and via is None:  # change to a lane that connects on
+                edge = route[i]
+                here = int(lane.rsplit("_", 1)[1])
+                options = sorted((abs(int(c.rsplit("_", 1)[1]) - here), c)
+                                 for c in self.lanes(edge)
+                                 if c != lane and self.allows(c, vclass)
+                                 and self._via(c, route[i + 1]) is not None)
+                if options:
+                    target = options[0][1]
+                    parts.append(_point(shape, pos, length))
+                    t_len = self.api.lane.getLength(target)
+                    pos = min(pos + change_length, max(t_len - 1.0, pos))
+                    lane, shape, length = target, self.shape(target), t_len
+                    via = self._via(lane, route[i + 1])
+                else:
+                    complete = False
+            parts.append(_from(shape, pos, length))
+            if last or via is None:
+                break
+            reached, internal = via
+            parts.extend(self.shape(x) for x in internal)
+            lane, pos, i = reached, 0.0, i + 1
+        return RoutePath(np.concatenate(parts), complete and i + 1 >= len(route))
+
+
+def _from(shape: np.ndarray, pos: float, length: float) -> np.ndarray:
+    """The part of lane ``shape`` from lane position ``pos`` (m, SUMO's lane length
+    ``length``, which may differ from the shape's geometric length) to its end."""
+    return np.concatenate([_point(shape, pos, length), shape[_after(shape, pos, length):]])
+
+
+def _arc(shape: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+
+
+def _geo(shape: np.ndarray, pos: float, length: float) -> float:
+    """Geometric arc length of lane position ``pos``."""
+    arc = _arc(shape)
+    return float(np.clip(pos * (arc[-1] / length if length > 0 else 1.0), 0.0, arc[-1]))
+
+
+def _point(shape: np.ndarray, pos: float, length: float) -> np.ndarray:
+    """(1, 2) point of lane position ``pos`` on ``shape``."""
+    arc = _arc(shape)
+    g = _geo(shape, pos, length)
+    return np.array([[np.interp(g, arc, shape[:, 0]), np.interp(g, arc, shape[:, 1])]])
+
+
+def _after(shape: np.ndarray, pos: float, length: float) -> int:
+    """Index of the first shape point past lane position ``pos``."""
+    return int(np.searchsorted(_arc(shape), _geo(shape, pos, length), side="right"))

@@ -1,0 +1,67 @@
+"""Route-relative control: the steering that keeps a bicycle on its reference path, and the
+``accel_offset`` action layout built on it.
+
+In the ``accel_offset`` layout (:data:`~magail_sumo.sim.dynamics.ACTION_LAYOUTS`) a policy
+chooses the longitudinal acceleration and a lateral offset ``d`` (m, positive = left of the
+path; ``max_offset`` of :class:`~magail_sumo.sim.dynamics.BicycleLimits` at ±1) from its
+reference path (:class:`~magail_sumo.sim.paths.Paths`: in a city the lane centrelines of its
+SUMO route through the junctions' internal lanes; in a recorded scene its recorded route). The
+steering is pure pursuit towards the goal point: the point of the path ``L`` m ahead of the
+vehicle's progress point, moved ``d`` m along the path's left normal there, with look-ahead
+
+    L = max(min_lookahead, lookahead_time·|speed|)
+
+and, with ``α`` the goal's bearing in the ego frame and ``ℓ`` its distance,
+
+    steer = atan(2·wheelbase·sin(α) / ℓ)      (clipped to ±max_steer)
+
+which puts the vehicle on the arc through the goal (the box centre stands in for the rear
+axle). The vehicle then moves by the bicycle model (:func:`~magail_sumo.sim.dynamics.step`),
+so its motion keeps the kinematics of free steering; a zero lateral action follows the path's
+centreline, so staying on the route's lanes and turning onto the right lane at a junction is
+structural, not learned. Vehicles in this layout do not reverse: the acceleration is raised to
+at least ``-speed / dt``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .dynamics import BicycleLimits, VehicleState, wrap_angle
+from .paths import Paths
+
+#: pure-pursuit look-ahead: seconds of travel at the current speed, and the least distance (m)
+LOOKAHEAD_TIME = 0.8
+MIN_LOOKAHEAD = 4.0
+
+
+def pursuit_steer(state: VehicleState, wheelbase: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                  max_steer: float) -> np.ndarray:
+    """(A,) front-wheel angle (rad) of the arc from each vehicle's pose through goal (gx, gy)
+    (m, scene frame), clipped to ±``max_steer``; 0 for a goal on the vehicle."""
+    dx, dy = gx - state.x, gy - state.y
+    dist = np.hypot(dx, dy)
+    alpha = wrap_angle(np.arctan2(dy, dx) - state.yaw)
+    k = np.where(dist > 1e-6, 2.0 * np.sin(alpha) / np.where(dist > 1e-6, dist, 1.0), 0.0)
+    return np.clip(np.arctan(k * wheelbase), -max_steer, max_steer)
+
+
+def follow(paths: Paths, rows: np.ndarray, hint: np.ndarray, state: VehicleState,
+           wheelbase: np.ndarray, offset: np.ndarray, limits: BicycleLimits
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Steering of vehicles in ``state`` following paths ``rows`` at lateral ``offset`` (m,
+    left positive; module doc), and their new progress hints ((A,) point indices).
+
+    :param hint: (A,) progress indices from the last call (the projection's window).
+    """
+    at, s = paths.project(rows, state.x, state.y, hint)
+    look = np.maximum(MIN_LOOKAHEAD, LOOKAHEAD_TIME * np.abs(state.speed))
+    px, py, heading = paths.at(rows, s + look)
+    gx = px - np.sin(heading) * offset
+    gy = py + np.cos(heading) * offset
+    return pursuit_steer(state, wheelbase, gx, gy, limits.max_steer), at
+
+
+def no_reverse(accel: np.ndarray, speed: np.ndarray, dt: float) -> np.ndarray:
+    """``accel`` raised so that one step does not take the speed below 0."""
+    return np.maximum(accel, -np.maximum(speed, 0.0) / dt)

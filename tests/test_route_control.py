@@ -1,0 +1,172 @@
+"""Route-relative control (``action_layout: accel_offset``): reference paths, the pure-pursuit
+steering along them, the SUMO route's lanes as a city agent's path, and the layout in both envs
+(a real city and a real recorded scene)."""
+
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, WOMD_DIR
+from magail_sumo.sim import dynamics, tracking
+from magail_sumo.sim.paths import Paths, resample
+
+CITY = ROOT / "data" / "sumo" / "ingolstadt21" / "ingolstadt21.sumocfg"
+SID = "637f20cafde22ff8"
+
+
+def _arc_path(radius: float = 15.0) -> np.ndarray:
+    """20 m straight along +x, a left quarter circle of ``radius``, 20 m straight along +y."""
+    a = np.linspace(-np.pi / 2, 0.0, 40)
+    arc = np.stack([20.0 + radius * np.cos(a), radius + radius * np.sin(a)], axis=1)
+    return np.concatenate([[[0.0, 0.0]], arc, [[20.0 + radius, radius + 20.0]]])
+
+
+def test_resample_is_equally_spaced_and_keeps_the_ends():
+    p, s = resample(np.array([[0.0, 0.0], [0.0, 0.0], [2.5, 0.0], [2.5, 2.5]]), 1.0)
+    assert p[0].tolist() == [0.0, 0.0] and p[-1].tolist() == [2.5, 2.5]
+    assert s[-1] == pytest.approx(5.0) and np.allclose(np.diff(s), 5.0 / 5)
+    assert p[2] == pytest.approx([2.0, 0.0])  # 2 m along the polyline
+    assert resample(np.array([[3.0, 4.0], [3.0, 4.0]]))[0].shape == (1, 2)
+    with pytest.raises(ValueError):
+        resample(np.full((2, 2), np.nan))
+
+
+def test_paths_project_at_ahead_and_turn():
+    paths = Paths.empty(paths=1, points=4)  # grows as paths are added
+    straight = paths.add(np.array([[0.0, 0.0], [100.0, 0.0]]))
+    bend = paths.add(_arc_path())
+    point = paths.add(np.array([[5.0, 5.0]]))
+    assert len(paths) == 3 and paths.length(np.array([straight]))[0] == pytest.approx(100.0)
+    rows = np.array([straight, straight])
+    at, s = paths.project(rows, np.array([10.3, 50.0]), np.array([2.0, -1.0]))
+    assert s == pytest.approx([10.3, 50.0])
+    # windowed: a hint near the point finds the same progress
+    at2, s2 = paths.project(rows, np.array([10.3, 50.0]), np.array([2.0, -1.0]), at)
+    assert (at2 == at).all() and s2 == pytest.approx(s)
+    x, y, h = paths.at(np.array([straight, bend, point]), np.array([250.0, 0.0, 3.0]))
+    assert [x[0], y[0], h[0]] == pytest.approx([100.0, 0.0, 0.0])  # clamped to the end
+    assert [x[1], y[1]] == pytest.approx([0.0, 0.0]) and h[1] == pytest.approx(0.0, abs=1e-6)
+    assert [x[2], y[2], h[2]] == [5.0, 5.0, 0.0]
+    # the bend turns left by 90 degrees between its start and its end
+    assert paths.turn(np.array([bend]), np.array([0.0]), 200.0)[0] == \
+        pytest.approx(np.pi / 2, abs=0.05)
+    # 10 m ahead of an agent at x=5 on the straight, 1 m left of it, heading +x: (10, -1)
+    got = paths.ahead(np.array([straight]), np.array([5.0]), np.array([5.0]), np.array([1.0]),
+                      np.array([0.0]), (10.0,))
+    assert got[0] == pytest.approx([10.0, -1.0], abs=1e-5)
+
+
+def test_pursuit_converges_to_the_path_and_to_the_offset():
+    """A car starting 1 m right of a path converges onto it, through a 15-m-radius left turn,
+    and holds a commanded 1-m offset to its left."""
+    paths = Paths.of([_arc_path()])
+    lim = dynamics.BicycleLimits()
+    for offset, want in ((0.0, 0.0), (1.0, 1.0)):
+        st = dynamics.VehicleState(np.array([0.0]), np.array([-1.0]), np.array([0.0]),
+                                   np.array([8.0]))
+        hint, errs = np.zeros(1, np.int64), []
+        for _ in range(70):
+            steer, hint = tracking.follow(paths, np.array([0]), hint, st, np.array([2.9]),
+                                          np.array([offset]), lim)
+            st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
+            _, s = paths.project(np.array([0]), st.x, st.y, hint)
+            px, py, h = paths.at(np.array([0]), s)
+            errs.append(float(-np.sin(h[0]) * (st.x[0] - px[0]) + np.cos(h[0]) * (st.y[0] - py[0])))
+        errs = np.array(errs)
+        assert abs(errs[-1] - want) < 0.1  # on the final straight, at the offset
+        assert np.abs(errs[30:] - want).max() < 0.6  # through the bend
+    assert st.y[0] > 25.0  # it drove around the bend
+
+
+def test_accel_offset_layout_units_and_expert_relayout():
+    lim = dynamics.BicycleLimits(max_offset=2.0)
+    accel, off = dynamics.denormalise(np.array([[0.5, -0.5]]), lim, "accel_offset")
+    assert accel[0] == pytest.approx(3.0) and off[0] == pytest.approx(-1.0)
+    assert dynamics.normalise(accel, off, lim, "accel_offset").tolist() == [[0.5, -0.5]]
+    rec = np.array([[0.2, -0.7], [-0.1, 0.3]], np.float32)
+    assert dynamics.relayout(rec, "accel_offset").tolist() == \
+        [[pytest.approx(0.2), 0.0], [pytest.approx(-0.1), 0.0]]
+    assert dynamics.relayout(rec, "steer_throttle").tolist() == rec[:, ::-1].tolist()
+    assert tracking.no_reverse(np.array([-10.0, -1.0]), np.array([0.5, 20.0]), 0.1).tolist() \
+        == [-5.0, -1.0]
+
+
+def _city_run(layout: str, steps: int = 300):
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+    from magail_sumo.sensors.config import ObservationConfig
+    from magail_sumo.sensors.observation import observation_names
+
+    ob = ObservationConfig(route_points=(10.0, 30.0), command=True)
+    env = SumoCityEnv(CITY, CityEnvConfig(max_agents=60, warmup_s=300, max_steps=steps,
+                                          action_layout=layout, observation=ob))
+    names = observation_names(ob)
+    cols = [names.index(c) for c in ("route_x_10", "route_y_10")]
+    reasons, near = collections.Counter(), []
+    try:
+        obs, _ = env.reset(seed=0)
+        for _ in range(steps):
+            f = env.fleet
+            k = f.live()
+            # a plain speed keeper (10 m/s), no steering / no offset
+            a = np.clip(0.5 * (10.0 - f.speed[k]) / 6.0, -1.0, 1.0)
+            acts = {f.names[j]: np.array([a[i], 0.0], np.float32) for i, j in enumerate(k)}
+            obs, _, term, trunc, info = env.step(acts)
+            near += [np.hypot(*o[cols]) for o in obs.values()]
+            for name in term:
+                if term[name] or trunc[name]:
+                    reasons[info[name]["reason"]] += 1
+        return reasons, np.array(near), env.cut_paths, len(env.paths)
+    finally:
+        env.close()
+
+
+@pytest.mark.sumo
+def test_city_agents_follow_their_routes_lanes():
+    """On the real ingolstadt21 city, agents holding a speed with no lateral action stay on
+    their routes' lanes through the junctions (no agent leaves the road); steering straight
+    ahead instead (``accel_steer``) takes agents off the road. Every agent has a path, the
+    route look-ahead reads it."""
+    route, near, cut, n_paths = _city_run("accel_offset")
+    assert route["off_road"] == 0, route
+    assert route["destination"] + route["arrived"] > 0  # trips end at their routes' ends
+    assert cut == 0 and n_paths > 60
+    # 10 m along the route from the agent's progress point: about 10 m away (less on a bend,
+    # a little more when the agent is beside its lane's centreline or at its path's start)
+    assert near.size and np.percentile(near, 99) <= 10.6 and 9.0 < np.median(near) <= 10.01
+    free, *_ = _city_run("accel_steer")
+    assert free["off_road"] >= 10, free
+
+
+@pytest.mark.sumo
+def test_recorded_scene_expert_follows_its_recorded_route():
+    """In a real recorded scene, the expert's accelerations with offset 0 (its actions in the
+    ``accel_offset`` layout) keep every agent within centimetres of its recorded track."""
+    from converters import load_scene
+    from magail_sumo.env import EnvConfig, SumoDrivingEnv
+    from magail_sumo.env.log_actions import expert_actions
+
+    scene = load_scene(WOMD_DIR / f"{SID}.tfrecord")
+    tr = scene.tracks
+    env = SumoDrivingEnv(scene, ROOT / "networks" / SID,
+                         EnvConfig(controlled="all", start_step=10, terminate_on=(),
+                                   action_layout="accel_offset"))
+    errs = []
+    try:
+        env.reset(seed=0)
+        assert env.paths is not None and len(env.paths) == len(env.fleet)
+        while env.agents:
+            acts = expert_actions(env)
+            assert all(a[1] == 0.0 for a in acts.values())
+            env.step(acts)
+            f = env.fleet
+            k = f.live()
+            rows, t = env._ctrl[k], env.t
+            v = tr.valid[rows, t]
+            errs.append(np.hypot(f.x[k][v] - tr.x[rows[v], t], f.y[k][v] - tr.y[rows[v], t]))
+    finally:
+        env.close()
+    e = np.concatenate(errs)
+    assert e.size > 500 and np.median(e) < 0.05 and np.percentile(e, 95) < 0.3
