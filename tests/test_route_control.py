@@ -170,3 +170,32 @@ def test_recorded_scene_expert_follows_its_recorded_route():
         env.close()
     e = np.concatenate(errs)
     assert e.size > 500 and np.median(e) < 0.05 and np.percentile(e, 95) < 0.3
+
+
+@pytest.mark.sumo
+def test_city_progress_reward_is_the_distance_along_the_route():
+    """With ``progress_reward`` c, an agent's reward is c times the metres it moved along its
+    route in the step: for agents following their routes, about c · speed · dt."""
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+
+    env = SumoCityEnv(CITY, CityEnvConfig(max_agents=30, warmup_s=300, max_steps=60,
+                                          action_layout="accel_offset", progress_reward=0.5))
+    got, want = [], []
+    try:
+        env.reset(seed=0)
+        for _ in range(60):
+            f = env.fleet
+            k = f.live()
+            acts = {f.names[j]: np.array([0.1, 0.0], np.float32) for j in k}
+            _, rew, term, trunc, _ = env.step(acts)
+            for name in acts:
+                if not (term[name] or trunc[name]):
+                    got.append(rew[name])
+                    want.append(0.5 * f.speed[f.index[name]] * env.dt)
+    finally:
+        env.close()
+    got, want = np.array(got), np.array(want)
+    assert got.size > 500 and got.min() > -1e-6
+    assert np.median(np.abs(got - want)) < 0.01 and np.corrcoef(got, want)[0, 1] > 0.95
+    with pytest.raises(ValueError, match="progress_reward"):
+        CityEnvConfig(progress_reward=-1.0)

@@ -23,7 +23,8 @@ any other vehicle), ``off_road`` (box centre farther than ``lane_width / 2 + mar
 lane, junction lanes included), ``red_light`` (the agent passes the stop line of a red signal
 that was its next signal at the step's start), ``destination`` (within ``destination_radius``
 of its route's end); truncation reasons: ``arrived`` (SUMO took the vehicle out: it reached
-its route's end) and ``end_of_episode`` (``max_steps`` reached). Rewards are 0.
+its route's end) and ``end_of_episode`` (``max_steps`` reached). Rewards are 0, or with
+``progress_reward`` that many per metre an agent moved along its route in the step.
 
 The step runs the stages of :class:`~magail_sumo.env.step.FleetEnv` over the agents'
 :class:`~magail_sumo.env.fleet.Fleet` state (rows appended as agents join), and ``infos`` follow
@@ -106,6 +107,9 @@ class CityEnvConfig:
         replays it in ``sumo-gui`` on the city's network (None: none; as ``EnvConfig.fcd_dir``).
     :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
         (0: none).
+    :param progress_reward: each agent's reward per metre it moves along its route in a
+        step (its reference path, :mod:`magail_sumo.sim.paths`; 0: rewards are 0). The task
+        reward of city training (with the trainer's penalties for the reason an agent left).
     """
 
     control_fraction: float = 1.0
@@ -124,11 +128,13 @@ class CityEnvConfig:
     agent_classes: tuple[str, ...] = ("passenger",)
     fcd_dir: str | None = None
     fcd_every: int = 0
+    progress_reward: float = 0.0
 
     @classmethod
     def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
                  warmup_s: float, max_steps: int,
-                 agent_classes: tuple[str, ...] = ("passenger",)) -> "CityEnvConfig":
+                 agent_classes: tuple[str, ...] = ("passenger",),
+                 progress_reward: float = 0.0) -> "CityEnvConfig":
         """A city's settings with the observation, limits, event rules (the city's events of
         ``env.terminate_on``), SUMO seed and action layout of a recorded-scene
         :class:`~magail_sumo.env.config.EnvConfig` ``env``, so one policy drives both."""
@@ -139,9 +145,11 @@ class CityEnvConfig:
                    destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
                    action_layout=env.action_layout, max_agents=max_agents, guard=env.guard,
                    agent_classes=tuple(agent_classes), fcd_dir=env.fcd_dir,
-                   fcd_every=env.fcd_every)
+                   fcd_every=env.fcd_every, progress_reward=progress_reward)
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.progress_reward) and self.progress_reward >= 0):
+            raise ValueError(f"progress_reward must be >= 0, got {self.progress_reward}")
         if self.max_agents is not None and self.max_agents < 1:
             raise ValueError(f"max_agents must be >= 1 or None, got {self.max_agents}")
         if self.action_layout not in dynamics.ACTION_LAYOUTS:
@@ -275,6 +283,9 @@ class SumoCityEnv(FleetEnv):
         info = self._infos_of(self.fleet.rows_of(self.agents))
         return obs, {a: info(i, {}, None) for i, a in enumerate(self.agents)}
 
+    def _progress_reward(self) -> float:
+        return self.config.progress_reward
+
     @property
     def sumo_time(self) -> float | None:
         """SUMO's clock now (s, the scenario's time of day); None outside an episode."""
@@ -397,7 +408,7 @@ class SumoCityEnv(FleetEnv):
         cmd = route = None
         if ob.command or ob.route_points:
             paths = f.path[agents]
-            _, s = self.paths.project(paths, f.x[agents], f.y[agents], f.hint[agents])
+            s = self._route_progress(agents)
             if ob.command:
                 cmd = one_hot(command_index(self.paths.turn(paths, s, ob.command_lookahead)))
             if ob.route_points:

@@ -32,7 +32,8 @@ class StepDicts:
     def stepped(self, names: Sequence[str], flags: dict[str, np.ndarray],
                 events: Sequence[str], terminate_on: Sequence[str], time_up: np.ndarray,
                 truncation_reason: Sequence[str], info: InfoFn,
-                always_reasons: Sequence[str] = ()) -> np.ndarray:
+                always_reasons: Sequence[str] = (), rewards: np.ndarray | None = None
+                ) -> np.ndarray:
         """Add the stepped agents; their (A,) bool "leaves now" mask.
 
         :param names: (A,) agent names. :param flags: event name -> (A,) bool.
@@ -42,6 +43,7 @@ class StepDicts:
         :param truncation_reason: (A,) reason of a truncation no event explains.
         :param info: ``info(i, events_of_i, reason)`` builds the agent's infos.
         :param always_reasons: events that are a reason even outside ``terminate_on``.
+        :param rewards: (A,) the agents' rewards (None: 0).
         """
         a = len(names)
         term = np.zeros(a, bool)
@@ -53,6 +55,7 @@ class StepDicts:
         # Python lists: indexing numpy arrays per agent costs several times more
         columns = [np.asarray(flags[e], bool).tolist() for e in events]
         ends = [e in reasons for e in events]
+        reward = [0.0] * a if rewards is None else np.asarray(rewards, np.float64).tolist()
         for i, (name, te, tr, lv) in enumerate(zip(names, term.tolist(), trunc.tolist(),
                                                    leaving.tolist())):
             ev = {e: col[i] for e, col in zip(events, columns)}
@@ -60,7 +63,7 @@ class StepDicts:
                           None)
             if reason is None and tr:
                 reason = truncation_reason[i]
-            self.rewards[name], self.terms[name], self.truncs[name] = 0.0, te, tr
+            self.rewards[name], self.terms[name], self.truncs[name] = reward[i], te, tr
             self.infos[name] = info(i, ev, reason if lv else None)
         return leaving
 

@@ -21,7 +21,8 @@
    lane query shared by the sensors and the off-road rule;
 8. **events** — collision (oriented-box overlap with any other road user), off-road,
    red-light (hook ``_red_light``), destination, plus env-specific ones (hook ``_more_events``);
-9. **outcomes** — terminations, truncations and infos
+9. **outcomes** — rewards (0, or with a progress reward (hook ``_progress_reward``) that many
+   per metre the agent moved along its reference path), terminations, truncations and infos
    (:class:`~magail_sumo.env.outcomes.StepDicts`; hook ``_time_up``: who is out of time and
    why); agents that left are taken out of SUMO.
 
@@ -91,6 +92,7 @@ class FleetEnv(ParallelEnv):
         act = self.fleet.live()
         clean = self._clean_actions(actions, act)
         p0 = self.fleet.position(act)
+        s0 = self._route_progress(act) if self._progress_reward() else None
         ctx = self._before_move(act)
         clean = self._guard(act, clean)
         self._dynamics(act, clean)
@@ -102,7 +104,9 @@ class FleetEnv(ParallelEnv):
         obs, (boxes, ids) = self._observe(agents, lanes)
         stepped = np.searchsorted(agents, act)
         flags, other = self._events(act, stepped, p0, boxes, lanes, ctx)
-        out = self._outcomes(act, joiners, flags, other, ids, arrived)
+        reward = None if s0 is None else \
+            self._progress_reward() * (self._route_progress(act) - s0)
+        out = self._outcomes(act, joiners, flags, other, ids, arrived, reward)
         self._after_step(obs, out)
         self.agents = self.fleet.names_of(self.fleet.live())
         self._record_fcd()
@@ -162,8 +166,10 @@ class FleetEnv(ParallelEnv):
         return flags, other
 
     def _outcomes(self, act: np.ndarray, joiners: np.ndarray, flags: dict[str, np.ndarray],
-                  other: np.ndarray, ids, arrived: Sequence[str]) -> StepDicts:
-        """Stage 9: the step's dicts; agents that left become inactive and leave SUMO."""
+                  other: np.ndarray, ids, arrived: Sequence[str],
+                  reward: np.ndarray | None = None) -> StepDicts:
+        """Stage 9: the step's dicts (``reward``: (A,) of the stepped agents, None: 0);
+        agents that left become inactive and leave SUMO."""
         cfg, f = self.config, self.fleet
         end = self.t >= self._end
         time_up, why = self._time_up(act, flags, end, arrived)
@@ -173,7 +179,7 @@ class FleetEnv(ParallelEnv):
             f.names_of(act), flags, self.events, cfg.terminate_on, time_up, why,
             lambda i, ev, reason: info(
                 i, ev, reason, self._road_user(ids, hit[i]) if hit[i] >= 0 else NO_ONE),
-            always_reasons=self.always_reasons)
+            always_reasons=self.always_reasons, rewards=reward)
         joined = self._infos_of(joiners)
         out.joined(f.names_of(joiners), end, END_OF_EPISODE,
                    lambda j, reason: joined(j, {}, reason))
@@ -182,6 +188,19 @@ class FleetEnv(ParallelEnv):
             gone = np.concatenate([gone, joiners])
         self._leave(gone)
         return out
+
+    def _progress_reward(self) -> float:
+        """Reward per metre an agent moves along its reference path in a step (0: rewards
+        are 0); an env with paths and a progress reward overrides it."""
+        return 0.0
+
+    def _route_progress(self, rows: np.ndarray) -> np.ndarray:
+        """(A,) arc length (m) of fleet rows' positions on their reference paths (their
+        progress hints follow)."""
+        f = self.fleet
+        at, s = self.paths.project(f.path[rows], f.x[rows], f.y[rows], f.hint[rows])
+        f.hint[rows] = at
+        return s
 
     def _leave(self, gone: np.ndarray) -> None:
         """Rows ``gone`` stop being agents; their vehicles leave SUMO."""

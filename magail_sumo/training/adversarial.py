@@ -71,7 +71,8 @@ class AdversarialReward:
         extra = {"deferred": True} if deferred else {}
         env = DiscriminatorRewardWrapper(
             venv, disc, d.reward_t_coef, d.reward_i_coef, d.reward_floor, cfg.device, **extra,
-            penalties={"collision": d.collision_penalty, "off_road": d.off_road_penalty},
+            penalties={"collision": d.collision_penalty, "off_road": d.off_road_penalty,
+                       "red_light": d.red_light_penalty},
             social_coef=d.decomposed.social_coef if d.kind == "decomposed" else 0.0)
         trainer = DiscriminatorTrainer(
             disc, expert, d.epochs, d.batch_size, d.learning_rate, d.weight_decay,

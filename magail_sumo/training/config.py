@@ -114,6 +114,9 @@ class CityConfig:
     :param max_steps: 0.1-s steps per city episode.
     :param agent_classes: SUMO vehicle classes that may become agents (the rest, and every
         vehicle with stops, stay SUMO-driven).
+    :param progress_reward: the city env's reward per metre an agent moves along its route
+        (the task reward r_task of city training, weighted by ``discriminator.reward_t_coef``
+        with the penalties there; 0: none).
     """
 
     max_agents: int = 256
@@ -121,6 +124,7 @@ class CityConfig:
     warmup_s: float = 600.0
     max_steps: int = 200
     agent_classes: tuple[str, ...] = ("passenger",)
+    progress_reward: float = 0.0
 
     def __post_init__(self) -> None:
         check(self.max_agents >= 1, "max_agents", f"must be >= 1, got {self.max_agents}")
@@ -131,13 +135,15 @@ class CityConfig:
               f"must be in (0, 1], got {self.control_fraction}")
         check(self.warmup_s >= 0, "warmup_s", f"must be >= 0, got {self.warmup_s}")
         check(self.max_steps >= 1, "max_steps", f"must be >= 1, got {self.max_steps}")
+        check_positive(self, "progress_reward", allow_zero=True)
 
     def env_config(self, env: EnvConfig):
         """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
         return CityEnvConfig.from_env(env, max_agents=self.max_agents,
                                       control_fraction=self.control_fraction,
                                       warmup_s=self.warmup_s, max_steps=self.max_steps,
-                                      agent_classes=self.agent_classes)
+                                      agent_classes=self.agent_classes,
+                                      progress_reward=self.progress_reward)
 
 
 @dataclass(frozen=True)
@@ -263,9 +269,9 @@ class DiscriminatorConfig:
         discriminator does not see, in s nor in s' — e.g. ``[prev_accel, prev_steer]``: the
         previous action carries the policy's exploration noise, which lets a discriminator
         tell policy from expert without judging the driving.
-    :param collision_penalty, off_road_penalty: the task reward r_task of the step at which an
-        agent leaves by a collision / by going off-road is minus this (events in
-        ``env.terminate_on`` end the agent; 0 otherwise).
+    :param collision_penalty, off_road_penalty, red_light_penalty: the task reward r_task of
+        the step at which an agent leaves by a collision / by going off-road / by running a
+        red light is minus this (events in ``env.terminate_on`` end the agent; 0 otherwise).
     """
 
     kind: str = "transformer"
@@ -283,6 +289,7 @@ class DiscriminatorConfig:
     reward_floor: float = 1e-4
     collision_penalty: float = 0.0
     off_road_penalty: float = 0.0
+    red_light_penalty: float = 0.0
     ignore_features: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -291,7 +298,8 @@ class DiscriminatorConfig:
         check_sizes(self, "mlp_hidden")
         check_positive(self, "learning_rate", "batch_size")
         check_positive(self, "weight_decay", "epochs", "gp_coef", "logit_reg",
-                       "collision_penalty", "off_road_penalty", allow_zero=True)
+                       "collision_penalty", "off_road_penalty", "red_light_penalty",
+                       allow_zero=True)
         check(0.0 < self.reward_floor < 1.0, "reward_floor",
               f"must be in (0, 1), got {show(self.reward_floor)}")
 
