@@ -108,6 +108,7 @@ def test_city_rows_for_both_methods(city):
     assert sumo["collisions"] == 0 and sumo["agents"] == 0 and sumo["terminations"] == {}
     assert pol["agents"] > 6  # agents ended by an event were replaced by waiting vehicles
     assert pol["agent_steps"] >= pol["agents"]
+    assert pol["peak_agents"] == 6 and sumo["peak_agents"] == 0  # the cap, reached
     ends = pol["terminations"]
     assert set(ends) == {"collision", "off_road", "red_light", "destination"}
     assert pol["removed"] == ends["collision"] + ends["off_road"] + ends["red_light"] > 0
@@ -242,3 +243,14 @@ def test_a_city_json_that_is_a_device_is_one_line(tmp_path):
     (tmp_path / "city.json").symlink_to("/dev/zero")
     with pytest.raises(EvaluationError, match=r"city.json: is a character device"):
         read_rows(tmp_path)
+
+
+def test_city_json_written_before_peak_agents_still_reads(tmp_path):
+    """Rows of an older city.json lack ``peak_agents``: read as NaN, the rest kept."""
+    from magail_sumo.evaluation.city import read_rows
+
+    row = {f: 0 for f in ROW_FIELDS if f != "peak_agents"}
+    row.update(scenario="cologne8", method="sumo", terminations={})
+    (tmp_path / "city.json").write_text(json.dumps([row]))
+    (got,), _ = read_rows(tmp_path)
+    assert math.isnan(got["peak_agents"]) and got["arrived"] == 0

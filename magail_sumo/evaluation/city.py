@@ -76,7 +76,9 @@ SUMMARY_FIELDS = tuple(f.name for f in fields(SumoRunSummary))
 #: columns of a ``city.json`` row: the scenario, method and window (SUMO time of day, s), every
 #: :class:`SumoRunSummary` field, then the policy's own counts (0 / {} for ``sumo``)
 ROW_FIELDS = ("scenario", "method", "begin_s", "end_s", "seed", *SUMMARY_FIELDS, "agents",
-              "agent_steps", "terminations", "removed")
+              "agent_steps", "terminations", "removed", "peak_agents")
+#: row fields that rows written before them lack (read as NaN)
+LATER_FIELDS = ("peak_agents",)
 CITY_FILE = "city.json"
 
 
@@ -146,6 +148,7 @@ class PolicyRun:
     :param begin_s, end_s: the window (SUMO time of day, s).
     :param agents: vehicles that were agents at some point.
     :param agent_steps: agent actions applied (agents × steps).
+    :param peak_agents: most agents alive at once.
     :param terminations: per :data:`EVENTS` event, agents it ended.
     :param completed: agents ended at their destination (their trips count as arrived).
     :param action_counts: the env's fixed-up actions (missing, unknown, non-finite, clipped).
@@ -163,6 +166,7 @@ class PolicyRun:
     action_counts: dict[str, int] = field(default_factory=dict)
     state: str | None = None
     fcd: tuple[str, str] | None = None
+    peak_agents: int = 0
 
 
 #: in a method's city folder: the ids of the agents that ended at their destination
@@ -237,15 +241,16 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     if state is not None:
         shutil.copyfile(state, job.state_copy)
     seen: set[str] = set()
-    agent_steps = 0
+    agent_steps = peak = 0
     ends = dict.fromkeys(EVENTS, 0)
     completed: list[str] = []
     began: list[float] = []
 
     def count(step) -> None:
-        nonlocal agent_steps
+        nonlocal agent_steps, peak
         seen.update(step.agents)
         agent_steps += len(step.agents)
+        peak = max(peak, len(step.agents))
         for a, done in step.terminations.items():
             reason = step.infos[a].get("reason")
             if done and reason in ends:
@@ -270,7 +275,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         files = env.write_fcd(inside(folder, f"{safe_name(env.scenario_id)}.fcd.xml"))
         fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
-                     job.state_copy if state is not None else None, fcd)
+                     job.state_copy if state is not None else None, fcd, peak)
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
@@ -294,7 +299,8 @@ def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRu
             "end_s": run.end_s, "seed": st.seed, **asdict(s),
             "agents": run.agents if policy else 0,
             "agent_steps": run.agent_steps if policy else 0,
-            "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING)}
+            "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING),
+            "peak_agents": run.peak_agents if policy else 0}
 
 
 @dataclass
@@ -432,7 +438,7 @@ def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
     for k, r in enumerate(data):
         if not isinstance(r, dict):
             raise EvaluationError(f"{path}: row {k}: expected an object")
-        missing = [f for f in ROW_FIELDS if f not in r]
+        missing = [f for f in ROW_FIELDS if f not in r and f not in LATER_FIELDS]
         if missing:
             raise EvaluationError(f"{path}: row {k}: missing field {missing[0]}")
         for f in ("scenario", "method"):
@@ -440,7 +446,7 @@ def read_rows(folder: str | Path) -> tuple[list[dict], Path]:
                 raise EvaluationError(f"{path}: row {k}: {f} must be a string")
         row = {f: r[f] for f in ("scenario", "method")}
         for f in ROW_FIELDS[2:]:
-            v = r[f]
+            v = r.get(f)
             if f == "terminations":
                 if not isinstance(v, dict) or not all(
                         isinstance(n, int) and not isinstance(n, bool) for n in v.values()):
