@@ -4,13 +4,16 @@ Runs ``magail-sumo evaluate --city`` (:func:`magail_sumo.evaluation.city.evaluat
 each policy on each city (the same window, warm-up and seed for every method), then prints per
 city and policy: trips completed against SUMO's drivers in the same window, vehicles taken out
 for a collision or leaving the road and red-light runs as shares of the learned trips (agents
-that drove in the window), mean travel time against SUMO's, and the most agents alive at once.
+that drove in the window), mean travel time against SUMO's, the most agents alive at once,
+and with ``--humans EXPERT_DIR`` the Jensen-Shannon divergence of the agents' and of SUMO's
+drivers' speed and 1-s acceleration distributions from the recorded humans'
+(:mod:`magail_sumo.evaluation.city_kinematics`).
 
 Usage (evaluate on cities the policies were not trained on)::
 
     python benchmarks/city_driving.py --policy runs/route_city/checkpoints/latest.pt \\
         --policy pretrained --city data/sumo/cologne8 --steps 6000 --warmup-s 600 \\
-        --max-agents 200 --out out/bench_city
+        --max-agents 200 --humans out/expert_womd14_route --out out/bench_city
 
 Each policy writes ``OUT/<n>/city.json`` (n: its position in ``--policy``); the table is
 printed from those rows, so ``--table-only`` reprints it without running anything.
@@ -32,7 +35,8 @@ def _share(n: float, d: float) -> float:
 def table(folders: list[Path]) -> list[str]:
     """The goal figures of every policy row of ``folders``' ``city.json``, as lines."""
     lines = [f"{'city':<14} {'policy':<34} {'trips':>6} {'sumo':>6} {'ratio':>6} "
-             f"{'removed':>8} {'red':>6} {'tt_ratio':>8} {'peak':>5} {'agents':>6}"]
+             f"{'removed':>8} {'red':>6} {'tt_ratio':>8} {'peak':>5} {'agents':>6} "
+             f"{'speedJS':>7} {'accJS':>6} {'sumo_speedJS':>12} {'sumo_accJS':>10}"]
     for folder in folders:
         rows, _ = read_rows(folder)
         sumo = {r["scenario"]: r for r in rows if r["method"] == SUMO_METHOD}
@@ -47,7 +51,11 @@ def table(folders: list[Path]) -> list[str]:
                 f"{_share(r['arrived'], s['arrived']):>6.2f} "
                 f"{_share(out, r['agents']):>8.1%} {_share(ends.get('red_light', 0), r['agents']):>6.1%} "
                 f"{_share(r['travel_time_s'], s['travel_time_s']):>8.2f} "
-                f"{r.get('peak_agents', math.nan):>5.0f} {r['agents']:>6}")
+                f"{r.get('peak_agents', math.nan):>5.0f} {r['agents']:>6} "
+                f"{r.get('speed_js_humans', math.nan):>7.3f} "
+                f"{r.get('accel_js_humans', math.nan):>6.3f} "
+                f"{s.get('speed_js_humans', math.nan):>12.3f} "
+                f"{s.get('accel_js_humans', math.nan):>10.3f}")
     return lines
 
 
@@ -61,6 +69,7 @@ def main() -> None:
     ap.add_argument("--warmup-s", type=float, default=600.0)
     ap.add_argument("--max-agents", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--humans", help="expert data of recorded humans (the JS columns)")
     ap.add_argument("--out", default="out/bench_city")
     ap.add_argument("--table-only", action="store_true", help="print the table of OUT only")
     args = ap.parse_args()
@@ -68,7 +77,7 @@ def main() -> None:
     folders = [out / str(i) for i in range(len(args.policy))]
     if not args.table_only:
         st = CitySettings(steps=args.steps, warmup_s=args.warmup_s, max_agents=args.max_agents,
-                          seed=args.seed, timeout_s=None)
+                          seed=args.seed, timeout_s=None, humans=args.humans)
         for spec, folder in zip(args.policy, folders):
             res = evaluate_city(spec, args.city, folder, st)
             for e in res.errors:
@@ -76,7 +85,8 @@ def main() -> None:
     print(f"window {args.steps / 10:g} s after a {args.warmup_s:g} s warm-up, at most "
           f"{args.max_agents} agents, seed {args.seed}; trips: completed in the window; removed:"
           " collision + off-road per learned trip; red: red-light runs per learned trip; "
-          "tt_ratio: mean travel time / SUMO's")
+          "tt_ratio: mean travel time / SUMO's; JS: bits from the recorded humans "
+          "(sumo_*: SUMO's drivers around the agents)")
     print("\n".join(table(folders)))
 
 

@@ -20,6 +20,7 @@ from magail_sumo.evaluation.traffic import summarise
 
 CFG = ROOT / "data" / "sumo" / "cologne8" / "cologne8.sumocfg"
 STEPS, WARMUP, SEED = 200, 60, 3
+HUMANS = "637f20cafde22ff8"
 
 
 class _Coast:
@@ -34,12 +35,21 @@ def coast(seed: int) -> _Coast:
 
 
 @pytest.fixture(scope="module")
-def city(tmp_path_factory):
+def humans(tmp_path_factory, bundled_networks):
+    """Expert data of the recorded humans of one bundled real scene."""
+    out = tmp_path_factory.mktemp("humans") / "expert"
+    assert main(["expert", str(WOMD_DIR / f"{HUMANS}.tfrecord"), "--out", str(out),
+                 "--networks", str(bundled_networks(HUMANS))]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def city(tmp_path_factory, humans):
     out = tmp_path_factory.mktemp("city")
     rc = main(["evaluate", "--policy", f"{__name__}:coast", "--city", str(CFG),
                "--city-steps", str(STEPS), "--city-warmup-s", str(WARMUP),
                "--city-max-agents", "6", "--seed", str(SEED), "--fcd-rollouts", "1",
-               "--out", str(out)])
+               "--city-humans", str(humans), "--out", str(out)])
     assert rc == 0
     assert main(["report", str(out), "--workers", "1"]) == 0
     return out
@@ -254,3 +264,43 @@ def test_city_json_written_before_peak_agents_still_reads(tmp_path):
     (tmp_path / "city.json").write_text(json.dumps([row]))
     (got,), _ = read_rows(tmp_path)
     assert math.isnan(got["peak_agents"]) and got["arrived"] == 0
+
+
+@pytest.mark.sumo
+def test_speed_and_acceleration_against_recorded_humans(city, humans):
+    """Both rows compare their drivers' speed and 1-s acceleration distributions with the
+    recorded humans'; kinematics.json holds the counts: the agents' samples are their
+    agent-steps, SUMO's drivers' those of the cars around them, the humans' the expert's."""
+    from magail_sumo.evaluation.city_kinematics import human_counts, js
+
+    rows = {r["method"]: r for r in json.loads((city / "city.json").read_text())}
+    kin = json.loads((city / "city" / "cologne8" / "kinematics.json").read_text())
+    assert set(kin["methods"]) == {"coast", "sumo"}
+    assert kin["humans"]["speed"] == human_counts(humans)["speed"]
+    assert sum(kin["humans"]["speed"]) == kin["humans"]["transitions"] > 1000
+    agents = kin["methods"]["coast"]
+    # the agents after each step: those that acted, less those that left, plus the joiners
+    assert abs(sum(agents["speed"]) - rows["coast"]["agent_steps"]) <= rows["coast"]["agents"]
+    assert 0 < sum(agents["accel"]) < sum(agents["speed"])  # 1 s of history needed
+    assert sum(kin["methods"]["sumo"]["speed"]) > sum(agents["speed"])
+    for method, r in rows.items():
+        want = js(kin["methods"][method], kin["humans"])
+        assert r["speed_js_humans"] == pytest.approx(want["speed"])
+        assert r["accel_js_humans"] == pytest.approx(want["accel"])
+        assert 0.0 < r["speed_js_humans"] < 1.0 and 0.0 < r["accel_js_humans"] < 1.0
+    # coasting agents keep their speed: far narrower accelerations than SUMO's drivers
+    assert rows["coast"]["accel_js_humans"] != rows["sumo"]["accel_js_humans"]
+
+
+def test_kinematics_group_accelerations_over_one_second():
+    """A vehicle gaining 1.25 m/s per second, sampled every 0.1 s: every acceleration sample
+    is 1.25 m/s² once a second of its history is known; a vehicle seen only now has none."""
+    from magail_sumo.evaluation.city_kinematics import Group
+    from magail_sumo.evaluation.traffic.distributions import BINS
+
+    g = Group(0.1)
+    for k in range(30):
+        g.add(["a"] + (["b"] if k == 29 else []), np.array([5.0 + 0.125 * k] + [3.0] * (k == 29)))
+    lo, hi, n = BINS["linear_acceleration"]
+    assert sum(g.counts["speed"]) == 31 and sum(g.counts["accel"]) == 20
+    assert g.counts["accel"][int((1.25 - lo) / (hi - lo) * n)] == 20

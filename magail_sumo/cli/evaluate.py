@@ -54,6 +54,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="SUMO vehicle classes that may become agents (default passenger: "
                         "buses, trams, trucks, bicycles and every vehicle with stops stay "
                         "SUMO-driven)")
+    p.add_argument("--city-humans", metavar="EXPERT_DIR",
+                   help="expert data of recorded human drivers (magail-sumo expert's --out): "
+                        "city rows then give the JS divergence of the agents' and SUMO's "
+                        "drivers' speed and acceleration distributions from the humans' "
+                        "(DIR/city/<city>/kinematics.json holds the counts)")
     p.add_argument("--rollouts", type=int, default=32, metavar="R", help="rollouts per scene")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--baselines", default="logreplay,constvel,sumo", metavar="LIST",
@@ -105,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                             control_fraction=args.city_control_fraction, seed=args.seed,
                             agent_classes=tuple(c.strip() for c in
                                                 args.city_agent_classes.split(",") if c.strip()),
-                            fcd=args.fcd_rollouts > 0,
+                            fcd=args.fcd_rollouts > 0, humans=args.city_humans,
                             deterministic=args.deterministic, noise_scale=args.noise_scale,
                             timeout_s=args.timeout_s)
         for f in args.city:

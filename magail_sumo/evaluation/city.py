@@ -56,6 +56,8 @@ from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, EvaluationError, log, rollout_seed
 from magail_sumo.evaluation.storage import previous_manifest, versions
+from magail_sumo.evaluation.city_kinematics import ACCEL_WINDOW_S, FEATURES, Group, human_counts, js
+from magail_sumo.evaluation.traffic.distributions import BINS
 from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSummary,
                                                          output_args, run_sumo_outputs,
                                                          summarise)
@@ -76,9 +78,13 @@ SUMMARY_FIELDS = tuple(f.name for f in fields(SumoRunSummary))
 #: columns of a ``city.json`` row: the scenario, method and window (SUMO time of day, s), every
 #: :class:`SumoRunSummary` field, then the policy's own counts (0 / {} for ``sumo``)
 ROW_FIELDS = ("scenario", "method", "begin_s", "end_s", "seed", *SUMMARY_FIELDS, "agents",
-              "agent_steps", "terminations", "removed", "peak_agents")
+              "agent_steps", "terminations", "removed", "peak_agents", "speed_js_humans",
+              "accel_js_humans")
 #: row fields that rows written before them lack (read as NaN)
-LATER_FIELDS = ("peak_agents",)
+LATER_FIELDS = ("peak_agents", "speed_js_humans", "accel_js_humans")
+#: in a scenario's city folder: the speed / acceleration counts of agents, SUMO's drivers and
+#: the recorded humans (:mod:`~magail_sumo.evaluation.city_kinematics`)
+KINEMATICS_FILE = "kinematics.json"
 CITY_FILE = "city.json"
 
 
@@ -100,6 +106,10 @@ class CitySettings:
         vehicle with stops, stay SUMO-driven).
     :param fcd: record the policy's run as SUMO FCD (``city/<scenario>/<method>/fcd/``) with a
         ``.sumocfg`` that replays it in ``sumo-gui`` on the city's network.
+    :param humans: expert data of recorded humans (``magail-sumo expert``'s folder): the
+        rows' ``speed_js_humans`` / ``accel_js_humans`` compare the agents' and SUMO's drivers'
+        distributions with theirs (:mod:`~magail_sumo.evaluation.city_kinematics`; None:
+        NaN).
     """
 
     steps: int = 3000
@@ -112,6 +122,7 @@ class CitySettings:
     timeout_s: float | None = DEFAULT_TIMEOUT_S
     agent_classes: tuple[str, ...] = ("passenger",)
     fcd: bool = False
+    humans: str | None = None
 
     def __post_init__(self) -> None:
         bad = sorted(set(self.agent_classes) - set(VEHICLE_CLASSES))
@@ -155,6 +166,9 @@ class PolicyRun:
     :param state: the saved warm state (None: no warm-up).
     :param fcd: the run's SUMO FCD file and the ``.sumocfg`` that replays it in ``sumo-gui``,
         or None when not recorded.
+    :param kinematics: speed / acceleration counts of the agents (``"agents"``) and of SUMO's
+        drivers around them (``"sumo"``), :class:`~magail_sumo.evaluation.city_kinematics.
+        Group` ``as_json``.
     """
 
     begin_s: float
@@ -167,6 +181,7 @@ class PolicyRun:
     state: str | None = None
     fcd: tuple[str, str] | None = None
     peak_agents: int = 0
+    kinematics: dict = field(default_factory=dict)
 
 
 #: in a method's city folder: the ids of the agents that ended at their destination
@@ -242,6 +257,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         shutil.copyfile(state, job.state_copy)
     seen: set[str] = set()
     agent_steps = peak = 0
+    drivers = {"agents": Group(env.dt), "sumo": Group(env.dt)}
     ends = dict.fromkeys(EVENTS, 0)
     completed: list[str] = []
     began: list[float] = []
@@ -251,6 +267,10 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         seen.update(step.agents)
         agent_steps += len(step.agents)
         peak = max(peak, len(step.agents))
+        f = env.fleet
+        live = f.live()
+        drivers["agents"].add(f.names_of(live), f.speed[live])
+        drivers["sumo"].add(*env.sumo_drivers())
         for a, done in step.terminations.items():
             reason = step.infos[a].get("reason")
             if done and reason in ends:
@@ -275,7 +295,8 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         files = env.write_fcd(inside(folder, f"{safe_name(env.scenario_id)}.fcd.xml"))
         fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
-                     job.state_copy if state is not None else None, fcd, peak)
+                     job.state_copy if state is not None else None, fcd, peak,
+                     {k: g.as_json() for k, g in drivers.items()})
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
@@ -293,14 +314,17 @@ def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
 
 
 def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRunSummary,
-         policy: bool) -> dict:
+         policy: bool, humans: dict | None) -> dict:
     ends = run.terminations if policy else {}
+    group = run.kinematics.get("agents" if policy else "sumo")
+    dist = js(group, humans) if group else {"speed": math.nan, "accel": math.nan}
     return {"scenario": scenario, "method": method, "begin_s": run.begin_s,
             "end_s": run.end_s, "seed": st.seed, **asdict(s),
             "agents": run.agents if policy else 0,
             "agent_steps": run.agent_steps if policy else 0,
             "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING),
-            "peak_agents": run.peak_agents if policy else 0}
+            "peak_agents": run.peak_agents if policy else 0,
+            "speed_js_humans": dist["speed"], "accel_js_humans": dist["accel"]}
 
 
 @dataclass
@@ -346,6 +370,7 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
             log(f"city {printable(sid)}: not given to SUMO from its configuration: "
                 + printable("; ".join(dropped[sid]), 600))
         cfgs[sid] = path
+    humans = _humans(st.humans)
     claim_output_dir(out, "evaluate", ["manifest.json", "city", CITY_FILE])
     rows: list[dict] = []
     errors: list[str] = []
@@ -382,8 +407,14 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
             errors.append(one_line(exc, 600))
             log(f"error: {errors[-1]}")
             continue
-        rows += [_row(sid, method, run, st, mine_sum, True),
-                 _row(sid, SUMO_METHOD, run, st, sumo_sum, False)]
+        rows += [_row(sid, method, run, st, mine_sum, True, humans),
+                 _row(sid, SUMO_METHOD, run, st, sumo_sum, False, humans)]
+        write_text(inside(base, KINEMATICS_FILE), json.dumps(
+            {"bins": {name: BINS[f] for f, name in FEATURES}, "methods": {
+                method: run.kinematics.get("agents"), SUMO_METHOD: run.kinematics.get("sumo")},
+             "humans": humans,
+             "note": f"{SUMO_METHOD}: the vehicles SUMO drove around the agents in the "
+                     f"{method} run; accel: speed change over {ACCEL_WINDOW_S:g} s"}))
         windows[sid] = {"scenario": sid, "sumocfg": str(cfg.resolve()), "begin_s": run.begin_s,
                         "end_s": run.end_s, "action_fixes": run.action_counts,
                         "sumo_options_dropped": list(dropped[sid])}
@@ -395,6 +426,16 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
         write_rows(out, rows)
         _record(out, policy, method, st, windows)
     return CityResult(rows, errors)
+
+
+def _humans(expert_dir: str | None) -> dict | None:
+    """The recorded humans' counts (None without ``expert_dir``); one line when unusable."""
+    if expert_dir is None:
+        return None
+    try:
+        return human_counts(expert_dir)
+    except MagailSumoError as exc:
+        raise EvaluationError(f"--city-humans: {one_line(exc, 300)}") from None
 
 
 # ------------------------------------------------------------------------------ city.json

@@ -180,6 +180,8 @@ class ExpertDataset:
         if action_layout != "accel_steer" and len(prev) == 2:
             for arr in (self.s, self.s_next):
                 arr[:, prev] = relayout(arr[:, prev], action_layout)
+        #: (N,) float32 physical acceleration of each transition (m/s², inverse dynamics)
+        self.accel = table.column("accel").to_numpy().astype(np.float32)[order]
         self.done = table.column("done").to_numpy(zero_copy_only=False)[order]
         self.scene = scene_code[order]
         self.step = step[order]

@@ -22,12 +22,17 @@ BINS: dict[str, tuple[float, float, int]] = {
 }
 
 
-def histogram(values: np.ndarray, feature: str) -> np.ndarray:
-    """Normalised histogram of ``values`` on the feature's bins (end bins take the outliers)."""
+def counts(values: np.ndarray, feature: str) -> np.ndarray:
+    """(bins,) int64 counts of ``values`` on the feature's bins (end bins take the outliers)."""
     lo, hi, n = BINS[feature]
     edges = np.linspace(lo, hi, n + 1)
     idx = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, n - 1)
-    h = np.bincount(idx, minlength=n).astype(np.float64)
+    return np.bincount(idx, minlength=n).astype(np.int64)
+
+
+def histogram(values: np.ndarray, feature: str) -> np.ndarray:
+    """Normalised histogram of ``values`` on the feature's bins (end bins take the outliers)."""
+    h = counts(values, feature).astype(np.float64)
     return h / max(h.sum(), 1.0)
 
 
