@@ -157,11 +157,14 @@ def test_report_city_table(city):
     table = table[:table.index("</table>")]
     assert "<td>coast</td>" in table and "<td>sumo</td>" in table
     assert "travel time (s)" in table and "agent off road" in table
+    assert "peak agents" in table and "acceleration JS" in table
     assert "Metrics against the baselines" not in html  # no recorded scenes here
-    # one figure per city (vehicles over time, travel times, speeds), PNG inlined, SVG beside
+    # per city: vehicles over time, travel times, speeds; and its drivers' kinematics against
+    # the recorded humans; PNG inlined, SVG beside
     assert html.count('<img alt="vehicles over time, travel times and speeds of city') == 1
+    assert html.count('<img alt="speed and acceleration of city cologne8') == 1
     assert "data:image/png;base64" in html
-    assert sorted(p.suffix for p in (rep / "img").iterdir()) == [".png", ".svg"]
+    assert sorted(p.suffix for p in (rep / "img").iterdir()) == [".png", ".png", ".svg", ".svg"]
     from magail_sumo.evaluation.city import completed_ids
     from magail_sumo.evaluation.traffic.sumo_outputs import run_distributions
 

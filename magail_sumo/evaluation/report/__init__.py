@@ -20,11 +20,15 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.city import EVENTS as CITY_EVENTS, completed_ids, read_rows
+from magail_sumo.evaluation.city import (EVENTS as CITY_EVENTS, KINEMATICS_FILE, completed_ids,
+                                         read_rows)
+from magail_sumo.evaluation.protocol import EvaluationError
+from magail_sumo.inputs import read_json
 from magail_sumo.evaluation.traffic import METRICS
 from magail_sumo.evaluation.traffic.sumo_outputs import run_distributions
 from magail_sumo.outputs import (OutputError, atomic_write, claim_output_dir, inside, printable,
@@ -108,7 +112,7 @@ def build_report(folder: str | Path, out: str | Path | None = None,
     if sc.scenes or sc.methods or not city_rows:
         _scene_sections(doc, sc, means, cis, units, man)
     if city_rows:
-        _city_section(doc, city_rows, man, folder)
+        _city_section(doc, city_rows, man, folder, sc.errors)
     if sc.errors:
         doc.heading("Problems")
         doc.errors(sc.errors)
@@ -249,7 +253,8 @@ def _view(sc: Scores, sid: str) -> SceneView:
 #: ``city.json`` fields in the city table and ``city.csv`` (then the terminations per event)
 CITY_COLUMNS = ["scenario", "method", "begin_s", "end_s", "arrived", "travel_time_s",
                 "waiting_time_s", "time_loss_s", "throughput_veh_h", "mean_edge_speed_mps",
-                "teleports", "collisions", "agents", "agent_steps", "removed"]
+                "teleports", "collisions", "agents", "agent_steps", "removed", "peak_agents",
+                "speed_js_humans", "accel_js_humans"]
 
 
 def _city_rows(folder: Path, errors: list[str]) -> list[dict]:
@@ -262,14 +267,33 @@ def _city_rows(folder: Path, errors: list[str]) -> list[dict]:
         return []
 
 
+def _kinematics(folder: Path, scenario: str, errors: list[str]) -> dict | None:
+    """The scenario's ``kinematics.json`` (None when there is none); unreadable: one error
+    line and None."""
+    try:
+        path = inside(folder, "city", safe_name(scenario), KINEMATICS_FILE)
+        if not os.path.lexists(path):
+            return None
+        kin = read_json(path, expected="a kinematics.json")
+        if not isinstance(kin, dict) or not isinstance(kin.get("bins"), dict):
+            raise EvaluationError(f"{path}: expected an object with bins")
+        return kin
+    except (MagailSumoError, OutputError) as exc:
+        errors.append(" ".join(str(exc).split()))
+        return None
+
+
 def _count(v: float | int) -> int | float:
     """A count for a table cell (NaN stays NaN: shown as n/a)."""
     return int(v) if math.isfinite(v) else float("nan")
 
 
-def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path) -> None:
+def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path,
+                  errors: list[str]) -> None:
     """The "City scenarios (SUMO outputs)" table: per scenario, each method's SUMO figures;
-    then per scenario a figure of the methods' runs (:func:`.figures.city_figure`)."""
+    then per scenario a figure of the methods' runs (:func:`.figures.city_figure`) and one of
+    their drivers' speeds and accelerations against recorded humans
+    (:func:`.figures.kinematics_figure`, when the run measured them)."""
     city = man.get("city") if isinstance(man.get("city"), dict) else {}
     policies = ", ".join(dict.fromkeys(printable(r["method"], 40) for r in rows
                                        if r["method"] != "sumo"))
@@ -283,15 +307,19 @@ def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path) -> N
              "window (from tripinfo; agents taken out by a collision, off-road or red-light "
              "event count as removed, not arrived); mean speed from edgeData; teleports and "
              "collisions from SUMO's statistics; agent collisions, off-road, red light and "
-             "destination are the env's events ending agents.")
+             "destination are the env's events ending agents. Speed / acceleration JS: "
+             "Jensen-Shannon divergence (bits) of the drivers' speed and 1-s acceleration "
+             "distributions from recorded humans' (evaluate --city-humans); for sumo, the "
+             "cars SUMO drove around the agents in the policy's run.")
     header = ["scenario", "method", "window (s)", "arrived", "travel time (s)",
               "waiting time (s)", "time loss (s)", "throughput (veh/h)", "mean speed (m/s)",
-              "teleports", "collisions", "agents", "agent-steps", "removed",
-              *(f"agent {e.replace('_', ' ')}" for e in CITY_EVENTS)]
+              "teleports", "collisions", "agents", "agent-steps", "removed", "peak agents",
+              *(f"agent {e.replace('_', ' ')}" for e in CITY_EVENTS), "speed JS",
+              "acceleration JS"]
     body = []
     for r in sorted(rows, key=lambda r: (r["scenario"], r["method"] == "sumo", r["method"])):
         mine = r["method"] != "sumo"  # the policy's own counts
-        own = [_count(r[f]) for f in ("agents", "agent_steps", "removed")] + \
+        own = [_count(r[f]) for f in ("agents", "agent_steps", "removed", "peak_agents")] + \
             [_count(r["terminations"].get(e, 0)) for e in CITY_EVENTS]
         body.append([printable(r["scenario"], 40), printable(r["method"], 40),
                      "-".join(f"{r[f]:.1f}" if math.isfinite(r[f]) else "n/a"
@@ -299,7 +327,8 @@ def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path) -> N
                      _count(r["arrived"]), r["travel_time_s"], r["waiting_time_s"],
                      r["time_loss_s"], r["throughput_veh_h"], r["mean_edge_speed_mps"],
                      _count(r["teleports"]), _count(r["collisions"]),
-                     *(own if mine else [""] * len(own))])
+                     *(own if mine else [""] * len(own)), r["speed_js_humans"],
+                     r["accel_js_humans"]])
     doc.table(header, body, "city")
     for scenario in dict.fromkeys(r["scenario"] for r in rows):
         runs = {}
@@ -314,3 +343,9 @@ def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path) -> N
         if any(v["travel_time_s"].size or v["time_s"].size for v in runs.values()):
             doc.image(figures.city_figure(runs, scenario), f"city_{safe_name(scenario)}",
                       f"vehicles over time, travel times and speeds of city {scenario}")
+        kin = _kinematics(folder, scenario, errors)
+        if kin is not None:
+            doc.image(figures.kinematics_figure(kin, scenario),
+                      f"city_{safe_name(scenario)}_kinematics",
+                      f"speed and acceleration of city {scenario}'s drivers against recorded "
+                      "humans")

@@ -252,3 +252,32 @@ def city_figure(runs: dict[str, dict], scenario: str) -> Figure:
     fig.suptitle(f"city {printable(scenario, 60)}", fontsize=10)
     fig.tight_layout()
     return _figure(fig)
+
+
+def kinematics_figure(kin: dict, scenario: str) -> Figure:
+    """One city scenario's speed and 1-s acceleration distributions: the recorded humans
+    (black), each method's drivers (SUMO's grey); ``kin``: its ``kinematics.json``
+    (:mod:`~magail_sumo.evaluation.city_kinematics`)."""
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.0), squeeze=False)
+    groups = dict(kin.get("methods") or {})
+    if kin.get("humans"):
+        groups = {"recorded humans": kin["humans"], **groups}
+    for ax, (name, unit) in zip(axes[0], (("speed", "m/s"), ("accel", "m/s²"))):
+        lo, hi, n = kin["bins"][name]
+        edges = np.linspace(lo, hi, n + 1)
+        for k, (m, g) in enumerate(groups.items()):
+            c = np.asarray((g or {}).get(name, []), np.float64)
+            if c.size != n or c.sum() <= 0:
+                continue
+            color = "#000000" if m == "recorded humans" else \
+                "#999999" if m == "sumo" else COLORS[k % len(COLORS)]
+            ax.stairs(c / c.sum(), edges, color=color, lw=1.3, label=printable(m, 30))
+        ax.set_title(f"{'speed' if name == 'speed' else 'acceleration over 1 s'}", fontsize=9)
+        ax.set_xlabel(unit, fontsize=8)
+        ax.set_ylabel("share of samples", fontsize=8)
+        ax.tick_params(labelsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+    fig.suptitle(f"city {printable(scenario, 60)}: drivers against recorded humans", fontsize=10)
+    fig.tight_layout()
+    return _figure(fig)
