@@ -6,7 +6,9 @@ Four guarantees every command relies on (README, "Security and robustness"):
 * **Names from data are file names, never paths.** :func:`safe_name` maps a scenario id (or any
   string from an input file) to a name of at most :data:`MAX_NAME` characters drawn from
   ``[A-Za-z0-9._-]`` that does not start with ``.``. An id that already is such a name maps to
-  itself (every real WOMD id does), so existing outputs keep their names. Any other id maps to
+  itself (every real WOMD id does), so existing outputs keep their names, unless it could be
+  taken for a file or folder the tool writes beside it (``summary.csv``, ``report``: see
+  :data:`TOOL_SUFFIXES`, :data:`TOOL_FOLDERS`). Any other id maps to
   its safe characters (others become ``_``, leading dots dropped, cut to 48 characters) plus
   ``-`` and the first 12 hex digits of the SHA-256 of the id's UTF-8 bytes: distinct ids give
   distinct names, and :class:`NameRegistry` detects the (astronomically unlikely) collision. The
@@ -99,9 +101,20 @@ def is_safe_name(name: str) -> bool:
             and not name.startswith("."))
 
 
+#: name endings of files the commands write beside the ones named after data (a scenario id
+#: ending so, e.g. ``summary.csv``, would take the place of the tool's own file)
+TOOL_SUFFIXES = (".csv", ".json", ".yaml", ".yml", ".md", ".tsv", ".html", ".txt", ".log")
+#: folders the commands make beside the ones named after data
+TOOL_FOLDERS = frozenset({"report", "city", "rollouts", "fcd", "scenes", "networks", "img",
+                          "checkpoints", "tb", "expert", "eval", "train", "seed0"})
+
+
 def safe_name(name: str) -> str:
-    """A file name for ``name`` (see the module doc for the mapping)."""
-    if is_safe_name(name):
+    """A file name for ``name`` (see the module doc for the mapping): ``name`` itself when it
+    is safe and cannot be taken for a file or folder the tool writes beside it
+    (:data:`TOOL_SUFFIXES`, :data:`TOOL_FOLDERS`), else its safe characters plus a digest."""
+    low = name.lower()
+    if is_safe_name(name) and not low.endswith(TOOL_SUFFIXES) and low not in TOOL_FOLDERS:
         return name
     stem = _UNSAFE_CHAR.sub("_", name).lstrip(".")[:48]
     return f"{stem or '_'}-{_digest(name)}"

@@ -659,3 +659,39 @@ def test_full_disk_names_the_file_being_written(tmp_path):
             write_bytes(mnt / "big.bin", b"x" * (1 << 20))
         assert e.value.errno == errno.ENOSPC and e.value.filename == str(mnt / "big.bin")
         assert os.listdir(mnt) == []
+
+
+def test_ids_that_look_like_the_tools_own_files_get_a_digest():
+    """A scenario id named like a file or folder the tool writes beside the scenes' outputs
+    (``summary.csv``, ``report``) is not used as is: it would take that file's place."""
+    from magail_sumo.outputs import safe_name
+
+    for sid in ("summary.csv", "SUMMARY.CSV", "manifest.json", "report", "city", "x.yaml"):
+        name = safe_name(sid)
+        assert name.startswith(f"{sid}-") and len(name) == len(sid) + 13
+    assert safe_name("637f20cafde22ff8") == "637f20cafde22ff8"
+    assert safe_name("scene-0061") == "scene-0061"
+
+
+@pytest.mark.sumo
+def test_a_scene_named_summary_csv_converts_beside_the_summary(tmp_path):
+    """Real WOMD scenes renamed ``summary.csv`` and two others convert in one batch: three
+    bundles and convert's own summary, nothing in each other's place."""
+    from converters.tfrecord import iter_records, write_records
+    from converters.womd.protos import scenario_pb2 as pb
+    from magail_sumo.cli.main import main
+
+    raw = next(d for _, d in iter_records(ROOT / "data" / "womd" / "850c48d8bbfa008f.tfrecord"))
+
+    def renamed(sid: str) -> bytes:
+        s = pb.Scenario()
+        s.ParseFromString(raw)
+        s.scenario_id = sid
+        return s.SerializeToString()
+
+    write_records(tmp_path / "batch.tfrecord", [renamed(s) for s in ("a1", "summary.csv")])
+    assert main(["convert", str(tmp_path / "batch.tfrecord"), "--out", str(tmp_path / "cv"),
+                 "--no-baseline"]) == 0
+    cv = tmp_path / "cv"
+    assert (cv / "summary.csv").is_file() and (cv / "a1").is_dir()
+    assert [p.name for p in cv.iterdir() if p.name.startswith("summary.csv-")]

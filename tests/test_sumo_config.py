@@ -367,3 +367,65 @@ def test_a_gzip_bomb_route_file_is_refused_at_the_cap(tmp_path, monkeypatch):
     bomb.write_bytes(gzip.compress(b"<routes>" + b" " * (4 << 20) + b"</routes>"))
     with pytest.raises(SumoConfigError, match=r"bomb.rou.xml.gz: unpacks to more than"):
         sumo_config._scan(bomb, lambda *a: None)
+
+
+def test_an_include_bomb_is_refused_quickly(tmp_path):
+    """Files including the next level 8 times each, 8 levels deep (a kilobyte in all, 8^8
+    reads expanded): refused at the include budget within a second, in a route file and in an
+    additional file alike."""
+    from magail_sumo.sim.sumo_config import MAX_INCLUDED_FILES
+
+    for i in range(8):
+        (tmp_path / f"R{i}.rou.xml").write_text(
+            "<routes>" + f'<include href="R{i + 1}.rou.xml"/>' * 8 + "</routes>")
+        (tmp_path / f"L{i}.add.xml").write_text(
+            "<additional>" + f'<include href="L{i + 1}.add.xml"/>' * 8 + "</additional>")
+    (tmp_path / "R8.rou.xml").write_text('<routes><vType id="t"/></routes>')
+    (tmp_path / "L8.add.xml").write_text('<additional><edgeData id="e" file="x.xml"/>'
+                                          "</additional>")
+    net = ROOT / "networks" / SID / f"{SID}.net.xml"
+    start = time.perf_counter()
+    with pytest.raises(SumoConfigError, match=rf"R0.rou.xml: includes more than "
+                                              rf"{MAX_INCLUDED_FILES} files"):
+        check_demand([tmp_path / "R0.rou.xml"])
+    cfg = tmp_path / "a.sumocfg"
+    cfg.write_text(f'<configuration><net-file value="{net}"/>'
+                   '<additional-files value="L0.add.xml"/></configuration>')
+    with pytest.raises(SumoConfigError, match=r"L0.add.xml: includes more than"):
+        read_config(cfg)
+    assert time.perf_counter() - start < 5.0
+    # a file included a few times over is fine
+    (tmp_path / "ok.rou.xml").write_text("<routes>" + '<include href="R8.rou.xml"/>' * 20
+                                         + "</routes>")
+    check_demand([tmp_path / "ok.rou.xml"])
+
+
+def test_files_sumo_reads_are_checked_with_their_includes(tmp_path):
+    """A weight file and a variable speed sign's file are read by SUMO, includes and all: an
+    include of a FIFO there is refused in one line naming it (SUMO would block on it); a
+    corrupt gzipped route file is one line naming that file."""
+    import gzip
+
+    net = ROOT / "networks" / SID / f"{SID}.net.xml"
+    os.mkfifo(tmp_path / "f")
+    (tmp_path / "w.xml").write_text('<meandata><include href="f"/></meandata>')
+    cfg = tmp_path / "w.sumocfg"
+    cfg.write_text(f'<configuration><net-file value="{net}"/>'
+                   '<weight-files value="w.xml"/></configuration>')
+    with pytest.raises(SumoConfigError, match=r"w.xml: include f: is a FIFO"):
+        read_config(cfg)
+    lane = next(iter(_lanes(net)))
+    (tmp_path / "v.xml").write_text('<vss><include href="f"/></vss>')
+    (tmp_path / "a.add.xml").write_text(
+        f'<additional><variableSpeedSign id="v" lanes="{lane}" file="v.xml"/></additional>')
+    cfg.write_text(f'<configuration><net-file value="{net}"/>'
+                   '<additional-files value="a.add.xml"/></configuration>')
+    with pytest.raises(SumoConfigError, match=r"v.xml: include f: is a FIFO"):
+        read_config(cfg)
+    bad = tmp_path / "r.rou.xml.gz"
+    bad.write_bytes(gzip.compress(b"<routes>" + b"<vType id='t'/>" * 999 + b"</routes>")[:-40]
+                    + b"garbage")
+    cfg.write_text(f'<configuration><net-file value="{net}"/>'
+                   '<route-files value="r.rou.xml.gz"/></configuration>')
+    with pytest.raises(SumoConfigError, match=r"r.rou.xml.gz: cannot read"):
+        read_config(cfg)

@@ -92,3 +92,28 @@ def test_a_worker_stopped_while_it_starts_is_killed_at_its_timeout():
     finally:
         stop.set()
     assert kinds == ["timeout", "timeout"] and time.monotonic() - t0 < 30
+
+
+def test_a_worker_error_is_one_line_its_traceback_kept_for_debug(capsys):
+    """A scene worker's error reaches the user as its one line; the worker's traceback is kept
+    on the exception and printed by the CLI only with --debug."""
+    import pytest
+
+    from magail_sumo.cli.main import _worker_tracebacks
+    from magail_sumo.env.transport import WorkerFailed, serve
+
+    def broken():
+        raise RuntimeError("SUMO failed to start: Process Error")
+
+    status, payload = serve(broken, (), "hello", None, {})
+    assert status == "error"
+    exc = WorkerFailed.of("scene a#0", payload)
+    assert str(exc) == "scene a#0: worker failed: RuntimeError: SUMO failed to start: Process Error"
+    assert "Traceback (most recent call last)" in exc.worker_traceback
+    with pytest.raises(RuntimeError) as info:
+        try:
+            raise exc
+        except WorkerFailed:
+            raise RuntimeError("every scene of this worker failed")
+    _worker_tracebacks(info.value)
+    assert "in the worker:\nTraceback" in capsys.readouterr().err

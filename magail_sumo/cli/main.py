@@ -63,6 +63,17 @@ def error_line(args: argparse.Namespace, exc: BaseException) -> str:
     return f"error: magail-sumo {args.command}: {printable(text, 1000)}"
 
 
+def _worker_tracebacks(exc: BaseException) -> None:
+    """Print the tracebacks of worker processes behind ``exc`` (its cause / context chain)."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        tb = getattr(exc, "worker_traceback", "")
+        if tb:
+            print(f"in the worker:\n{tb}", file=sys.stderr)
+        exc = exc.__cause__ or exc.__context__
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -73,6 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - the one top-level handler
         if getattr(args, "debug", False):
             traceback.print_exc()
+            _worker_tracebacks(exc)
         print(error_line(args, exc), file=sys.stderr)
         if not isinstance(exc, MagailSumoError) and not getattr(args, "debug", False):
             print("(run with --debug for the traceback)", file=sys.stderr)

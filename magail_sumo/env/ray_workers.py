@@ -297,7 +297,7 @@ class RayWorker(WorkerHandle):
             raise WorkerLost(f"{self.name}: Ray actor lost ({type(exc).__name__}: "
                              f"{' '.join(str(exc).split())[:200]})") from None
         if status != "ok":
-            raise WorkerFailed(f"{self.name}: worker failed: {payload}")
+            raise WorkerFailed.of(self.name, payload)
         return payload
 
     def kill(self) -> None:

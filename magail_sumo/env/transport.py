@@ -41,7 +41,20 @@ class WorkerLost(MagailSumoError):
 
 
 class WorkerFailed(MagailSumoError):
-    """A worker answered a request with an error."""
+    """A worker answered a request with an error: the message is the error's one line, the
+    worker's traceback is kept in :attr:`worker_traceback` (printed with ``--debug``)."""
+
+    def __init__(self, message: str, worker_traceback: str = "") -> None:
+        super().__init__(message)
+        self.worker_traceback = worker_traceback
+
+    @classmethod
+    def of(cls, name: str, payload: object) -> "WorkerFailed":
+        """The failure of worker ``name`` from its ``serve`` error ``payload`` (the error's
+        line, then its traceback)."""
+        text = str(payload)
+        line, _, rest = text.partition("\n")
+        return cls(f"{name}: worker failed: {line}", rest)
 
 
 def backend_class(name: str) -> type["WorkerHandle"]:
@@ -216,7 +229,7 @@ class ProcessWorker(WorkerHandle):
             self.kill()
             raise WorkerLost(f"{self.name}: worker process died (exit code {code})") from None
         if status != "ok":
-            raise WorkerFailed(f"{self.name}: worker failed: {payload}")
+            raise WorkerFailed.of(self.name, payload)
         return payload
 
     def kill(self) -> None:

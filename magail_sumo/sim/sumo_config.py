@@ -42,6 +42,7 @@ The option table (:data:`OPTIONS`: section, type, synonyms of every option of th
 from __future__ import annotations
 
 import gzip
+import zlib
 import io
 import json
 import re
@@ -85,9 +86,26 @@ CONFIG_LIMIT = 16 * MiB
 ADDITIONAL_LIMIT = 1 * GiB
 #: include depth of additional files
 MAX_INCLUDE_DEPTH = 8
+#: the most files one input may pull in through includes (all levels): a few kilobytes of
+#: files including each other several times per level would otherwise be read millions of
+#: times (an include bomb)
+MAX_INCLUDED_FILES = 512
 #: the most a streamed SUMO input (routes, a saved state, a network) may unpack to: a city's
 #: demand is hundreds of MB; a gzip bomb is refused at this point, not read to the end
 STREAM_LIMIT = 4 * GiB
+
+
+class _Includes:
+    """The include budget of one input file's scan (:data:`MAX_INCLUDED_FILES`)."""
+
+    def __init__(self, top: Path) -> None:
+        self.top, self.left = top, MAX_INCLUDED_FILES
+
+    def take(self, path: Path) -> None:
+        self.left -= 1
+        if self.left < 0:
+            raise SumoConfigError(f"{self.top}: includes more than {MAX_INCLUDED_FILES} files "
+                                  f"(counting repeats; the last: {path})")
 
 
 class _Capped:
@@ -129,7 +147,7 @@ def is_sumo_config(path: str | PathLike) -> bool:
             head = fh.read(4096)
         if head[:2] == b"\x1f\x8b":
             head = gzip.GzipFile(fileobj=io.BytesIO(read_bytes(p, CONFIG_LIMIT))).read(4096)
-    except (InputFileError, OSError, EOFError):
+    except (InputFileError, OSError, EOFError, zlib.error):
         return False
     head = re.sub(rb"<\?.*?\?>|<!--.*?-->", b"", head, flags=re.S).lstrip()
     return bool(_CONFIG_ROOT.match(head))
@@ -336,7 +354,7 @@ def _open_xml(path: Path, limit: int) -> io.BytesIO:
         try:
             with gzip.GzipFile(fileobj=io.BytesIO(data)) as gz:
                 data = gz.read(limit + 1)
-        except (OSError, EOFError) as exc:
+        except (OSError, EOFError, zlib.error) as exc:
             raise SumoConfigError(f"{path}: not a readable gzip file ({exc})") from None
         if len(data) > limit:
             raise SumoConfigError(f"{path}: unpacks to more than {limit >> 20} MiB")
@@ -387,9 +405,11 @@ def read_config(path: str | PathLike, *, allowed: set[str] | None = None) -> Sum
                                           "bundle's own files")
     check_network(files["net-file"][0])
     check_demand([*files.get("route-files", ()), *files.get("load-state", ())])
+    for weights in files.get("weight-files", ()):  # read by SUMO: its includes too
+        check_xml(weights)
     cleaned: list[tuple[Path, bytes]] = []
     for add in files.get("additional-files", ()):
-        _clean(add, cleaned, dropped, depth=0)
+        _clean(add, cleaned, dropped, depth=0, budget=_Includes(add))
     return SumoInputs(cfg.absolute(), files, tuple(options.items()), tuple(dropped),
                       tuple(cleaned))
 
@@ -402,11 +422,16 @@ def _check_param(path: Path, el: ET.Element, parent: str) -> None:
                               "are asked of magail-sumo, which writes them in its output folder)")
 
 
-def _clean(path: Path, cleaned: list, dropped: list[str], depth: int) -> bool:
+def _clean(path: Path, cleaned: list, dropped: list[str], depth: int,
+           budget: _Includes) -> bool:
     """Check additional file ``path``; when it declares outputs or includes a file that does,
-    append its cleaned text to ``cleaned`` (module doc). Returns whether it was cleaned."""
+    append its cleaned text to ``cleaned`` (module doc). Returns whether it was cleaned. A
+    file an element reads (a variable speed sign's or rerouter's ``file``) is checked with its
+    includes (:func:`check_xml`)."""
     if depth > MAX_INCLUDE_DEPTH:
         raise SumoConfigError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH}")
+    if depth:
+        budget.take(path)
     try:
         tree = ET.parse(_open_xml(path, ADDITIONAL_LIMIT))
     except InputFileError as exc:
@@ -451,8 +476,10 @@ def _clean(path: Path, cleaned: list, dropped: list[str], depth: int) -> bool:
             except InputFileError as exc:
                 raise SumoConfigError(f"{path}: {tag} {attr} {value}: {exc.problem}") from None
             target = ref.absolute()
-            if tag == "include" and _clean(target, cleaned, dropped, depth + 1):
+            if tag == "include" and _clean(target, cleaned, dropped, depth + 1, budget):
                 target = Path(f"{len(cleaned) - 1:03d}_{target.name.removesuffix('.gz')}")
+            elif attr == "file":
+                check_xml(target)
             el.set(attr, str(target))
             changed = True
     if changed:
@@ -464,12 +491,18 @@ def _clean(path: Path, cleaned: list, dropped: list[str], depth: int) -> bool:
     return changed
 
 
-def _scan(path: Path, on_end, depth: int = 0, seen: tuple[Path, ...] = ()) -> None:
+def _scan(path: Path, on_end, depth: int = 0, seen: tuple[Path, ...] = (),
+          budget: _Includes | None = None) -> None:
     """Stream XML file ``path`` (gzipped or not) calling ``on_end(element, parent)`` for every
     element, following ``<include href>`` (relative to the including file, at most
-    :data:`MAX_INCLUDE_DEPTH` deep, no loops); a DOCTYPE / ENTITY declaration is refused."""
+    :data:`MAX_INCLUDE_DEPTH` deep, no loops, at most :data:`MAX_INCLUDED_FILES` files in
+    all); a DOCTYPE / ENTITY declaration is refused."""
     if depth > MAX_INCLUDE_DEPTH:
         raise SumoConfigError(f"{path}: includes nested deeper than {MAX_INCLUDE_DEPTH}")
+    if budget is None:
+        budget = _Includes(path)
+    else:
+        budget.take(path)
     real = path.resolve()
     if real in seen:
         raise SumoConfigError(f"{path}: includes itself (an include loop)")
@@ -494,14 +527,25 @@ def _scan(path: Path, on_end, depth: int = 0, seen: tuple[Path, ...] = ()) -> No
                         regular_file(ref, "a file")
                     except InputFileError as exc:
                         raise SumoConfigError(f"{path}: include {href}: {exc.problem}") from None
-                    _scan(ref, on_end, depth + 1, (*seen, real))
+                    _scan(ref, on_end, depth + 1, (*seen, real), budget)
                 on_end(el, stack[-1] if stack else None, path)
                 if len(stack) <= 1:
                     el.clear()
     except InputFileError as exc:
         raise SumoConfigError(str(exc)) from None
-    except (OSError, EOFError, ET.ParseError) as exc:
+    except (OSError, EOFError, zlib.error, ET.ParseError) as exc:
         raise SumoConfigError(f"{path}: cannot read ({exc})") from None
+
+
+def check_xml(path: Path) -> None:
+    """Refuse an XML input SUMO reads whose includes are not regular files, nest too deep,
+    loop or are too many, or that declares a DOCTYPE (read as :func:`_scan` does)."""
+    _check_xml(*_stamp(Path(path)))
+
+
+@lru_cache(maxsize=64)
+def _check_xml(path: str, size: int, mtime_ns: int) -> None:
+    _scan(Path(path), lambda *_: None)
 
 
 def _where(parent: ET.Element | None) -> str:
