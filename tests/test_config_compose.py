@@ -102,8 +102,11 @@ def test_the_frozen_flat_configs_are_the_34_of_the_table():
 #: settings added to TrainConfig after the flat files were frozen, with their defaults. The
 #: node_ip default keeps the old behaviour; city.agent_classes does not where a city has other
 #: classes: before it every vehicle could become an agent (ingolstadt21's buses did in the
-#: published city runs), now only passenger cars (issue 32)
-ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"]}
+#: published city runs), now only passenger cars (issue 32); the city task reward, the red-light
+#: penalty and route-relative control's offset range (issue 32) default to none / unused
+ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
+               "city.progress_reward": 0.0, "discriminator.red_light_penalty": 0.0,
+               "env.limits.max_offset": 1.5}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}

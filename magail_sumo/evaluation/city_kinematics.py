@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from magail_sumo.evaluation.traffic.distributions import BINS, counts, js_divergence
+from magail_sumo.expert.dataset import ExpertDataset
 
 #: (feature of ``BINS``, the name in ``city.json`` / ``kinematics.json``)
 FEATURES = (("linear_speed", "speed"), ("linear_acceleration", "accel"))
@@ -71,8 +72,6 @@ def human_counts(expert_dir: str | Path) -> dict:
     """Counts of the recorded humans of ``expert_dir`` (what ``magail-sumo expert`` wrote):
     the speed of every transition, and the speed change over :data:`ACCEL_WINDOW_S` of each
     vehicle recorded at both ends (0.1-s log steps)."""
-    from magail_sumo.expert.dataset import ExpertDataset
-
     data = ExpertDataset(expert_dir)
     speed = data.s[:, data.observation_names.index("speed")].astype(np.float64)
     lag = round(ACCEL_WINDOW_S / 0.1)
