@@ -429,3 +429,16 @@ def test_files_sumo_reads_are_checked_with_their_includes(tmp_path):
                    '<route-files value="r.rou.xml.gz"/></configuration>')
     with pytest.raises(SumoConfigError, match=r"r.rou.xml.gz: cannot read"):
         read_config(cfg)
+
+
+def test_vehicle_type_classes_from_route_files(tmp_path):
+    """Types of route files (includes followed) with their classes; a type naming none is a
+    passenger car, as in SUMO; SUMO's built-in types are known."""
+    from magail_sumo.sim.sumo_config import vtype_classes
+
+    (tmp_path / "t.xml").write_text('<routes><vType id="b" vClass="bus"/></routes>')
+    r = tmp_path / "r.rou.xml"
+    r.write_text('<routes><include href="t.xml"/><vType id="car"/></routes>')
+    got = vtype_classes([r])
+    assert got["b"] == "bus" and got["car"] == "passenger"
+    assert got["DEFAULT_VEHTYPE"] == "passenger" and got["DEFAULT_BIKETYPE"] == "bicycle"

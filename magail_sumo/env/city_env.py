@@ -270,7 +270,6 @@ class SumoCityEnv(FleetEnv):
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()
-        self._vclass: dict[str, str] = {}  # SUMO vehicle id -> vClass (sumo_drivers)
         self._waiting: dict[str, None] = {}  # chosen vehicles waiting for an agent place
         self.sensor_time = 0.0
         self.t = 0
@@ -361,25 +360,6 @@ class SumoCityEnv(FleetEnv):
             f.in_sumo[k] = True
             new.append(k)
         return np.array(new, np.int64)
-
-    def sumo_drivers(self) -> tuple[list[str], np.ndarray]:
-        """Ids and (V,) speeds (m/s) of the vehicles SUMO drives now whose class may be an
-        agent's (``agent_classes``): every such vehicle but the agents (one waiting for an
-        agent place is SUMO-driven until it joins)."""
-        v, api = self._sumo, self._session.api
-        agents = self.fleet.index  # every agent of the episode (those that left: gone)
-        classes = self.config.agent_classes
-        cls = self._vclass
-        keep = []
-        for i, vid in enumerate(v.ids):  # libsumo: one class query per vehicle, cached
-            if vid in agents:
-                continue
-            c = cls.get(vid)
-            if c is None:
-                c = cls[vid] = api.vehicle.getVehicleClass(vid)
-            if c in classes:
-                keep.append(i)
-        return [v.ids[i] for i in keep], np.asarray(v.speed)[keep]
 
     def _world(self, agents: np.ndarray) -> tuple[Boxes, list[str]]:
         """Boxes of the agents (first rows) then every other SUMO vehicle, with their ids."""

@@ -48,7 +48,8 @@ import shutil
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from magail_sumo.sim.sumo_config import SumoConfigError, config_of, scenario_name
+from magail_sumo.sim.sumo_config import (SumoConfigError, config_of, scenario_name,
+                                         vtype_classes)
 from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.agents import env_settings, rollout
 from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig, SumoCityEnv, scenario_inputs
@@ -56,7 +57,8 @@ from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, EvaluationError, log, rollout_seed
 from magail_sumo.evaluation.storage import previous_manifest, versions
-from magail_sumo.evaluation.city_kinematics import ACCEL_WINDOW_S, FEATURES, Group, human_counts, js
+from magail_sumo.evaluation.city_kinematics import (ACCEL_WINDOW_S, FEATURES, Group, fcd_group,
+                                                   human_counts, js)
 from magail_sumo.evaluation.traffic.distributions import BINS
 from magail_sumo.evaluation.traffic.sumo_outputs import (SumoRunError, SumoRunSummary,
                                                          output_args, run_sumo_outputs,
@@ -166,9 +168,8 @@ class PolicyRun:
     :param state: the saved warm state (None: no warm-up).
     :param fcd: the run's SUMO FCD file and the ``.sumocfg`` that replays it in ``sumo-gui``,
         or None when not recorded.
-    :param kinematics: speed / acceleration counts of the agents (``"agents"``) and of SUMO's
-        drivers around them (``"sumo"``), :class:`~magail_sumo.evaluation.city_kinematics.
-        Group` ``as_json``.
+    :param kinematics: speed / acceleration counts of the agents
+        (:class:`~magail_sumo.evaluation.city_kinematics.Group` ``as_json``).
     """
 
     begin_s: float
@@ -186,6 +187,8 @@ class PolicyRun:
 
 #: in a method's city folder: the ids of the agents that ended at their destination
 COMPLETED_FILE = "completed.json"
+#: SUMO's run: its FCD sampled every second (read into kinematics.json, then removed)
+FCD_1S = "fcd_1s.xml"
 
 
 def completed_ids(method_dir: str | Path) -> list[str]:
@@ -257,7 +260,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         shutil.copyfile(state, job.state_copy)
     seen: set[str] = set()
     agent_steps = peak = 0
-    drivers = {"agents": Group(env.dt), "sumo": Group(env.dt)}
+    agents = Group(env.dt)
     ends = dict.fromkeys(EVENTS, 0)
     completed: list[str] = []
     began: list[float] = []
@@ -269,8 +272,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         peak = max(peak, len(step.agents))
         f = env.fleet
         live = f.live()
-        drivers["agents"].add(f.names_of(live), f.speed[live])
-        drivers["sumo"].add(*env.sumo_drivers())
+        agents.add(f.names_of(live), f.speed[live])
         for a, done in step.terminations.items():
             reason = step.infos[a].get("reason")
             if done and reason in ends:
@@ -296,28 +298,39 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
                      job.state_copy if state is not None else None, fcd, peak,
-                     {k: g.as_json() for k, g in drivers.items()})
+                     agents.as_json())
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
-                  ) -> SumoRunSummary:
+                  ) -> tuple[SumoRunSummary, dict]:
     """SUMO's default drivers over the policy run's window, from the same state and with the
-    env's SUMO settings (module doc)."""
+    env's SUMO settings (module doc); with their speed / acceleration counts
+    (:func:`~magail_sumo.evaluation.city_kinematics.fcd_group`, vehicles of the classes that
+    may be agents, from an FCD sampled every second that is read and removed)."""
     sess = SessionConfig()
+    fcd = inside(out_dir, FCD_1S)
     extra = ["--step-length", str(sess.step_length), "--time-to-teleport",
-             str(sess.time_to_teleport), "--collision.action", sess.collision_action]
+             str(sess.time_to_teleport), "--collision.action", sess.collision_action,
+             "--fcd-output", str(fcd), "--device.fcd.period", f"{ACCEL_WINDOW_S:g}",
+             "--fcd-output.attributes", "speed,type"]
     if run.state is not None:
         extra += ["--load-state", run.state]  # the begin time is the state's
     begin = None if run.state is not None else run.begin_s
-    return run_sumo_outputs(sumocfg, out_dir, begin=begin, end=run.end_s,
-                            seed=st.seed, extra_args=extra, timeout_s=st.timeout_s)
+    summary = run_sumo_outputs(sumocfg, out_dir, begin=begin, end=run.end_s,
+                               seed=st.seed, extra_args=extra, timeout_s=st.timeout_s)
+    try:
+        inputs = scenario_inputs(sumocfg)[0]
+        group = fcd_group(fcd, st.agent_classes,
+                          vtype_classes([*inputs.routes, *inputs.additional]))
+    finally:
+        fcd.unlink(missing_ok=True)
+    return summary, group.as_json()
 
 
 def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRunSummary,
-         policy: bool, humans: dict | None) -> dict:
+         policy: bool, humans: dict | None, kinematics: dict) -> dict:
     ends = run.terminations if policy else {}
-    group = run.kinematics.get("agents" if policy else "sumo")
-    dist = js(group, humans) if group else {"speed": math.nan, "accel": math.nan}
+    dist = js(kinematics, humans)
     return {"scenario": scenario, "method": method, "begin_s": run.begin_s,
             "end_s": run.end_s, "seed": st.seed, **asdict(s),
             "agents": run.agents if policy else 0,
@@ -402,19 +415,19 @@ def evaluate_city(policy: str, sumocfgs: list[str | Path], out: str | Path,
             mine_sum = summarise(mine, run.completed)
             log(f"city {printable(sid)}: {SUMO_METHOD} over the same window "
                 f"({run.begin_s:.1f}-{run.end_s:.1f} s)")
-            sumo_sum = _sumo_default(cfg, inside_dir(base, SUMO_METHOD), run, st)
+            sumo_sum, sumo_kin = _sumo_default(cfg, inside_dir(base, SUMO_METHOD), run, st)
         except (SumoRunError, MagailSumoError) as exc:
             errors.append(one_line(exc, 600))
             log(f"error: {errors[-1]}")
             continue
-        rows += [_row(sid, method, run, st, mine_sum, True, humans),
-                 _row(sid, SUMO_METHOD, run, st, sumo_sum, False, humans)]
+        rows += [_row(sid, method, run, st, mine_sum, True, humans, run.kinematics),
+                 _row(sid, SUMO_METHOD, run, st, sumo_sum, False, humans, sumo_kin)]
         write_text(inside(base, KINEMATICS_FILE), json.dumps(
-            {"bins": {name: BINS[f] for f, name in FEATURES}, "methods": {
-                method: run.kinematics.get("agents"), SUMO_METHOD: run.kinematics.get("sumo")},
-             "humans": humans,
-             "note": f"{SUMO_METHOD}: the vehicles SUMO drove around the agents in the "
-                     f"{method} run; accel: speed change over {ACCEL_WINDOW_S:g} s"}))
+            {"bins": {name: BINS[f] for f, name in FEATURES},
+             "methods": {method: run.kinematics, SUMO_METHOD: sumo_kin}, "humans": humans,
+             "note": f"vehicles of classes {list(st.agent_classes)}; {method}: its agents every "
+                     f"0.1 s; {SUMO_METHOD}: SUMO's run of the window, every "
+                     f"{ACCEL_WINDOW_S:g} s; accel: speed change over {ACCEL_WINDOW_S:g} s"}))
         windows[sid] = {"scenario": sid, "sumocfg": str(cfg.resolve()), "begin_s": run.begin_s,
                         "end_s": run.end_s, "action_fixes": run.action_counts,
                         "sumo_options_dropped": list(dropped[sid])}

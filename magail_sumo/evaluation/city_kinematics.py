@@ -1,11 +1,12 @@
 """Speed and acceleration distributions of a city run's drivers, against recorded humans.
 
-During a policy's city run (:func:`~magail_sumo.evaluation.city.run_policy`) two groups of
-drivers are sampled every 0.1-s step: the **agents** (their bicycle speed) and **SUMO's
-drivers** (the passenger cars SUMO drives in the same run, the background traffic around the
-agents). A vehicle's acceleration is its speed change over :data:`ACCEL_WINDOW_S` (1 s, 10
-steps), for vehicles seen at both ends: over a second, the detection noise of recorded
-positions and a policy's sampling noise average out alike. The counts fall on the bins of :data:`~magail_sumo.evaluation.traffic.distributions.BINS`
+Two groups of drivers are sampled: the **agents** of a policy's city run
+(:func:`~magail_sumo.evaluation.city.run_policy`; their bicycle speed every 0.1-s step) and
+**SUMO's drivers** in SUMO's own run of the same window (``sumo``, every vehicle SUMO-driven;
+their speed every second from an FCD output, :func:`fcd_group`), both restricted to the vehicle
+classes that may be agents. A vehicle's acceleration is its speed change over
+:data:`ACCEL_WINDOW_S` (1 s), for vehicles seen at both ends: over a second, the detection noise
+of recorded positions and a policy's sampling noise average out alike. The counts fall on the bins of :data:`~magail_sumo.evaluation.traffic.distributions.BINS`
 (speed 0..30 m/s, acceleration ±10 m/s², outliers in the end bins), and each group's
 Jensen–Shannon divergence (bits, in [0, 1]) from the **recorded humans**' distribution is the
 figure: the expert data of recorded scenes (``magail-sumo expert``), whose speeds are the
@@ -15,6 +16,7 @@ changes over the same 1 s.
 
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
 from collections import deque
 from pathlib import Path
 
@@ -54,12 +56,31 @@ class Group:
         return {name: c.tolist() for name, c in self.counts.items()}
 
 
+def fcd_group(fcd: str | Path, classes: tuple[str, ...], vtypes: dict[str, str]) -> Group:
+    """The :class:`Group` of the vehicles of an FCD file sampled every :data:`ACCEL_WINDOW_S`
+    (``--device.fcd.period``) whose type's class (``vtypes``: type id -> class) is one of
+    ``classes``; streamed (one time step in memory)."""
+    group = Group(ACCEL_WINDOW_S)
+    ids: list[str] = []
+    speed: list[float] = []
+    for _, el in ET.iterparse(str(fcd), events=("end",)):
+        if el.tag == "vehicle":
+            if vtypes.get(el.get("type", ""), "passenger") in classes:
+                ids.append(el.get("id", ""))
+                speed.append(float(el.get("speed", "nan")))
+        elif el.tag == "timestep":
+            group.add(ids, np.array(speed))
+            ids, speed = [], []
+            el.clear()
+    return group
+
+
 def js(group: dict, humans: dict | None) -> dict[str, float]:
     """Per feature name, the JS divergence (bits) of counts ``group`` from counts ``humans``
     (NaN without humans or samples)."""
     out = {}
     for _, name in FEATURES:
-        g = np.asarray(group[name], np.float64)
+        g = np.asarray(group.get(name, ()), np.float64)
         h = None if humans is None else np.asarray(humans[name], np.float64)
         if h is None or not g.sum() or not h.sum():
             out[name] = float("nan")

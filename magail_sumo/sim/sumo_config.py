@@ -583,6 +583,34 @@ def _demand_ids(path: str, size: int, mtime_ns: int) -> tuple[str, ...]:
     return tuple(ids)
 
 
+#: SUMO's built-in vehicle types and their classes
+DEFAULT_VTYPES = {"DEFAULT_VEHTYPE": "passenger", "DEFAULT_PEDTYPE": "pedestrian",
+                  "DEFAULT_BIKETYPE": "bicycle", "DEFAULT_TAXITYPE": "taxi",
+                  "DEFAULT_RAILTYPE": "rail", "DEFAULT_CONTAINERTYPE": "ignoring"}
+
+
+def vtype_classes(files: tuple[Path, ...] | list[Path]) -> dict[str, str]:
+    """Vehicle type id -> SUMO vehicle class (``vClass``; ``passenger`` when a type names
+    none, as SUMO defaults) of the ``<vType>`` elements of route / additional files
+    ``files`` (includes followed), SUMO's built-in types included."""
+    out = dict(DEFAULT_VTYPES)
+    for path in files:
+        out.update(_vtype_classes(*_stamp(Path(path))))
+    return out
+
+
+@lru_cache(maxsize=64)
+def _vtype_classes(path: str, size: int, mtime_ns: int) -> dict[str, str]:
+    found: dict[str, str] = {}
+
+    def on_end(el: ET.Element, parent: ET.Element | None, where: Path) -> None:
+        if el.tag == "vType" and el.get("id"):
+            found[el.get("id")] = el.get("vClass", "passenger")
+
+    _scan(Path(path), on_end)
+    return found
+
+
 def check_network(path: Path) -> None:
     """Refuse a network whose traffic-light programs write files (``<tlLogic>`` ``<param
     key="file">`` of actuated / delay-based programs: SUMO writes detector output there) or
