@@ -199,3 +199,18 @@ def test_city_progress_reward_is_the_distance_along_the_route():
     assert np.median(np.abs(got - want)) < 0.01 and np.corrcoef(got, want)[0, 1] > 0.95
     with pytest.raises(ValueError, match="progress_reward"):
         CityEnvConfig(progress_reward=-1.0)
+
+
+def test_pursuit_past_the_paths_end_drives_on():
+    """A car overshooting the end of its path keeps its heading: the goal runs on along the
+    path's last direction instead of pulling it back round."""
+    paths = Paths.of([np.array([[0.0, 0.0], [10.0, 0.0]])])
+    lim = dynamics.BicycleLimits()
+    st = dynamics.VehicleState(np.array([9.0]), np.array([0.0]), np.array([0.0]),
+                               np.array([10.0]))
+    hint = np.zeros(1, np.int64)
+    for _ in range(30):
+        steer, hint = tracking.follow(paths, np.array([0]), hint, st, np.array([2.9]),
+                                      np.zeros(1), lim)
+        st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
+    assert st.x[0] > 35.0 and abs(st.y[0]) < 0.05 and abs(st.yaw[0]) < 0.01

@@ -149,9 +149,11 @@ class Paths:
             best_s = np.where(better, self.s[a] + u * np.sqrt(ll), best_s)
         return best_s
 
-    def at(self, rows: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def at(self, rows: np.ndarray, s: np.ndarray, extend: bool = False
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position (x, y, m) and heading (rad) of paths ``rows`` at arc lengths ``s`` (m;
-        broadcast: (A,) or (A, P)), clamped to the paths' ends. A one-point path has heading
+        broadcast: (A,) or (A, P)), clamped to the paths' ends; with ``extend``, past the
+        end the path runs on straight along its last heading. A one-point path has heading
         0 at its point."""
         rows = np.asarray(rows, np.int64)
         s = np.asarray(s, np.float64)
@@ -164,7 +166,7 @@ class Paths:
         a, b = base + j, base + np.minimum(j + 1, cnt - 1)
         seg = self.s[b] - self.s[a]
         frac = np.clip(np.where(seg > 0, (s2 - self.s[a]) / np.where(seg > 0, seg, 1.0), 0.0),
-                       0.0, 1.0)
+                       0.0, np.inf if extend else 1.0)
         px = self.x[a] + frac * (self.x[b] - self.x[a])
         py = self.y[a] + frac * (self.y[b] - self.y[a])
         heading = np.arctan2(self.y[b] - self.y[a], self.x[b] - self.x[a])

@@ -7,7 +7,9 @@ path; ``max_offset`` of :class:`~magail_sumo.sim.dynamics.BicycleLimits` at ±1)
 reference path (:class:`~magail_sumo.sim.paths.Paths`: in a city the lane centrelines of its
 SUMO route through the junctions' internal lanes; in a recorded scene its recorded route). The
 steering is pure pursuit towards the goal point: the point of the path ``L`` m ahead of the
-vehicle's progress point, moved ``d`` m along the path's left normal there, with look-ahead
+vehicle's progress point (past the path's end, on along its last heading: a vehicle that
+overshoots its route's end drives on rather than turning back), moved ``d`` m along the path's
+left normal there, with look-ahead
 
     L = max(min_lookahead, lookahead_time·|speed|)
 
@@ -56,7 +58,7 @@ def follow(paths: Paths, rows: np.ndarray, hint: np.ndarray, state: VehicleState
     """
     at, s = paths.project(rows, state.x, state.y, hint)
     look = np.maximum(MIN_LOOKAHEAD, LOOKAHEAD_TIME * np.abs(state.speed))
-    px, py, heading = paths.at(rows, s + look)
+    px, py, heading = paths.at(rows, s + look, extend=True)
     gx = px - np.sin(heading) * offset
     gy = py + np.cos(heading) * offset
     return pursuit_steer(state, wheelbase, gx, gy, limits.max_steer), at
