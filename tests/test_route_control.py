@@ -214,3 +214,63 @@ def test_pursuit_past_the_paths_end_drives_on():
                                       np.zeros(1), lim)
         st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
     assert st.x[0] > 35.0 and abs(st.y[0]) < 0.05 and abs(st.yaw[0]) < 0.01
+
+
+def test_idm_acceleration_and_its_bend_and_light_rules():
+    """IDM: free road accelerates below the desired speed; a close standing leader brakes;
+    a bend ahead lowers the desired speed; a red light seen brakes to stop before the line
+    it assumes, counting the distance down step by step."""
+    from magail_sumo.agents.idm import IdmParams, IdmPolicy, bend_speed, idm_accel
+    from magail_sumo.sensors.observation import observation_names
+
+    p = IdmParams()
+    a = idm_accel(np.array([5.0, 10.0, 10.0]), np.array([np.inf, np.inf, 8.0]),
+                  np.array([0.0, 0.0, 10.0]), p)
+    assert 0 < a[1] < a[0] <= p.a_max and a[2] < -3.0
+    straight = np.array([[5.0, 0.0, 10.0, 0.0, 20.0, 0.0]])
+    bend = np.array([[5.0, 0.5, 9.0, 3.0, 12.0, 14.0]])
+    assert bend_speed(straight, 2.0)[0] > 100 and bend_speed(bend, 2.0)[0] < 6.0
+    pol = IdmPolicy()
+    names = observation_names(pol.observation)
+    obs = np.zeros(len(names), np.float32)
+    obs[names.index("speed")] = 10.0
+    obs[names.index("leader_gap")] = pol.observation.leader_range  # none
+    obs[[names.index(f"route_x_{d:g}") for d in (5, 10, 20)]] = (5.0, 10.0, 20.0)
+    free = pol.act({"a": obs})["a"]
+    assert free[0] > 0 and free[1] == 0.0
+    obs[names.index("light")] = 3.0
+    first = pol.act({"a": obs})["a"][0]
+    later = pol.act({"a": obs})["a"][0]
+    assert first < 0 and later < first  # the line draws nearer: harder braking
+    obs[names.index("light")] = 1.0
+    assert pol.act({"a": obs})["a"][0] > 0 and not pol._to_line
+
+
+@pytest.mark.sumo
+def test_idm_route_follower_completes_trips_in_a_real_city():
+    """The IDM route follower (``--policy idm``) on the real cologne8 city for 60 s: agents
+    arrive at their routes' ends; collisions and red-light runs are rare (its leader sensor
+    looks straight ahead, so it misses some crossing traffic; the light sensor gives no
+    stop-line distance)."""
+    from magail_sumo.agents import env_settings
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+    from magail_sumo.env.config import EnvConfig
+    from magail_sumo.policies import make_policy
+
+    pol = make_policy("idm", 0)
+    cfg = CityEnvConfig.from_env(EnvConfig(**env_settings(pol)), max_agents=40,
+                                 control_fraction=1.0, warmup_s=300, max_steps=600)
+    env = SumoCityEnv(ROOT / "data" / "sumo" / "cologne8" / "cologne8.sumocfg", cfg)
+    reasons = collections.Counter()
+    try:
+        obs, _ = env.reset(seed=0)
+        for _ in range(600):
+            obs, _, term, trunc, info = env.step(pol.act(obs))
+            for name in term:
+                if term[name] or trunc[name]:
+                    reasons[info[name]["reason"]] += 1
+    finally:
+        env.close()
+    agents = sum(reasons.values())
+    assert reasons["destination"] + reasons["arrived"] >= 10, reasons
+    assert reasons["collision"] + reasons["red_light"] <= 0.1 * agents, reasons

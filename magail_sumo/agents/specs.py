@@ -7,7 +7,9 @@ from __future__ import annotations
 
 #: methods that are no env policy: whole-trajectory models (evaluation runs them itself)
 BASELINES = ("logreplay", "constvel", "sumo")
-BUILTIN_POLICIES = ("random",)
+#: policies built in by name: uniform random actions; the IDM route follower
+#: (:mod:`magail_sumo.agents.idm`)
+BUILTIN_POLICIES = ("random", "idm")
 #: ``make_policy`` spec prefix: the policy that follows, driven through the gap guard
 #: (:mod:`magail_sumo.env.guard`, default settings) in evaluation
 GUARDED = "guarded:"

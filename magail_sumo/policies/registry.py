@@ -24,6 +24,7 @@ import torch
 
 from magail_sumo.agents.base import Policy, PolicyError, check_noise_scale
 from magail_sumo.agents.random_policy import RandomPolicy
+from magail_sumo.agents.idm import IdmPolicy
 from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES, GUARDED
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.guard import GuardConfig
@@ -111,7 +112,8 @@ def _takes(loader: Callable, keyword: str) -> bool:
 
 def make_policy(spec: str, seed: int, deterministic: bool = False,
                 noise_scale: float | None = None) -> Policy:
-    """The policy named by ``spec``: ``random``, ``pretrained`` / ``pretrained:NAME`` (a
+    """The policy named by ``spec``: ``random``, ``idm`` (the IDM route follower,
+    :mod:`magail_sumo.agents.idm`), ``pretrained`` / ``pretrained:NAME`` (a
     shipped checkpoint, :mod:`magail_sumo.pretrained`; ``$MAGAIL_SUMO_PRETRAINED_DIR`` selects
     another registry folder), a checkpoint file with a registered loader
     (:data:`POLICY_LOADERS`), or ``package.module:factory`` (``factory(seed) -> Policy``);
@@ -142,6 +144,8 @@ def make_policy(spec: str, seed: int, deterministic: bool = False,
         return inner
     if spec == "random":
         return RandomPolicy(seed)
+    if spec == "idm":
+        return IdmPolicy(seed)
     if is_pretrained_spec(spec):
         entry = resolve_pretrained(spec)
         loader = POLICY_LOADERS.get(entry.checkpoint.suffix)
