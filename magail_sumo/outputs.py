@@ -375,11 +375,23 @@ def read_marker(folder: str | PathLike) -> dict | None:
     return data
 
 
+#: name of the temporary file an atomic write of the marker makes (:func:`_mkstemp`)
+_MARKER_TMP = re.compile(r"^\." + re.escape(MARKER) + r"\.[A-Za-z0-9_]+\.tmp$")
+
+
+def _ours_unfinished(path: Path) -> bool:
+    """A marker's temporary file a killed command left (``..magail_sumo.json.XXXX.tmp``, a
+    regular file): a folder holding only such files counts as empty. It is left alone, never
+    read or removed."""
+    return bool(_MARKER_TMP.match(path.name)) and path.is_file() and not path.is_symlink()
+
+
 def claim_output_dir(folder: str | PathLike, tool: str, owned: Iterable[str] = ()) -> Path:
     """Make ``folder`` an output folder of ``tool``; :class:`OutputError` when it is not ours.
 
-    The folder may be new, empty, or already marked by any magail_sumo tool (a networks folder
-    is shared by ``convert``, ``expert`` and ``evaluate``). ``owned`` lists the top-level names
+    The folder may be new, empty (but for marker temporary files a killed command left), or
+    already marked by any magail_sumo tool (a networks folder is shared by ``convert``,
+    ``expert`` and ``evaluate``). ``owned`` lists the top-level names
     ``tool`` writes there (recorded for :func:`remove_owned`). A folder whose marker is not
     valid (:func:`read_marker`) is refused, naming the marker file; nothing is written then.
     """
@@ -387,7 +399,7 @@ def claim_output_dir(folder: str | PathLike, tool: str, owned: Iterable[str] = (
     if d.exists() and not d.is_dir():
         raise OutputError(f"{d}: exists and is not a folder")
     marker = read_marker(d) if d.is_dir() else None
-    if marker is None and d.is_dir() and any(d.iterdir()):
+    if marker is None and d.is_dir() and any(not _ours_unfinished(p) for p in d.iterdir()):
         raise OutputError(f"{d}: folder is not empty and was not written by magail_sumo "
                           "(choose a new or empty folder)")
     d.mkdir(parents=True, exist_ok=True)

@@ -695,3 +695,22 @@ def test_a_scene_named_summary_csv_converts_beside_the_summary(tmp_path):
     cv = tmp_path / "cv"
     assert (cv / "summary.csv").is_file() and (cv / "a1").is_dir()
     assert [p.name for p in cv.iterdir() if p.name.startswith("summary.csv-")]
+
+
+def test_a_killed_commands_marker_temp_file_does_not_lock_the_folder(tmp_path):
+    """A command killed while writing its marker leaves ``..magail_sumo.json.XXXX.tmp``; the
+    folder is still claimable (the file left alone), while any other file still refuses it."""
+    from magail_sumo.outputs import claim_output_dir
+
+    d = tmp_path / "out"
+    d.mkdir()
+    tmp = d / "..magail_sumo.json.k2j_9x.tmp"
+    tmp.write_text('{"tools": {"evaluate": ["manifest.json"]}}')
+    claim_output_dir(d, "evaluate", ["manifest.json"])
+    assert (d / MARKER).is_file() and tmp.read_text().startswith("{")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "..magail_sumo.json.k2j_9x.tmp").write_text("{}")
+    (other / "precious.txt").write_text("x")
+    with pytest.raises(OutputError, match="not empty"):
+        claim_output_dir(other, "evaluate")
