@@ -188,6 +188,16 @@ def test_cli_batch_with_bad_input(tmp_path, capsys):
     rows = list(csv.DictReader(open(out / "summary.csv")))
     assert [r["status"] for r in rows].count("ok") == 2
     assert any(r["status"] == "unreadable" and "broken.tfrecord" in r["reason"] for r in rows)
+    # each converted scene says whether it meets the quality bars, and which it misses
+    from converters.sumo.quality import BARS
+
+    for r in rows:
+        if r["status"] != "ok":
+            assert r["bars_met"] == r["bars_failed"] == ""
+            continue
+        below = [b for b, bar in BARS.items() if r[b] and float(r[b]) < bar]
+        assert r["bars_failed"] == ";".join(below)
+        assert r["bars_met"] == ("no" if below else "yes")
     assert (out / "850c48d8bbfa008f" / "850c48d8bbfa008f.sumocfg").exists()
     err = capsys.readouterr().err
     assert "broken.tfrecord" in err

@@ -28,10 +28,12 @@ from magail_sumo.workers import run_jobs
 
 from .bundle import BundleError, bundle_folder, check_bundle
 from .scenario import ConvertOptions, convert_scene, converter_version, options_key
+from .quality import failed_bars
 
 SUMMARY_COLUMNS = ("file", "record", "scenario_id", "status", "reason", "on_network_rate",
                    "route_rate", "signal_fidelity", "synthesized_lanes", "netconvert_warnings",
-                   "ade", "fde", "collisions", "teleports", "seconds")
+                   "ade", "fde", "collisions", "teleports", "seconds", "bars_met",
+                   "bars_failed")
 
 
 @dataclass
@@ -53,7 +55,15 @@ class BatchRow:
                 self.status, self.reason, q.get("on_network_rate"), q.get("route_rate"),
                 q.get("signal_fidelity"), q.get("synthesized_lanes"), q.get("netconvert_warnings"),
                 base.get("ade"), base.get("fde"), base.get("collisions"), base.get("teleports"),
-                round(self.seconds, 3)]
+                round(self.seconds, 3), *self._bars(q)]
+
+    def _bars(self, q: dict) -> list[str]:
+        """``bars_met`` (yes / no; empty for a scene that did not convert) and
+        ``bars_failed`` (the :data:`~.quality.BARS` it falls below, ``;``-separated)."""
+        if self.status not in ("ok", "skipped") or not q:
+            return ["", ""]
+        failed = failed_bars(q)
+        return ["no" if failed else "yes", ";".join(failed)]
 
 
 def converted_before(out: Path, scenario_id: str, options: ConvertOptions) -> dict | None:

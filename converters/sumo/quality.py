@@ -19,6 +19,20 @@ from .lanes import LaneSegments, on_lanes
 from .routes import PARKED_MOVE, VehicleRoute, moved_distance, route_covers
 
 COVERAGE = 0.9  #: share of its states a route must cover (route_rate)
+#: the bar each figure of a usable conversion meets (a figure that is None, e.g. signal
+#: fidelity of a scene without signals, is not judged)
+BARS: dict[str, float] = {"on_network_rate": 0.98, "route_rate": 0.95, "signal_fidelity": 0.99}
+
+
+def failed_bars(quality: dict) -> list[str]:
+    """Names of the :data:`BARS` a conversion's ``quality`` figures fall below (in the
+    order of ``BARS``); figures that are absent or None are not judged."""
+    out = []
+    for name, bar in BARS.items():
+        value = quality.get(name)
+        if isinstance(value, (int, float)) and value < bar:
+            out.append(name)
+    return out
 
 
 def moving_vehicles(scene: Scene) -> np.ndarray:
