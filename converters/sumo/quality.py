@@ -64,10 +64,25 @@ def route_rate(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net)
     moving = moving_vehicles(scene)
     if not len(moving):
         return None
+    return 1.0 - len(route_misses(scene, seg, routes, net)) / len(moving)
+
+
+def route_misses(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net
+                 ) -> list[dict]:
+    """The moving vehicles behind a route rate below 1, each ``{"track": its id, "reason":
+    "no route" | "not connected" | "covers X of its states"}`` (track order)."""
     by_track = {r.track: r for r in routes}
-    good = 0
-    for n in moving.tolist():
+    out = []
+    for n in moving_vehicles(scene).tolist():  # once per conversion, per moving vehicle
         r = by_track.get(n)
-        if r is not None and r.connected and route_covers(scene, seg, r, net) >= COVERAGE:
-            good += 1
-    return good / len(moving)
+        if r is None:
+            reason = "no route"
+        elif not r.connected:
+            reason = "not connected"
+        else:
+            cover = route_covers(scene, seg, r, net)
+            if cover >= COVERAGE:
+                continue
+            reason = f"covers {cover:.2f} of its states"
+        out.append({"track": int(scene.tracks.id[n]), "reason": reason})
+    return out

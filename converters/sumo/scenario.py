@@ -44,7 +44,7 @@ from .matching import build_index
 from .network import build_network
 from .pedestrians import check_built, plan_pedestrians
 from .lanes import lane_segments
-from .quality import on_network_rate, route_rate
+from .quality import moving_vehicles, on_network_rate, route_misses
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
 from .synthesis import carried_states, synthesize_lanes
@@ -59,6 +59,8 @@ if TYPE_CHECKING:
 #: with a digest of this package's sources appended: see :func:`converter_version`). ``convert``
 #: skips a scene whose bundle has the same version and options; bump it when outputs change.
 CONVERTER_VERSION = "2"
+#: vehicles behind a low route rate listed in ``conversion.json`` (``quality.route_misses``)
+MISSES_KEPT = 50
 
 
 @dataclass
@@ -320,13 +322,17 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.files = sorted(p.name for p in out.iterdir() if p.name != REPORT_FILE)
         stage = "quality"
         seg = lane_segments(net)
+        misses = route_misses(scene, seg, routes, net)
+        n_moving = len(moving_vehicles(scene))
         rep.quality = {
             "on_network_rate": on_network_rate(scene, seg),
             # the same with the states carried by synthesised lanes counted as off the map
             "on_network_rate_map_only": on_network_rate(scene, seg,
                                                         carried_states(scene, synthesized)),
             "synthesized_lanes": len(synthesized),
-            "route_rate": route_rate(scene, seg, routes, net),
+            "route_rate": 1.0 - len(misses) / n_moving if n_moving else None,
+            # the vehicles behind a route rate below 1 (at most MISSES_KEPT, with why)
+            "route_misses": misses[:MISSES_KEPT],
             "signal_fidelity": None,
             "netconvert_warnings": len(built.warnings),
             "sumo_baseline": None,

@@ -66,10 +66,18 @@ def format_quality(scenario_id: str, q: dict, folder: Path) -> str:
         f"  signal_fidelity     {_fmt(q.get('signal_fidelity'))}   "
         f"(bar >= {BARS['signal_fidelity']:g}; n/a without signals)",
         f"  bars                {'all met' if not failed else 'below: ' + ', '.join(failed)}",
+        *([f"  route misses        {_misses(q['route_misses'])}"] if q.get("route_misses") else []),
         f"  netconvert_warnings {q.get('netconvert_warnings')}",
         f"  SUMO baseline       ADE {_fmt(base.get('ade'), '.2f')} m, FDE {_fmt(base.get('fde'), '.2f')} m, "
         f"{base.get('collisions')} collisions, {base.get('teleports')} teleports",
     ])
+
+
+def _misses(misses: list, shown: int = 3) -> str:
+    """The vehicles behind a low route rate, for the quality report: a count, the first few."""
+    first = "; ".join(f"track {m.get('track')}: {m.get('reason')}" for m in misses[:shown])
+    more = f"; ... ({len(misses)} in conversion.json)" if len(misses) > shown else ""
+    return f"{len(misses)}: {first}{more}"
 
 
 def _line(text: str) -> str:
