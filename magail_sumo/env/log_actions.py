@@ -46,17 +46,11 @@ def replay_actions(env: SumoDrivingEnv, rows: np.ndarray, state: dynamics.Vehicl
     """(A, 2) float32 normalised actions (``limits``, ``layout``; clipped to [-1, 1]) that move
     vehicles in ``state`` (track ``rows``, ``wheelbase`` m) from log step ``step`` to their
     recorded pose at ``step + 1`` (:func:`log_targets`, :func:`magail_sumo.sim.dynamics.inverse`
-    with the recorded heading as ``yaw_next``)."""
+    with the recorded heading as ``yaw_next``; in ``layout`` by
+    :func:`magail_sumo.sim.dynamics.relayout`: offset 0 in ``accel_offset``)."""
     x, y, yaw = log_targets(env, rows, min(step + 1, env.scene.num_steps - 1))
     accel, steer = dynamics.inverse(state, x, y, wheelbase, env.dt, yaw_next=yaw)
-    return dynamics.normalise(accel, _second(steer, layout), limits, layout).astype(np.float32)
-
-
-def _second(steer: np.ndarray, layout: str) -> np.ndarray:
-    """The expert's second action entry from its steering (rad): the steering itself, or in
-    the route-relative ``accel_offset`` layout its lateral offset from its reference path,
-    0 m: a recorded vehicle's reference path is its own recorded route."""
-    return np.zeros_like(steer) if layout == "accel_offset" else steer
+    return dynamics.relayout(dynamics.normalise(accel, steer, limits), layout).astype(np.float32)
 
 
 def training_actions(actions: np.ndarray, limits: dynamics.BicycleLimits,
@@ -67,7 +61,7 @@ def training_actions(actions: np.ndarray, limits: dynamics.BicycleLimits,
     action a policy would have to output), plus the physical (A,) accel (m/s²) and steer
     (rad)."""
     accel, steer = dynamics.denormalise(np.asarray(actions, np.float64), REPLAY_LIMITS)
-    act = np.clip(dynamics.normalise(accel, _second(steer, layout), limits, layout), -1.0, 1.0)
+    act = dynamics.relayout(dynamics.normalise(accel, steer, limits), layout)
     return act.astype(np.float32), accel, steer
 
 

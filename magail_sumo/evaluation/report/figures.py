@@ -245,11 +245,17 @@ def city_figure(runs: dict[str, dict], scenario: str) -> Figure:
     ax_t.set_xlabel("s", fontsize=8)
     ax_v.set_title("edge mean speed (time-weighted)", fontsize=9)
     ax_v.set_xlabel("m/s", fontsize=8)
-    for ax in axes[0]:
+    return _city_panels(fig, axes[0], f"city {printable(scenario, 60)}")
+
+
+def _city_panels(fig, axes, title: str) -> Figure:
+    """A city figure's panels finished alike: small ticks, a legend where there are labels,
+    the title."""
+    for ax in axes:
         ax.tick_params(labelsize=7)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=6)
-    fig.suptitle(f"city {printable(scenario, 60)}", fontsize=10)
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _figure(fig)
 
@@ -275,9 +281,5 @@ def kinematics_figure(kin: dict, scenario: str) -> Figure:
         ax.set_title(f"{'speed' if name == 'speed' else 'acceleration over 1 s'}", fontsize=9)
         ax.set_xlabel(unit, fontsize=8)
         ax.set_ylabel("share of samples", fontsize=8)
-        ax.tick_params(labelsize=7)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=6)
-    fig.suptitle(f"city {printable(scenario, 60)}: drivers against recorded humans", fontsize=10)
-    fig.tight_layout()
-    return _figure(fig)
+    return _city_panels(fig, axes[0],
+                        f"city {printable(scenario, 60)}: drivers against recorded humans")
