@@ -59,21 +59,25 @@ def on_network_rate(scene: Scene, seg: LaneSegments, off: np.ndarray | None = No
     return float(on.mean())
 
 
-def route_rate(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net) -> float | None:
-    """See module docstring; None when there are no moving vehicles."""
+def route_quality(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net
+                  ) -> tuple[float | None, list[dict]]:
+    """``route_rate`` (module doc; None when there are no moving vehicles) and
+    :func:`route_misses`, from one pass over the moving vehicles."""
     moving = moving_vehicles(scene)
-    if not len(moving):
-        return None
-    return 1.0 - len(route_misses(scene, seg, routes, net)) / len(moving)
+    misses = route_misses(scene, seg, routes, net, moving)
+    return (1.0 - len(misses) / len(moving) if len(moving) else None), misses
 
 
-def route_misses(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net
-                 ) -> list[dict]:
-    """The moving vehicles behind a route rate below 1, each ``{"track": its id, "reason":
-    "no route" | "not connected" | "covers X of its states"}`` (track order)."""
+def route_misses(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,
+                 moving: np.ndarray | None = None) -> list[dict]:
+    """The moving vehicles (``moving``: their rows, default :func:`moving_vehicles`) behind a
+    route rate below 1, each ``{"track": its id, "reason": "no route" | "not connected" |
+    "covers X of its states"}`` (track order)."""
     by_track = {r.track: r for r in routes}
     out = []
-    for n in moving_vehicles(scene).tolist():  # once per conversion, per moving vehicle
+    if moving is None:
+        moving = moving_vehicles(scene)
+    for n in moving.tolist():  # once per conversion, per moving vehicle
         r = by_track.get(n)
         if r is None:
             reason = "no route"

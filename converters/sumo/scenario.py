@@ -44,7 +44,7 @@ from .matching import build_index
 from .network import build_network
 from .pedestrians import check_built, plan_pedestrians
 from .lanes import lane_segments
-from .quality import moving_vehicles, on_network_rate, route_misses
+from .quality import on_network_rate, route_quality
 from .routes import build_routes, write_routes
 from .signals import build_programs, write_programs
 from .synthesis import carried_states, synthesize_lanes
@@ -322,15 +322,14 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.files = sorted(p.name for p in out.iterdir() if p.name != REPORT_FILE)
         stage = "quality"
         seg = lane_segments(net)
-        misses = route_misses(scene, seg, routes, net)
-        n_moving = len(moving_vehicles(scene))
+        rate, misses = route_quality(scene, seg, routes, net)
         rep.quality = {
             "on_network_rate": on_network_rate(scene, seg),
             # the same with the states carried by synthesised lanes counted as off the map
             "on_network_rate_map_only": on_network_rate(scene, seg,
                                                         carried_states(scene, synthesized)),
             "synthesized_lanes": len(synthesized),
-            "route_rate": 1.0 - len(misses) / n_moving if n_moving else None,
+            "route_rate": rate,
             # the vehicles behind a route rate below 1 (at most MISSES_KEPT, with why)
             "route_misses": misses[:MISSES_KEPT],
             "signal_fidelity": None,

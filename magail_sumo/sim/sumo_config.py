@@ -559,7 +559,7 @@ def check_demand(routes: tuple[Path, ...] | list[Path]) -> list[str]:
     types)."""
     ids: list[str] = []
     for path in routes:
-        ids += _demand_ids(*_stamp(Path(path)))
+        ids += _demand(*_stamp(Path(path)))[0]
     return ids
 
 
@@ -570,17 +570,22 @@ def _stamp(path: Path) -> tuple[str, int, int]:
 
 
 @lru_cache(maxsize=64)
-def _demand_ids(path: str, size: int, mtime_ns: int) -> tuple[str, ...]:
+def _demand(path: str, size: int, mtime_ns: int) -> tuple[tuple[str, ...], dict[str, str]]:
+    """One pass over a demand file: the ids of its vehicles, trips and flows, and its vehicle
+    types' classes (:func:`vtype_classes`); device-writing params refused."""
     ids: list[str] = []
+    vtypes: dict[str, str] = {}
 
     def on_end(el: ET.Element, parent: ET.Element | None, where: Path) -> None:
         if el.tag == "param":
             _check_param(where, el, _where(parent))
         elif el.tag in ("vehicle", "trip", "flow") and el.get("id"):
             ids.append(el.get("id"))
+        elif el.tag == "vType" and el.get("id"):
+            vtypes[el.get("id")] = el.get("vClass", "passenger")
 
     _scan(Path(path), on_end)
-    return tuple(ids)
+    return tuple(ids), vtypes
 
 
 #: SUMO's built-in vehicle types and their classes
@@ -592,23 +597,12 @@ DEFAULT_VTYPES = {"DEFAULT_VEHTYPE": "passenger", "DEFAULT_PEDTYPE": "pedestrian
 def vtype_classes(files: tuple[Path, ...] | list[Path]) -> dict[str, str]:
     """Vehicle type id -> SUMO vehicle class (``vClass``; ``passenger`` when a type names
     none, as SUMO defaults) of the ``<vType>`` elements of route / additional files
-    ``files`` (includes followed), SUMO's built-in types included."""
+    ``files`` (includes followed; read in the pass :func:`check_demand` makes), SUMO's
+    built-in types included."""
     out = dict(DEFAULT_VTYPES)
     for path in files:
-        out.update(_vtype_classes(*_stamp(Path(path))))
+        out.update(_demand(*_stamp(Path(path)))[1])
     return out
-
-
-@lru_cache(maxsize=64)
-def _vtype_classes(path: str, size: int, mtime_ns: int) -> dict[str, str]:
-    found: dict[str, str] = {}
-
-    def on_end(el: ET.Element, parent: ET.Element | None, where: Path) -> None:
-        if el.tag == "vType" and el.get("id"):
-            found[el.get("id")] = el.get("vClass", "passenger")
-
-    _scan(Path(path), on_end)
-    return found
 
 
 def check_network(path: Path) -> None:
