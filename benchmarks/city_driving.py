@@ -86,7 +86,7 @@ def main() -> None:
           f"{args.max_agents} agents, seed {args.seed}; trips: completed in the window; removed:"
           " collision + off-road per learned trip; red: red-light runs per learned trip; "
           "tt_ratio: mean travel time / SUMO's; JS: bits from the recorded humans "
-          "(sumo_*: SUMO's drivers around the agents)")
+          "(sumo_*: SUMO's drivers in SUMO's own run of the window)")
     print("\n".join(table(folders)))
 
 

@@ -16,8 +16,8 @@ assumes the line ``light_gap`` m ahead, counts the distance down as it drives (i
 0.1 s per step) and brakes to stop ``s0`` before it (``v² / (2·d)``, at most ``max_brake``);
 it keeps the IDM acceleration when that is lower. It reads nothing but its observations (and
 remembers that countdown per agent), so it is a baseline for what route-relative control makes
-possible without learning, not a model of the recorded drivers. A policy factory:
-``--policy magail_sumo.agents.idm:IdmPolicy``.
+possible without learning, not a model of the recorded drivers: the built-in policy
+``--policy idm``.
 """
 
 from __future__ import annotations

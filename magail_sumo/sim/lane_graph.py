@@ -144,7 +144,7 @@ class LaneGraph:
                                  and self._via(c, route[i + 1]) is not None)
                 if options:
                     target = options[0][1]
-                    parts.append(_point(shape, pos, length))
+                    parts.append(_cut(shape, pos, length)[0])
                     t_len = self.api.lane.getLength(target)
                     pos = min(pos + change_length, max(t_len - 1.0, pos))
                     lane, shape, length = target, self.shape(target), t_len
@@ -163,26 +163,14 @@ class LaneGraph:
 def _from(shape: np.ndarray, pos: float, length: float) -> np.ndarray:
     """The part of lane ``shape`` from lane position ``pos`` (m, SUMO's lane length
     ``length``, which may differ from the shape's geometric length) to its end."""
-    return np.concatenate([_point(shape, pos, length), shape[_after(shape, pos, length):]])
+    point, after = _cut(shape, pos, length)
+    return np.concatenate([point, shape[after:]])
 
 
-def _arc(shape: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
-
-
-def _geo(shape: np.ndarray, pos: float, length: float) -> float:
-    """Geometric arc length of lane position ``pos``."""
-    arc = _arc(shape)
-    return float(np.clip(pos * (arc[-1] / length if length > 0 else 1.0), 0.0, arc[-1]))
-
-
-def _point(shape: np.ndarray, pos: float, length: float) -> np.ndarray:
-    """(1, 2) point of lane position ``pos`` on ``shape``."""
-    arc = _arc(shape)
-    g = _geo(shape, pos, length)
-    return np.array([[np.interp(g, arc, shape[:, 0]), np.interp(g, arc, shape[:, 1])]])
-
-
-def _after(shape: np.ndarray, pos: float, length: float) -> int:
-    """Index of the first shape point past lane position ``pos``."""
-    return int(np.searchsorted(_arc(shape), _geo(shape, pos, length), side="right"))
+def _cut(shape: np.ndarray, pos: float, length: float) -> tuple[np.ndarray, int]:
+    """(1, 2) point of lane position ``pos`` on ``shape`` (``length`` as in :func:`_from`)
+    and the index of the first shape point past it."""
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+    g = float(np.clip(pos * (arc[-1] / length if length > 0 else 1.0), 0.0, arc[-1]))
+    point = np.array([[np.interp(g, arc, shape[:, 0]), np.interp(g, arc, shape[:, 1])]])
+    return point, int(np.searchsorted(arc, g, side="right"))
