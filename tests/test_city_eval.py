@@ -310,3 +310,18 @@ def test_kinematics_group_accelerations_over_one_second():
     lo, hi, n = BINS["linear_acceleration"]
     assert sum(g.counts["speed"]) == 31 and sum(g.counts["accel"]) == 20
     assert g.counts["accel"][int((1.25 - lo) / (hi - lo) * n)] == 20
+
+
+def test_unusable_city_humans_is_one_line_before_anything_runs(tmp_path, capsys):
+    """``--city-humans`` naming no expert data: one line naming the option and the folder,
+    and no output folder made."""
+    out = tmp_path / "out"
+    (tmp_path / "empty").mkdir()
+    for bad, why in ((tmp_path / "missing", "expert directory not found"),
+                     (tmp_path / "empty", "not an expert directory")):
+        assert main(["evaluate", "--policy", "random", "--city", str(CFG), "--city-humans",
+                     str(bad), "--out", str(out)]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("error: magail-sumo evaluate: --city-humans: ")
+        assert str(bad) in err[-1] and why in err[-1]
+        assert not out.exists()
