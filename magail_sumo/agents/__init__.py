@@ -6,7 +6,8 @@
   ``constvel`` trajectory model and :class:`~.constant_velocity.ConstantVelocityPolicy`); log
   replay through the env (:class:`~.log_replay.LogReplayPolicy`); SUMO's car-following baseline
   (:mod:`.sumo_baseline`);
-* the one rollout loop, :func:`~.rollout.rollout`.
+* the one rollout loop, :func:`~.rollout.rollout` (and :func:`~.rollout.rollout_worlds`, the
+  same over a batched env's worlds).
 
 This package sits below :mod:`magail_sumo.training` (expert recording drives the log replay);
 policies named by a spec (``--policy``: checkpoints, ``pretrained``) are resolved above
@@ -16,11 +17,11 @@ Add an agent: a module here with a class that has ``act(observations)``; a train
 checkpoint loader in :mod:`magail_sumo.policies`.
 """
 
-from .base import Policy, PolicyError, check_noise_scale, env_settings
+from .base import Policy, PolicyError, batched, check_noise_scale, env_settings
 from .constant_velocity import ConstantVelocityPolicy
 from .log_replay import LogReplayPolicy
 from .random_policy import RandomPolicy
-from .rollout import Step, rollout
+from .rollout import Step, rollout, rollout_worlds
 
 __all__ = ["ConstantVelocityPolicy", "LogReplayPolicy", "Policy", "PolicyError", "RandomPolicy",
-           "Step", "check_noise_scale", "env_settings", "rollout"]
+           "Step", "batched", "check_noise_scale", "env_settings", "rollout", "rollout_worlds"]

@@ -17,6 +17,20 @@ class RandomPolicy:
         """Draw from here on as ``RandomPolicy(seed)`` does."""
         self.rng = np.random.default_rng(seed)
 
+    def reseed_worlds(self, seeds) -> None:
+        """Batched rollouts: world ``w`` draws as ``RandomPolicy(seeds[w])`` does."""
+        self.world_rngs = [np.random.default_rng(s) for s in seeds]
+
+    def act_worlds(self, observations: list[dict[str, np.ndarray]]
+                   ) -> list[dict[str, np.ndarray]]:
+        """Each world's :meth:`act`, from its own stream (:meth:`reseed_worlds`)."""
+        out = []
+        for d, rng in zip(observations, self.world_rngs, strict=True):
+            names = sorted(d)
+            a = rng.uniform(-1.0, 1.0, (len(names), ACTION_SIZE)).astype(np.float32)
+            out.append(dict(zip(names, a)))
+        return out
+
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         names = sorted(observations)
         a = self.rng.uniform(-1.0, 1.0, (len(names), ACTION_SIZE)).astype(np.float32)

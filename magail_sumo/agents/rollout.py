@@ -1,6 +1,8 @@
 """The one rollout loop: a policy drives an env episode (Waymax's ``rollout``, PettingZoo API).
 
-Evaluation's policy rollouts, expert recording, ``magail-sumo replay`` and the policy-comparison
+:func:`rollout_worlds` is the same loop over a batched env
+(:class:`~magail_sumo.env.batched.BatchedSceneEnv`: many rollouts of a scene stepped at once),
+the policy acting for every world in one call. Evaluation's policy rollouts, expert recording, ``magail-sumo replay`` and the policy-comparison
 benchmark all drive their env with :func:`rollout`; what they keep of each step they read in
 their ``on_step`` callback from a :class:`Step`.
 """
@@ -74,6 +76,34 @@ def rollout(env, policy: Policy, on_step: Callable[[Step], None] | None = None, 
             actions = policy.act({a: obs[a] for a in agents}) if agents else {}
         else:
             actions = policy.act(obs)
+        nxt, rewards, terms, truncs, infos = env.step(actions)
+        n += 1
+        if on_step is not None:
+            on_step(Step(t, agents, obs, actions, nxt, rewards, terms, truncs, infos))
+        obs = nxt
+    return n
+
+
+def rollout_worlds(env, policy, seeds, on_step: Callable[[Step], None] | None = None, *,
+                   max_steps: int | None = None, scene=None) -> int:
+    """:func:`rollout` of a batched env (:class:`~magail_sumo.env.batched.BatchedSceneEnv`),
+    world ``w`` driven as a rollout with ``seeds[w]``: the env is reset with ``seeds[0]`` (the
+    worlds differ only by the policy's draws), the policy reseeded per world
+    (``reseed_worlds(seeds)``) and told the scene (its optional ``begin(scene, env)``), then
+    each step ``policy.act_worlds`` (one observation dict per world, by track id) ->
+    ``env.step`` -> ``on_step(Step)`` with the env's world-prefixed names, until no world has
+    a live agent or ``max_steps`` steps are taken. Returns the number of steps taken."""
+    if len(seeds) != env.worlds:
+        raise ValueError(f"rollout_worlds: {len(seeds)} seeds for {env.worlds} worlds")
+    obs, _ = env.reset(seed=int(seeds[0]))
+    policy.reseed_worlds(list(seeds))
+    begin = getattr(policy, "begin", None)
+    if callable(begin):
+        begin(getattr(env, "scene", None) if scene is None else scene, env)
+    n = 0
+    while env.agents and (max_steps is None or n < max_steps):
+        t, agents = env.t, list(env.agents)
+        actions = env.merge(policy.act_worlds(env.split(obs)))
         nxt, rewards, terms, truncs, infos = env.step(actions)
         n += 1
         if on_step is not None:

@@ -155,7 +155,8 @@ class FleetEnv(ParallelEnv):
         """Stage 8: event name -> (A,) bool of the stepped rows ``act`` (at world rows
         ``stepped``), and (A,) world row of the first box each overlaps (-1: none)."""
         cfg, f = self.config, self.fleet
-        other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, stepped)
+        other = first_overlap(boxes.x, boxes.y, boxes.yaw, boxes.length, boxes.width, stepped,
+                              boxes.groups)
         flags = {
             "collision": other >= 0,
             "off_road": self._off_road(act, stepped, lanes),

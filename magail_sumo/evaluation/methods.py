@@ -9,18 +9,22 @@
   (:mod:`magail_sumo.agents.sumo_baseline` has the details).
 * a policy (``random``, or a checkpoint / ``module:factory`` spec, see
   :func:`magail_sumo.policies.make_policy`): drives every route vehicle and cyclist through
-  :class:`~magail_sumo.env.SumoDrivingEnv` (bicycle model, SUMO co-simulation, no event
+  :class:`~magail_sumo.env.SumoDrivingEnv` (bicycle model, log background, no event
   terminates an agent; :func:`magail_sumo.agents.rollout`), built with the policy's
   ``observation``, ``action_layout`` and gap ``guard`` when it names them. Rollout ``r`` runs
   with the policy as ``make_policy(spec, rollout_seed(seed, r), ...)`` builds it; a training
   checkpoint samples its actions from that seed (``deterministic=True``: the tanh of the
   Gaussian mean, the same in every rollout).
 
-The rollouts of a policy on a scene share one env and one policy (:class:`PolicyRollouts`):
-the env is reset with each rollout's seed and the policy reseeded (its optional
-``reseed(seed)``, :class:`~magail_sumo.agents.base.Policy`) rather than both rebuilt, which
-gives the same rollouts as a fresh env and policy per rollout; a policy without ``reseed`` (a
-user's factory) is built anew per rollout.
+A policy that acts for many worlds at once (``reseed_worlds`` / ``act_worlds``:
+:func:`~magail_sumo.agents.batched`; training checkpoints, ``pretrained``, ``random``) runs all
+the rollouts of a batch at once in the batched core (:func:`batched_rollouts`: one
+:class:`~magail_sumo.env.batched.BatchedSceneEnv` world per rollout, one forward pass per step
+for all of them). Any other policy runs its rollouts one after another through one env and one
+policy (:class:`PolicyRollouts`): the env is reset with each rollout's seed and the policy
+reseeded (its optional ``reseed(seed)``, :class:`~magail_sumo.agents.base.Policy`) rather
+than both rebuilt, which gives the same rollouts as a fresh env and policy per rollout; a
+policy without ``reseed`` (a user's factory) is built anew per rollout.
 
 Objects a method does not move (pedestrians, objects SUMO does not carry, vehicles not yet
 inserted) and objects that leave the simulation early (arrived at their route end, end of
@@ -42,11 +46,12 @@ from typing import Callable, Iterable
 import numpy as np
 
 from converters.scene_files import find_scene
-from magail_sumo.agents import Policy, env_settings, rollout
+from magail_sumo.agents import Policy, batched, env_settings, rollout, rollout_worlds
 from magail_sumo.agents import constant_velocity as _cv
 from magail_sumo.agents.constant_velocity import Track, current_state, fill_constant_velocity
 from magail_sumo.agents.sumo_baseline import sumo_rollout
 from magail_sumo.env import EnvConfig, SumoDrivingEnv
+from magail_sumo.env.batched import BatchedSceneEnv, world_name
 from magail_sumo.env.actions import action_summary
 from magail_sumo.evaluation.protocol import N_STEPS, EvaluationError, log, rollout_seed, span
 from magail_sumo.evaluation.realism import log_replay
@@ -87,9 +92,12 @@ def as_rollouts(scene: Scene, ids: np.ndarray, xs: list, ys: list, yaws: list
 def env_config(scene: Scene, policy: Policy) -> EnvConfig:
     """The env of a policy's rollouts: every route vehicle controlled from the scene's current
     step for :data:`N_STEPS` steps, no event ends an agent, with the policy's
-    ``observation``, ``action_layout`` and ``guard`` when it has them."""
+    ``observation``, ``action_layout`` and ``guard`` when it has them; log background without
+    the SUMO mirror (nothing of such an episode reads SUMO: the same rollouts, bit for bit,
+    without running it)."""
     return EnvConfig(controlled="all", start_step=scene.current_time_index, max_steps=N_STEPS,
-                     terminate_on=(), end_of_life=False, **env_settings(policy))
+                     terminate_on=(), end_of_life=False, sumo_mirror=False,
+                     **env_settings(policy))
 
 
 def policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
@@ -132,6 +140,47 @@ def policy_rollout(scene: Scene, bundle_dir: Path, policy: Policy, seed: int,
         if own:
             env.close()
     return fill_constant_velocity(scene, ids, track)
+
+
+def batched_rollouts(scene: Scene, bundle_dir: Path, policy: Policy, seeds: list[int],
+                     counts: dict[str, int] | None = None) -> list[Trajectory]:
+    """The rollouts of ``policy`` with ``seeds`` all at once: one
+    :class:`~magail_sumo.env.batched.BatchedSceneEnv` world per seed (the env of
+    :func:`env_config` without the SUMO mirror, which nothing of a log-background episode
+    reads), driven by :func:`~magail_sumo.agents.rollout_worlds`; world ``w`` is the rollout
+    :func:`policy_rollout` gives with ``seeds[w]`` (a checkpoint policy's batched forward pass
+    may differ in the last float bits). Each agent's simulated state at a step is the one the
+    env reports after it; the rest as :func:`policy_rollout`."""
+    ids = sim_agent_ids(scene)
+    cur = scene.current_time_index
+    env = BatchedSceneEnv(scene, bundle_dir, env_config(scene, policy), worlds=len(seeds))
+    col = {int(i): k for k, i in enumerate(ids.tolist())}
+    # name -> (world, column): every name the env may step, resolved once
+    where = {}
+    for w in range(env.worlds):
+        for a in env.world_agents:
+            if int(a) in col:
+                where[world_name(w, a)] = (w, col[int(a)])
+    states = np.full((4, len(seeds), len(ids), N_STEPS), np.nan)
+
+    def keep(step) -> None:
+        t = step.t - cur  # column of log step step.t + 1
+        if not 0 <= t < N_STEPS:
+            return
+        sel = [(*where[n], *step.infos[n]["state"]) for n in step.agents if n in where]
+        if sel:
+            arr = np.array(sel, np.float64)  # (n, 6): world, column, x, y, yaw, speed
+            w, a = arr[:, 0].astype(np.int64), arr[:, 1].astype(np.int64)
+            states[:, w, a, t] = arr[:, 2:].T
+
+    try:
+        rollout_worlds(env, policy, seeds, keep, max_steps=N_STEPS, scene=scene)
+        if counts is not None:
+            for k, v in env.action_counts.items():
+                counts[k] = counts.get(k, 0) + v
+    finally:
+        env.close()
+    return [fill_constant_velocity(scene, ids, Track(*states[:, w])) for w in range(len(seeds))]
 
 
 class PolicyRollouts:
@@ -220,9 +269,14 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         # lazy: baseline batches run in worker processes that import no torch
         from magail_sumo.policies import make_policy
 
-        with PolicyRollouts(scene, bundle_dir,
-                            lambda s: make_policy(method, s, deterministic, noise_scale)) as pr:
-            runs = [pr.run(s, counts) for s in seeds]
+        make = lambda s: make_policy(method, s, deterministic, noise_scale)  # noqa: E731
+        policy = make(seeds[0])
+        if batched(policy):  # every rollout at once (one env world per rollout)
+            runs = batched_rollouts(scene, Path(bundle_dir), policy, seeds, counts)
+        else:
+            with PolicyRollouts(scene, bundle_dir, make) as pr:
+                pr.policy = policy
+                runs = [pr.run(s, counts) for s in seeds]
 
     fixed = action_summary(counts)
     if fixed:  # once per batch, in the run log

@@ -76,6 +76,12 @@ class CheckpointPolicy:
         """Sample from here on as the policy built with ``seed`` does (the next rollout)."""
         self.generator.manual_seed(int(seed))
 
+    def reseed_worlds(self, seeds) -> None:
+        """Batched rollouts: world ``w`` samples from here on as the policy built with
+        ``seeds[w]`` does (:meth:`act_worlds`)."""
+        dev = self.policy.device
+        self.world_generators = [torch.Generator(device=dev).manual_seed(int(s)) for s in seeds]
+
     def _observations(self, observations: dict[str, np.ndarray], names: list[str]
                       ) -> torch.Tensor:
         x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
@@ -100,6 +106,40 @@ class CheckpointPolicy:
             a = torch.tanh(mean + self.noise_scale * std * eps)
         a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
         return dict(zip(names, a))
+
+
+    @torch.no_grad()
+    def act_worlds(self, observations: list[dict[str, np.ndarray]]
+                   ) -> list[dict[str, np.ndarray]]:
+        """Actions of every world of a batched env (:mod:`magail_sumo.env.batched`), one
+        forward pass over all of them: world ``w`` acts as :meth:`act` of a policy reseeded
+        with ``seeds[w]`` of :meth:`reseed_worlds` (its agents in sorted-name order, its noise
+        from its own generator; the batched matrix products may differ from one world's in the
+        last float bits)."""
+        names = [sorted(d) if not self.deterministic else list(d) for d in observations]
+        flat = [(w, n) for w, ns in enumerate(names) for n in ns]
+        if not flat:
+            return [{} for _ in observations]
+        x = self._observations({f"{w}/{n}": observations[w][n] for w, n in flat},
+                               [f"{w}/{n}" for w, n in flat])
+        if self.deterministic:
+            a = self.policy._predict(x, deterministic=True)
+        else:
+            gens = getattr(self, "world_generators", None)
+            if gens is None or len(gens) != len(observations):
+                raise ValueError(f"{self.name}: call reseed_worlds with one seed per world "
+                                 "before act_worlds")
+            gauss = self.policy.get_distribution(x)
+            mean, std = gauss.distribution.mean, gauss.distribution.stddev
+            eps = torch.cat([torch.randn((len(ns), mean.shape[1]), generator=g,
+                                         dtype=mean.dtype, device=mean.device)
+                             for ns, g in zip(names, gens)])
+            a = torch.tanh(mean + self.noise_scale * std * eps)
+        a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
+        out: list[dict[str, np.ndarray]] = [{} for _ in observations]
+        for (w, n), row in zip(flat, a):
+            out[w][n] = row
+        return out
 
 
 def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig) -> None:

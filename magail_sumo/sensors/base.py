@@ -33,6 +33,7 @@ from magail_sumo.scene import RoadMap
 
 from .lanes import LaneIndex, LaneQuery
 from .raycast import box_edges
+from .worlds import BoxGroups
 
 if TYPE_CHECKING:
     from .config import ObservationConfig
@@ -47,6 +48,8 @@ class Boxes:
     :param length, width: box size (m).
     :param speed: signed speed along the heading (m/s), for sensors that read motion (the
         leader sensor); None: unknown (such sensors then read every road user as still).
+    :param groups: the worlds of a batched env's boxes (:mod:`magail_sumo.sensors.worlds`):
+        an agent only meets its own world's road users and the shared ones; None: one world.
     """
 
     x: np.ndarray
@@ -55,6 +58,7 @@ class Boxes:
     length: np.ndarray
     width: np.ndarray
     speed: np.ndarray | None = None
+    groups: BoxGroups | None = None
 
     def __len__(self) -> int:
         return int(self.x.shape[0])

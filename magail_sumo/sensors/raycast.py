@@ -208,6 +208,50 @@ def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, se
     return out
 
 
+@numba.njit(cache=True)
+def _cast_boxes(origins, angles, uniform, step, full, max_range, starts, ends, agent_box,
+                box_world, offsets, rows, centre, reach):
+    """:func:`_cast_all` against box edges (box ``j``'s edges are rows ``4j .. 4j + 3``),
+    each agent visiting only its world's boxes and the shared ones
+    (:class:`~magail_sumo.sensors.worlds.BoxGroups` buckets), never its own; a box whose
+    centre is farther than ``reach[j]`` (range plus its half diagonal) is skipped whole (none
+    of its edges comes within range), and of a box the origin is outside of only the edges
+    facing the origin are cast (a ray's first hit on a convex box is on one of them)."""
+    a, b = angles.shape
+    out = np.full((a, b), max_range)
+    cosb, sinb = np.cos(angles), np.sin(angles)
+    r2 = max_range * max_range
+    shared = offsets.shape[0] - 2
+    for i in range(a):
+        ox, oy = origins[i, 0], origins[i, 1]
+        me = agent_box[i]
+        for bucket in (box_world[me], shared):
+            for m in range(offsets[bucket], offsets[bucket + 1]):
+                j = rows[m]
+                if j == me:
+                    continue
+                cx, cy = centre[j, 0] - ox, centre[j, 1] - oy
+                if cx * cx + cy * cy > reach[j] * reach[j]:
+                    continue
+                # from outside a convex box a ray first meets an edge facing the origin (the
+                # corners run counter-clockwise: outward normal (ey, -ex)); from inside, any
+                inside = True
+                for k in range(4 * j, 4 * j + 4):
+                    if (ox - starts[k, 0]) * (ends[k, 1] - starts[k, 1]) - \
+                            (oy - starts[k, 1]) * (ends[k, 0] - starts[k, 0]) >= 0.0:
+                        inside = False
+                        break
+                for k in range(4 * j, 4 * j + 4):
+                    ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
+                    if not inside and (ox - ax) * (by - ay) - (oy - ay) * (bx - ax) < 0.0:
+                        continue
+                    if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
+                        continue
+                    _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax,
+                                  ay, bx, by)
+    return out
+
+
 def _uniform(angles: np.ndarray) -> tuple[float, bool]:
     """(spacing, full circle) when every row's beams are evenly spaced by the same step;
     (0.0, False) otherwise."""
@@ -246,6 +290,29 @@ def cast(origins: np.ndarray, angles: np.ndarray, max_range: float, starts: np.n
     out = _cast_all(np.ascontiguousarray(origins, np.float64), ang, step > 0.0, step, full,
                     float(max_range), np.ascontiguousarray(starts, np.float64),
                     np.ascontiguousarray(ends, np.float64), so, ao)
+    return np.minimum(out, max_range)
+
+
+def cast_boxes(origins: np.ndarray, angles: np.ndarray, max_range: float, starts: np.ndarray,
+               ends: np.ndarray, agent_box: np.ndarray, groups) -> np.ndarray:
+    """Ray readings of every agent against the edges of boxes of several worlds: as
+    :func:`cast` with segment ``k`` owned by box ``k // 4`` (the layout of
+    :meth:`~magail_sumo.sensors.base.Boxes.edges`), each agent (box row ``agent_box``) seeing
+    only its world's boxes and the shared ones of ``groups``
+    (:class:`~magail_sumo.sensors.worlds.BoxGroups`). The same readings as :func:`cast` of
+    each world's boxes alone (a minimum over the same hits)."""
+    ang = np.ascontiguousarray(angles, np.float64)
+    step, full = _uniform(ang)
+    starts = np.ascontiguousarray(starts, np.float64)
+    corners = starts.reshape(-1, 4, 2)  # an edge starts at each corner
+    centre = corners.mean(axis=1)
+    half_diag = np.sqrt(((corners - centre[:, None, :]) ** 2).sum(axis=2)).max(axis=1) \
+        if corners.shape[0] else np.zeros(0)
+    reach = float(max_range) + half_diag + 1e-6
+    out = _cast_boxes(np.ascontiguousarray(origins, np.float64), ang, step > 0.0, step, full,
+                      float(max_range), starts, np.ascontiguousarray(ends, np.float64),
+                      np.ascontiguousarray(agent_box, np.int64), groups.world, groups.offsets,
+                      groups.rows, centre, reach)
     return np.minimum(out, max_range)
 
 

@@ -8,14 +8,17 @@ with the smallest gap ``x − (l_agent + l_other)/2`` (m, centre distance less t
 lengths: bumper to bumper for aligned boxes; negative when they overlap). Its closing speed is
 the agent's speed less the leader's speed along the agent's heading (m/s; > 0: the gap
 shrinks). Without a leader: gap ``leader_range``, closing speed 0. Road users of unknown speed
-(``Boxes.speed`` None) count as still. Vectorised over the (A, N) agent × road-user pairs.
+(``Boxes.speed`` None) count as still. One numba kernel over the agent × road-user pairs (in a
+batched env only the agent's own world's road users and the shared ones).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ..base import Boxes, Sensor, SensorInput, register
+from ..worlds import BoxGroups
 
 
 @register
@@ -58,28 +61,54 @@ def nearest_ahead(b: Boxes, index: np.ndarray, x: np.ndarray, y: np.ndarray, yaw
         sensor reads it.
     """
     n, a = len(b), len(index)
-    gap_out, along_out = np.full(a, np.inf), np.zeros(a)
     if a == 0 or n <= 1:
-        return gap_out, along_out, np.zeros(a, bool)
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    dx = b.x[None, :] - x[:, None]
-    dy = b.y[None, :] - y[:, None]
-    ex, ey = c * dx + s * dy, -s * dx + c * dy
-    if oriented:
-        d = np.asarray(b.yaw, np.float64)[None, :] - yaw[:, None]
-        cd, sd = np.abs(np.cos(d)), np.abs(np.sin(d))
-        ext_along = cd * b.length[None, :] + sd * b.width[None, :]
-        ext_across = sd * b.length[None, :] + cd * b.width[None, :]
-    else:
-        ext_along, ext_across = b.length[None, :], b.width[None, :]
-    gap = ex - 0.5 * (ext_along + b.length[index][:, None])
-    ahead = (ex > 0) & (np.abs(ey) < 0.5 * (ext_across + b.width[index][:, None])) & (gap < rng)
-    ahead[np.arange(a), index] = False
-    gap = np.where(ahead, gap, np.inf)
-    j = np.argmin(gap, axis=1)
-    best = gap[np.arange(a), j]
-    found = np.isfinite(best)
-    speed = np.zeros(n) if b.speed is None else np.asarray(b.speed, np.float64)
-    along = speed[j] * np.cos(np.asarray(b.yaw, np.float64)[j] - yaw)
-    gap_out[found], along_out[found] = best[found], along[found]
+        return np.full(a, np.inf), np.zeros(a), np.zeros(a, bool)
+    f = lambda v: np.ascontiguousarray(v, np.float64)  # noqa: E731
+    # a batched env: each agent against its world's boxes and the shared ones
+    g = b.groups if b.groups is not None else BoxGroups.single(n)
+    world, offsets, rows = g.world, g.offsets, g.rows
+    speed = np.zeros(n) if b.speed is None else f(b.speed)
+    return _nearest_ahead(f(b.x), f(b.y), f(b.yaw), f(b.length), f(b.width), speed,
+                          np.ascontiguousarray(index, np.int64), f(x), f(y), f(yaw),
+                          float(rng), bool(oriented), world, offsets, rows)
+
+
+@numba.njit(cache=True)
+def _nearest_ahead(bx, by, byaw, blen, bwid, bspeed, index, x, y, yaw, rng, oriented, world,
+                   offsets, rows):
+    """:func:`nearest_ahead` over the agents' own world's boxes and the shared ones
+    (:class:`~magail_sumo.sensors.worlds.BoxGroups` buckets); ties go to the lowest row."""
+    a = index.shape[0]
+    gap_out, along_out = np.full(a, np.inf), np.zeros(a)
+    found = np.zeros(a, np.bool_)
+    shared = offsets.shape[0] - 2
+    for i in range(a):
+        me = index[i]
+        c, s = np.cos(yaw[i]), np.sin(yaw[i])
+        best, bj = np.inf, -1
+        for bucket in (world[me], shared):
+            for m in range(offsets[bucket], offsets[bucket + 1]):
+                j = rows[m]
+                if j == me:
+                    continue
+                dx, dy = bx[j] - x[i], by[j] - y[i]
+                ex = c * dx + s * dy
+                if not ex > 0.0:
+                    continue
+                ey = -s * dx + c * dy
+                if oriented:
+                    d = byaw[j] - yaw[i]
+                    cd, sd = abs(np.cos(d)), abs(np.sin(d))
+                    ext_along = cd * blen[j] + sd * bwid[j]
+                    ext_across = sd * blen[j] + cd * bwid[j]
+                else:
+                    ext_along, ext_across = blen[j], bwid[j]
+                gap = ex - 0.5 * (ext_along + blen[me])
+                if abs(ey) < 0.5 * (ext_across + bwid[me]) and gap < rng and \
+                        (gap < best or (gap == best and j < bj)):
+                    best, bj = gap, j
+        if bj >= 0:
+            found[i] = True
+            gap_out[i] = best
+            along_out[i] = bspeed[bj] * np.cos(byaw[bj] - yaw[i])
     return gap_out, along_out, found
