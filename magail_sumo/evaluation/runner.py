@@ -3,8 +3,9 @@ over fresh worker processes, written as Parquet with the run's manifest.
 
 :func:`evaluate` takes its steps in order: check the settings (:func:`method_names`), read and
 prepare the scenes once (:mod:`magail_sumo.evaluation.scenes`), run the methods
-(:func:`run_methods`: the in-process ones here, the SUMO ones as :class:`Batch` es of up to 8
-rollouts, each batch in a fresh ``spawn`` process, :func:`run_batches`), write each (scene,
+(:func:`run_methods`: the in-process ones here, the others as :class:`Batch` es, each batch in a
+fresh ``spawn`` process, :func:`run_batches`: up to 8 rollouts of SUMO's car-following, a
+policy's rollouts of a scene in as few batches as keep the workers busy, :func:`batch_size`), write each (scene,
 method)'s rollouts (:func:`write_rollouts`), then the manifest (:func:`manifest_of`) and the
 optional submission.
 """
@@ -69,8 +70,15 @@ def chunks(n: int, size: int) -> list[tuple[int, ...]]:
     return [tuple(range(i, min(i + size, n))) for i in range(0, n, size)]
 
 
-def batch_size(n_rollouts: int, workers: int) -> int:
-    return max(1, min(8, math.ceil(n_rollouts / max(1, workers))))
+def batch_size(n_rollouts: int, workers: int, spec: str = "sumo", n_scenes: int = 1) -> int:
+    """Rollouts per worker batch of method ``spec``: SUMO's car-following runs its rollouts
+    one after another (up to 8 per batch, so a crash costs little); a policy's run at once in
+    the batched core (:func:`~magail_sumo.evaluation.methods.batched_rollouts`), so a scene's
+    rollouts are split only as far as it takes to give every worker a batch."""
+    workers = max(1, workers)
+    if spec in BASELINES:
+        return max(1, min(8, math.ceil(n_rollouts / workers)))
+    return max(1, math.ceil(n_rollouts / max(1, math.ceil(workers / max(1, n_scenes)))))
 
 
 def merge(parts: list[ScenarioRollouts]) -> ScenarioRollouts:
@@ -148,10 +156,10 @@ def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: 
     total = len(scenes) * len(specs) * n_rollouts
     done = 0
     batches = []
-    size = batch_size(n_rollouts, workers)
     for sid, ps in scenes.items():
         for s in specs:
             if needs_worker(s):
+                size = batch_size(n_rollouts, workers, s, len(scenes))
                 batches += [Batch(ps.file, sid, str(ps.bundle), s, c, seed, deterministic,
                                   noise_scale, ps.scene) for c in chunks(n_rollouts, size)]
             else:
