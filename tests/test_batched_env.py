@@ -112,6 +112,40 @@ def test_each_world_runs_as_the_single_env(scene_file, config, bundled_networks)
         assert ended > 0  # the comparison covered agents that met events
 
 
+@pytest.mark.parametrize("config", sorted(CONFIGS))
+def test_array_api_gives_the_dict_api_step(config, bundled_networks):
+    """``reset_arrays`` / ``step_arrays`` give the observations, rewards, terminations,
+    truncations and events the dict API gives, row for row."""
+    scene_file = SCENES[0]
+    scene = load_scene(scene_file)
+    bundle = bundled_networks.bundle(scene_file.stem)
+    cfg = CONFIGS[config]
+    dicts = run_batched(scene, bundle, cfg)
+    env = BatchedSceneEnv(scene, bundle, cfg, worlds=WORLDS)
+    st = env.reset_arrays(seed=0)
+    per = env.per_world
+    compared = 0
+    while not env.finished:
+        rows = np.flatnonzero(st.live)
+        acts = np.full((len(env.fleet), 2), np.nan, np.float32)  # not live: ignored
+        for k in rows.tolist():
+            acts[k] = action(k // per, env.t, env.world_agents[k % per])
+        stepped = rows
+        st = env.step_arrays(acts)
+        for k in np.flatnonzero(st.observed).tolist():
+            w, a = k // per, env.world_agents[k % per]
+            o, r, te, tr, info = dicts[w][env.t][a]
+            np.testing.assert_array_equal(st.observations[k], o)
+            if k in stepped:
+                assert (st.rewards[k], st.terminated[k], st.truncated[k]) == (r, te, tr)
+                assert {e: bool(v[k]) for e, v in st.events.items()} == info["events"]
+                compared += 1
+    assert compared > 0 and env.action_counts["nonfinite"] == 0
+    with pytest.raises(ValueError, match="actions must be"):
+        env.step_arrays(np.zeros((1, 2)))
+    env.close()
+
+
 def test_worlds_differ_and_stay_apart(bundled_networks):
     """Different actions give different worlds, and one world's agents are not in another's
     lidar: the same agent sees the same when its world's actions are the same."""

@@ -38,12 +38,13 @@ class Policy(Protocol):
     * ``reseed(seed)``: put the policy in the state building it with ``seed`` gives (it then
       draws the same random numbers as a fresh one): evaluation reuses one policy for all the
       rollouts of a batch, reseeded per rollout, and builds a policy without it anew.
-    * ``reseed_worlds(seeds)`` and ``act_worlds(observations)``: batched rollouts
+    * ``reseed_worlds(seeds)`` and ``act_batch(observations, worlds)``: batched rollouts
       (:func:`~magail_sumo.agents.rollout.rollout_worlds` over a
-      :class:`~magail_sumo.env.batched.BatchedSceneEnv`): ``act_worlds`` takes one
-      observation dict per world (keyed by track id) and returns one action dict per world,
-      world ``w`` acting as ``act`` of the policy reseeded with ``seeds[w]`` would; evaluation
-      runs all rollouts of a scene at once with a policy that has both (:func:`batched`).
+      :class:`~magail_sumo.env.batched.BatchedSceneEnv`): ``act_batch`` takes (n, D)
+      observations of every world's live agents, grouped by ``worlds`` (n,) ascending and each
+      world's in sorted-name order, and returns (n, 2) actions, world ``w`` acting as ``act``
+      of the policy reseeded with ``seeds[w]`` would; evaluation runs all rollouts of a scene
+      at once with a policy that has both (:func:`batched`).
     """
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
@@ -51,9 +52,9 @@ class Policy(Protocol):
 
 def batched(policy) -> bool:
     """Whether ``policy`` acts for many worlds at once (``reseed_worlds`` and
-    ``act_worlds``, :class:`Policy`)."""
+    ``act_batch``, :class:`Policy`)."""
     return callable(getattr(policy, "reseed_worlds", None)) and \
-        callable(getattr(policy, "act_worlds", None))
+        callable(getattr(policy, "act_batch", None))
 
 
 #: the optional :class:`Policy` attributes that are env settings (``EnvConfig`` fields)

@@ -21,15 +21,14 @@ class RandomPolicy:
         """Batched rollouts: world ``w`` draws as ``RandomPolicy(seeds[w])`` does."""
         self.world_rngs = [np.random.default_rng(s) for s in seeds]
 
-    def act_worlds(self, observations: list[dict[str, np.ndarray]]
-                   ) -> list[dict[str, np.ndarray]]:
-        """Each world's :meth:`act`, from its own stream (:meth:`reseed_worlds`)."""
-        out = []
-        for d, rng in zip(observations, self.world_rngs, strict=True):
-            names = sorted(d)
-            a = rng.uniform(-1.0, 1.0, (len(names), ACTION_SIZE)).astype(np.float32)
-            out.append(dict(zip(names, a)))
-        return out
+    def act_batch(self, observations: np.ndarray, worlds: np.ndarray) -> np.ndarray:
+        """(n, 2) actions of every world's agents (grouped by ``worlds``, ascending, each
+        world's in sorted-name order), world ``w`` drawing from its own stream
+        (:meth:`reseed_worlds`) as :meth:`act` does."""
+        counts = np.bincount(np.asarray(worlds, np.int64), minlength=len(self.world_rngs))
+        parts = [rng.uniform(-1.0, 1.0, (int(c), ACTION_SIZE)).astype(np.float32)
+                 for c, rng in zip(counts, self.world_rngs, strict=True)]
+        return np.concatenate(parts) if parts else np.zeros((0, ACTION_SIZE), np.float32)
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         names = sorted(observations)

@@ -84,29 +84,41 @@ def rollout(env, policy: Policy, on_step: Callable[[Step], None] | None = None, 
     return n
 
 
-def rollout_worlds(env, policy, seeds, on_step: Callable[[Step], None] | None = None, *,
+def rollout_worlds(env, policy, seeds, on_step: Callable[[int, np.ndarray, np.ndarray, Any],
+                                                     None] | None = None, *,
                    max_steps: int | None = None, scene=None) -> int:
-    """:func:`rollout` of a batched env (:class:`~magail_sumo.env.batched.BatchedSceneEnv`),
-    world ``w`` driven as a rollout with ``seeds[w]``: the env is reset with ``seeds[0]`` (the
-    worlds differ only by the policy's draws), the policy reseeded per world
-    (``reseed_worlds(seeds)``) and told the scene (its optional ``begin(scene, env)``), then
-    each step ``policy.act_worlds`` (one observation dict per world, by track id) ->
-    ``env.step`` -> ``on_step(Step)`` with the env's world-prefixed names, until no world has
-    a live agent or ``max_steps`` steps are taken. Returns the number of steps taken."""
+    """:func:`rollout` of a batched env (:class:`~magail_sumo.env.batched.BatchedSceneEnv`)
+    through its array API, world ``w`` driven as a rollout with ``seeds[w]``: the env is
+    reset with ``seeds[0]`` (the worlds differ only by the policy's draws), the policy
+    reseeded per world (``reseed_worlds(seeds)``) and told the scene (its optional
+    ``begin(scene, env)``), then each step ``policy.act_batch`` over every world's live
+    agents (grouped by world, each world's in sorted-name order, so its draws are those of a
+    single-world rollout) -> ``env.step_arrays`` -> ``on_step(t, rows, actions, step)`` (``t``
+    the log step before the step, ``rows`` the fleet rows it moved, ``actions`` their (n, 2)
+    actions, ``step`` the :class:`~magail_sumo.env.outcomes.ArrayStep`; post-step states are
+    in ``env.fleet``), until the episode is over (``env.finished``) or ``max_steps`` steps are
+    taken. Returns the number of steps taken."""
     if len(seeds) != env.worlds:
         raise ValueError(f"rollout_worlds: {len(seeds)} seeds for {env.worlds} worlds")
-    obs, _ = env.reset(seed=int(seeds[0]))
+    st = env.reset_arrays(seed=int(seeds[0]))
     policy.reseed_worlds(list(seeds))
     begin = getattr(policy, "begin", None)
     if callable(begin):
         begin(getattr(env, "scene", None) if scene is None else scene, env)
+    per = max(env.per_world, 1)
+    names = np.array(env.world_agents, dtype=str)
+    rank = np.argsort(np.argsort(names, kind="stable"), kind="stable")  # sorted-name rank
+    actions = np.zeros((len(env.fleet), 2), np.float32)
     n = 0
-    while env.agents and (max_steps is None or n < max_steps):
-        t, agents = env.t, list(env.agents)
-        actions = env.merge(policy.act_worlds(env.split(obs)))
-        nxt, rewards, terms, truncs, infos = env.step(actions)
+    while not env.finished and (max_steps is None or n < max_steps):
+        rows = np.flatnonzero(st.live)
+        rows = rows[np.lexsort((rank[rows % per], rows // per))]
+        actions[:] = 0.0
+        if rows.size:
+            actions[rows] = policy.act_batch(st.observations[rows], rows // per)
+        t = env.t
+        st = env.step_arrays(actions)
         n += 1
         if on_step is not None:
-            on_step(Step(t, agents, obs, actions, nxt, rewards, terms, truncs, infos))
-        obs = nxt
+            on_step(t, rows, actions[rows], st)
     return n

@@ -1,4 +1,5 @@
-"""Agent action dicts (PettingZoo) to clean arrays, counting what had to be fixed."""
+"""Agent action dicts (PettingZoo) and action arrays to clean arrays, counting what had to be
+fixed."""
 
 from __future__ import annotations
 
@@ -38,10 +39,19 @@ def checked_actions(actions: Mapping[str, Any], names: Sequence[str]
     else:
         raw, missing, present = _each_action(actions, names)
     unknown = len(actions) - present
+    clean, nonfinite, outside = cleaned(raw)
+    return clean, nonfinite, outside, missing, unknown
+
+
+def cleaned(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(A, 2) actions as the env takes them: non-finite entries 0, the rest clipped to
+    [-1, 1]; plus (A,) masks of the rows that had a non-finite entry and of those outside
+    [-1, 1]."""
+    raw = np.asarray(raw, np.float64)
     nonfinite = ~np.isfinite(raw).all(axis=1)
     clean = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
     outside = (np.abs(clean) > 1.0).any(axis=1)
-    return np.clip(clean, -1.0, 1.0), nonfinite, outside, missing, unknown
+    return np.clip(clean, -1.0, 1.0), nonfinite, outside
 
 
 def _every_action(actions: Mapping[str, Any], names: Sequence[str]) -> np.ndarray | None:

@@ -39,6 +39,7 @@ given for names that are no agent of the scene (``unknown``) or no longer / not 
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -55,11 +56,11 @@ from magail_sumo.sim.fcd import SHAPES, FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.paths import Paths
 from magail_sumo.sim.session import STEP_LENGTH, Obstacles, SessionConfig, SumoSession
 
-from .actions import ACTION_COUNTS
+from .actions import ACTION_COUNTS, cleaned
 from .config import EVENTS, EnvConfig, draw_start, window_starts
 from .events import RoadEdgeRule, StopLines
 from .fleet import AgentStates, Fleet
-from .outcomes import StepDicts
+from .outcomes import ArrayStep, StepDicts, leaving
 from .fcd import EpisodeFcd
 from .log_actions import log_prev_actions
 from .render import AGENT, LOG_ONLY, OTHER, TopDownRenderer
@@ -149,9 +150,13 @@ class SumoDrivingEnv(FleetEnv):
         self._edges = RoadEdgeRule.build(scene, cfg.off_road_edge_margin, self._length,
                                          self._width) if cfg.off_road_rule == "road_edge" else None
         low, high = observation_bounds(cfg.observation)
-        self._obs_spaces = {a: spaces.Box(low, high, dtype=np.float32) for a in self.possible_agents}
+        # one space per agent (each seeded on its own at reset), copied from one built space:
+        # building a Box checks its bounds (~80 µs), a batched env has thousands of agents
+        obs_space = spaces.Box(low, high, dtype=np.float32)
+        self._obs_spaces = {a: copy.copy(obs_space) for a in self.possible_agents}
         act = (dynamics.ACTION_SIZE,)
-        self._act_spaces = {a: spaces.Box(-1.0, 1.0, act, np.float32) for a in self.possible_agents}
+        act_space = spaces.Box(-1.0, 1.0, act, np.float32)
+        self._act_spaces = {a: copy.copy(act_space) for a in self.possible_agents}
         self._session: SumoSession | None = None
         self._obstacles: Obstacles | None = None
         self._renderer: TopDownRenderer | None = None
@@ -444,8 +449,15 @@ class SumoDrivingEnv(FleetEnv):
 
     def _observe(self, agents: np.ndarray, lanes=None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, np.ndarray]]:
-        """Step stage 6: observations of fleet rows ``agents`` (sorted), and the world
+        """Step stage 6: observations of fleet rows ``agents`` (sorted) by name, and the world
         (:meth:`_world`); ``lanes``: their lane query when already made."""
+        obs, world = self._observe_rows(agents, lanes)
+        names = self.fleet.names
+        return {names[k]: obs[i] for i, k in enumerate(agents.tolist())}, world
+
+    def _observe_rows(self, agents: np.ndarray, lanes=None
+                      ) -> tuple[np.ndarray, tuple[Boxes, np.ndarray]]:
+        """:meth:`_observe` as an (A, D) float32 array in the order of ``agents``."""
         import time
 
         clock = time.perf_counter()
@@ -463,7 +475,75 @@ class SumoDrivingEnv(FleetEnv):
                        f.dest[agents], f.dest_yaw[agents], cmd, route)
         obs = self.suite.observe(world[0], ego, self.t, lanes)
         self.sensor_time += time.perf_counter() - clock
-        return {f.names[k]: obs[i] for i, k in enumerate(agents)}, world
+        return obs, world
+
+    # ------------------------------------------------------------------ array API
+    @property
+    def finished(self) -> bool:
+        """The episode is over: its last step is taken, or nobody is live and nobody is to
+        join (the array API's loop condition; the dict API's is ``env.agents``)."""
+        f = self.fleet
+        return self.t >= self._end or not (f.active.any() or (~f.joined).any())
+
+    def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> ArrayStep:
+        """:meth:`reset` for the array API: the observations of the fleet rows (every world's
+        agents of a batched env) as an :class:`~magail_sumo.env.outcomes.ArrayStep` (rows
+        ``observed``: the agents joining at the start; ``live``: the same)."""
+        obs, _ = self.reset(seed=seed, options=options)
+        f = self.fleet
+        n = len(f)
+        self._obs_rows = np.zeros((n, self.suite.size), np.float32)
+        rows = f.rows_of(list(obs))
+        if rows.size:
+            self._obs_rows[rows] = np.stack(list(obs.values()))
+        seen = np.zeros(n, bool)
+        seen[rows] = True
+        return ArrayStep(self._obs_rows, seen, f.active[:n].copy(), np.zeros(n), np.zeros(n, bool),
+                         np.zeros(n, bool), {e: np.zeros(n, bool) for e in self.events})
+
+    def step_arrays(self, actions: np.ndarray) -> ArrayStep:
+        """One step of the array API: ``actions`` (N, 2) over the fleet rows (rows not live
+        are ignored; non-finite entries count and become 0, the rest are clipped to [-1, 1],
+        as in :meth:`step`); the same stages and outcome as :meth:`step` without a dict or an
+        info per agent (:class:`~magail_sumo.env.outcomes.ArrayStep`). Steps that find no live
+        agent run on (the dict API skips ahead to the next joiner): loop while not
+        :attr:`finished`."""
+        if self._session is None:
+            raise RuntimeError("call reset_arrays() before step_arrays()")
+        f = self.fleet
+        n = len(f)
+        actions = np.asarray(actions)
+        if actions.shape != (n, dynamics.ACTION_SIZE):
+            raise ValueError(f"step_arrays: actions must be ({n}, {dynamics.ACTION_SIZE}) "
+                             f"(one row per fleet row), got {actions.shape}")
+        act = f.live()
+        clean, nonfinite, outside = cleaned(actions[act])
+        f.count_fixes(act, nonfinite, outside)
+        self.action_counts["nonfinite"] += int(nonfinite.sum())
+        self.action_counts["clipped"] += int(outside.sum())
+        st = self._stages(act, clean, self._observe_rows)
+        end = self.t >= self._end
+        time_up, _ = self._time_up(act, st.flags, end, st.arrived)
+        term, trunc = leaving(st.flags, self.config.terminate_on, time_up)
+        gone = act[term | trunc]
+        self._leave(np.concatenate([gone, st.joiners]) if end else gone)
+        self._obs_rows[st.agents] = st.obs
+        seen = np.zeros(n, bool)
+        seen[st.agents] = True
+        rewards, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
+        if st.reward is not None:
+            rewards[act] = st.reward
+        terminated[act], truncated[act] = term, trunc
+        truncated[st.joiners] = end
+        events = {}
+        for name in self.events:
+            ev = np.zeros(n, bool)
+            ev[act] = st.flags[name]
+            events[name] = ev
+        self.agents = f.names_of(f.live())
+        self._record_fcd()
+        return ArrayStep(self._obs_rows, seen, f.active[:n].copy(), rewards, terminated,
+                         truncated, events)
 
     # ------------------------------------------------------------------ step hooks
     def step(self, actions: dict[str, Any]):

@@ -7,6 +7,9 @@ agents. An agent *terminates* when an event of ``terminate_on`` occurred; otherw
 leaves, the first event in the env's event order that ended it (or that always ends an agent,
 e.g. ``end_of_life``), else the env's truncation reason. Rewards are 0 (the trainer computes
 rewards). The dict building is a loop over agents: PettingZoo's interface is per-agent dicts.
+The array API of the recorded-scene envs (``step_arrays``) reports the same outcome as
+:class:`ArrayStep` arrays over the fleet rows, with no per-agent loop (:func:`leaving` decides
+for both).
 """
 
 from __future__ import annotations
@@ -46,18 +49,15 @@ class StepDicts:
         :param rewards: (A,) the agents' rewards (None: 0).
         """
         a = len(names)
-        term = np.zeros(a, bool)
-        for name in terminate_on:
-            term |= flags[name]
-        trunc = ~term & np.asarray(time_up, bool)
-        leaving = term | trunc
+        term, trunc = leaving(flags, terminate_on, time_up)
+        gone = term | trunc
         reasons = set(terminate_on) | set(always_reasons)
         # Python lists: indexing numpy arrays per agent costs several times more
         columns = [np.asarray(flags[e], bool).tolist() for e in events]
         ends = [e in reasons for e in events]
         reward = [0.0] * a if rewards is None else np.asarray(rewards, np.float64).tolist()
         for i, (name, te, tr, lv) in enumerate(zip(names, term.tolist(), trunc.tolist(),
-                                                   leaving.tolist())):
+                                                   gone.tolist())):
             ev = {e: col[i] for e, col in zip(events, columns)}
             reason = next((e for e, col, end in zip(events, columns, ends) if end and col[i]),
                           None)
@@ -65,7 +65,7 @@ class StepDicts:
                 reason = truncation_reason[i]
             self.rewards[name], self.terms[name], self.truncs[name] = reward[i], te, tr
             self.infos[name] = info(i, ev, reason if lv else None)
-        return leaving
+        return gone
 
     def joined(self, names: Sequence[str], end: bool, end_reason: str,
                info: Callable[[int, "str | None"], dict]) -> None:
@@ -77,3 +77,37 @@ class StepDicts:
 
     def astuple(self) -> tuple[dict, dict, dict, dict]:
         return self.rewards, self.terms, self.truncs, self.infos
+
+
+@dataclass
+class ArrayStep:
+    """One step of an env's array API over its fleet rows (``N`` rows, every world's agents
+    of a batched env): the same outcome as the dicts, as arrays.
+
+    :param observations: (N, D) float32; rows in :attr:`observed` hold this step's
+        observations (the stepped agents and the joiners), the others their last ones. The
+        env's own buffer: read or copy it before the next step.
+    :param observed: (N,) bool rows observed this step.
+    :param live: (N,) bool rows live after the step (they act next).
+    :param rewards: (N,) float64 (0 where not stepped). :param terminated, truncated: (N,)
+        bool, as the dicts' terminations and truncations (joiners are truncated when the
+        episode ends at this step). :param events: event name -> (N,) bool of the stepped rows.
+    """
+
+    observations: np.ndarray
+    observed: np.ndarray
+    live: np.ndarray
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    events: dict[str, np.ndarray]
+
+
+def leaving(flags: dict[str, np.ndarray], terminate_on: Sequence[str], time_up: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(A,) terminated (an event of ``terminate_on``) and truncated (time up and not
+    terminated) masks of the stepped agents, as :meth:`StepDicts.stepped` decides them."""
+    term = np.zeros(np.asarray(time_up).shape[0], bool)
+    for name in terminate_on:
+        term |= flags[name]
+    return term, ~term & np.asarray(time_up, bool)

@@ -42,6 +42,7 @@ as agent names are, or a SUMO vehicle id; ``""`` when none), ``nan_actions`` and
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -63,6 +64,28 @@ from .outcomes import StepDicts
 END_OF_EPISODE = "end_of_episode"
 #: ``infos[agent]["collided_with"]`` of an agent that overlapped nobody
 NO_ONE = ""
+
+
+@dataclass
+class Stages:
+    """What stages 2 to 8 of one step produced (:meth:`FleetEnv._stages`).
+
+    :param agents: (A',) sorted fleet rows observed: the stepped agents and the joiners.
+    :param joiners: fleet rows that joined. :param obs: their observations (the observe
+        hook's form). :param flags: event name -> (A,) bool of the stepped rows.
+    :param other: (A,) world row each stepped row's box overlaps first (-1: none).
+    :param ids: the world boxes' ids. :param arrived: SUMO ids that arrived.
+    :param reward: (A,) progress rewards of the stepped rows (None: 0).
+    """
+
+    agents: np.ndarray
+    joiners: np.ndarray
+    obs: Any
+    flags: dict[str, np.ndarray]
+    other: np.ndarray
+    ids: Any
+    arrived: Sequence[str]
+    reward: np.ndarray | None
 
 
 class FleetEnv(ParallelEnv):
@@ -91,6 +114,17 @@ class FleetEnv(ParallelEnv):
             raise RuntimeError("call reset() before step()")
         act = self.fleet.live()
         clean = self._clean_actions(actions, act)
+        st = self._stages(act, clean, self._observe)
+        out = self._outcomes(act, st.joiners, st.flags, st.other, st.ids, st.arrived,
+                             st.reward)
+        self._after_step(st.obs, out)
+        self.agents = self.fleet.names_of(self.fleet.live())
+        self._record_fcd()
+        return (st.obs, *out.astuple())
+
+    def _stages(self, act: np.ndarray, clean: np.ndarray, observe) -> "Stages":
+        """Stages 2 to 8 for the live rows ``act`` under their clean actions; ``observe``:
+        the observe hook (:meth:`_observe`, or an env's array form of it)."""
         p0 = self.fleet.position(act)
         s0 = self._route_progress(act) if self._progress_reward() else None
         ctx = self._before_move(act)
@@ -101,16 +135,12 @@ class FleetEnv(ParallelEnv):
         joiners = self._join(departed)
         agents = np.sort(np.concatenate([act, joiners]), kind="stable")
         lanes = self._lane_query(agents)
-        obs, (boxes, ids) = self._observe(agents, lanes)
+        obs, (boxes, ids) = observe(agents, lanes)
         stepped = np.searchsorted(agents, act)
         flags, other = self._events(act, stepped, p0, boxes, lanes, ctx)
         reward = None if s0 is None else \
             self._progress_reward() * (self._route_progress(act) - s0)
-        out = self._outcomes(act, joiners, flags, other, ids, arrived, reward)
-        self._after_step(obs, out)
-        self.agents = self.fleet.names_of(self.fleet.live())
-        self._record_fcd()
-        return (obs, *out.astuple())
+        return Stages(agents, joiners, obs, flags, other, ids, arrived, reward)
 
     # ------------------------------------------------------------------ stages
     def _clean_actions(self, actions: dict[str, Any], act: np.ndarray) -> np.ndarray:

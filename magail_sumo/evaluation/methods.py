@@ -51,7 +51,7 @@ from magail_sumo.agents import constant_velocity as _cv
 from magail_sumo.agents.constant_velocity import Track, current_state, fill_constant_velocity
 from magail_sumo.agents.sumo_baseline import sumo_rollout
 from magail_sumo.env import EnvConfig, SumoDrivingEnv
-from magail_sumo.env.batched import BatchedSceneEnv, world_name
+from magail_sumo.env.batched import BatchedSceneEnv
 from magail_sumo.env.actions import action_summary
 from magail_sumo.evaluation.protocol import N_STEPS, EvaluationError, log, rollout_seed, span
 from magail_sumo.evaluation.realism import log_replay
@@ -154,24 +154,20 @@ def batched_rollouts(scene: Scene, bundle_dir: Path, policy: Policy, seeds: list
     ids = sim_agent_ids(scene)
     cur = scene.current_time_index
     env = BatchedSceneEnv(scene, bundle_dir, env_config(scene, policy), worlds=len(seeds))
-    col = {int(i): k for k, i in enumerate(ids.tolist())}
-    # name -> (world, column): every name the env may step, resolved once
-    where = {}
-    for w in range(env.worlds):
-        for a in env.world_agents:
-            if int(a) in col:
-                where[world_name(w, a)] = (w, col[int(a)])
+    col_of = {int(i): k for k, i in enumerate(ids.tolist())}
+    # fleet row -> column of its agent (-1: not a sim agent)
+    col = np.array([col_of.get(int(a), -1) for a in env.world_agents] * env.worlds, np.int64)
     states = np.full((4, len(seeds), len(ids), N_STEPS), np.nan)
 
-    def keep(step) -> None:
-        t = step.t - cur  # column of log step step.t + 1
-        if not 0 <= t < N_STEPS:
+    def keep(t: int, rows: np.ndarray, actions, step) -> None:
+        t -= cur  # column of log step t + 1
+        rows = rows[col[rows] >= 0]
+        if not 0 <= t < N_STEPS or not rows.size:
             return
-        sel = [(*where[n], *step.infos[n]["state"]) for n in step.agents if n in where]
-        if sel:
-            arr = np.array(sel, np.float64)  # (n, 6): world, column, x, y, yaw, speed
-            w, a = arr[:, 0].astype(np.int64), arr[:, 1].astype(np.int64)
-            states[:, w, a, t] = arr[:, 2:].T
+        fl = env.fleet
+        w, a = env.world_of(rows), col[rows]
+        states[0, w, a, t], states[1, w, a, t] = fl.x[rows], fl.y[rows]
+        states[2, w, a, t], states[3, w, a, t] = fl.yaw[rows], fl.speed[rows]
 
     try:
         rollout_worlds(env, policy, seeds, keep, max_steps=N_STEPS, scene=scene)

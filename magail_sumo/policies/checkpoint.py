@@ -109,37 +109,34 @@ class CheckpointPolicy:
 
 
     @torch.no_grad()
-    def act_worlds(self, observations: list[dict[str, np.ndarray]]
-                   ) -> list[dict[str, np.ndarray]]:
-        """Actions of every world of a batched env (:mod:`magail_sumo.env.batched`), one
-        forward pass over all of them: world ``w`` acts as :meth:`act` of a policy reseeded
-        with ``seeds[w]`` of :meth:`reseed_worlds` (its agents in sorted-name order, its noise
-        from its own generator; the batched matrix products may differ from one world's in the
-        last float bits)."""
-        names = [sorted(d) if not self.deterministic else list(d) for d in observations]
-        flat = [(w, n) for w, ns in enumerate(names) for n in ns]
-        if not flat:
-            return [{} for _ in observations]
-        x = self._observations({f"{w}/{n}": observations[w][n] for w, n in flat},
-                               [f"{w}/{n}" for w, n in flat])
+    def act_batch(self, observations: np.ndarray, worlds: np.ndarray) -> np.ndarray:
+        """(n, 2) actions of the agents of every world of a batched env
+        (:func:`~magail_sumo.agents.rollout_worlds`) in one forward pass: ``observations``
+        (n, D) grouped by ``worlds`` (ascending), each world's agents in sorted-name order;
+        world ``w`` acts as :meth:`act` of a policy reseeded with ``seeds[w]`` of
+        :meth:`reseed_worlds` (its noise from its own generator, drawn in that order; the
+        batched matrix products may round the last float bits otherwise than one world's)."""
+        x = np.asarray(observations, np.float32)
+        if x.shape[0] == 0:
+            return np.zeros((0, 2), np.float32)
+        if x.shape[1] != self.obs_dim:
+            raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
+                                  f"policy expects {self.obs_dim}")
+        obs = torch.as_tensor(x, device=self.policy.device)
         if self.deterministic:
-            a = self.policy._predict(x, deterministic=True)
+            a = self.policy._predict(obs, deterministic=True)
         else:
             gens = getattr(self, "world_generators", None)
-            if gens is None or len(gens) != len(observations):
-                raise ValueError(f"{self.name}: call reseed_worlds with one seed per world "
-                                 "before act_worlds")
-            gauss = self.policy.get_distribution(x)
+            if gens is None:
+                raise ValueError(f"{self.name}: call reseed_worlds before act_batch")
+            gauss = self.policy.get_distribution(obs)
             mean, std = gauss.distribution.mean, gauss.distribution.stddev
-            eps = torch.cat([torch.randn((len(ns), mean.shape[1]), generator=g,
+            counts = np.bincount(np.asarray(worlds, np.int64), minlength=len(gens))
+            eps = torch.cat([torch.randn((int(c), mean.shape[1]), generator=g,
                                          dtype=mean.dtype, device=mean.device)
-                             for ns, g in zip(names, gens)])
+                             for c, g in zip(counts, gens, strict=True)])
             a = torch.tanh(mean + self.noise_scale * std * eps)
-        a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
-        out: list[dict[str, np.ndarray]] = [{} for _ in observations]
-        for (w, n), row in zip(flat, a):
-            out[w][n] = row
-        return out
+        return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
 
 
 def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig) -> None:
