@@ -21,9 +21,16 @@ same vehicles moved each step; the share of env step time spent in sensors and o
 * ``guard_edge`` (only by name, not in ``all``): the same windows without the SUMO mirror, with
   and without the gap guard and the road-edge off-road rule (``EnvConfig.guard``,
   ``off_road_rule: road_edge``): what the two cost.
+* ``batched`` (only by name): the batched core against one env per rollout, on the bundled
+  scene in evaluation's setting (every route vehicle from the current step for 80 steps,
+  nobody ends early, log background without the SUMO mirror, actions [0.1, 0]): W rollouts as
+  W episodes of one ``SumoDrivingEnv`` (the PettingZoo dicts) against one episode of a
+  ``BatchedSceneEnv`` with W worlds (the array API), alternating, for each W of
+  ``--worlds`` (by default about 50, 1,000 and 10,000 agents at once); medians of
+  ``--repeats``.
 
     python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
-        [--repeats R]
+        [--repeats R] [--worlds W ...]
 """
 
 from __future__ import annotations
@@ -53,6 +60,8 @@ WINDOWS = "windows"
 #: the windows measure of the gap guard and the road-edge off-road rule (both on vs both off,
 #: without the SUMO mirror)
 GUARD_EDGE = "guard_edge"
+#: the batched core against one env per rollout (only by name)
+BATCHED = "batched"
 #: scenes of the ``windows`` measurement: the bundled TFRecord and two 20 s ScenarioNet scenes
 WINDOW_SCENES = (ROOT / "data" / "womd" / f"{SCENE}.tfrecord",
                  ROOT / "data" / "scenarionet" / "b36a6d0bc9e525bc.pkl",
@@ -172,13 +181,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object per scenario")
     ap.add_argument("--episodes", type=int, default=3)
-    ap.add_argument("--scenario", default="all", choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, "all"],
+    ap.add_argument("--scenario", default="all",
+                    choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, BATCHED, "all"],
                     help=f"{WINDOWS}: with vs without the SUMO mirror; {GUARD_EDGE}: with vs "
                          "without the gap guard and the road-edge off-road rule (all: every "
                          f"one but {GUARD_EDGE})")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the windows measurement")
     ap.add_argument("--warmup", type=float, default=1200.0, help="city warm-up (s of SUMO time)")
     ap.add_argument("--city-steps", type=int, default=100, help="0.1-s steps per city episode")
+    ap.add_argument("--worlds", type=int, nargs="+", default=[1, 21, 213],
+                    help=f"{BATCHED}: world counts (the bundled scene has 47 agents per world)")
     args = ap.parse_args(argv)
     results = []
     if args.scenario in (SCENE, "all"):
@@ -189,6 +201,8 @@ def main(argv: list[str] | None = None) -> int:
         results.extend(run_windows(args))
     if args.scenario == GUARD_EDGE:
         results.extend(run_windows(args, GUARD_EDGE))
+    if args.scenario == BATCHED:
+        results.extend(run_batched(args))
     for out in results:
         if args.json:
             print(json.dumps(out))
@@ -287,6 +301,69 @@ def run_windows(args, measure: str = WINDOWS) -> list[dict]:
                          f"runs_{la}": [round(r, 1) for r in rates[la]],
                          f"runs_{lb}": [round(r, 1) for r in rates[lb]],
                          "speedup": round(b / a, 2)})
+    return rows
+
+
+def _rollouts_single(env: SumoDrivingEnv, worlds: int) -> tuple[float, int]:
+    """(seconds, agent-steps) of ``worlds`` episodes of one env (the dict API)."""
+    t0, agent_steps = time.perf_counter(), 0
+    act = np.array([0.1, 0.0], np.float32)
+    for w in range(worlds):
+        env.reset(seed=w)
+        while env.agents:
+            agent_steps += len(env.agents)
+            env.step(dict.fromkeys(env.agents, act))
+    return time.perf_counter() - t0, agent_steps
+
+
+def _rollouts_batched(env) -> tuple[float, int]:
+    """(seconds, agent-steps) of one episode of a batched env (the array API)."""
+    t0, agent_steps = time.perf_counter(), 0
+    st = env.reset_arrays(seed=0)
+    actions = np.zeros((len(env.fleet), 2), np.float32)
+    actions[:, 0] = 0.1
+    while not env.finished:
+        agent_steps += int(st.live.sum())
+        st = env.step_arrays(actions)
+    return time.perf_counter() - t0, agent_steps
+
+
+def run_batched(args) -> list[dict]:
+    """The batched core against one env per rollout (module doc), per world count."""
+    from magail_sumo.env.batched import BatchedSceneEnv
+
+    scene = load_scene(ROOT / "data" / "womd" / f"{SCENE}.tfrecord")
+    cfg = EnvConfig(controlled="all", start_step=scene.current_time_index, max_steps=80,
+                    terminate_on=(), end_of_life=False, sumo_mirror=False)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
+        if rep.status != "ok":
+            raise SystemExit(f"{SCENE}: conversion failed: {rep.reason}")
+        bundle = Path(tmp) / SCENE
+        single = SumoDrivingEnv(scene, bundle, cfg)
+        _rollouts_single(single, 1)  # warm-up: numba kernels load
+        for worlds in args.worlds:
+            t0 = time.perf_counter()
+            batched = BatchedSceneEnv(scene, bundle, cfg, worlds=worlds)
+            build = time.perf_counter() - t0
+            _rollouts_batched(batched)
+            rates: dict[str, list[float]] = {"single": [], "batched": []}
+            for _ in range(args.repeats):
+                secs, n = _rollouts_single(single, worlds)
+                rates["single"].append(n / secs)
+                secs, n = _rollouts_batched(batched)
+                rates["batched"].append(n / secs)
+            a, b = (float(np.median(rates[k])) for k in ("single", "batched"))
+            rows.append({"scene": SCENE, "measure": BATCHED, "worlds": worlds,
+                         "agents_at_once": len(batched.fleet),
+                         "agent_steps_per_s_single": round(a, 1),
+                         "agent_steps_per_s_batched": round(b, 1),
+                         "runs_single": [round(r, 1) for r in rates["single"]],
+                         "runs_batched": [round(r, 1) for r in rates["batched"]],
+                         "build_s": round(build, 2), "speedup": round(b / a, 2)})
+            batched.close()
+        single.close()
     return rows
 
 

@@ -308,6 +308,24 @@ class Batch:
     scene: Scene | None = field(default=None, compare=False, repr=False)
 
 
+def run_batches_in_turn(batches: tuple[Batch, ...]) -> list[tuple]:
+    """Worker entry point for several batches in one process (a policy's batches of several
+    scenes: the process start and the policy's imports are paid once): per batch, in order,
+    ``("ok", batch, rollouts, counts)`` or, for a :class:`~magail_sumo.errors.MagailSumoError`
+    (a reported bad input), ``("error", batch, one-line reason)``; any other failure fails
+    the whole call (the runner then retries the batches one per process)."""
+    from magail_sumo.errors import MagailSumoError
+
+    out: list[tuple] = []
+    for b in batches:
+        try:
+            _, ro, counts = run_batch(b)
+            out.append(("ok", replace(b, scene=None), ro, counts))
+        except MagailSumoError as exc:
+            out.append(("error", replace(b, scene=None), " ".join(str(exc).split())))
+    return out
+
+
 def run_batch(batch: Batch) -> tuple[Batch, ScenarioRollouts, dict[str, int]]:
     """Worker entry point (module level, picklable): the batch, its rollouts and the policy's
     fixed-up action counts."""

@@ -3,9 +3,11 @@ over fresh worker processes, written as Parquet with the run's manifest.
 
 :func:`evaluate` takes its steps in order: check the settings (:func:`method_names`), read and
 prepare the scenes once (:mod:`magail_sumo.evaluation.scenes`), run the methods
-(:func:`run_methods`: the in-process ones here, the others as :class:`Batch` es, each batch in a
-fresh ``spawn`` process, :func:`run_batches`: up to 8 rollouts of SUMO's car-following, a
-policy's rollouts of a scene in as few batches as keep the workers busy, :func:`batch_size`), write each (scene,
+(:func:`run_methods`: the in-process ones here, the others as :class:`Batch` es in fresh
+``spawn`` processes: up to 8 rollouts of SUMO's car-following per process
+(:func:`run_batches`), a policy's rollouts of a scene in as few batches as keep the workers
+busy (:func:`batch_size`), one process per worker running its share of them in turn
+(:func:`run_groups`)), write each (scene,
 method)'s rollouts (:func:`write_rollouts`), then the manifest (:func:`manifest_of`) and the
 optional submission.
 """
@@ -20,7 +22,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from magail_sumo.errors import MagailSumoError
-from magail_sumo.evaluation.methods import Batch, needs_worker, run_batch, simulate
+from magail_sumo.evaluation.methods import Batch, needs_worker, run_batches_in_turn, simulate
 from magail_sumo.evaluation.protocol import (DEFAULT_TIMEOUT_S, N_STEPS, EvaluationError, Problems,
                                              span)
 from magail_sumo.evaluation.scenes import PreparedScene, read_scenes, with_bundles
@@ -37,33 +39,54 @@ from magail_sumo.workers import Progress, no_progress, run_jobs
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
                 ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
     """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line,
-    fixed-up action counts).
+    fixed-up action counts) (:func:`run_groups` of one batch each)."""
+    yield from run_groups([(b,) for b in batches], workers, timeout_s)
 
-    A batch whose worker fails (crashes, dies, raises anything but a
-    :class:`~magail_sumo.errors.MagailSumoError`) is retried once rollout by rollout (each in
-    its own process). A batch running longer than ``timeout_s`` seconds is killed and reported,
-    not retried. No wait is unbounded (:func:`magail_sumo.workers.run_jobs`).
+
+def run_groups(groups: list[tuple[Batch, ...]], workers: int,
+               timeout_s: float | None = DEFAULT_TIMEOUT_S
+               ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
+    """Run groups of batches, each group in one fresh ``spawn`` process running its batches
+    in turn (:func:`~magail_sumo.evaluation.methods.run_batches_in_turn`: a policy's batches
+    of several scenes pay the process start and the policy's imports once); yields (batch,
+    rollouts, error line, fixed-up action counts) per batch.
+
+    A batch that raises a :class:`~magail_sumo.errors.MagailSumoError` is reported. A group
+    whose worker fails otherwise (crashes, dies, raises anything else) is retried once batch
+    by batch, and a failing batch of several rollouts rollout by rollout (each in its own
+    process). A group running longer than ``timeout_s`` seconds per batch is killed: one batch
+    is reported, several are retried one by one. No wait is unbounded
+    (:func:`magail_sumo.workers.run_jobs`).
     """
-    if not batches:
+    groups = [g for g in groups if g]
+    if not groups:
         return
-    retry: list[Batch] = []
-    for res in run_jobs(run_batch, batches, workers=max(1, workers), timeout_s=timeout_s):
-        b = res.job
+    retry: list[tuple[Batch, ...]] = []
+    size = max(len(g) for g in groups)
+    limit = None if timeout_s is None else timeout_s * size
+    for res in run_jobs(run_batches_in_turn, groups, workers=max(1, workers), timeout_s=limit):
+        group: tuple[Batch, ...] = res.job
+        b = group[0]
         what = f"scenario {b.scenario_id}: method {b.spec}"
         if res.ok:
-            _, ro, counts = res.value
-            yield b, ro, None, counts
+            for item in res.value:
+                if item[0] == "ok":
+                    yield item[1], item[2], None, item[3]
+                else:
+                    yield item[1], None, item[2], {}
+        elif len(group) > 1:  # which batch failed is unknown: each alone
+            retry += [(g,) for g in group]
         elif res.kind == "error" and res.expected:
             yield b, None, res.reason, {}
         elif res.kind == "timeout":
             yield b, None, (f"{what} rollout(s) {span(b.rollouts)}: worker {res.reason} "
                             "(--timeout-s)"), {}
         elif len(b.rollouts) > 1:  # worker crash (libsumo) or bug: retry singly
-            retry += [replace(b, rollouts=(r,)) for r in b.rollouts]
+            retry += [(replace(b, rollouts=(r,)),) for r in b.rollouts]
         else:
             yield b, None, f"{what} rollout {b.rollouts[0]} failed: {res.reason}", {}
     if retry:
-        yield from run_batches(retry, workers, timeout_s)
+        yield from run_groups(retry, workers, timeout_s)
 
 
 def chunks(n: int, size: int) -> list[tuple[int, ...]]:
@@ -155,13 +178,14 @@ def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: 
     runs = MethodRuns()
     total = len(scenes) * len(specs) * n_rollouts
     done = 0
-    batches = []
+    batches, policy_batches = [], []
     for sid, ps in scenes.items():
         for s in specs:
             if needs_worker(s):
                 size = batch_size(n_rollouts, workers, s, len(scenes))
-                batches += [Batch(ps.file, sid, str(ps.bundle), s, c, seed, deterministic,
-                                  noise_scale, ps.scene) for c in chunks(n_rollouts, size)]
+                (batches if s in BASELINES else policy_batches).extend(
+                    Batch(ps.file, sid, str(ps.bundle), s, c, seed, deterministic, noise_scale,
+                          ps.scene) for c in chunks(n_rollouts, size))
             else:
                 try:
                     runs.parts[(sid, s)] = [(0, simulate(ps.scene, s, range(n_rollouts), seed))]
@@ -169,7 +193,10 @@ def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: 
                     error(f"scenario {sid}: method {s}: {type(exc).__name__}: {one_line(exc)}")
                 done += n_rollouts
                 progress("rollouts", done, total)
-    for b, ro, err, counts in run_batches(batches, workers, timeout_s):
+    # a policy's batches: one process per worker, each running its share in turn; then
+    # SUMO's, one batch per process
+    shares = [tuple(policy_batches[k::max(1, workers)]) for k in range(max(1, workers))]
+    for b, ro, err, counts in run_groups(shares + [(b,) for b in batches], workers, timeout_s):
         done += len(b.rollouts)
         progress("rollouts", done, total)
         if err is not None:

@@ -36,24 +36,34 @@ def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     return kwargs
 
 
-def make_policy(cfg: TrainConfig) -> TanhGaussianPolicy:
+class NoOptimizer:
+    """The optimizer of a policy loaded to act, never trained: SB3 builds one in every policy,
+    and building torch's first optimizer in a process imports ``torch._dynamo`` (about 3 s on
+    this CPU, more than the rest of an evaluation batch of a small scene)."""
+
+    def __init__(self, params, **kwargs) -> None:
+        pass
+
+
+def make_policy(cfg: TrainConfig, acting: bool = False) -> TanhGaussianPolicy:
     """A fresh policy for the config's spaces (no env needed; a transformer critic has no scene
     layout then, see :meth:`TanhGaussianPolicy.set_scene_layout` — evaluation uses the actor
-    only)."""
+    only). ``acting``: a policy that only acts (no optimizer, :class:`NoOptimizer`)."""
     obs, act = spaces_of(cfg)
+    extra: dict[str, Any] = {"optimizer_class": NoOptimizer} if acting else {}
     return TanhGaussianPolicy(obs, act, lambda _: cfg.ppo.learning_rate,
-                              **policy_kwargs(cfg)).to(cfg.device)
+                              **policy_kwargs(cfg), **extra).to(cfg.device)
 
 
 def load_policy(path: str | Path, device: str = "cpu") -> tuple[TanhGaussianPolicy, TrainConfig]:
-    """The policy of a checkpoint (and the run's config)."""
+    """The policy of a checkpoint (and the run's config), to act (no optimizer)."""
     state = load_checkpoint(path)
     cfg = replace(checkpoint_config(state, path), device=device)
     if cfg.algorithm in ("sac", "sac_gail"):
         raise CheckpointError(f"{path}: a {cfg.algorithm} checkpoint (command-branched SAC), not "
                               "a PPO / behavioural-cloning policy (evaluate loads both: "
                               "magail_sumo.policies.load_checkpoint_policy)")
-    policy = make_policy(cfg)
+    policy = make_policy(cfg, acting=True)
     load_into(policy, state["policy"], "policy", Path(path))
     policy.set_training_mode(False)
     return policy, cfg
