@@ -94,14 +94,18 @@ def chunks(n: int, size: int) -> list[tuple[int, ...]]:
 
 
 def batch_size(n_rollouts: int, workers: int, spec: str = "sumo", n_scenes: int = 1) -> int:
-    """Rollouts per worker batch of method ``spec``: SUMO's car-following runs its rollouts
-    one after another (up to 8 per batch, so a crash costs little); a policy's run at once in
-    the batched core (:func:`~magail_sumo.evaluation.methods.batched_rollouts`), so a scene's
-    rollouts are split only as far as it takes to give every worker a batch."""
-    workers = max(1, workers)
-    if spec in BASELINES:
-        return max(1, min(8, math.ceil(n_rollouts / workers)))
-    return max(1, math.ceil(n_rollouts / max(1, math.ceil(workers / max(1, n_scenes)))))
+    """Rollouts per worker batch: a scene's rollouts of a method are split only as far as it
+    takes to give every worker a batch (a batch's process start and imports cost more than a
+    small scene's rollouts). SUMO's car-following runs its rollouts one after another, up to
+    :data:`SUMO_BATCH` per process (a libsumo crash costs at most that many, retried one by
+    one); a policy runs them at once in the batched core
+    (:func:`~magail_sumo.evaluation.methods.batched_rollouts`)."""
+    size = math.ceil(n_rollouts / max(1, math.ceil(max(1, workers) / max(1, n_scenes))))
+    return max(1, min(SUMO_BATCH, size) if spec in BASELINES else size)
+
+
+#: most rollouts of SUMO's car-following in one worker process
+SUMO_BATCH = 32
 
 
 def merge(parts: list[ScenarioRollouts]) -> ScenarioRollouts:
