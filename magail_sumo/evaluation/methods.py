@@ -148,8 +148,7 @@ def batched_rollouts(scene: Scene, bundle_dir: Path, policy: Policy, seeds: list
     :class:`~magail_sumo.env.batched.BatchedSceneEnv` world per seed (the env of
     :func:`env_config` without the SUMO mirror, which nothing of a log-background episode
     reads), driven by :func:`~magail_sumo.agents.rollout_worlds`; world ``w`` is the rollout
-    :func:`policy_rollout` gives with ``seeds[w]`` (a checkpoint policy's batched forward pass
-    may differ in the last float bits). Each agent's simulated state at a step is the one the
+    :func:`policy_rollout` gives with ``seeds[w]``, bit for bit. Each agent's simulated state at a step is the one the
     env reports after it; the rest as :func:`policy_rollout`."""
     ids = sim_agent_ids(scene)
     cur = scene.current_time_index

@@ -111,31 +111,37 @@ class CheckpointPolicy:
     @torch.no_grad()
     def act_batch(self, observations: np.ndarray, worlds: np.ndarray) -> np.ndarray:
         """(n, 2) actions of the agents of every world of a batched env
-        (:func:`~magail_sumo.agents.rollout_worlds`) in one forward pass: ``observations``
-        (n, D) grouped by ``worlds`` (ascending), each world's agents in sorted-name order;
-        world ``w`` acts as :meth:`act` of a policy reseeded with ``seeds[w]`` of
-        :meth:`reseed_worlds` (its noise from its own generator, drawn in that order; the
-        batched matrix products may round the last float bits otherwise than one world's)."""
+        (:func:`~magail_sumo.agents.rollout_worlds`): ``observations`` (n, D) grouped by
+        ``worlds`` (ascending), each world's agents in sorted-name order; world ``w`` acts
+        exactly as :meth:`act` of a policy reseeded with ``seeds[w]`` of
+        :meth:`reseed_worlds` (its noise from its own generator, drawn in that order). The
+        forward pass runs per world: one pass over every world's agents would round the last
+        float bits otherwise (matrix products' rounding depends on their row count), and a
+        rollout would then depend on which rollouts shared its batch."""
         x = np.asarray(observations, np.float32)
         if x.shape[0] == 0:
             return np.zeros((0, 2), np.float32)
         if x.shape[1] != self.obs_dim:
             raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
                                   f"policy expects {self.obs_dim}")
+        gens = getattr(self, "world_generators", None)
+        if gens is None and not self.deterministic:
+            raise ValueError(f"{self.name}: call reseed_worlds before act_batch")
         obs = torch.as_tensor(x, device=self.policy.device)
-        if self.deterministic:
-            a = self.policy._predict(obs, deterministic=True)
-        else:
-            gens = getattr(self, "world_generators", None)
-            if gens is None:
-                raise ValueError(f"{self.name}: call reseed_worlds before act_batch")
-            gauss = self.policy.get_distribution(obs)
+        worlds = np.asarray(worlds, np.int64)
+        bounds = np.flatnonzero(np.diff(worlds)) + 1
+        parts = []
+        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, worlds.size]):
+            o = obs[lo:hi]
+            if self.deterministic:
+                parts.append(self.policy._predict(o, deterministic=True))
+                continue
+            gauss = self.policy.get_distribution(o)
             mean, std = gauss.distribution.mean, gauss.distribution.stddev
-            counts = np.bincount(np.asarray(worlds, np.int64), minlength=len(gens))
-            eps = torch.cat([torch.randn((int(c), mean.shape[1]), generator=g,
-                                         dtype=mean.dtype, device=mean.device)
-                             for c, g in zip(counts, gens, strict=True)])
-            a = torch.tanh(mean + self.noise_scale * std * eps)
+            eps = torch.randn(mean.shape, generator=gens[int(worlds[lo])], dtype=mean.dtype,
+                              device=mean.device)
+            parts.append(torch.tanh(mean + self.noise_scale * std * eps))
+        a = torch.cat(parts)
         return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
 
 
