@@ -146,10 +146,10 @@ def batched_rollouts(scene: Scene, bundle_dir: Path, policy: Policy, seeds: list
                      counts: dict[str, int] | None = None) -> list[Trajectory]:
     """The rollouts of ``policy`` with ``seeds`` all at once: one
     :class:`~magail_sumo.env.batched.BatchedSceneEnv` world per seed (the env of
-    :func:`env_config` without the SUMO mirror, which nothing of a log-background episode
-    reads), driven by :func:`~magail_sumo.agents.rollout_worlds`; world ``w`` is the rollout
-    :func:`policy_rollout` gives with ``seeds[w]``, bit for bit. Each agent's simulated state at a step is the one the
-    env reports after it; the rest as :func:`policy_rollout`."""
+    :func:`env_config`), driven by :func:`~magail_sumo.agents.rollout_worlds` through the
+    env's array API; world ``w`` is the rollout :func:`policy_rollout` gives with
+    ``seeds[w]``, bit for bit. Each agent's simulated state at a step is its fleet state after
+    it; the rest as :func:`policy_rollout`."""
     ids = sim_agent_ids(scene)
     cur = scene.current_time_index
     env = BatchedSceneEnv(scene, bundle_dir, env_config(scene, policy), worlds=len(seeds))
