@@ -26,7 +26,7 @@ same vehicles moved each step; the share of env step time spent in sensors and o
   nobody ends early, log background without the SUMO mirror, actions [0.1, 0]): W rollouts as
   W episodes of one ``SumoDrivingEnv`` (the PettingZoo dicts) against one episode of a
   ``BatchedSceneEnv`` with W worlds (the array API), alternating, for each W of
-  ``--worlds`` (by default about 50, 1,000 and 10,000 agents at once); medians of
+  ``--worlds`` (by default 61, about 1,000 and 10,000 agents at once); medians of
   ``--repeats``.
 
     python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
@@ -189,8 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the windows measurement")
     ap.add_argument("--warmup", type=float, default=1200.0, help="city warm-up (s of SUMO time)")
     ap.add_argument("--city-steps", type=int, default=100, help="0.1-s steps per city episode")
-    ap.add_argument("--worlds", type=int, nargs="+", default=[1, 21, 213],
-                    help=f"{BATCHED}: world counts (the bundled scene has 47 agents per world)")
+    ap.add_argument("--worlds", type=int, nargs="+", default=[1, 16, 164],
+                    help=f"{BATCHED}: world counts (the bundled scene has 61 agents per world)")
     args = ap.parse_args(argv)
     results = []
     if args.scenario in (SCENE, "all"):
