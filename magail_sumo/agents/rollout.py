@@ -2,9 +2,10 @@
 
 :func:`rollout_worlds` is the same loop over a batched env
 (:class:`~magail_sumo.env.batched.BatchedSceneEnv`: many rollouts of a scene stepped at once),
-the policy acting for every world in one call. Evaluation's policy rollouts, expert recording, ``magail-sumo replay`` and the policy-comparison
-benchmark all drive their env with :func:`rollout`; what they keep of each step they read in
-their ``on_step`` callback from a :class:`Step`.
+the policy acting for every world in one call. Evaluation's policy rollouts, expert recording,
+``magail-sumo replay`` and the policy-comparison benchmark all drive their env with
+:func:`rollout`; what they keep of each step they read in their ``on_step`` callback from a
+:class:`Step`.
 """
 
 from __future__ import annotations

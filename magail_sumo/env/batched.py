@@ -15,16 +15,17 @@ states on every real scene in ``data/``).
 
 Two APIs: the PettingZoo dicts, agents named ``"<w>/<track id>"`` (:func:`world_name`;
 :meth:`BatchedSceneEnv.split` turns a dict over all worlds into one dict per world keyed by
-track id, :meth:`BatchedSceneEnv.merge` the other way, so a policy written for one world's
-dicts serves each), and the array API of every recorded-scene env
+track id, :meth:`BatchedSceneEnv.merge` the other way, so a policy written for one world's dicts
+serves each), and the array API of every recorded-scene env
 (:meth:`~magail_sumo.env.driving_env.SumoDrivingEnv.reset_arrays`, ``step_arrays``: (N, 2)
-actions over the fleet rows in, an :class:`~magail_sumo.env.outcomes.ArrayStep` out, no dict
-or info per agent), which :func:`~magail_sumo.agents.rollout_worlds` and evaluation use. The worlds run in lockstep from one ``reset``: the same start step, and the log runs on
-past steps with no live agent only when no world has one (a single-world env skips them; the
-worlds' states are the same either way, only the step count differs). Not here: SUMO-driven
-background or a SUMO mirror (their worlds would differ in SUMO: the per-world env keeps
-them), FCD recording and rendering (per world: the single-world env), and random start
-windows with a start-dependent set of controlled vehicles.
+actions over the fleet rows in, an :class:`~magail_sumo.env.outcomes.ArrayStep` out, no dict or
+info per agent), which :func:`~magail_sumo.agents.rollout_worlds` and evaluation use. The worlds
+run in lockstep from one ``reset``: the same start step, and the log runs on past steps with no
+live agent only when no world has one (a single-world env skips them; the worlds' states are the
+same either way, only the step count differs). Not here: SUMO-driven background or a SUMO mirror
+(their worlds would differ in SUMO: the per-world env keeps them), FCD recording and rendering
+(per world: the single-world env), and random start windows with a start-dependent set of
+controlled vehicles.
 """
 
 from __future__ import annotations
