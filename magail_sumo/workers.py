@@ -119,17 +119,26 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
     """Run ``fn(job)`` for every job, each in a fresh process, ``workers`` at a time.
 
     :param timeout_s: seconds a job may run (from its process's start) before its process is
-        killed and the job reported as timed out; None: no limit.
+        killed and the job reported as timed out; None: no limit; a callable: each job's own
+        limit, ``timeout_s(job)`` (a float or None).
     :param ordered: yield in job order (else as jobs finish).
     :param jobs: consumed lazily, at most ``workers`` ahead of the results.
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    if timeout_s is not None and not timeout_s > 0:
-        raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+    limit_of = timeout_s if callable(timeout_s) else (lambda _job: timeout_s)
+
+    def limit(job) -> float | None:
+        value = limit_of(job)
+        if value is not None and not value > 0:
+            raise ValueError(f"timeout_s must be > 0, got {value}")
+        return value
+
+    if not callable(timeout_s):
+        limit(None)  # a bad limit fails before any job starts
     ctx = mp.get_context(start_method)
     source = enumerate(jobs)
-    running: dict[int, tuple] = {}  # index -> (proc, conn, job, start)
+    running: dict[int, tuple] = {}  # index -> (proc, conn, job, start, limit)
     done: dict[int, JobResult] = {}
     next_out = 0
     exhausted = False
@@ -141,6 +150,7 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
                 except StopIteration:
                     exhausted = True
                     break
+                job_limit = limit(job)
                 parent, child = ctx.Pipe(duplex=False)
                 job_in, job_out = ctx.Pipe(duplex=False)
                 # the job (a prepared scene: ~1 MB) goes over its own pipe after the start, from
@@ -155,20 +165,19 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
                 data = bytes(ForkingPickler.dumps(job))
                 threading.Thread(target=_send_job, args=(job_out, data), daemon=True,
                                  name=f"job-{k}-send").start()
-                running[k] = (proc, parent, job, time.monotonic())
+                running[k] = (proc, parent, job, time.monotonic(), job_limit)
             if not running:
                 break
             now = time.monotonic()
-            wait_s = None
-            if timeout_s is not None:
-                wait_s = max(0.0, min(s + timeout_s for *_, s in running.values()) - now)
-            waitables = [c for _, c, _, _ in running.values()] + \
-                [p.sentinel for p, _, _, _ in running.values()]
+            ends = [s + t for *_, s, t in running.values() if t is not None]
+            wait_s = max(0.0, min(ends) - now) if ends else None
+            waitables = [c for _, c, *_ in running.values()] + \
+                [p.sentinel for p, *_ in running.values()]
             wait(waitables, wait_s)
             now = time.monotonic()
             for k in list(running):
-                proc, conn, job, start = running[k]
-                res = _collect(k, proc, conn, job, start, now, timeout_s)
+                proc, conn, job, start, job_limit = running[k]
+                res = _collect(k, proc, conn, job, start, now, job_limit)
                 if res is not None:
                     del running[k]
                     conn.close()
@@ -181,7 +190,7 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
                 for k in sorted(done):
                     yield done.pop(k)
     finally:
-        for proc, conn, _, _ in running.values():
+        for proc, conn, *_ in running.values():
             _kill(proc)
             conn.close()
 

@@ -8,6 +8,8 @@ import os
 import signal
 import time
 
+import pytest
+
 from magail_sumo.workers import run_jobs
 
 
@@ -41,6 +43,22 @@ def test_pool_reports_dead_and_stuck_workers_and_finishes_the_others():
     assert res[3].reason == "timed out after 15 s (worker killed)"
     assert res[5].reason == "ValueError: bad job second line 7" and not res[5].expected
     assert all("\n" not in r.reason for r in res)
+
+
+def test_each_job_may_have_its_own_time_limit():
+    """``timeout_s`` as a callable: every job runs under its own limit (evaluation gives a
+    process running several batches in turn the sum of theirs)."""
+    jobs = [("sleep", 0), ("ok", 3), ("sleep", 1)]
+    limits = {0: 2.0, 1: 6.0}
+    clock = time.monotonic()
+    res = list(run_jobs(fault_job, jobs, workers=3, ordered=True,
+                        timeout_s=lambda job: limits.get(job[1])))
+    assert time.monotonic() - clock < 60
+    assert [r.kind for r in res] == ["timeout", "ok", "timeout"]
+    assert res[0].reason == "timed out after 2 s (worker killed)"
+    assert res[2].reason == "timed out after 6 s (worker killed)"
+    with pytest.raises(ValueError, match="timeout_s must be > 0"):
+        list(run_jobs(fault_job, [("ok", 1)], timeout_s=lambda job: 0.0))
 
 
 def _children() -> set[int]:

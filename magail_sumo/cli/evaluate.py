@@ -85,11 +85,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "to its mean (default: the policy's own, 1 or the sampling.noise_scale "
                         "of a pretrained policy's card)")
     p.add_argument("--workers", type=int, default=2, metavar="N",
-                   help="worker processes for SUMO rollouts")
+                   help="worker processes for the policy's and SUMO's rollouts")
     p.add_argument("--timeout-s", type=timeout_s, default=1800.0, metavar="S",
-                   help="seconds one worker job (a batch of up to 8 rollouts of one method on "
-                        "one scene, a scene's conversion, or one city run) may take before it "
-                        "is killed and reported failed (default 1800; 'none': no limit)")
+                   help="seconds one worker batch (the rollouts of one method on one scene, "
+                        "up to 32 of SUMO's; a process running several of a policy's batches "
+                        "in turn gets as many times this), a scene's conversion, or one city "
+                        "run may take before it is killed and reported failed (default 1800; "
+                        "'none': no limit)")
     p.set_defaults(func=run)
 
 

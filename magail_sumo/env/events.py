@@ -19,6 +19,8 @@ Rules (scene frame, metres):
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +69,8 @@ class RoadEdgeRule:
         tr = scene.tracks
         n, t_steps = tr.valid.shape
         z = np.where(tr.valid, tr.z - tr.height / 2, np.nan)  # the box's bottom, as WOSAC
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a track never valid: NaN, then 0
             med = np.nanmedian(z, axis=1) if t_steps else np.zeros(n)
         rule = cls(road_edge_segments(scene), np.nan_to_num(med).astype(np.float32),
                    np.zeros((n, t_steps), bool), margin)

@@ -53,6 +53,7 @@ from magail_sumo.agents.sumo_baseline import sumo_rollout
 from magail_sumo.env import EnvConfig, SumoDrivingEnv
 from magail_sumo.env.batched import BatchedSceneEnv
 from magail_sumo.env.actions import action_summary
+from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import N_STEPS, EvaluationError, log, rollout_seed, span
 from magail_sumo.evaluation.realism import log_replay
 from magail_sumo.evaluation.submission import ScenarioRollouts, sim_agent_ids
@@ -313,8 +314,6 @@ def run_batches_in_turn(batches: tuple[Batch, ...]) -> list[tuple]:
     ``("ok", batch, rollouts, counts)`` or, for a :class:`~magail_sumo.errors.MagailSumoError`
     (a reported bad input), ``("error", batch, one-line reason)``; any other failure fails
     the whole call (the runner then retries the batches one per process)."""
-    from magail_sumo.errors import MagailSumoError
-
     out: list[tuple] = []
     for b in batches:
         try:

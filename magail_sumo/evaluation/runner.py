@@ -4,7 +4,7 @@ over fresh worker processes, written as Parquet with the run's manifest.
 :func:`evaluate` takes its steps in order: check the settings (:func:`method_names`), read and
 prepare the scenes once (:mod:`magail_sumo.evaluation.scenes`), run the methods
 (:func:`run_methods`: the in-process ones here, the others as :class:`Batch` es in fresh
-``spawn`` processes: up to 8 rollouts of SUMO's car-following per process
+``spawn`` processes: up to 32 rollouts of SUMO's car-following per process
 (:func:`run_batches`), a policy's rollouts of a scene in as few batches as keep the workers
 busy (:func:`batch_size`), one process per worker running its share of them in turn
 (:func:`run_groups`)), write each (scene,
@@ -62,8 +62,7 @@ def run_groups(groups: list[tuple[Batch, ...]], workers: int,
     if not groups:
         return
     retry: list[tuple[Batch, ...]] = []
-    size = max(len(g) for g in groups)
-    limit = None if timeout_s is None else timeout_s * size
+    limit = None if timeout_s is None else (lambda g: timeout_s * len(g))
     for res in run_jobs(run_batches_in_turn, groups, workers=max(1, workers), timeout_s=limit):
         group: tuple[Batch, ...] = res.job
         b = group[0]
