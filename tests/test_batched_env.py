@@ -146,6 +146,36 @@ def test_array_api_gives_the_dict_api_step(config, bundled_networks):
     env.close()
 
 
+def test_single_env_array_api_gives_its_dict_step(bundled_networks):
+    """A single-world ``SumoDrivingEnv``'s array API gives its dict API's observations and
+    outcomes (the training config: agents end on events)."""
+    scene_file = SCENES[0]
+    scene = load_scene(scene_file)
+    bundle = bundled_networks.bundle(scene_file.stem)
+    cfg = CONFIGS["training"]
+    dicts = run_single(scene, bundle, cfg, 0)
+    env = SumoDrivingEnv(scene, bundle, cfg)
+    st = env.reset_arrays(seed=0)
+    names = env.fleet.names
+    for k in np.flatnonzero(st.observed).tolist():
+        np.testing.assert_array_equal(st.observations[k], dicts[env.t][names[k]][0])
+    ended = 0
+    while not env.finished:
+        rows = np.flatnonzero(st.live)
+        acts = np.zeros((len(env.fleet), 2), np.float32)
+        for k in rows.tolist():
+            acts[k] = action(0, env.t, names[k])
+        st = env.step_arrays(acts)
+        for k in np.flatnonzero(st.observed).tolist():
+            o, r, te, tr, info = dicts[env.t][names[k]]
+            np.testing.assert_array_equal(st.observations[k], o)
+            if k in rows:
+                assert (st.rewards[k], st.terminated[k], st.truncated[k]) == (r, te, tr)
+                ended += bool(te or tr)
+    assert ended > 0
+    env.close()
+
+
 def test_worlds_differ_and_stay_apart(bundled_networks):
     """Different actions give different worlds, and one world's agents are not in another's
     lidar: the same agent sees the same when its world's actions are the same."""
