@@ -1,6 +1,6 @@
 """The batched core (``BatchedSceneEnv``): each of its worlds runs exactly as a single-world
-``SumoDrivingEnv`` of the scene with the same config and the same actions, on every real
-scene in data/ (the bundled WOMD scenes and the ScenarioNet scenes), in an evaluation config
+``SumoDrivingEnv`` of the scene with the same config and the same actions, on the real WOMD
+and ScenarioNet scenes in data/ (15; not the GPUDrive JSON file), in an evaluation config
 and in a training config with every event ending agents, the gap guard and the optional
 sensors."""
 

@@ -11,7 +11,7 @@ events and outcomes. The log-replayed road users are the same in every world and
 road users (:class:`~magail_sumo.sensors.worlds.BoxGroups`), so each world evolves exactly as
 a :class:`~magail_sumo.env.driving_env.SumoDrivingEnv` of the scene with the same config and
 the same actions does (``tests/test_batched_env.py`` checks observations, events, rewards and
-states on every real scene in ``data/``).
+states on the real WOMD and ScenarioNet scenes in ``data/``).
 
 Two APIs: the PettingZoo dicts, agents named ``"<w>/<track id>"`` (:func:`world_name`;
 :meth:`BatchedSceneEnv.split` turns a dict over all worlds into one dict per world keyed by
