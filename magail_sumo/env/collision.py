@@ -9,6 +9,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from magail_sumo.sensors.worlds import BoxGroups
+
 
 @numba.njit(cache=True, inline="always")
 def _separated(ax, ay, ac, as_, al, aw, bx, by, bc, bs, bl, bw):
@@ -30,29 +32,9 @@ def _separated(ax, ay, ac, as_, al, aw, bx, by, bc, bs, bl, bw):
 
 
 @numba.njit(cache=True)
-def _first_overlap(x, y, yaw, half_l, half_w, query):
-    n = x.shape[0]
-    out = np.full(query.shape[0], -1, np.int64)
-    c, s = np.cos(yaw), np.sin(yaw)
-    rad = np.sqrt(half_l * half_l + half_w * half_w)
-    for q in range(query.shape[0]):
-        i = query[q]
-        for j in range(n):
-            if j == i:
-                continue
-            dx, dy = x[j] - x[i], y[j] - y[i]
-            r = rad[i] + rad[j]
-            if dx * dx + dy * dy > r * r:
-                continue
-            if not _separated(x[i], y[i], c[i], s[i], half_l[i], half_w[i],
-                              x[j], y[j], c[j], s[j], half_l[j], half_w[j]):
-                out[q] = j
-                break
-    return out
-
-
-@numba.njit(cache=True)
-def _first_overlap_groups(x, y, yaw, half_l, half_w, query, world, offsets, rows):
+def _first_overlap(x, y, yaw, half_l, half_w, query, world, offsets, rows):
+    """Per query box, the lowest overlapping row among its world's boxes and the shared
+    ones (:class:`~magail_sumo.sensors.worlds.BoxGroups` buckets), else -1."""
     out = np.full(query.shape[0], -1, np.int64)
     c, s = np.cos(yaw), np.sin(yaw)
     rad = np.sqrt(half_l * half_l + half_w * half_w)
@@ -87,8 +69,6 @@ def first_overlap(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndar
     :returns: (A,) int64.
     """
     f = lambda v: np.ascontiguousarray(v, np.float64)  # noqa: E731
-    q = np.ascontiguousarray(query, np.int64)
-    if groups is not None:
-        return _first_overlap_groups(f(x), f(y), f(yaw), 0.5 * f(length), 0.5 * f(width), q,
-                                     groups.world, groups.offsets, groups.rows)
-    return _first_overlap(f(x), f(y), f(yaw), 0.5 * f(length), 0.5 * f(width), q)
+    g = groups if groups is not None else BoxGroups.single(len(x))
+    return _first_overlap(f(x), f(y), f(yaw), 0.5 * f(length), 0.5 * f(width),
+                          np.ascontiguousarray(query, np.int64), g.world, g.offsets, g.rows)
