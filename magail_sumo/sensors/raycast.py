@@ -222,6 +222,7 @@ def _cast_boxes(origins, angles, uniform, step, full, max_range, starts, ends, a
     cosb, sinb = np.cos(angles), np.sin(angles)
     r2 = max_range * max_range
     shared = offsets.shape[0] - 2
+    facing = np.empty(4)  # per edge of the box at hand: > 0 (= 0) faces (runs by) the origin
     for i in range(a):
         ox, oy = origins[i, 0], origins[i, 1]
         me = agent_box[i]
@@ -236,15 +237,16 @@ def _cast_boxes(origins, angles, uniform, step, full, max_range, starts, ends, a
                 # from outside a convex box a ray first meets an edge facing the origin (the
                 # corners run counter-clockwise: outward normal (ey, -ex)); from inside, any
                 inside = True
-                for k in range(4 * j, 4 * j + 4):
-                    if (ox - starts[k, 0]) * (ends[k, 1] - starts[k, 1]) - \
-                            (oy - starts[k, 1]) * (ends[k, 0] - starts[k, 0]) >= 0.0:
-                        inside = False
-                        break
-                for k in range(4 * j, 4 * j + 4):
-                    ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
-                    if not inside and (ox - ax) * (by - ay) - (oy - ay) * (bx - ax) < 0.0:
+                for e in range(4):
+                    k = 4 * j + e
+                    facing[e] = (ox - starts[k, 0]) * (ends[k, 1] - starts[k, 1]) - \
+                        (oy - starts[k, 1]) * (ends[k, 0] - starts[k, 0])
+                    inside = inside and facing[e] < 0.0
+                for e in range(4):
+                    if not inside and facing[e] < 0.0:
                         continue
+                    k = 4 * j + e
+                    ax, ay, bx, by = starts[k, 0], starts[k, 1], ends[k, 0], ends[k, 1]
                     if _seg_dist2(ox, oy, ax, ay, bx, by) > r2:
                         continue
                     _cast_segment(out, i, ox, oy, angles, cosb, sinb, uniform, step, full, ax,
