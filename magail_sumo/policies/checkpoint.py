@@ -78,35 +78,38 @@ class CheckpointPolicy:
 
     def reseed_worlds(self, seeds) -> None:
         """Batched rollouts: world ``w`` samples from here on as the policy built with
-        ``seeds[w]`` does (:meth:`act_worlds`)."""
+        ``seeds[w]`` does (:meth:`act_batch`)."""
         dev = self.policy.device
         self.world_generators = [torch.Generator(device=dev).manual_seed(int(s)) for s in seeds]
 
-    def _observations(self, observations: dict[str, np.ndarray], names: list[str]
-                      ) -> torch.Tensor:
-        x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
+    def _tensor(self, x: np.ndarray) -> torch.Tensor:
+        """(n, D) observations as the policy's input, refused unless D is its size."""
         if x.shape[1] != self.obs_dim:
             raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
                                   f"policy expects {self.obs_dim}")
         return torch.as_tensor(x, device=self.policy.device)
 
+    def _actions(self, obs: torch.Tensor, generator: torch.Generator | None) -> np.ndarray:
+        """(n, 2) actions of one world's agents (module doc): sampled with ``generator``'s
+        noise, drawn in row order, or the tanh of the mean when deterministic."""
+        if self.deterministic:
+            a = self.policy._predict(obs, deterministic=True)
+        else:
+            gauss = self.policy.get_distribution(obs)
+            mean, std = gauss.distribution.mean, gauss.distribution.stddev
+            eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype,
+                              device=mean.device)
+            a = torch.tanh(mean + self.noise_scale * std * eps)
+        return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
+
     @torch.no_grad()
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if not observations:
             return {}
-        if self.deterministic:
-            names = list(observations)
-            a = self.policy._predict(self._observations(observations, names), deterministic=True)
-        else:
-            names = sorted(observations)  # one draw order for a rollout, whatever the env's
-            gauss = self.policy.get_distribution(self._observations(observations, names))
-            mean, std = gauss.distribution.mean, gauss.distribution.stddev
-            eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype,
-                              device=mean.device)
-            a = torch.tanh(mean + self.noise_scale * std * eps)
-        a = np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
-        return dict(zip(names, a))
-
+        # sampling: one draw order for a rollout, whatever the env's
+        names = list(observations) if self.deterministic else sorted(observations)
+        x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
+        return dict(zip(names, self._actions(self._tensor(x), self.generator)))
 
     @torch.no_grad()
     def act_batch(self, observations: np.ndarray, worlds: np.ndarray) -> np.ndarray:
@@ -121,28 +124,15 @@ class CheckpointPolicy:
         x = np.asarray(observations, np.float32)
         if x.shape[0] == 0:
             return np.zeros((0, 2), np.float32)
-        if x.shape[1] != self.obs_dim:
-            raise CheckpointError(f"{self.name}: observations have {x.shape[1]} values, the "
-                                  f"policy expects {self.obs_dim}")
         gens = getattr(self, "world_generators", None)
         if gens is None and not self.deterministic:
             raise ValueError(f"{self.name}: call reseed_worlds before act_batch")
-        obs = torch.as_tensor(x, device=self.policy.device)
+        obs = self._tensor(x)
         worlds = np.asarray(worlds, np.int64)
         bounds = np.flatnonzero(np.diff(worlds)) + 1
-        parts = []
-        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, worlds.size]):
-            o = obs[lo:hi]
-            if self.deterministic:
-                parts.append(self.policy._predict(o, deterministic=True))
-                continue
-            gauss = self.policy.get_distribution(o)
-            mean, std = gauss.distribution.mean, gauss.distribution.stddev
-            eps = torch.randn(mean.shape, generator=gens[int(worlds[lo])], dtype=mean.dtype,
-                              device=mean.device)
-            parts.append(torch.tanh(mean + self.noise_scale * std * eps))
-        a = torch.cat(parts)
-        return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
+        return np.concatenate([
+            self._actions(obs[lo:hi], None if gens is None else gens[int(worlds[lo])])
+            for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, worlds.size])])
 
 
 def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig) -> None:
