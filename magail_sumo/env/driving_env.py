@@ -525,8 +525,7 @@ class SumoDrivingEnv(FleetEnv):
         end = self.t >= self._end
         time_up, _ = self._time_up(act, st.flags, end, st.arrived)
         term, trunc = leaving(st.flags, self.config.terminate_on, time_up)
-        gone = act[term | trunc]
-        self._leave(np.concatenate([gone, st.joiners]) if end else gone)
+        self._leave(act[term | trunc], st.joiners, end)
         self._obs_rows[st.agents] = st.obs
         seen = np.zeros(n, bool)
         seen[st.agents] = True

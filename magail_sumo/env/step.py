@@ -214,10 +214,7 @@ class FleetEnv(ParallelEnv):
         joined = self._infos_of(joiners)
         out.joined(f.names_of(joiners), end, END_OF_EPISODE,
                    lambda j, reason: joined(j, {}, reason))
-        gone = act[leaving]
-        if end:
-            gone = np.concatenate([gone, joiners])
-        self._leave(gone)
+        self._leave(act[leaving], joiners, end)
         return out
 
     def _progress_reward(self) -> float:
@@ -233,8 +230,11 @@ class FleetEnv(ParallelEnv):
         f.hint[rows] = at
         return s
 
-    def _leave(self, gone: np.ndarray) -> None:
-        """Rows ``gone`` stop being agents; their vehicles leave SUMO."""
+    def _leave(self, gone: np.ndarray, joiners: np.ndarray, end: bool) -> None:
+        """Rows ``gone`` (stepped agents that ended), and at the episode's ``end`` the step's
+        ``joiners`` too, stop being agents; their vehicles leave SUMO."""
+        if end:
+            gone = np.concatenate([gone, joiners])
         f = self.fleet
         f.active[gone] = False
         for k in gone:
