@@ -151,7 +151,7 @@ def _scene(sd: Any, keep_synthetic: bool = False) -> Scene:
             interest.append(index_of[name])
         else:
             dropped.append(DroppedReference(-1, "objects_of_interest", name))
-    roadmap, feature_ids = _roadmap(required(sd, "map_features", ""), dropped)
+    roadmap, feature_ids = _roadmap(required(sd, "map_features", ""), dropped, notes)
     signals = _signals(required(sd, "dynamic_map_states", ""), length, feature_ids, dropped, notes)
     successors = neighbors = 0
     lanes = roadmap.lanes
@@ -346,7 +346,55 @@ def _speed_mph(f: dict, path: str) -> float:
     return 0.0
 
 
-def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, Ids]:
+#: m, a lane's centre line whose points lie this far on average from its own polygon's is in
+#: another frame (see :func:`_lanes_on_polygons`)
+FRAME_SHIFT_MIN = 50.0
+#: m, the shifted lanes' offsets agree within this of their median (the mean of a polygon's
+#: vertices is not its centre: a long irregular outline puts it metres off the centre line)
+FRAME_SHIFT_AGREE = 25.0
+
+
+def _lanes_on_polygons(lanes: list[Lane], polygons: dict[int, np.ndarray],
+                       notes: list[str]) -> list[Lane]:
+    """Lanes whose centre line is offset from their own polygon by one common vector, moved
+    onto their polygons.
+
+    Seen in ScenarioNet's nuScenes trainval pickles: the centre lines of the lanes that have a
+    polygon (nuScenes "lane"; "lane_connector"s have none) are in a frame centred on the ego's
+    first position, while their polygons, the connectors, road edges and tracks are in the map
+    frame, so every lane link joins two lanes kilometres apart and the road lanes lie off the
+    recorded driving. The offset of a lane is the mean of its polygon's points minus the mean of
+    its centre line's points; when nine in ten of those above :data:`FRAME_SHIFT_MIN` m agree
+    within :data:`FRAME_SHIFT_AGREE` m of their median, those lanes are shifted by the median
+    (x, y) -- or, where lane links join lanes of the two frames, by the median gap of those
+    links, which is exact -- and the repair is noted. Anything else is left as recorded."""
+    offsets = {lane.id: polygons[lane.id][:, :2].mean(0) - lane.polyline[:, :2].mean(0)
+               for lane in lanes if len(polygons.get(lane.id, ())) and len(lane.polyline)}
+    far = {fid: o for fid, o in offsets.items() if np.hypot(*o) > FRAME_SHIFT_MIN}
+    if not far:
+        return lanes
+    shift = np.median(np.array(list(far.values())), axis=0)
+    agree = {fid for fid, o in far.items() if np.hypot(*(o - shift)) <= FRAME_SHIFT_AGREE}
+    if len(agree) < 0.9 * len(far):
+        return lanes  # no common frame: left as recorded
+    # a polygon's vertex mean is only near its centre line; a link from a lane in the one
+    # frame to a lane in the other gives the offset exactly (end meets start)
+    by_id = {lane.id: lane for lane in lanes}
+    gaps = [(by_id[e].polyline[0, :2] - lane.polyline[-1, :2]) * (1 if lane.id in agree else -1)
+            for lane in lanes for e in lane.exit_lanes
+            if e in by_id and (lane.id in agree) != (e in agree)]
+    if gaps and np.hypot(*(np.median(gaps, axis=0) - shift)) <= FRAME_SHIFT_AGREE:
+        shift = np.median(gaps, axis=0)
+    notes.append(f"{len(agree)} lane centre lines lay ({shift[0]:.1f}, {shift[1]:.1f}) m off "
+                 "their own polygons (another frame): moved onto them")
+    step = np.array([shift[0], shift[1], 0.0])
+    return [dataclasses.replace(lane, polyline=lane.polyline + step[:lane.polyline.shape[1]])
+            if lane.id in agree else lane for lane in lanes]
+
+
+def _roadmap(features: Any, dropped: list[DroppedReference],
+             notes: list[str] | None = None) -> tuple[RoadMap, Ids]:
+    """The map; a lane frame repair (:func:`_lanes_on_polygons`) is noted in ``notes``."""
     if not isinstance(features, dict):
         raise SceneValidationError("map_features: expected a dict")
     kinds: dict[str, list] = {k: [] for k in ("lanes", "road_lines", "road_edges", "stop_signs",
@@ -362,10 +410,13 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
         ftypes.append(_FEATURE_ALIASES.get(ftype, ftype))
     lane_ids = {fid for fid, t in zip(ids.ids, ftypes) if t in _LANE_TYPES}
     refs = _Refs(ids, lane_ids, set(ids.ids), dropped)
+    polygons: dict[int, np.ndarray] = {}  # lanes' own polygons (nuScenes), for the frame check
     for key, fid, ftype in zip(keys, ids.ids, ftypes):
         f = features[key]
         path = f"map_features[{describe(key)}]"
         if ftype in _LANE_TYPES:
+            if isinstance(f, dict) and f.get("polygon") is not None:
+                polygons[fid] = as_points(f["polygon"], path + ".polygon")
             kinds["lanes"].append(Lane(
                 id=fid, polyline=as_points(required(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
@@ -413,6 +464,9 @@ def _roadmap(features: Any, dropped: list[DroppedReference]) -> tuple[RoadMap, I
             kinds[kind].append(cls(fid, points))
         else:
             raise SceneValidationError(f"{path}: unsupported map feature type {ftype!r}")
+    if polygons:
+        kinds["lanes"] = _lanes_on_polygons(kinds["lanes"], polygons,
+                                            notes if notes is not None else [])
     return RoadMap(**{k: tuple(v) for k, v in kinds.items()}), ids
 
 

@@ -25,6 +25,8 @@ SPIKE = 1.0  #: m, a one-state jump of a box at least this far is a spike (not m
 SPIKE_TURN = np.radians(45.0)  #: rad, heading jump marking a spike at a track's first/last state
 #: SUMO insertion checks kept: all but the speed limit (recorded speeds may exceed it).
 CHECKS = "collision leaderGap followerGap stop"
+#: m/s, SUMO's default vType maxSpeed of the classes routes are written for
+CLASS_MAX_SPEED = {"passenger": 55.56, "bicycle": 13.89}
 MAX_DETOUR = 150.0  #: m, longest shortest-path filler between two matched edges
 BLIP_STATES = 10  #: fewer valid states than this on an edge a route cannot reach is a blip
 SYNTHESIZED = -2  #: matched-lane code of states on a synthesised lane (-1 = unmatched)
@@ -48,6 +50,9 @@ class VehicleRoute:
     parked: bool
     depart_edge: int = 0  # index into edges where the vehicle departs
     speed_factor: float = 1.0  # desired speed / speed limit, from the recorded speeds
+    #: m/s, the vType's maxSpeed where the recording is faster than SUMO's default for the
+    #: class allows (a motorcycle recorded as a cyclist); None: SUMO's default
+    max_speed: float | None = None
     #: WOMD lane per valid step (-1 unmatched, :data:`SYNTHESIZED` on a synthesised lane)
     matched: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
 
@@ -114,26 +119,32 @@ def _junction_connection(plan: NetworkPlan, lane: int, from_edge: str | None = N
     return cands[0] if cands else None
 
 
-def _connect(net, edges: list[str]) -> tuple[list[str], bool]:
-    """Close gaps between consecutive edges with shortest paths; (edges, all connected)."""
+def _connect(net, edges: list[str], vclass: str) -> tuple[list[str], bool]:
+    """Close gaps between consecutive edges with shortest paths that vehicle class ``vclass``
+    may drive (:func:`_joins`); (edges, all connected). Where no such path exists the route
+    stops before the gap (a route SUMO refuses would stop ``sumo -c``), so the edges returned
+    are always one connected route."""
     out = [edges[0]]
-    ok = True
     for nxt in edges[1:]:
-        cur = net.getEdge(out[-1])
-        tgt = net.getEdge(nxt)
-        if tgt in cur.getOutgoing():
-            out.append(nxt)
-            continue
-        path, cost = net.getShortestPath(cur, tgt, maxCost=MAX_DETOUR)
-        if path:
-            out.extend(e.getID() for e in path[1:])
-        else:
-            ok = False
-            out.append(nxt)
-    return out, ok
+        hop = _joins(net, out[-1], nxt, vclass)
+        if hop is None:
+            return out, False
+        out.extend(hop)
+    return out, True
 
 
-def _connect_trimmed(net, seq: list[str], head_added: bool, tail_added: bool
+def _joins(net, a: str, b: str, vclass: str) -> list[str] | None:
+    """The edges after ``a`` up to ``b`` on the shortest path (at most :data:`MAX_DETOUR` m)
+    whose connections let vehicle class ``vclass`` through (``[b]`` when ``a`` leads straight
+    into it); None when there is none."""
+    cur, tgt = net.getEdge(a), net.getEdge(b)
+    if tgt in cur.getAllowedOutgoing(vclass):
+        return [b]
+    path, _ = net.getShortestPath(cur, tgt, maxCost=MAX_DETOUR, vClass=vclass)
+    return [e.getID() for e in path[1:]] if path else None
+
+
+def _connect_trimmed(net, seq: list[str], head_added: bool, tail_added: bool, vclass: str
                      ) -> tuple[list[str], bool]:
     """:func:`_connect` of ``seq``; where that leaves a gap, the same without the edge put in
     front of the matched edges for a start inside a junction (``head_added``), without the one
@@ -142,7 +153,7 @@ def _connect_trimmed(net, seq: list[str], head_added: bool, tail_added: bool
     matched junction lane; when the match jumped onto a junction lane of a connection that
     does not join the route (or the route starts on a synthesised lane from a dead end), the
     edge leads nowhere on the route and would cut it short."""
-    edges, ok = _connect(net, seq)
+    edges, ok = _connect(net, seq, vclass)
     if ok:
         return edges, ok
     for drop_head, drop_tail in ((True, False), (False, True), (True, True)):
@@ -150,13 +161,14 @@ def _connect_trimmed(net, seq: list[str], head_added: bool, tail_added: bool
             continue
         trimmed = seq[int(drop_head):len(seq) - int(drop_tail)]
         if trimmed:
-            out, ok = _connect(net, trimmed)
+            out, ok = _connect(net, trimmed, vclass)
             if ok:
                 return out, ok
     return edges, False
 
 
-def _connect_best(net, seq: list[str], weight: list[int]) -> tuple[list[str], bool]:
+def _connect_best(net, seq: list[str], weight: list[int], vclass: str
+                  ) -> tuple[list[str], bool]:
     """Where :func:`_connect_trimmed` leaves a gap: the connected route through the ordered
     subsequence of ``seq`` that carries the most states (``weight[i]``: the valid states matched
     to ``seq[i]``), gaps closed as in :func:`_connect`; connected when each edge left out
@@ -167,9 +179,7 @@ def _connect_best(net, seq: list[str], weight: list[int]) -> tuple[list[str], bo
 
     def joins(i: int, j: int) -> bool:
         if (i, j) not in reach:
-            a, b = net.getEdge(seq[i]), net.getEdge(seq[j])
-            reach[i, j] = b in a.getOutgoing() or \
-                bool(net.getShortestPath(a, b, maxCost=MAX_DETOUR)[0])
+            reach[i, j] = _joins(net, seq[i], seq[j], vclass) is not None
         return reach[i, j]
 
     best = [float(w) for w in weight]
@@ -184,7 +194,7 @@ def _connect_best(net, seq: list[str], weight: list[int]) -> tuple[list[str], bo
         keep.append(j)
         j = prev[j]
     keep.reverse()
-    edges, _ = _connect(net, [seq[i] for i in keep])
+    edges, _ = _connect(net, [seq[i] for i in keep], vclass)
     dropped = set(range(n)) - set(keep)
     return edges, all(weight[i] < BLIP_STATES for i in dropped)
 
@@ -201,13 +211,14 @@ def _via_edges(net, a: str, b: str) -> set[str]:
     return names
 
 
-def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges: list[str]
-                           ) -> tuple[list[str], int]:
+def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges: list[str],
+                           vclass: str) -> tuple[list[str], int]:
     """(edges, number of edges put in front): where the recorded states before the route's
     first covered state (after its last one) lie on the junction lanes that lead into its first
     edge (out of its last edge) in the built network -- netconvert's junction took that part of
     the mapped lane -- the route starts one edge earlier (ends one edge later), through them.
-    The edge whose junction lanes carry the most of those states is taken."""
+    The edge whose junction lanes carry the most of those states is taken, among those whose
+    connection vehicle class ``vclass`` may drive."""
     def covered(names: set[str], rows: np.ndarray) -> np.ndarray:
         return on_lanes(seg, xy[rows], heading[rows], np.isin(seg.edge, list(names)))
 
@@ -220,12 +231,13 @@ def _extend_into_junctions(net, seg, xy: np.ndarray, heading: np.ndarray, edges:
     added = 0
     if len(head):
         best = max(((covered(_via_edges(net, e.getID(), edges[0]), head).sum(), e.getID())
-                    for e in net.getEdge(edges[0]).getIncoming()), default=(0, ""))
+                    for e in net.getEdge(edges[0]).getIncoming()
+                    if net.getEdge(edges[0]) in e.getAllowedOutgoing(vclass)), default=(0, ""))
         if best[0] > 0 and best[1] not in edges:
             edges, added = [best[1], *edges], 1
     if len(tail) and (on.any() or not added):
         best = max(((covered(_via_edges(net, edges[-1], e.getID()), tail).sum(), e.getID())
-                    for e in net.getEdge(edges[-1]).getOutgoing()), default=(0, ""))
+                    for e in net.getEdge(edges[-1]).getAllowedOutgoing(vclass)), default=(0, ""))
         if best[0] > 0 and best[1] not in edges:
             edges = [*edges, best[1]]
     return edges, added
@@ -246,6 +258,7 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
     """
     tr = scene.tracks
     tid = int(tr.id[n])
+    vclass = "bicycle" if kind == ObjectType.CYCLIST else "passenger"
     matched = np.flatnonzero(lane_of != -1)
     if not len(matched):
         return "parked off the lane network" if parked else \
@@ -281,9 +294,9 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
         return "matched junction lanes belong to no connection"
     if parked:
         seq, weight = seq[:1], weight[:1]
-    edges, connected = _connect_trimmed(net, seq, head_added, tail_added)
+    edges, connected = _connect_trimmed(net, seq, head_added, tail_added, vclass)
     if not connected:
-        edges, connected = _connect_best(net, seq, weight)
+        edges, connected = _connect_best(net, seq, weight, vclass)
     depart_edge = 0
     first = next((k for k in matched if pieces[k] is not None and pieces[k][0] == edges[0]), None)
     if first is None and head is not None and edges[0] == head.from_edge and len(edges) > 1:
@@ -308,19 +321,21 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
     else:
         return "no connected route through the matched lanes"
     if not parked and connected:
-        edges, added = _extend_into_junctions(net, seg(), xy, heading, edges)
+        edges, added = _extend_into_junctions(net, seg(), xy, heading, edges, vclass)
         depart_edge += added
     lane_len = net.getLane(f"{edge0}_{lane0}").getLength()
     speed = float(np.hypot(tr.vx[n, st], tr.vy[n, st]))
     speeds = np.hypot(tr.vx[n, steps], tr.vy[n, steps])
     limit = net.getEdge(edge0).getSpeed()
     factor = float(np.clip(np.quantile(speeds, 0.95) / max(limit, 0.1), 1.0, 2.0))
+    top = float(speeds.max()) * 1.1
     return VehicleRoute(
-        track=n, id=str(tid), vclass="bicycle" if kind == ObjectType.CYCLIST else "passenger",
+        track=n, id=str(tid), vclass=vclass,
         length=max(length, 0.5), width=max(width, 0.3), edges=edges, depart_step=int(st),
         depart_lane=lane0, depart_pos=float(np.clip(pos0, 0.1, lane_len)), depart_edge=depart_edge,
         depart_speed=0.0 if parked else speed, connected=connected, parked=parked,
-        speed_factor=factor, matched=lane_of)
+        speed_factor=factor, matched=lane_of,
+        max_speed=round(top, 2) if top > CLASS_MAX_SPEED[vclass] else None)
 
 
 def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bike: LaneIndex,
@@ -392,7 +407,8 @@ def write_routes(path: Path, routes: list[VehicleRoute], dt: float, end_time: fl
         fh.write("<routes>\n")
         for r in routes:
             fh.write(f'  <vType id="t{r.id}" vClass="{r.vclass}" length="{r.length:.2f}" '
-                     f'width="{r.width:.2f}" minGap="1.0" speedFactor="{r.speed_factor:.2f}"/>\n')
+                     f'width="{r.width:.2f}" minGap="1.0" speedFactor="{r.speed_factor:.2f}"'
+                     + ("" if r.max_speed is None else f' maxSpeed="{r.max_speed:.2f}"') + '/>\n')
         for r in routes:
             fh.write(f'  <vehicle id="{r.id}" type="t{r.id}" depart="{r.depart_step * dt:.1f}" '
                      f'departEdge="{r.depart_edge}" departLane="{r.depart_lane}" departPos="{r.depart_pos:.2f}" insertionChecks="{CHECKS}" '
