@@ -32,8 +32,7 @@ from magail_sumo.scene import (
     BoundarySegment, Crosswalk, DataQuality, DroppedReference, Driveway, Lane, LaneNeighbor,
     ObjectType, RequiredPrediction, RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError,
     SignalState, SignalStates, SourceIds, SpeedBump, StopSign, Tracks, drop_tracks,
-    infer_lane_connectivity,
-    validate_scene,
+    infer_lane_connectivity, link_isolated_lanes, validate_scene,
 )
 
 SUMMARY_FILE = "dataset_summary.pkl"
@@ -164,6 +163,13 @@ def _scene(sd: Any, keep_synthetic: bool = False) -> Scene:
         inferred, successors, neighbors = infer_lane_connectivity(lanes, successors=no_links,
                                                                   neighbors=no_neighbors)
         roadmap = dataclasses.replace(roadmap, lanes=inferred)
+    if lanes and not no_links:
+        linked, added = link_isolated_lanes(roadmap.lanes)
+        if added:
+            successors += added
+            roadmap = dataclasses.replace(roadmap, lanes=linked)
+            notes.append(f"{added} successor links inferred for lanes recorded without any "
+                         "entry or exit lane")
     scene = Scene(
         scenario_id=as_text(sid, "metadata.scenario_id"),
         timestamps=ts,

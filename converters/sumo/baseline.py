@@ -52,20 +52,21 @@ SUMO is reached through the running session (its ``api``); one simulation per pr
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Collection
 
 import numpy as np
 
-from magail_sumo.scene import Scene
+from magail_sumo.scene import ObjectType, Scene
 from magail_sumo.scene.types import STEP_LENGTH
+from magail_sumo.sim.boxes import signed_box_distance
 from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
 from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import SumoInputs
 
 from .bundle import SceneBundle
-from .routes import VehicleRoute
+from .routes import PARKED_MOVE, VehicleRoute, moved_distance
 from .signals import CHAR_CLASS, STATE_CLASS, SignalPrograms
 
 DT = STEP_LENGTH  #: s per step
@@ -102,6 +103,14 @@ def bundle_session(sumocfg: str | Path, seed: int | None = None,
 
 # ------------------------------------------------------------------ the converter's quality run
 
+#: signalled lanes whose states SUMO does not show as recorded listed in ``conversion.json``
+#: (``quality.signal_misses``), worst first
+SIGNAL_MISSES_KEPT = 20
+#: the signal miss of a lane without a SUMO link (the converter names the cause from the map:
+#: :func:`.signals.unmapped_reason`)
+UNMAPPED = "not part of a traffic-light link"
+
+
 @dataclass
 class Baseline:
     """Outcome of one SUMO run of the scenario."""
@@ -111,17 +120,81 @@ class Baseline:
     collisions: int
     teleports: int
     signal_fidelity: float | None
+    #: the signalled lanes behind a signal fidelity below 1 (:func:`_signal_misses`)
+    signal_misses: list[dict] = field(default_factory=list)
+    #: SUMO-driven vehicles whose box overlaps the recorded box of a non-moving vehicle at some
+    #: step (:func:`parked_overlaps`); None when the scene has none
+    parked_overlaps: int | None = None
+
+
+def parked_boxes(scene: Scene) -> tuple[np.ndarray, list[str]]:
+    """Rows and SUMO ids (track ids) of the scene's non-moving vehicles and cyclists (moved
+    less than :data:`~.routes.PARKED_MOVE` m): the boxes :func:`parked_overlaps` checks."""
+    tr = scene.tracks
+    rows = np.flatnonzero(np.isin(tr.type, (ObjectType.VEHICLE, ObjectType.CYCLIST))
+                          & (moved_distance(scene) < PARKED_MOVE) & tr.valid.any(axis=1))
+    return rows, [str(int(i)) for i in tr.id[rows]]
+
+
+def parked_overlaps(api, scene: Scene, k: int, rows: np.ndarray, skip: set[str],
+                    size: dict[str, tuple[float, float]]) -> set[tuple[str, int]]:
+    """(SUMO vehicle, parked row) pairs whose boxes overlap after the step showing log step
+    ``k``: every vehicle in SUMO but those in ``skip`` (the parked vehicles themselves) and
+    obstacles, its box from SUMO's front-bumper pose, length and width (cached in ``size``);
+    the parked boxes as recorded at ``k`` (rows valid at ``k``). Overlap: signed box distance
+    below 0 (:func:`magail_sumo.sim.boxes.signed_box_distance`)."""
+    tr = scene.tracks
+    here = rows[tr.valid[rows, k]]
+    ids = [v for v in api.vehicle.getIDList() if v not in skip
+           and not v.startswith(OBSTACLE_PREFIX)]
+    if not len(here) or not ids:
+        return set()
+    pose = np.array([(*api.vehicle.getPosition(v), api.vehicle.getAngle(v)) for v in ids])
+    for v in ids:
+        if v not in size:
+            size[v] = (api.vehicle.getLength(v), api.vehicle.getWidth(v))
+    length, width = np.array([size[v] for v in ids]).T
+    yaw = np.radians(90.0 - pose[:, 2])
+    cx = pose[:, 0] - length / 2 * np.cos(yaw)
+    cy = pose[:, 1] - length / 2 * np.sin(yaw)
+    f64 = lambda a: a[here, k][None].astype(np.float64)  # noqa: E731
+    d = signed_box_distance(cx[:, None], cy[:, None], yaw[:, None], length[:, None],
+                            width[:, None], f64(tr.x), f64(tr.y), f64(tr.heading),
+                            f64(tr.length), f64(tr.width))
+    a, b = np.nonzero(d < 0)
+    return {(ids[i], int(here[j])) for i, j in zip(a.tolist(), b.tolist())}
+
+
+def _signal_misses(counts: dict[int, list], programs: SignalPrograms | None) -> list[dict]:
+    """The signalled lanes SUMO did not show as recorded at every step, worst first: ``{"lane":
+    id, "agree": share of its recorded steps, "reason": ...}``; the reason is "not part of a
+    traffic-light link" (the conversion found no SUMO link for it) or the first disagreement
+    ("SUMO shows g where the log has stop, first at step 12")."""
+    out = []
+    for lane, (hits, total, first) in counts.items():
+        if hits == total:
+            continue
+        if programs is None or not programs.lane_links.get(lane):
+            reason = UNMAPPED
+        else:
+            k, sumo, rec = first
+            reason = f"SUMO shows {sumo} where the log has {rec}, first at step {k}"
+        out.append({"lane": int(lane), "agree": round(hits / total, 3), "reason": reason})
+    out.sort(key=lambda m: (m["agree"], m["lane"]))
+    return out[:SIGNAL_MISSES_KEPT]
 
 
 def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
                  programs: SignalPrograms | None) -> Baseline:
-    """Run ``sumo -c cfg`` (:func:`bundle_session` without a seed) for the scene's duration;
+    """Run ``sumo -c cfg`` (:func:`bundle_session` without a seed) for the scenario's duration;
     compare with the log.
 
     Positions: SUMO reports the front bumper; the box centre is half a length behind it.
     Timing: a vehicle departing at ``k * dt`` is placed during the step from ``k * dt``, so
     after ``k + 1`` steps the simulation shows log step ``k`` (the signal programs hold their
-    first state one extra step to match).
+    first state one extra step to match). Also counted: the SUMO-driven vehicles that ever
+    overlap a recorded non-moving vehicle (:func:`parked_overlaps`), whether the bundle carries
+    those vehicles or not.
     """
     tr = scene.tracks
     steps = scene.num_steps
@@ -129,7 +202,10 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
     sim_xy = {vid: np.full((steps, 2), np.nan) for vid in known}
     has_signals = bool(scene.signals.known().any())
     hits = total = 0
+    lanes: dict[int, list] = {}  # signalled lane -> [hits, total, first disagreement]
     collisions = teleports = 0
+    parked_rows, parked_ids = parked_boxes(scene)
+    skip, size, hit_pairs = set(parked_ids), {}, set()
     with bundle_session(cfg) as session:
         ls = session.api
         for k in range(steps):  # after k + 1 steps SUMO shows the state of log step k
@@ -142,6 +218,8 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
                     ang = np.radians(90.0 - ls.vehicle.getAngle(vid))
                     half = known[vid].length / 2
                     sim_xy[vid][k] = (x - half * np.cos(ang), y - half * np.sin(ang))
+            if len(parked_rows):
+                hit_pairs |= parked_overlaps(ls, scene, k, parked_rows, skip, size)
             if has_signals:
                 tls_state = {t: ls.trafficlight.getRedYellowGreenState(t)
                              for t in (programs.states if programs else ())}
@@ -150,10 +228,15 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
                     if st == 0:
                         continue
                     total += 1
+                    count = lanes.setdefault(lane, [0, 0, None])
+                    count[1] += 1
                     links = programs.lane_links.get(lane, []) if programs else []
-                    if links and all(CHAR_CLASS.get(tls_state[t][i]) == STATE_CLASS[st]
-                                     for t, i in links):
+                    shown = [tls_state[t][i] for t, i in links]
+                    if links and all(CHAR_CLASS.get(c) == STATE_CLASS[st] for c in shown):
                         hits += 1
+                        count[0] += 1
+                    elif count[2] is None:
+                        count[2] = (k, "".join(shown), STATE_CLASS[st])
     errs, finals = [], []
     for vid, r in known.items():
         n = r.track
@@ -168,7 +251,8 @@ def run_baseline(scene: Scene, cfg: str, routes: list[VehicleRoute],
     ade = float(np.concatenate(errs).mean()) if errs else None
     fde = float(np.mean(finals)) if finals else None
     fid = hits / total if total else None
-    return Baseline(ade, fde, collisions, teleports, fid)
+    return Baseline(ade, fde, collisions, teleports, fid, _signal_misses(lanes, programs),
+                    len({v for v, _ in hit_pairs}) if len(parked_rows) else None)
 
 
 # ------------------------------------------------------------------ the evaluation method "sumo"

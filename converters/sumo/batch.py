@@ -32,8 +32,8 @@ from .quality import failed_bars
 
 SUMMARY_COLUMNS = ("file", "record", "scenario_id", "status", "reason", "on_network_rate",
                    "route_rate", "signal_fidelity", "synthesized_lanes", "netconvert_warnings",
-                   "ade", "fde", "collisions", "teleports", "seconds", "bars_met",
-                   "bars_failed")
+                   "ade", "fde", "collisions", "teleports", "parked_overlaps", "seconds",
+                   "bars_met", "bars_failed")
 
 
 @dataclass
@@ -55,7 +55,7 @@ class BatchRow:
                 self.status, self.reason, q.get("on_network_rate"), q.get("route_rate"),
                 q.get("signal_fidelity"), q.get("synthesized_lanes"), q.get("netconvert_warnings"),
                 base.get("ade"), base.get("fde"), base.get("collisions"), base.get("teleports"),
-                round(self.seconds, 3), *self._bars(q)]
+                base.get("parked_overlaps"), round(self.seconds, 3), *self._bars(q)]
 
     def _bars(self, q: dict) -> list[str]:
         """``bars_met`` (yes / no; empty for a scene that did not convert) and

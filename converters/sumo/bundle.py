@@ -9,9 +9,13 @@ plus a hash). A bundle folder holds (:class:`BundleLayout`):
 
 * ``<name>.net.xml``: the SUMO network (plus the plain ``.nod/.edg/.con.xml`` it is built from);
 * ``<name>.rou.xml``: the routes (vehicle ids = the scene's track ids);
+* ``<name>.parking.add.xml``: a parking space for each non-moving vehicle off the lanes
+  (:mod:`.parking`), when there are any;
 * ``<name>.tll.xml``: the signal programs, when the scene has signals;
 * ``<name>.sumocfg``: a configuration ``sumo -c`` opens as is (relative file names);
 * ``<name>.xodr``: OpenDRIVE, when asked for;
+* ``netconvert-warnings.txt``: netconvert's warnings verbatim, when it gave any (their count is
+  ``quality.netconvert_warnings``);
 * ``conversion.json`` (:data:`REPORT_FILE`): the conversion report, with the original
   ``scenario_id``, ``status``, ``files`` (every other file of the folder) and ``unconverted``
   (objects not in SUMO, e.g. parked off-network vehicles, pedestrians).
@@ -86,12 +90,22 @@ class BundleLayout:
         return self._file(".tll.xml")
 
     @property
+    def parking(self) -> Path:
+        """Parking spaces of the parked vehicles off the lanes (only when there are any)."""
+        return self._file(".parking.add.xml")
+
+    @property
     def sumocfg(self) -> Path:
         return self._file(".sumocfg")
 
     @property
     def opendrive(self) -> Path:
         return self._file(".xodr")
+
+    @property
+    def warnings(self) -> Path:
+        """netconvert's warnings as it printed them (only when it gave any)."""
+        return self.folder / "netconvert-warnings.txt"
 
     @property
     def report(self) -> Path:
@@ -106,7 +120,7 @@ class BundleLayout:
         (:func:`~magail_sumo.sim.sumo_config.read_config`: outputs, logs and ports dropped)
         naming only the bundle's own network, routes and signal programs;
         :class:`BundleError` (one line) otherwise."""
-        own = {str(p.resolve()) for p in (self.net, self.routes, self.signals)}
+        own = {str(p.resolve()) for p in (self.net, self.routes, self.signals, self.parking)}
         try:
             return read_config(self.sumocfg, allowed=own)
         except SumoConfigError as exc:
@@ -178,7 +192,7 @@ class SceneBundle:
     :param sumo_rows: (V,) track rows (into ``scene.tracks``) of the vehicles in the routes.
     :param sumo_ids: SUMO id of each of those vehicles.
     :param unconverted: ``conversion.json``'s list of objects left out of SUMO.
-    :param parked: ids of the route vehicles with a parking stop.
+    :param parked: ids of the route vehicles with a stop (the non-moving ones).
     :param inputs: what SUMO runs of the bundle start with (:meth:`BundleLayout.sumo_inputs`).
     """
 

@@ -59,34 +59,56 @@ def on_network_rate(scene: Scene, seg: LaneSegments, off: np.ndarray | None = No
     return float(on.mean())
 
 
-def route_quality(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net
-                  ) -> tuple[float | None, list[dict]]:
+#: m/s, a state moving at least this fast against its heading is reversing
+REVERSING_SPEED = 0.5
+
+
+def route_quality(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,
+                  unconverted: list[dict] = ()) -> tuple[float | None, list[dict]]:
     """``route_rate`` (module doc; None when there are no moving vehicles) and
     :func:`route_misses`, from one pass over the moving vehicles."""
     moving = moving_vehicles(scene)
-    misses = route_misses(scene, seg, routes, net, moving)
+    misses = route_misses(scene, seg, routes, net, moving, unconverted)
     return (1.0 - len(misses) / len(moving) if len(moving) else None), misses
 
 
 def route_misses(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,
-                 moving: np.ndarray | None = None) -> list[dict]:
+                 moving: np.ndarray | None = None, unconverted: list[dict] = ()) -> list[dict]:
     """The moving vehicles (``moving``: their rows, default :func:`moving_vehicles`) behind a
-    route rate below 1, each ``{"track": its id, "reason": "no route" | "not connected" |
-    "covers X of its states"}`` (track order)."""
+    route rate below 1, each ``{"track": its id, "reason": ...}`` (track order). Reasons:
+
+    * ``no route: <why>`` -- the conversion made none (why as in ``unconverted``);
+    * ``no connected lane sequence`` -- its matched lanes are not joined in the network;
+    * ``covers X of its states (off the network at A, reversing at B, on other lanes at C)``
+      -- the shares of its valid states lying on no lane of the network (:func:`on_lanes`,
+      off-map driving), moving backwards (velocity against the heading faster than
+      :data:`REVERSING_SPEED`), and on lanes that are not its route's."""
     by_track = {r.track: r for r in routes}
+    why = {u.get("id"): u.get("reason", "") for u in unconverted
+           if u.get("kind") in ("vehicle", "cyclist")}
+    tr = scene.tracks
     out = []
     if moving is None:
         moving = moving_vehicles(scene)
     for n in moving.tolist():  # once per conversion, per moving vehicle
         r = by_track.get(n)
+        tid = int(tr.id[n])
         if r is None:
-            reason = "no route"
+            reason = f"no route: {why.get(tid, 'not converted')}"
         elif not r.connected:
-            reason = "not connected"
+            reason = "no connected lane sequence"
         else:
             cover = route_covers(scene, seg, r, net)
             if cover >= COVERAGE:
                 continue
-            reason = f"covers {cover:.2f} of its states"
-        out.append({"track": int(scene.tracks.id[n]), "reason": reason})
+            steps = np.flatnonzero(tr.valid[n])
+            heading = tr.heading[n, steps].astype(np.float64)
+            xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+            off = 1.0 - float(on_lanes(seg, xy, heading).mean())
+            along = tr.vx[n, steps] * np.cos(heading) + tr.vy[n, steps] * np.sin(heading)
+            back = float((along < -REVERSING_SPEED).mean())
+            other = max(0.0, 1.0 - cover - off)
+            reason = (f"covers {cover:.2f} of its states (off the network at {off:.2f}, "
+                      f"reversing at {back:.2f}, on other lanes at {other:.2f})")
+        out.append({"track": tid, "reason": reason})
     return out

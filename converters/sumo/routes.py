@@ -17,6 +17,7 @@ from magail_sumo.scene import ObjectType, Scene
 from sumolib.geomhelper import polygonOffsetWithMinimumDistanceToPoint
 
 from .matching import LaneIndex, match_track
+from .parking import PARK_SEARCH, ParkedSpot, class_lanes, parked_pose, place_parked
 from .topology import NetworkPlan
 from .lanes import LaneSegments, lane_segments, on_lanes
 
@@ -55,6 +56,9 @@ class VehicleRoute:
     max_speed: float | None = None
     #: WOMD lane per valid step (-1 unmatched, :data:`SYNTHESIZED` on a synthesised lane)
     matched: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    #: a parked vehicle's stop: on the lane it blocks or in a space at its recorded pose
+    #: (:mod:`.parking`)
+    spot: ParkedSpot | None = None
 
 
 def moved_distance(scene: Scene) -> np.ndarray:
@@ -249,9 +253,9 @@ def _route_score(scene: Scene, seg, route: VehicleRoute, net) -> tuple[bool, flo
 
 
 def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: ObjectType,
-                 steps: np.ndarray, xy: np.ndarray, heading: np.ndarray, parked: bool,
+                 steps: np.ndarray, xy: np.ndarray, heading: np.ndarray,
                  lane_of: np.ndarray, pieces: list) -> "VehicleRoute | str":
-    """The route of track ``n`` from its matched lanes ``lane_of`` (per valid state; -1
+    """The route of moving track ``n`` from its matched lanes ``lane_of`` (per valid state; -1
     unmatched, :data:`SYNTHESIZED`) and their edge ``pieces``, or why there is none.
 
     :param seg: callable giving the built network's lane segments.
@@ -261,8 +265,7 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
     vclass = "bicycle" if kind == ObjectType.CYCLIST else "passenger"
     matched = np.flatnonzero(lane_of != -1)
     if not len(matched):
-        return "parked off the lane network" if parked else \
-            "no state matches a lane (distance and heading)"
+        return "no state matches a lane (distance and heading)"
     seq: list[str] = []
     weight: list[int] = []  # valid states matched to each edge of seq
     for p in pieces:
@@ -276,7 +279,7 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
     if int(lane_of[first]) in plan.junction_lanes:  # starts inside a junction
         head = _junction_connection(plan, int(lane_of[first]), to_edge=seq[0] if seq else None)
     last_lane = int(lane_of[matched[-1]])
-    if last_lane in plan.junction_lanes and not parked:
+    if last_lane in plan.junction_lanes:
         tail = _junction_connection(plan, last_lane, from_edge=seq[-1] if seq else None)
     head_added = tail_added = False
     if head is not None and (not seq or seq[0] != head.from_edge):
@@ -292,8 +295,6 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
         tail_added = True
     if not seq:
         return "matched junction lanes belong to no connection"
-    if parked:
-        seq, weight = seq[:1], weight[:1]
     edges, connected = _connect_trimmed(net, seq, head_added, tail_added, vclass)
     if not connected:
         edges, connected = _connect_best(net, seq, weight, vclass)
@@ -320,7 +321,7 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
         pos0 = net.getLane(f"{edge0}_{lane0}").getLength()
     else:
         return "no connected route through the matched lanes"
-    if not parked and connected:
+    if connected:
         edges, added = _extend_into_junctions(net, seg(), xy, heading, edges, vclass)
         depart_edge += added
     lane_len = net.getLane(f"{edge0}_{lane0}").getLength()
@@ -333,7 +334,7 @@ def _track_route(plan: NetworkPlan, net, seg, scene: Scene, n: int, kind: Object
         track=n, id=str(tid), vclass=vclass,
         length=max(length, 0.5), width=max(width, 0.3), edges=edges, depart_step=int(st),
         depart_lane=lane0, depart_pos=float(np.clip(pos0, 0.1, lane_len)), depart_edge=depart_edge,
-        depart_speed=0.0 if parked else speed, connected=connected, parked=parked,
+        depart_speed=speed, connected=connected, parked=False,
         speed_factor=factor, matched=lane_of,
         max_speed=round(top, 2) if top > CLASS_MAX_SPEED[vclass] else None)
 
@@ -353,6 +354,7 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
     moved = moved_distance(scene)
     routes: list[VehicleRoute] = []
     unconverted: list[dict] = []
+    parked: list[int] = []
     for n in range(tr.num_tracks):
         kind = ObjectType(int(tr.type[n]))
         tid = int(tr.id[n])
@@ -368,6 +370,9 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
         if not len(steps):
             unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": "no valid state"})
             continue
+        if moved[n] < PARKED_MOVE:
+            parked.append(n)  # placed together below (.parking.place_parked)
+            continue
         xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
         heading = tr.heading[n, steps].astype(np.float64)
         m = match_track(index_bike if kind == ObjectType.CYCLIST else index_car, xy, heading, steps)
@@ -382,10 +387,9 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
                     lane_of[on] = SYNTHESIZED
                     for k in on.tolist():
                         pieces[k] = (eid, 0, 0.0)
-        parked = bool(moved[n] < PARKED_MOVE)
-        args = (plan, net, seg, scene, n, kind, steps, xy, heading, parked)
+        args = (plan, net, seg, scene, n, kind, steps, xy, heading)
         res = _track_route(*args, lane_of, pieces)
-        if isinstance(res, VehicleRoute) and not parked and (lane_of == SYNTHESIZED).any():
+        if isinstance(res, VehicleRoute) and (lane_of == SYNTHESIZED).any():
             # a short synthesised stretch may break a route that the map's lanes carry (the
             # track leaves a junction lane for a moment and comes back): the route without the
             # synthesised lanes is taken where it covers more of the track
@@ -397,12 +401,43 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
             unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": res})
         else:
             routes.append(res)
+    taken: dict[str, list] = {}  # vehicles stopped on each lane, cars' and cyclists'
+    for vclass, cyclist in (("passenger", False), ("bicycle", True)):
+        rows = [n for n in parked if (tr.type[n] == ObjectType.CYCLIST) == cyclist]
+        if rows:
+            got, missed = _parked_routes(scene, rows, vclass, net, taken)
+            routes += got
+            unconverted += missed
     return routes, unconverted
 
 
+def _parked_routes(scene: Scene, rows: list[int], vclass: str, net,
+                   taken: dict[str, list]) -> tuple[list[VehicleRoute], list[dict]]:
+    """Routes of the non-moving tracks ``rows`` of vehicle class ``vclass`` (:mod:`.parking`;
+    ``taken``: the lanes' stopped vehicles so far), and those left out with why."""
+    tr = scene.tracks
+    poses = [parked_pose(scene, n) for n in rows]
+    spots = place_parked(poses, class_lanes(net, vclass), taken)
+    routes, missed = [], []
+    for n, pose, spot in zip(rows, poses, spots):
+        tid = int(tr.id[n])
+        if spot is None:
+            missed.append({"kind": ObjectType(int(tr.type[n])).name.lower(), "id": tid,
+                           "reason": f"parked off the lane network (no {vclass} lane within "
+                                     f"{PARK_SEARCH:g} m)"})
+            continue
+        edge, index = spot.lane.rsplit("_", 1)
+        routes.append(VehicleRoute(
+            track=n, id=str(tid), vclass=vclass, length=max(pose.length, 0.5),
+            width=max(pose.width, 0.3), edges=[edge], depart_step=0, depart_lane=int(index),
+            depart_pos=spot.end_pos, depart_speed=0.0, connected=True, parked=True, spot=spot))
+    return routes, missed
+
+
 def write_routes(path: Path, routes: list[VehicleRoute], dt: float, end_time: float) -> None:
-    """Write vTypes (one per track), vehicles sorted by departure, and parking stops."""
-    routes = sorted(routes, key=lambda r: (r.depart_step, r.id))
+    """Write vTypes (one per track), vehicles sorted by departure (the parked ones first), and
+    their stops."""
+    routes = sorted(routes, key=lambda r: (r.depart_step, not r.parked, r.id))
     with open(path, "w") as fh:
         fh.write("<routes>\n")
         for r in routes:
@@ -410,13 +445,23 @@ def write_routes(path: Path, routes: list[VehicleRoute], dt: float, end_time: fl
                      f'width="{r.width:.2f}" minGap="1.0" speedFactor="{r.speed_factor:.2f}"'
                      + ("" if r.max_speed is None else f' maxSpeed="{r.max_speed:.2f}"') + '/>\n')
         for r in routes:
-            fh.write(f'  <vehicle id="{r.id}" type="t{r.id}" depart="{r.depart_step * dt:.1f}" '
-                     f'departEdge="{r.depart_edge}" departLane="{r.depart_lane}" departPos="{r.depart_pos:.2f}" insertionChecks="{CHECKS}" '
-                     f'departSpeed="{r.depart_speed:.2f}">\n')
+            if r.spot is not None:  # parked (module doc of .parking)
+                fh.write(f'  <vehicle id="{r.id}" type="t{r.id}" depart="{r.depart_step * dt:.1f}" '
+                         f'departEdge="0" departLane="{r.depart_lane}" departPos="stop" '
+                         'insertionChecks="none" '
+                         'departSpeed="0.00">\n')
+            else:
+                fh.write(f'  <vehicle id="{r.id}" type="t{r.id}" depart="{r.depart_step * dt:.1f}" '
+                         f'departEdge="{r.depart_edge}" departLane="{r.depart_lane}" departPos="{r.depart_pos:.2f}" insertionChecks="{CHECKS}" '
+                         f'departSpeed="{r.depart_speed:.2f}">\n')
             fh.write(f'    <route edges="{" ".join(r.edges)}"/>\n')
-            if r.parked:
-                fh.write(f'    <stop lane="{r.edges[r.depart_edge]}_{r.depart_lane}" endPos="{r.depart_pos:.2f}" '
-                         f'until="{end_time + 1:.1f}" parking="true"/>\n')
+            if r.spot is not None and r.spot.blocking:
+                fh.write(f'    <stop lane="{r.spot.lane}" startPos="{r.spot.start_pos:.2f}" '
+                         f'endPos="{r.spot.end_pos:.2f}" until="{end_time + 1:.1f}" '
+                         'parking="false"/>\n')
+            elif r.spot is not None:
+                fh.write(f'    <stop parkingArea="park_{r.id}" until="{end_time + 1:.1f}" '
+                         'parking="true"/>\n')
             fh.write("  </vehicle>\n")
         fh.write("</routes>\n")
 

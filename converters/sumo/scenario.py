@@ -2,7 +2,8 @@
 
 ``DIR/<name>/`` receives the bundle described in :mod:`.bundle` (the layout and its reader are
 defined there): ``<name>.net.xml`` (plus the plain ``.nod/.edg/.con.xml`` it is built from),
-``<name>.rou.xml``, ``<name>.tll.xml`` (when the scene has signals), ``<name>.sumocfg`` and
+``<name>.rou.xml``, ``<name>.parking.add.xml`` (when the scene has parked vehicles off the
+lanes), ``<name>.tll.xml`` (when the scene has signals), ``<name>.sumocfg`` and
 ``conversion.json``. Simulation step: 0.1 s, SUMO time 0 = the scene's first step.
 
 ``<name>`` is :func:`magail_sumo.outputs.safe_name` of the scenario id: the id itself for every
@@ -36,17 +37,18 @@ from magail_sumo.scene.driving_side import driving_side
 from magail_sumo.scene.signal_sanity import checked_signal_sanity
 from magail_sumo.scene.types import STEP_LENGTH
 
-from .baseline import run_baseline
+from .baseline import UNMAPPED, run_baseline
 from .bundle import (LOCKS, REPORT_FILE, BundleError, BundleLayout, bundle_folder,
                      complete_bundle)
 from .bundle import claim_networks_dir  # re-exported: callers import it from here
 from .matching import build_index
 from .network import build_network
+from .parking import write_parking
 from .pedestrians import check_built, plan_pedestrians
 from .lanes import lane_segments
 from .quality import on_network_rate, route_quality
 from .routes import build_routes, write_routes
-from .signals import build_programs, write_programs
+from .signals import build_programs, unmapped_reason, write_programs
 from .synthesis import carried_states, synthesize_lanes
 from .topology import TimeBudgetExceeded, plan_network
 from .opendrive import write_opendrive
@@ -286,6 +288,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.data_quality["driving_side"] = side.to_dict()
         built = build_network(scene, plan, out, name, timeout_s=remaining(), pedestrians=peds,
                               lefthand=side.side == "left")
+        if built.warnings:
+            files.warnings.write_text("\n".join(built.warnings) + "\n")
         if peds is not None:
             check_built(peds, built.net_file, built.warnings)
             rep.pedestrians = peds.to_dict()
@@ -301,7 +305,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             write_programs(files.signals, programs, STEP_LENGTH, opts.cycle_signals)
             additional.append(files.signals.name)
             rep.unconverted.extend({"kind": "signal", "id": int(lane),
-                                    "reason": "signalled lane is not part of a traffic-light link"}
+                                    "reason": unmapped_reason(scene, plan, int(lane))}
                                    for lane in programs.unmapped_lanes)
         elif len(scene.signals):
             rep.unconverted.extend({"kind": "signal", "id": int(lane),
@@ -313,6 +317,11 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.unconverted.extend(unconverted)
         end = scene.num_steps * STEP_LENGTH
         write_routes(files.routes, routes, STEP_LENGTH, end)
+        spaces = [(r.id, r.spot, r.length, r.width) for r in routes
+                  if r.spot is not None and not r.spot.blocking]
+        if spaces:
+            write_parking(files.parking, spaces)
+            additional.insert(0, files.parking.name)
         write_sumocfg(files.sumocfg, name, additional, end)
         lap("routes")
         if opts.opendrive:
@@ -322,7 +331,7 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.files = sorted(p.name for p in out.iterdir() if p.name != REPORT_FILE)
         stage = "quality"
         seg = lane_segments(net)
-        rate, misses = route_quality(scene, seg, routes, net)
+        rate, misses = route_quality(scene, seg, routes, net, rep.unconverted)
         rep.quality = {
             "on_network_rate": on_network_rate(scene, seg),
             # the same with the states carried by synthesised lanes counted as off the map
@@ -343,9 +352,14 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             stage = "sumo run"
             base = run_baseline(scene, str(files.sumocfg), routes, programs)
             rep.quality["signal_fidelity"] = base.signal_fidelity
+            # the signalled lanes behind a signal fidelity below 1, worst first
+            rep.quality["signal_misses"] = [
+                {**m, "reason": unmapped_reason(scene, plan, m["lane"])}
+                if m["reason"] == UNMAPPED else m for m in base.signal_misses]
             rep.quality["sumo_baseline"] = {"ade": base.ade, "fde": base.fde,
                                             "collisions": base.collisions,
-                                            "teleports": base.teleports}
+                                            "teleports": base.teleports,
+                                            "parked_overlaps": base.parked_overlaps}
             lap("sumo_run")
         rep.status = "ok"
     except Exception as exc:  # a bad scene must not stop a batch

@@ -108,3 +108,15 @@ def write_programs(path: Path, programs: SignalPrograms, dt: float, cycle: bool)
                 fh.write(f'    <phase duration="{dur:.1f}" state="{s}"/>\n')
             fh.write("  </tlLogic>\n")
         fh.write("</additional>\n")
+
+
+def unmapped_reason(scene: Scene, plan: NetworkPlan, lane: int) -> str:
+    """Why signalled ``lane`` is part of no SUMO traffic-light link, as far as the map says."""
+    rec = next((l for l in scene.roadmap.lanes if l.id == lane), None)
+    if rec is None or (lane not in plan.lane_edges and lane not in plan.junction_lanes):
+        return "signalled lane is not in the built network (not in the map, or dropped)"
+    if not rec.entry_lanes and not rec.exit_lanes:
+        return "signalled lane is joined to no other lane in the map: no junction to signal"
+    if lane not in plan.junction_lanes:
+        return "signalled lane is a road lane, not a junction lane: no junction link to signal"
+    return "signalled lane is not part of a traffic-light link"

@@ -66,16 +66,24 @@ def format_quality(scenario_id: str, q: dict, folder: Path) -> str:
         f"  signal_fidelity     {_fmt(q.get('signal_fidelity'))}   "
         f"(bar >= {BARS['signal_fidelity']:g}; n/a without signals)",
         f"  bars                {'all met' if not failed else 'below: ' + ', '.join(failed)}",
-        *([f"  route misses        {_misses(q['route_misses'])}"] if q.get("route_misses") else []),
-        f"  netconvert_warnings {q.get('netconvert_warnings')}",
+        *([f"  route misses        {_misses(q['route_misses'], 'track')}"]
+          if q.get("route_misses") else []),
+        *([f"  signal misses       {_misses(q['signal_misses'], 'lane')}"]
+          if q.get("signal_misses") else []),
+        f"  netconvert_warnings {q.get('netconvert_warnings')}"
+        + (f" (text: {folder / 'netconvert-warnings.txt'})" if q.get("netconvert_warnings")
+           else ""),
         f"  SUMO baseline       ADE {_fmt(base.get('ade'), '.2f')} m, FDE {_fmt(base.get('fde'), '.2f')} m, "
-        f"{base.get('collisions')} collisions, {base.get('teleports')} teleports",
+        f"{base.get('collisions')} collisions, {base.get('teleports')} teleports"
+        + (f", {base['parked_overlaps']} overlapping parked vehicles"
+           if base.get("parked_overlaps") is not None else ""),
     ])
 
 
-def _misses(misses: list, shown: int = 3) -> str:
-    """The vehicles behind a low route rate, for the quality report: a count, the first few."""
-    first = "; ".join(f"track {m.get('track')}: {m.get('reason')}" for m in misses[:shown])
+def _misses(misses: list, key: str, shown: int = 3) -> str:
+    """What is behind a figure below 1 (vehicles by ``key`` "track", signalled lanes by
+    "lane"), for the quality report: a count, the first few."""
+    first = "; ".join(f"{key} {m.get(key)}: {m.get('reason')}" for m in misses[:shown])
     more = f"; ... ({len(misses)} in conversion.json)" if len(misses) > shown else ""
     return f"{len(misses)}: {first}{more}"
 

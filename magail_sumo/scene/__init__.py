@@ -10,7 +10,7 @@ from .roadmap import (
 )
 from .quality import DataQuality, DroppedReference, SourceIds
 from .scene import RequiredPrediction, Scene
-from .connectivity import infer_lane_connectivity
+from .connectivity import infer_lane_connectivity, link_isolated_lanes
 from .edit import drop_tracks
 from .signals import SignalStates
 from .tracks import STATE_FIELDS, Tracks
@@ -24,5 +24,6 @@ __all__ = [
     "RoadEdge", "RoadEdgeType", "RoadLine", "RoadLineType", "RoadMap", "Scene",
     "SceneValidationError", "SignalState", "SignalStates", "SourceIds", "SpeedBump", "StopSign",
     "Tracks", "WindowError", "choose_tracks_to_predict", "drop_tracks", "infer_lane_connectivity",
+    "link_isolated_lanes",
     "validate_scene", "window", "window_id",
 ]

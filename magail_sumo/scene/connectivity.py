@@ -128,3 +128,27 @@ def infer_lane_connectivity(lanes: tuple[Lane, ...] | list[Lane], *, successors:
         )
     return (tuple(out.get(id(l), l) for l in all_lanes), int(pairs_a.size),
             int(has_left.sum() + has_right.sum()))
+
+
+def link_isolated_lanes(lanes: tuple[Lane, ...] | list[Lane]) -> tuple[tuple[Lane, ...], int]:
+    """``(lanes, successor links added)``: lanes recorded with neither entry nor exit lanes in
+    a map that has links elsewhere (the link lists were lost: seen in MetaDrive and MetaVQA
+    pickles, on signalled junction lanes whose ends meet other lanes' exactly) get the
+    successor links :func:`infer_lane_connectivity` finds to and from them; every other link
+    stays as recorded."""
+    all_lanes = tuple(lanes)
+    isolated = {l.id for l in all_lanes if not l.entry_lanes and not l.exit_lanes}
+    if not isolated or len(isolated) == len(all_lanes) or len(all_lanes) > MAX_LANES:
+        return all_lanes, 0
+    inferred, _, _ = infer_lane_connectivity(all_lanes, successors=True, neighbors=False)
+    out, added = [], 0
+    for old, new in zip(all_lanes, inferred):
+        mine = old.id in isolated
+        entries = old.entry_lanes + tuple(i for i in new.entry_lanes
+                                          if i not in old.entry_lanes and (mine or i in isolated))
+        exits = old.exit_lanes + tuple(i for i in new.exit_lanes
+                                       if i not in old.exit_lanes and (mine or i in isolated))
+        added += len(exits) - len(old.exit_lanes)
+        out.append(dataclasses.replace(old, entry_lanes=entries, exit_lanes=exits)
+                   if (entries, exits) != (old.entry_lanes, old.exit_lanes) else old)
+    return tuple(out), added

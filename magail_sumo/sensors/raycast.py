@@ -40,18 +40,6 @@ def box_edges(center: np.ndarray, half_extent: np.ndarray, heading: np.ndarray) 
     return np.stack([corners, np.roll(corners, -1, axis=1)], axis=2)
 
 
-_SIGNS = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], np.float32)  # CCW corners
-
-
-def box_corners(x: np.ndarray, y: np.ndarray, heading: np.ndarray, length: np.ndarray,
-                width: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Corner coordinates ``(..., 4)`` each for x and y, counter-clockwise from front-left."""
-    c, s = np.cos(heading)[..., None], np.sin(heading)[..., None]
-    lx = _SIGNS[:, 0] * (length[..., None] / 2)
-    ly = _SIGNS[:, 1] * (width[..., None] / 2)
-    return x[..., None] + c * lx - s * ly, y[..., None] + s * lx + c * ly
-
-
 def polyline_segments(polylines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Consecutive-point segments of (P, >=2) polylines as (S, 2) start and end arrays."""
     starts, ends, _ = indexed_polyline_segments(polylines)

@@ -15,8 +15,9 @@ import numba
 import numpy as np
 
 from magail_sumo.scene import Scene
+from magail_sumo.sim.boxes import box_corners
 
-from .raycast import SegmentGrid, box_corners
+from .raycast import SegmentGrid
 
 #: Vertical stretch applied when choosing the nearest segment.
 Z_STRETCH = 3.0

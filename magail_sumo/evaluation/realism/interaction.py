@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from magail_sumo.sensors.raycast import box_corners
+from magail_sumo.sim.boxes import signed_box_distance  # noqa: F401 (part of this API)
 
 #: Boxes are rounded rectangles with corner radius ``min(length, width) * 0.7 / 2``.
 CORNER_ROUNDING_FACTOR = 0.7
@@ -25,44 +25,11 @@ MAX_HEADING_DIFF_SMALL_OVERLAP = np.radians(10.0)
 SMALL_OVERLAP_THRESHOLD = 0.5
 
 
-def _rect_vertex_distance(px: np.ndarray, py: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                          c: np.ndarray, s: np.ndarray, hl: np.ndarray, hw: np.ndarray
-                          ) -> np.ndarray:
-    """Distance from points to rectangles (0 inside); points carry a trailing axis of 4."""
-    dx, dy = px - cx[..., None], py - cy[..., None]
-    u = np.abs(c[..., None] * dx + s[..., None] * dy) - hl[..., None]
-    v = np.abs(-s[..., None] * dx + c[..., None] * dy) - hw[..., None]
-    u, v = np.maximum(u, 0), np.maximum(v, 0)
-    return np.sqrt(u * u + v * v).min(-1)
-
-
-def signed_box_distance(xa, ya, ha, la, wa, xb, yb, hb, lb, wb) -> np.ndarray:
-    """Signed distance between rectangles A and B (broadcast arrays): the gap when apart,
-    minus the penetration depth (smallest overlap over the four edge axes) when overlapping."""
-    ca, sa, cb, sb = np.cos(ha), np.sin(ha), np.cos(hb), np.sin(hb)
-    hla, hwa, hlb, hwb = la / 2, wa / 2, lb / 2, wb / 2
-    dx, dy = xb - xa, yb - ya
-    # separating-axis overlaps on A's and B's axes
-    cab = np.abs(ca * cb + sa * sb)  # |cos(hb - ha)|
-    sab = np.abs(sa * cb - ca * sb)  # |sin(hb - ha)|
-    pen = np.minimum.reduce([
-        hla + hlb * cab + hwb * sab - np.abs(ca * dx + sa * dy),
-        hwa + hlb * sab + hwb * cab - np.abs(-sa * dx + ca * dy),
-        hlb + hla * cab + hwa * sab - np.abs(cb * dx + sb * dy),
-        hwb + hla * sab + hwa * cab - np.abs(-sb * dx + cb * dy),
-    ])
-    # gap: nearest vertex of one rectangle to the other
-    axs, ays = box_corners(xa, ya, ha, la, wa)
-    bxs, bys = box_corners(xb, yb, hb, lb, wb)
-    gap = np.minimum(_rect_vertex_distance(axs, ays, xb, yb, cb, sb, hlb, hwb),
-                     _rect_vertex_distance(bxs, bys, xa, ya, ca, sa, hla, hwa))
-    return np.where(pen > 0, -pen, gap)
-
-
 @numba.njit(cache=True, inline="always")
 def _vertex_distance(xa, ya, ca, sa, hla, hwa, xb, yb, cb, sb, hlb, hwb):  # pragma: no cover
     """Smallest distance from A's corners to rectangle B (the float32 operations, in order, of
-    :func:`box_corners` and :func:`_rect_vertex_distance`)."""
+    :func:`~magail_sumo.sim.boxes.box_corners` and
+    :func:`~magail_sumo.sim.boxes.rect_vertex_distance`)."""
     z = np.float32(0.0)
     best = np.float32(np.inf)
     for k in range(4):
