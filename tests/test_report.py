@@ -83,60 +83,13 @@ def test_report_renders_in_headless_chromium(folder, tmp_path):
     assert pix.shape[0] >= 1000 and pix[..., :3].std() > 0.05  # not blank
 
 
-#: run in the page after load: what does not fit, what overlaps, what did not load
-LAYOUT_CHECK = r"""
-window.addEventListener('load', () => setTimeout(() => {
-  const W = document.documentElement.clientWidth, out = {width: W, wide: [], overlaps: [],
-    broken: [], page: document.documentElement.scrollWidth};
-  for (const el of document.body.querySelectorAll('*')) {
-    if (el.closest('.table-wrap') && !el.classList.contains('table-wrap')) continue;
-    const r = el.getBoundingClientRect();
-    if (r.width && r.right > W + 1) out.wide.push(el.tagName + '.' + el.className);
-  }
-  for (const img of document.images)
-    if (!img.complete || img.naturalWidth === 0) out.broken.push(img.alt);
-  const boxes = [];
-  for (const el of document.body.querySelectorAll('h1,h2,h3,p,li,th,td')) {
-    const r = el.getBoundingClientRect();
-    if (r.width && r.height) boxes.push([r.top, r.bottom, r.left, r.right, el]);
-  }
-  boxes.sort((a, b) => a[0] - b[0]);
-  for (let i = 0; i < boxes.length; i++)
-    for (let j = i + 1; j < boxes.length && boxes[j][0] < boxes[i][1] - 1; j++) {
-      const a = boxes[i], b = boxes[j];
-      if (a[4].contains(b[4]) || b[4].contains(a[4])) continue;
-      const w = Math.min(a[3], b[3]) - Math.max(a[2], b[2]);
-      const h = Math.min(a[1], b[1]) - Math.max(a[0], b[0]);
-      if (w > 1 && h > 1) out.overlaps.push(a[4].tagName + '/' + b[4].tagName + ': ' +
-                                             a[4].textContent.slice(0, 30));
-    }
-  const pre = document.createElement('pre');
-  pre.id = 'layout-check';
-  pre.textContent = JSON.stringify(out);
-  document.body.appendChild(pre);
-}, 300));
-"""
-
-
 @pytest.mark.parametrize("width", [1280, 1920])
-def test_report_fits_the_page_with_no_overlap_and_every_image_loaded(folder, tmp_path, width):
+def test_report_fits_the_page_with_no_overlap_and_every_image_loaded(folder, width):
     """At common widths no element is wider than the page (wide tables scroll inside their own
     box), no two text boxes overlap, and every image loaded."""
-    import json
+    from magail_sumo.evaluation.report.layout import check_layout
 
-    exe = _chromium()
-    page = tmp_path / "report.html"
-    html = (folder / "report" / "report.html").read_text()
-    page.write_text(html.replace("</body>", f"<script>{LAYOUT_CHECK}</script></body>"))
-    dom = subprocess.run(
-        [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-         "--no-first-run", f"--user-data-dir={tmp_path / 'p'}", f"--window-size={width},1200",
-         "--dump-dom", "--virtual-time-budget=4000", page.as_uri()],
-        capture_output=True, text=True, timeout=120).stdout
-    found = re.search(r'<pre id="layout-check">(.*?)</pre>', dom, re.S)
-    assert found, "the layout check did not run"
-    got = json.loads(found.group(1).replace("&amp;", "&").replace("&lt;", "<")
-                     .replace("&gt;", ">").replace("&quot;", '"'))
+    got = check_layout(folder / "report" / "report.html", width, _chromium())
     assert got["width"] >= width - 20
     assert got["page"] <= got["width"], f"the page scrolls sideways: {got['page']} px"
     assert got["wide"] == [] and got["overlaps"] == [] and got["broken"] == [], got

@@ -192,8 +192,11 @@ class SceneBundle:
     :param sumo_rows: (V,) track rows (into ``scene.tracks``) of the vehicles in the routes.
     :param sumo_ids: SUMO id of each of those vehicles.
     :param unconverted: ``conversion.json``'s list of objects left out of SUMO.
-    :param parked: ids of the route vehicles with a stop (the non-moving ones).
+    :param parked: ids of the route vehicles with a stop (the non-moving ones, :mod:`.parking`):
+        scenery, never agents of ``SumoDrivingEnv``.
     :param inputs: what SUMO runs of the bundle start with (:meth:`BundleLayout.sumo_inputs`).
+    :param spaces: ids of the parked vehicles in a parking space off the lanes (the others stop
+        on the lane they block).
     """
 
     scene: Scene
@@ -204,6 +207,7 @@ class SceneBundle:
     unconverted: tuple[dict, ...]
     parked: frozenset[str] = frozenset()
     inputs: SumoInputs | None = None
+    spaces: frozenset[str] = frozenset()
 
     @property
     def files(self) -> BundleLayout:
@@ -230,8 +234,10 @@ class SceneBundle:
                               f"a track of scene {printable(scene.scenario_id)}")
         rows = np.array([row_of[int(i)] for i in ids], np.int64)
         parked = frozenset(v.get("id") for v in root.iter("vehicle") if v.find("stop") is not None)
+        spaces = frozenset(v.get("id") for v in root.iter("vehicle")
+                           if v.find("stop") is not None and v.find("stop").get("parkingArea"))
         return cls(scene, files.folder, files.sumocfg, rows, ids,
-                   tuple(report.get("unconverted", ())), parked, files.sumo_inputs())
+                   tuple(report.get("unconverted", ())), parked, files.sumo_inputs(), spaces)
 
 
 def _networks_entry(path: Path) -> bool:

@@ -5,7 +5,7 @@ pose (:func:`parked_pose`) is the valid state nearest the median of its recorded
 centre x, y in m, heading in rad CCW from +x), with the median length and width. Each becomes
 one of (:func:`place_parked`):
 
-* **stopped on a lane** -- its box comes within :data:`BLOCK_CLEARANCE` m of the centre line
+* **stopped on a lane** -- its box comes within :func:`block_clearance` m of the centre line
   of a lane its class may use, so a SUMO vehicle driving that lane would touch it (SUMO,
   without its sublane model, drives every vehicle on its lane's centre line). It is written as
   a vehicle stopped on that lane (``<stop parking="false">``) at the lane position of its box:
@@ -36,8 +36,11 @@ from magail_sumo.scene import Scene
 
 from .geometry import point_segment
 
-#: m, a parked box this close to a lane's centre line blocks the lane (half a car's width)
+#: m, a parked box this close to a lane's centre line blocks the lane (half a car's width; a
+#: scene's own widest moving vehicle sets it when wider: :func:`block_clearance`)
 BLOCK_CLEARANCE = 1.0
+#: m, most clearance a scene's vehicles set (half a bus's width)
+MAX_CLEARANCE = 1.5
 #: m, farthest lane a parking space is attached to
 PARK_SEARCH = 100.0
 #: m, clear lane between two vehicles standing on one lane: the vTypes' ``minGap``
@@ -112,6 +115,15 @@ def class_lanes(net, vclass: str) -> ClassLanes:
                       lengths, tuple(shapes))
 
 
+def block_clearance(scene: Scene, rows: np.ndarray) -> float:
+    """How close to a lane's centre line a parked box blocks the lane: half the median width
+    of the widest of the moving tracks ``rows`` that SUMO drives on lane centre lines, plus
+    0.1 m, within [:data:`BLOCK_CLEARANCE`, :data:`MAX_CLEARANCE`] m."""
+    tr = scene.tracks
+    widths = [float(np.median(tr.width[n, tr.valid[n]])) for n in rows if tr.valid[n].any()]
+    return float(np.clip(max(widths, default=0.0) / 2 + 0.1, BLOCK_CLEARANCE, MAX_CLEARANCE))
+
+
 def parked_pose(scene: Scene, n: int) -> ParkedPose:
     """The pose of track ``n`` (module doc)."""
     tr = scene.tracks
@@ -151,28 +163,37 @@ def box_segment_distance(pose: ParkedPose, a: np.ndarray, b: np.ndarray) -> np.n
 
 
 def place_parked(poses: list[ParkedPose], lanes: ClassLanes,
-                 taken: dict[str, list[tuple[float, float]]] | None = None
-                 ) -> list[ParkedSpot | None]:
+                 taken: dict[str, list[tuple[float, float]]] | None = None,
+                 clearance: float = BLOCK_CLEARANCE) -> list[ParkedSpot | None]:
     """Where each parked vehicle of ``poses`` goes (module doc), among ``lanes``; None where no
     lane lies within :data:`PARK_SEARCH` m.
 
     SUMO's lane is one-dimensional: two vehicles stopped on one lane cannot stand side by side
-    or overlap (SUMO would count a collision every step). The vehicles that block a lane are
-    taken closest to its centre line first; one whose stretch of the lane (m from its start)
-    overlaps one already stopped there gets a space at its recorded pose instead (the lane stays
-    blocked). A vehicle bound for a space stands on its lane for the step it is inserted, so a
+    or overlap (SUMO would count a collision every step). The vehicles that block a lane
+    (within ``clearance`` m of its centre line: :func:`block_clearance`) are stopped on it in
+    driving order; one whose stretch of the lane (m from its start) comes within
+    :data:`STOP_GAP` of one already stopped there gets a space at its recorded pose instead
+    (SUMO's drivers stop behind the first). A vehicle bound for a space stands on its lane for the step it is inserted, so a
     space's stretch is moved along the lane clear of the stopped vehicles. ``taken`` (lane id ->
     stretches of stopped vehicles) carries the lanes' stopped vehicles across calls (classes)."""
     taken = {} if taken is None else taken
     near = [_nearest_lane(p, lanes) for p in poses]
     out: list[ParkedSpot | None] = [None] * len(poses)
     spaces = []
-    for d, i in sorted((m[0], i) for i, m in enumerate(near) if m is not None):
-        _, k, at = near[i]
-        pose, lane_len, lane = poses[i], float(lanes.lengths[k]), lanes.ids[k]
-        end = float(np.clip(at + pose.length / 2, min(pose.length, lane_len), lane_len))
-        start = max(0.0, end - pose.length)
-        if d < BLOCK_CLEARANCE and _free(taken.get(lane, ()), start, end):
+    stretch = {}
+    for i, m in enumerate(near):
+        if m is None:
+            continue
+        _, k, at = m
+        lane_len = float(lanes.lengths[k])
+        end = float(np.clip(at + poses[i].length / 2, min(poses[i].length, lane_len), lane_len))
+        stretch[i] = (max(0.0, end - poses[i].length), end)
+    # along each lane in driving order: its drivers stop behind the first vehicle that blocks
+    # it and never reach one overlapping it further on, which gets a space instead
+    for i in sorted(stretch, key=lambda i: (near[i][1], stretch[i])):
+        d, k, _ = near[i]
+        lane, (start, end) = lanes.ids[k], stretch[i]
+        if d < clearance and _free(taken.get(lane, ()), start, end):
             taken.setdefault(lane, []).append((start, end))
             out[i] = ParkedSpot(lane, start, end, None)
         else:

@@ -63,6 +63,22 @@ def on_network_rate(scene: Scene, seg: LaneSegments, off: np.ndarray | None = No
 REVERSING_SPEED = 0.5
 
 
+def off_network_vehicles(scene: Scene, seg: LaneSegments) -> list[dict]:
+    """The moving vehicles behind an on-network rate below 1, most states off first:
+    ``{"track": id, "off": states off every lane, "of": its valid states}`` (the test of
+    :func:`on_network_rate`)."""
+    tr = scene.tracks
+    out = []
+    for n in moving_vehicles(scene).tolist():  # once per conversion, per moving vehicle
+        steps = np.flatnonzero(tr.valid[n])
+        xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
+        off = int((~on_lanes(seg, xy, tr.heading[n, steps].astype(np.float64))).sum())
+        if off:
+            out.append({"track": int(tr.id[n]), "off": off, "of": int(len(steps))})
+    out.sort(key=lambda m: (-m["off"], m["track"]))
+    return out
+
+
 def route_quality(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,
                   unconverted: list[dict] = ()) -> tuple[float | None, list[dict]]:
     """``route_rate`` (module doc; None when there are no moving vehicles) and

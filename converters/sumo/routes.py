@@ -17,7 +17,8 @@ from magail_sumo.scene import ObjectType, Scene
 from sumolib.geomhelper import polygonOffsetWithMinimumDistanceToPoint
 
 from .matching import LaneIndex, match_track
-from .parking import PARK_SEARCH, ParkedSpot, class_lanes, parked_pose, place_parked
+from .parking import (PARK_SEARCH, ParkedSpot, block_clearance, class_lanes, parked_pose,
+                      place_parked)
 from .topology import NetworkPlan
 from .lanes import LaneSegments, lane_segments, on_lanes
 
@@ -402,22 +403,25 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
         else:
             routes.append(res)
     taken: dict[str, list] = {}  # vehicles stopped on each lane, cars' and cyclists'
+    clearance = block_clearance(scene, np.array([r.track for r in routes], np.int64))
     for vclass, cyclist in (("passenger", False), ("bicycle", True)):
         rows = [n for n in parked if (tr.type[n] == ObjectType.CYCLIST) == cyclist]
         if rows:
-            got, missed = _parked_routes(scene, rows, vclass, net, taken)
+            got, missed = _parked_routes(scene, rows, vclass, net, taken, clearance)
             routes += got
             unconverted += missed
     return routes, unconverted
 
 
 def _parked_routes(scene: Scene, rows: list[int], vclass: str, net,
-                   taken: dict[str, list]) -> tuple[list[VehicleRoute], list[dict]]:
+                   taken: dict[str, list], clearance: float
+                   ) -> tuple[list[VehicleRoute], list[dict]]:
     """Routes of the non-moving tracks ``rows`` of vehicle class ``vclass`` (:mod:`.parking`;
-    ``taken``: the lanes' stopped vehicles so far), and those left out with why."""
+    ``taken``: the lanes' stopped vehicles so far; ``clearance``: m from a centre line within
+    which a parked box blocks the lane), and those left out with why."""
     tr = scene.tracks
     poses = [parked_pose(scene, n) for n in rows]
-    spots = place_parked(poses, class_lanes(net, vclass), taken)
+    spots = place_parked(poses, class_lanes(net, vclass), taken, clearance)
     routes, missed = [], []
     for n, pose, spot in zip(rows, poses, spots):
         tid = int(tr.id[n])

@@ -66,6 +66,8 @@ def format_quality(scenario_id: str, q: dict, folder: Path) -> str:
         f"  signal_fidelity     {_fmt(q.get('signal_fidelity'))}   "
         f"(bar >= {BARS['signal_fidelity']:g}; n/a without signals)",
         f"  bars                {'all met' if not failed else 'below: ' + ', '.join(failed)}",
+        *([f"  off the network     {_off(q['off_network'])}"]
+          if "on_network_rate" in failed and q.get("off_network") else []),
         *([f"  route misses        {_misses(q['route_misses'], 'track')}"]
           if q.get("route_misses") else []),
         *([f"  signal misses       {_misses(q['signal_misses'], 'lane')}"]
@@ -86,6 +88,14 @@ def _misses(misses: list, key: str, shown: int = 3) -> str:
     first = "; ".join(f"{key} {m.get(key)}: {m.get('reason')}" for m in misses[:shown])
     more = f"; ... ({len(misses)} in conversion.json)" if len(misses) > shown else ""
     return f"{len(misses)}: {first}{more}"
+
+
+def _off(off: list, shown: int = 3) -> str:
+    """The vehicles behind a low on-network rate, for the quality report."""
+    first = "; ".join(f"track {m.get('track')}: {m.get('off')} of {m.get('of')} states off "
+                      "every lane" for m in off[:shown])
+    more = f"; ... ({len(off)} in conversion.json)" if len(off) > shown else ""
+    return f"{len(off)}: {first}{more}"
 
 
 def _line(text: str) -> str:

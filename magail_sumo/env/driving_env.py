@@ -130,11 +130,16 @@ class SumoDrivingEnv(FleetEnv):
         self._width = _median_valid(tr.width, tr.valid)
         self._in_routes = np.zeros(n, bool)
         self._in_routes[self.bundle.sumo_rows] = True
+        #: route vehicles that may be agents: all but the parked ones (a vehicle that never
+        #: moves in the log is scenery, held by SUMO where it stands)
+        self._drivers = np.array([r for r, v in zip(self.bundle.sumo_rows.tolist(),
+                                                     self.bundle.sumo_ids)
+                                  if v not in self.bundle.parked], np.int64)
         #: log step the current (or, before any reset, the first) episode starts at
         self.start = window_starts(cfg, t_steps)[0]
         self._set_controlled(self._select_controlled(self.start))
         # the K nearest change with a random start: any route vehicle may be an agent
-        self.possible_agents = [str(int(tr.id[r])) for r in np.sort(self.bundle.sumo_rows)] \
+        self.possible_agents = [str(int(tr.id[r])) for r in np.sort(self._drivers)] \
             if self._ctrl_depends_on_start() and cfg.start_window == "random" \
             else list(self._ctrl_names)
         self._window_rng: np.random.Generator | None = None
@@ -181,7 +186,7 @@ class SumoDrivingEnv(FleetEnv):
     def _select_controlled(self, start: int) -> np.ndarray:
         """Sorted track rows of the controlled vehicles of an episode starting at ``start``."""
         sc, cfg = self.scene, self.config
-        routes = self.bundle.sumo_rows
+        routes = self._drivers
         if cfg.controlled == "all":
             return np.sort(routes)
         if cfg.controlled == "sdc":
