@@ -112,26 +112,29 @@ def test_connectivity_inferred_for_a_map_without_any():
     for lane in lanes:
         for nxt in lane.exit_lanes:
             assert np.linalg.norm(lane.polyline[-1, :2] - by_id[nxt].polyline[0, :2]) <= 1.5
-    # a WOMD map with connectivity gets links only for the lanes recorded without any
-    womd = load_scenarionet(OLDER)
-    assert womd.data_quality.inferred_successors == 12
-    assert any("lanes recorded without any entry or exit lane" in n
-               for n in womd.data_quality.notes)
+    # a WOMD map with connectivity gets nothing inferred
+    assert load_scenarionet(OLDER).data_quality.inferred_successors == 0
 
 
 def test_lanes_recorded_without_links_are_joined_and_their_signals_mapped(tmp_path):
     """8799c31b5be1f312 (older MetaDrive layout): signalled junction lane 136 comes with no
     entry or exit lane although its ends meet lanes 92 and 132 exactly, so no SUMO link carried
-    its signal (signal fidelity 0.833). The reader joins such lanes by geometry, only them, and
-    the conversion replays every recorded signal state."""
+    its signal (signal fidelity 0.833). The converter joins such lanes by geometry, only them
+    (the scene stays as recorded; the repair is reported), and replays every recorded signal
+    state."""
     from converters.sumo import convert_scene
+    from converters.sumo.topology import plan_network
 
     scene = load_scenarionet(NO_META)
     lane = next(l for l in scene.roadmap.lanes if l.id == 136)
-    assert lane.entry_lanes == (92,) and lane.exit_lanes == (132,)
+    assert lane.entry_lanes == lane.exit_lanes == ()  # as recorded
+    plan = plan_network(scene)
+    assert plan.linked[136] == ((92,), (132,))
     rep = convert_scene(scene, tmp_path)
     assert rep.status == "ok", rep.reason
     assert rep.quality["signal_fidelity"] >= 0.99 and rep.quality["signal_misses"] == []
+    assert any("lanes recorded without any entry or exit lane" in n
+               for n in rep.data_quality["notes"])
 
 
 def _straight(lid, x0, y0, x1, y1, n=11):

@@ -32,7 +32,8 @@ from magail_sumo.scene import (
     BoundarySegment, Crosswalk, DataQuality, DroppedReference, Driveway, Lane, LaneNeighbor,
     ObjectType, RequiredPrediction, RoadEdge, RoadLine, RoadMap, Scene, SceneValidationError,
     SignalState, SignalStates, SourceIds, SpeedBump, StopSign, Tracks, drop_tracks,
-    infer_lane_connectivity, link_isolated_lanes, validate_scene,
+    infer_lane_connectivity,
+    validate_scene,
 )
 
 SUMMARY_FILE = "dataset_summary.pkl"
@@ -163,13 +164,6 @@ def _scene(sd: Any, keep_synthetic: bool = False) -> Scene:
         inferred, successors, neighbors = infer_lane_connectivity(lanes, successors=no_links,
                                                                   neighbors=no_neighbors)
         roadmap = dataclasses.replace(roadmap, lanes=inferred)
-    if lanes and not no_links:
-        linked, added = link_isolated_lanes(roadmap.lanes)
-        if added:
-            successors += added
-            roadmap = dataclasses.replace(roadmap, lanes=linked)
-            notes.append(f"{added} successor links inferred for lanes recorded without any "
-                         "entry or exit lane")
     scene = Scene(
         scenario_id=as_text(sid, "metadata.scenario_id"),
         timestamps=ts,
@@ -371,9 +365,10 @@ def _lanes_on_polygons(lanes: list[Lane], polygons: dict[int, np.ndarray],
     frame, so every lane link joins two lanes kilometres apart and the road lanes lie off the
     recorded driving. The offset of a lane is the mean of its polygon's points minus the mean of
     its centre line's points; when nine in ten of those above :data:`FRAME_SHIFT_MIN` m agree
-    within :data:`FRAME_SHIFT_AGREE` m of their median, those lanes are shifted by the median
-    (x, y) -- or, where lane links join lanes of the two frames, by the median gap of those
-    links, which is exact -- and the repair is noted. Anything else is left as recorded."""
+    within :data:`FRAME_SHIFT_AGREE` m of their median, the frames differ by that median (x, y)
+    -- or, where lane links join lanes of the two frames, by the median gap of those links,
+    which is exact -- and every far lane nearer that offset than no offset is moved by it; the
+    repair is noted. Anything else is left as recorded."""
     offsets = {lane.id: polygons[lane.id][:, :2].mean(0) - lane.polyline[:, :2].mean(0)
                for lane in lanes if len(polygons.get(lane.id, ())) and len(lane.polyline)}
     far = {fid: o for fid, o in offsets.items() if np.hypot(*o) > FRAME_SHIFT_MIN}
@@ -391,6 +386,9 @@ def _lanes_on_polygons(lanes: list[Lane], polygons: dict[int, np.ndarray],
             if e in by_id and (lane.id in agree) != (e in agree)]
     if gaps and np.hypot(*(np.median(gaps, axis=0) - shift)) <= FRAME_SHIFT_AGREE:
         shift = np.median(gaps, axis=0)
+    # with the frame established, every far lane nearer the shifted frame than its own moves
+    # (a long curved lane's vertex mean can lie 30 m off its centre line)
+    agree = {fid for fid, o in far.items() if np.hypot(*(o - shift)) < np.hypot(*o) / 2}
     notes.append(f"{len(agree)} lane centre lines lay ({shift[0]:.1f}, {shift[1]:.1f}) m off "
                  "their own polygons (another frame): moved onto them")
     step = np.array([shift[0], shift[1], 0.0])

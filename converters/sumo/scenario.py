@@ -269,6 +269,12 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
     try:
         plan = plan_network(scene, deadline)
         rep.unconverted.extend(plan.unconverted)
+        if plan.linked:  # a repair of the recorded map: reported with the reader's
+            added = sum(len(x) for _, x in plan.linked.values())
+            rep.data_quality["inferred_connectivity"]["successors"] += added
+            rep.data_quality["notes"] = [*rep.data_quality["notes"], (
+                f"{added} successor links inferred for lanes recorded without any entry or "
+                "exit lane (their ends meet other lanes')")]
         lap("plan")
         stage = "synthesize"
         lanes = {l.id: l for l in scene.roadmap.lanes

@@ -115,7 +115,7 @@ def unmapped_reason(scene: Scene, plan: NetworkPlan, lane: int) -> str:
     rec = next((l for l in scene.roadmap.lanes if l.id == lane), None)
     if rec is None or (lane not in plan.lane_edges and lane not in plan.junction_lanes):
         return "signalled lane is not in the built network (not in the map, or dropped)"
-    if not rec.entry_lanes and not rec.exit_lanes:
+    if not rec.entry_lanes and not rec.exit_lanes and lane not in plan.linked:
         return "signalled lane is joined to no other lane in the map: no junction to signal"
     if lane not in plan.junction_lanes:
         return "signalled lane is a road lane, not a junction lane: no junction link to signal"

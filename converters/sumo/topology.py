@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magail_sumo.scene import Lane, LaneType, Scene
+from magail_sumo.scene import Lane, LaneType, Scene, link_isolated_lanes
 
 from .geometry import angle_diff, length, resample, segments, segments_cross, simplify
 
@@ -89,6 +89,9 @@ class NetworkPlan:
     unconverted: list[dict] = field(default_factory=list)
     synthesized: list = field(default_factory=list)  # synthesis.SynthesizedLane, added later
     split_nodes: set[str] = field(default_factory=set)  # nodes cutting an edge for a synthesised lane
+    #: lanes recorded without any entry or exit lane, joined by geometry to the lanes their ends
+    #: meet (:func:`magail_sumo.scene.link_isolated_lanes`): lane -> (entries, exits) added
+    linked: dict[int, tuple[tuple[int, ...], tuple[int, ...]]] = field(default_factory=dict)
 
 
 class _UnionFind:
@@ -225,6 +228,15 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
             unconverted.append({"kind": "lane", "id": int(lane.id), "reason": "degenerate polyline"})
         else:
             lanes[lane.id] = lane
+    # links lost in the data (signalled junction lanes of MetaDrive and MetaVQA pickles, of WOMD
+    # scenes re-encoded from them): lanes without any are joined where their ends meet others'
+    linked = {}
+    for new in link_isolated_lanes(list(lanes.values()))[0]:
+        old = lanes[new.id]
+        if new is not old:
+            linked[new.id] = (tuple(i for i in new.entry_lanes if i not in old.entry_lanes),
+                              tuple(i for i in new.exit_lanes if i not in old.exit_lanes))
+            lanes[new.id] = new
     exits = {i: [e for e in l.exit_lanes if e in lanes and e != i] for i, l in lanes.items()}
     entries = {i: [e for e in l.entry_lanes if e in lanes and e != i] for i, l in lanes.items()}
     for i in lanes:  # make the relation symmetric
@@ -430,7 +442,8 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
     for j in sorted(junction - represented):
         unconverted.append({"kind": "lane", "id": int(j),
                             "reason": "junction lane duplicates another connection between the same lanes"})
-    return NetworkPlan(nodes, edges, connections, lane_edges, junction, node_of_lane, unconverted)
+    return NetworkPlan(nodes, edges, connections, lane_edges, junction, node_of_lane, unconverted,
+                       linked=linked)
 
 
 def _overlong_junction_lanes(lanes: dict[int, Lane], jpaths: dict[int, list[tuple[int, tuple[int, ...]]]],
