@@ -24,7 +24,7 @@ from magail_sumo.policies import load_checkpoint_policy
 from magail_sumo.training.gail.ppo import MaskedPPO, MaskedRolloutBuffer
 from magail_sumo.training.trainer import load_checkpoint, load_policy, train
 
-SCENE_A = str(WOMD_DIR / "2831b6fde0420b0d.tfrecord")  # 11 slots, 10 agents at reset
+SCENE_A = str(WOMD_DIR / "2831b6fde0420b0d.tfrecord")  # 12 slots, 10 agents at reset
 SCENE_B = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")  # 2 slots, 1 agent at reset
 TINY = CriticTransformerConfig(embed_dim=16, num_layers=1, num_heads=2, ff_dim=32)
 
@@ -66,7 +66,8 @@ def values(policy, obs: np.ndarray, mask: np.ndarray | None = None) -> np.ndarra
 def test_wiring_from_the_env(scenes):
     model, venv, obs, active = scenes
     a, b = venv.scene_slices
-    assert (a.stop - a.start, b.stop - b.start) == (11, 2)
+    # 12: with a vehicle standing on a lane the whole log, which the converter now puts in SUMO
+    assert (a.stop - a.start, b.stop - b.start) == (12, 2)
     assert active[a].sum() >= 2 and active[b].sum() >= 1 and not active.all()
     pol = model.policy
     assert np.array_equal(pol._slot_scene, venv.slot_scene)

@@ -192,11 +192,11 @@ class SceneBundle:
     :param sumo_rows: (V,) track rows (into ``scene.tracks``) of the vehicles in the routes.
     :param sumo_ids: SUMO id of each of those vehicles.
     :param unconverted: ``conversion.json``'s list of objects left out of SUMO.
-    :param parked: ids of the route vehicles with a stop (the non-moving ones, :mod:`.parking`):
-        scenery, never agents of ``SumoDrivingEnv``.
+    :param parked: ids of the route vehicles with a stop (the non-moving ones, :mod:`.parking`).
     :param inputs: what SUMO runs of the bundle start with (:meth:`BundleLayout.sumo_inputs`).
     :param spaces: ids of the parked vehicles in a parking space off the lanes (the others stop
-        on the lane they block).
+        on the lane they block): scenery, not agents of ``SumoDrivingEnv`` unless the scene
+        names them (the SDC, a track to predict).
     """
 
     scene: Scene

@@ -37,8 +37,8 @@ class EnvConfig:
         ``"tracks_to_predict"``, ``"scored"`` (the SDC plus the tracks to predict: the agents
         WOSAC scores), or an int K: the K route vehicles nearest to the SDC at the episode's
         start step (the SDC included when it is in the routes); always restricted to the
-        route vehicles, less the parked ones (vehicles that never move in the log are scenery:
-        SUMO holds them where they stand, ``SceneBundle.parked``).
+        route vehicles, less those parked in a space off the lanes (scenery SUMO holds where it
+        was recorded, ``SceneBundle.spaces``) unless the SDC or a track to predict.
     :param background: ``"log"`` (uncontrolled route vehicles replay their recorded poses and are
         placed there in SUMO) or ``"sumo"`` (SUMO drives them from their departure on).
     :param terminate_on: events that end an agent (``terminated``); the others are only

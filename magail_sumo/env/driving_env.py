@@ -130,11 +130,14 @@ class SumoDrivingEnv(FleetEnv):
         self._width = _median_valid(tr.width, tr.valid)
         self._in_routes = np.zeros(n, bool)
         self._in_routes[self.bundle.sumo_rows] = True
-        #: route vehicles that may be agents: all but the parked ones (a vehicle that never
-        #: moves in the log is scenery, held by SUMO where it stands)
+        #: route vehicles that may be agents: all but those parked in a space off the lanes
+        #: (scenery SUMO holds where it was recorded) unless the scene names them (the SDC, the
+        #: tracks to predict); a vehicle standing on a lane the whole log (waiting in traffic)
+        #: may be one
+        named = {scene.sdc_track_index, *(p.track_index for p in scene.tracks_to_predict)}
         self._drivers = np.array([r for r, v in zip(self.bundle.sumo_rows.tolist(),
                                                      self.bundle.sumo_ids)
-                                  if v not in self.bundle.parked], np.int64)
+                                  if v not in self.bundle.spaces or r in named], np.int64)
         #: log step the current (or, before any reset, the first) episode starts at
         self.start = window_starts(cfg, t_steps)[0]
         self._set_controlled(self._select_controlled(self.start))

@@ -1,0 +1,98 @@
+"""Junction polygons and road fragments of converted networks: wedges and isolated edges.
+
+    python benchmarks/junction_shapes.py NETWORKS_DIR [NETWORKS_DIR ...] [--wedge 15]
+
+For every bundle's network in each folder (``magail-sumo convert --out``), counts the junctions
+(nodes with internal lanes), the *wedges* -- junction polygons with a corner more than
+``--wedge`` m from every lane point of the junction (its internal lanes, sampled every 0.5 m,
+and the shapes of the lanes entering and leaving it): a spike netconvert draws towards an edge
+end far from the junction -- and the *isolated fragments*: normal edges that no connection
+enters or leaves (a piece of road SUMO's drivers can neither reach nor leave). Per source
+folder and in total; several folders (several converters) compare in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _dense(shape: np.ndarray, step: float = 0.5) -> np.ndarray:
+    parts = [shape[:1]]
+    for a, b in zip(shape[:-1], shape[1:]):
+        n = max(2, int(np.hypot(*(b - a)) / step))
+        parts.append(a + (b - a) * np.linspace(0, 1, n)[1:, None])
+    return np.concatenate(parts)
+
+
+def measure(net_file: Path, wedge: float) -> tuple[int, int, int, float]:
+    """(junctions, wedges, isolated fragments, largest corner distance m) of one network."""
+    import sumolib
+
+    net = sumolib.net.readNet(str(net_file), withInternal=True)
+    internal = collections.defaultdict(list)
+    for e in net.getEdges(withInternal=True):
+        if e.getFunction() == "internal":
+            internal[e.getToNode().getID()].extend(e.getLanes())
+    junctions = wedges = 0
+    worst = 0.0
+    for node in net.getNodes():
+        shape = node.getShape()
+        lanes = internal.get(node.getID())
+        if not lanes or not shape or len(shape) < 3:
+            continue
+        junctions += 1
+        pts = [_dense(np.asarray(l.getShape())[:, :2]) for l in lanes]
+        pts += [np.asarray(l.getShape())[:, :2] for e in node.getIncoming() + node.getOutgoing()
+                if e.getFunction() != "internal" for l in e.getLanes()]
+        pts = np.concatenate(pts)
+        corners = np.asarray(shape)[:, :2]
+        far = np.sqrt(((corners[:, None] - pts[None]) ** 2).sum(-1)).min(1).max()
+        worst = max(worst, float(far))
+        wedges += far > wedge
+    isolated = sum(1 for e in net.getEdges(withInternal=False)
+                   if e.getFunction() != "walkingarea" and not e.getIncoming()
+                   and not e.getOutgoing())
+    return junctions, wedges, isolated, worst
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dirs", nargs="+", type=Path)
+    ap.add_argument("--wedge", type=float, default=15.0, help="m (default 15)")
+    args = ap.parse_args()
+    print("folder | source | scenes | junctions | wedges | isolated fragments | "
+          "largest corner distance (m)")
+    for d in args.dirs:
+        per = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0])
+        for rep_file in sorted(d.glob("*/conversion.json")):
+            rep = json.loads(rep_file.read_text())
+            nets = list(rep_file.parent.glob("*.net.xml"))
+            if rep.get("status") != "ok" or not nets:
+                continue
+            src = Path((rep.get("source") or {}).get("file", "?")).parent.name
+            j, w, i, far = measure(nets[0], args.wedge)
+            row = per[src]
+            row[0] += 1
+            row[1] += j
+            row[2] += w
+            row[3] += i
+            row[4] = max(row[4], far)
+        total = [0, 0, 0, 0, 0.0]
+        for src, row in sorted(per.items()):
+            print(f"{d} | {src} | {row[0]} | {row[1]} | {row[2]} | {row[3]} | {row[4]:.0f}")
+            total = [a + b for a, b in zip(total[:4], row[:4])] + [max(total[4], row[4])]
+        print(f"{d} | all | {total[0]} | {total[1]} | {total[2]} | {total[3]} | {total[4]:.0f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
