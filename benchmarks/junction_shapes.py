@@ -7,8 +7,10 @@ For every bundle's network in each folder (``magail-sumo convert --out``), count
 ``--wedge`` m from every lane point of the junction (its internal lanes, sampled every 0.5 m,
 and the shapes of the lanes entering and leaving it): a spike netconvert draws towards an edge
 end far from the junction -- and the *isolated fragments*: normal edges that no connection
-enters or leaves (a piece of road SUMO's drivers can neither reach nor leave). Per source
-folder and in total; several folders (several converters) compare in one run.
+enters or leaves (a piece of road SUMO's drivers can neither reach nor leave), and the lane
+ends more than 1 m outside their junction's polygon (a gap sumo-gui shows as a hole between
+road and junction). Per source folder and in total; several folders (several converters)
+compare in one run.
 """
 
 from __future__ import annotations
@@ -33,8 +35,21 @@ def _dense(shape: np.ndarray, step: float = 0.5) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def measure(net_file: Path, wedge: float) -> tuple[int, int, int, float]:
-    """(junctions, wedges, isolated fragments, largest corner distance m) of one network."""
+def _to_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance (m) of each point to polygon ``poly`` (0 inside)."""
+    from matplotlib.path import Path as MplPath
+
+    a, b = poly, np.roll(poly, -1, axis=0)
+    ab = b - a
+    t = np.clip(((points[:, None] - a[None]) * ab[None]).sum(-1)
+                / np.maximum((ab * ab).sum(-1), 1e-12)[None], 0, 1)
+    d = np.sqrt(((points[:, None] - (a[None] + t[..., None] * ab[None])) ** 2).sum(-1)).min(1)
+    return np.where(MplPath(poly).contains_points(points), 0.0, d)
+
+
+def measure(net_file: Path, wedge: float, gap: float = 1.0) -> tuple[int, int, int, float, int]:
+    """(junctions, wedges, isolated fragments, largest corner distance m, lane ends more than
+    ``gap`` m from their junction's polygon) of one network."""
     import sumolib
 
     net = sumolib.net.readNet(str(net_file), withInternal=True)
@@ -42,7 +57,7 @@ def measure(net_file: Path, wedge: float) -> tuple[int, int, int, float]:
     for e in net.getEdges(withInternal=True):
         if e.getFunction() == "internal":
             internal[e.getToNode().getID()].extend(e.getLanes())
-    junctions = wedges = 0
+    junctions = wedges = holes = 0
     worst = 0.0
     for node in net.getNodes():
         shape = node.getShape()
@@ -58,10 +73,16 @@ def measure(net_file: Path, wedge: float) -> tuple[int, int, int, float]:
         far = np.sqrt(((corners[:, None] - pts[None]) ** 2).sum(-1)).min(1).max()
         worst = max(worst, float(far))
         wedges += far > wedge
+        ends = [np.asarray(l.getShape())[-1, :2] for e in node.getIncoming()
+                if e.getFunction() != "internal" for l in e.getLanes()]
+        ends += [np.asarray(l.getShape())[0, :2] for e in node.getOutgoing()
+                 if e.getFunction() != "internal" for l in e.getLanes()]
+        if ends:
+            holes += int((_to_polygon(np.array(ends), corners) > gap).sum())
     isolated = sum(1 for e in net.getEdges(withInternal=False)
                    if e.getFunction() != "walkingarea" and not e.getIncoming()
                    and not e.getOutgoing())
-    return junctions, wedges, isolated, worst
+    return junctions, wedges, isolated, worst, holes
 
 
 def main() -> int:
@@ -70,27 +91,31 @@ def main() -> int:
     ap.add_argument("--wedge", type=float, default=15.0, help="m (default 15)")
     args = ap.parse_args()
     print("folder | source | scenes | junctions | wedges | isolated fragments | "
-          "largest corner distance (m)")
+          "largest corner distance (m) | lane ends apart from their junction")
     for d in args.dirs:
-        per = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0])
+        per = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0, 0])
         for rep_file in sorted(d.glob("*/conversion.json")):
             rep = json.loads(rep_file.read_text())
             nets = list(rep_file.parent.glob("*.net.xml"))
             if rep.get("status") != "ok" or not nets:
                 continue
             src = Path((rep.get("source") or {}).get("file", "?")).parent.name
-            j, w, i, far = measure(nets[0], args.wedge)
+            j, w, i, far, h = measure(nets[0], args.wedge)
             row = per[src]
             row[0] += 1
             row[1] += j
             row[2] += w
             row[3] += i
             row[4] = max(row[4], far)
-        total = [0, 0, 0, 0, 0.0]
+            row[5] += h
+        total = [0, 0, 0, 0, 0.0, 0]
         for src, row in sorted(per.items()):
-            print(f"{d} | {src} | {row[0]} | {row[1]} | {row[2]} | {row[3]} | {row[4]:.0f}")
-            total = [a + b for a, b in zip(total[:4], row[:4])] + [max(total[4], row[4])]
-        print(f"{d} | all | {total[0]} | {total[1]} | {total[2]} | {total[3]} | {total[4]:.0f}")
+            print(f"{d} | {src} | {row[0]} | {row[1]} | {row[2]} | {row[3]} | {row[4]:.0f} | "
+                  f"{row[5]}")
+            total = [a + b for a, b in zip(total[:4], row[:4])] + [max(total[4], row[4]),
+                                                                   total[5] + row[5]]
+        print(f"{d} | all | {total[0]} | {total[1]} | {total[2]} | {total[3]} | "
+              f"{total[4]:.0f} | {total[5]}")
     return 0
 
 
