@@ -157,12 +157,17 @@ def parked_overlaps(api, scene: Scene, k: int, rows: np.ndarray, skip: set[str],
     yaw = np.radians(90.0 - pose[:, 2])
     cx = pose[:, 0] - length / 2 * np.cos(yaw)
     cy = pose[:, 1] - length / 2 * np.sin(yaw)
-    f64 = lambda a: a[here, k][None].astype(np.float64)  # noqa: E731
-    d = signed_box_distance(cx[:, None], cy[:, None], yaw[:, None], length[:, None],
-                            width[:, None], f64(tr.x), f64(tr.y), f64(tr.heading),
-                            f64(tr.length), f64(tr.width))
-    a, b = np.nonzero(d < 0)
-    return {(ids[i], int(here[j])) for i, j in zip(a.tolist(), b.tolist())}
+    px, py = tr.x[here, k].astype(np.float64), tr.y[here, k].astype(np.float64)
+    pl, pw = tr.length[here, k].astype(np.float64), tr.width[here, k].astype(np.float64)
+    # only pairs whose circumscribed circles meet can overlap
+    reach = np.hypot(length, width)[:, None] / 2 + np.hypot(pl, pw)[None] / 2
+    a, b = np.nonzero((cx[:, None] - px[None]) ** 2 + (cy[:, None] - py[None]) ** 2
+                      < reach ** 2)
+    if not len(a):
+        return set()
+    d = signed_box_distance(cx[a], cy[a], yaw[a], length[a], width[a], px[b], py[b],
+                            tr.heading[here[b], k].astype(np.float64), pl[b], pw[b])
+    return {(ids[i], int(here[j])) for i, j in zip(a[d < 0].tolist(), b[d < 0].tolist())}
 
 
 def _signal_misses(counts: dict[int, list], programs: SignalPrograms | None) -> list[dict]:

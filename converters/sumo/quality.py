@@ -68,13 +68,17 @@ def off_network_vehicles(scene: Scene, seg: LaneSegments) -> list[dict]:
     ``{"track": id, "off": states off every lane, "of": its valid states}`` (the test of
     :func:`on_network_rate`)."""
     tr = scene.tracks
-    out = []
-    for n in moving_vehicles(scene).tolist():  # once per conversion, per moving vehicle
-        steps = np.flatnonzero(tr.valid[n])
-        xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
-        off = int((~on_lanes(seg, xy, tr.heading[n, steps].astype(np.float64))).sum())
-        if off:
-            out.append({"track": int(tr.id[n]), "off": off, "of": int(len(steps))})
+    idx = moving_vehicles(scene)
+    v = tr.valid[idx]
+    if not v.any():
+        return []
+    xy = np.stack([tr.x[idx][v], tr.y[idx][v]], axis=1)
+    off_state = ~on_lanes(seg, xy, tr.heading[idx][v].astype(np.float64))
+    rows = np.nonzero(v)[0]  # the moving vehicle of each valid state (row-major order)
+    off = np.bincount(rows, off_state, minlength=len(idx)).astype(int)
+    of = v.sum(axis=1)
+    out = [{"track": int(tr.id[n]), "off": int(o), "of": int(c)}
+           for n, o, c in zip(idx.tolist(), off.tolist(), of.tolist()) if o]
     out.sort(key=lambda m: (-m["off"], m["track"]))
     return out
 
