@@ -1,6 +1,6 @@
 """Quality figures of a converted scene (definitions in conversion.json / issue 3).
 
-* on_network_rate: share of valid states of moving vehicles lying within half the lane width
+* on_network_rate (:func:`on_network`): share of valid states of moving vehicles lying within half the lane width
   + 0.5 m of a lane (junction-internal lanes included) whose direction is within 45° of the
   vehicle heading.
 * route_rate: share of moving vehicles whose route is connected and covers >= 90 % of their
@@ -41,46 +41,33 @@ def moving_vehicles(scene: Scene) -> np.ndarray:
                           & (moved_distance(scene) > PARKED_MOVE))
 
 
-def on_network_rate(scene: Scene, seg: LaneSegments, off: np.ndarray | None = None) -> float | None:
-    """See module docstring; None when there are no moving vehicles.
+def on_network(scene: Scene, seg: LaneSegments, carried: np.ndarray | None = None
+               ) -> tuple[float | None, float | None, list[dict]]:
+    """``(on_network_rate, the same with the states in carried counted as off, the vehicles
+    behind a rate below 1)`` from one pass over the valid states of the moving vehicles.
 
-    ``off`` (N, T) bool marks states to count as off the network whatever ``seg`` says (the
-    states carried by synthesised lanes, for the map-only figure).
-    """
+    ``on_network_rate``: see the module doc; None when there are no moving vehicles.
+    ``carried`` (N, T) bool: states counted as off the network whatever ``seg`` says (those
+    carried by synthesised lanes: the map-only figure). The vehicles, most states off first:
+    ``{"track": id, "off": states off every lane, "of": its valid states}``."""
     tr = scene.tracks
     idx = moving_vehicles(scene)
     v = tr.valid[idx]
     if not v.any():
-        return None
+        return None, None, []
     xy = np.stack([tr.x[idx][v], tr.y[idx][v]], axis=1)
     on = on_lanes(seg, xy, tr.heading[idx][v].astype(np.float64))
-    if off is not None:
-        on &= ~off[idx][v]
-    return float(on.mean())
+    map_only = on & ~carried[idx][v] if carried is not None else on
+    rows = np.nonzero(v)[0]  # the moving vehicle of each valid state (row-major order)
+    off = np.bincount(rows, ~on, minlength=len(idx)).astype(int)
+    out = [{"track": int(tr.id[n]), "off": int(o), "of": int(c)}
+           for n, o, c in zip(idx.tolist(), off.tolist(), v.sum(axis=1).tolist()) if o]
+    out.sort(key=lambda m: (-m["off"], m["track"]))
+    return float(on.mean()), float(map_only.mean()), out
 
 
 #: m/s, a state moving at least this fast against its heading is reversing
 REVERSING_SPEED = 0.5
-
-
-def off_network_vehicles(scene: Scene, seg: LaneSegments) -> list[dict]:
-    """The moving vehicles behind an on-network rate below 1, most states off first:
-    ``{"track": id, "off": states off every lane, "of": its valid states}`` (the test of
-    :func:`on_network_rate`)."""
-    tr = scene.tracks
-    idx = moving_vehicles(scene)
-    v = tr.valid[idx]
-    if not v.any():
-        return []
-    xy = np.stack([tr.x[idx][v], tr.y[idx][v]], axis=1)
-    off_state = ~on_lanes(seg, xy, tr.heading[idx][v].astype(np.float64))
-    rows = np.nonzero(v)[0]  # the moving vehicle of each valid state (row-major order)
-    off = np.bincount(rows, off_state, minlength=len(idx)).astype(int)
-    of = v.sum(axis=1)
-    out = [{"track": int(tr.id[n]), "off": int(o), "of": int(c)}
-           for n, o, c in zip(idx.tolist(), off.tolist(), of.tolist()) if o]
-    out.sort(key=lambda m: (-m["off"], m["track"]))
-    return out
 
 
 def route_quality(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,

@@ -46,7 +46,7 @@ from .network import build_network
 from .parking import write_parking
 from .pedestrians import check_built, plan_pedestrians
 from .lanes import lane_segments
-from .quality import off_network_vehicles, on_network_rate, route_quality
+from .quality import on_network, route_quality
 from .routes import build_routes, write_routes
 from .signals import build_programs, unmapped_reason, write_programs
 from .synthesis import carried_states, synthesize_lanes
@@ -338,13 +338,13 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         stage = "quality"
         seg = lane_segments(net)
         rate, misses = route_quality(scene, seg, routes, net, rep.unconverted)
+        on, on_map, off = on_network(scene, seg, carried_states(scene, synthesized))
         rep.quality = {
-            "on_network_rate": on_network_rate(scene, seg),
+            "on_network_rate": on,
             # the same with the states carried by synthesised lanes counted as off the map
-            "on_network_rate_map_only": on_network_rate(scene, seg,
-                                                        carried_states(scene, synthesized)),
+            "on_network_rate_map_only": on_map,
             # the vehicles behind an on-network rate below 1 (at most MISSES_KEPT)
-            "off_network": off_network_vehicles(scene, seg)[:MISSES_KEPT],
+            "off_network": off[:MISSES_KEPT],
             "synthesized_lanes": len(synthesized),
             "route_rate": rate,
             # the vehicles behind a route rate below 1 (at most MISSES_KEPT, with why)
