@@ -207,7 +207,10 @@ def test_route_without_a_short_synthesised_stretch_when_it_covers_more(converted
 # --------------------------------------------------------------------- a densely connected junction
 def _dense_scene(n_junction: int = 40, n_in: int = 4, n_out: int = 4, steps: int = 91):
     """Road lanes into and out of a junction whose ``n_junction`` lanes all connect to each
-    other (and to every road lane around): exponentially many junction paths."""
+    other (and to every road lane around): exponentially many junction paths. Every link joins
+    an end to a start within a few metres (a link between lanes farther apart is dropped as a
+    data error): the road lanes end and start 2 m from the centre, and each junction lane runs
+    from near one road lane's end to near another's start."""
     from magail_sumo.scene import Lane, LaneType, RoadMap, Scene, Tracks
 
     def line(p, q, n=6):
@@ -219,11 +222,11 @@ def _dense_scene(n_junction: int = 40, n_in: int = 4, n_out: int = 4, steps: int
     lanes, end_in, start_out = [], {}, {}
     for k, a in enumerate(np.linspace(0, np.pi, n_in, endpoint=False)):
         d = np.array([np.cos(a), np.sin(a)])
-        end_in[ins[k]] = d * 20
-        lanes.append(Lane(ins[k], line(d * 120, d * 20), LaneType.SURFACE_STREET, 25.0,
+        end_in[ins[k]] = d * 2
+        lanes.append(Lane(ins[k], line(d * 120, d * 2), LaneType.SURFACE_STREET, 25.0,
                           exit_lanes=tuple(junction)))
-        start_out[outs[k]] = -d * 20
-        lanes.append(Lane(outs[k], line(-d * 20, -d * 120), LaneType.SURFACE_STREET, 25.0,
+        start_out[outs[k]] = -d * 2
+        lanes.append(Lane(outs[k], line(-d * 2, -d * 120), LaneType.SURFACE_STREET, 25.0,
                           entry_lanes=tuple(junction)))
     for m, j in enumerate(junction):
         others = tuple(x for x in junction if x != j)
@@ -252,3 +255,26 @@ def test_dense_junction_converts_within_seconds(tmp_path):
     rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
     assert time.monotonic() - clock < 180
     assert rep.status == "ok", rep.reason
+
+
+@pytest.mark.sumo
+def test_junction_polygons_have_no_wedge(tmp_path):
+    """6f85f27e0243fc10: two lanes merging at a sharp angle gave a junction polygon with a spike
+    37 m along the outgoing road (netconvert's corner detail); 7b24d74b506c94ce records two
+    links between lanes 18 and 22 m apart, which would pull a junction node between them.
+    Junction shapes now come from the edge ends without corner detail, and such links are
+    dropped and listed: no junction corner lies more than 15 m from the junction's lanes, and
+    the lane ends touch their junctions."""
+    from benchmarks.junction_shapes import measure
+    from converters.sumo.scenario import ConvertOptions, convert_scene
+
+    for name in ("6f85f27e0243fc10", "7b24d74b506c94ce"):
+        scene = load_scene(ROOT / "data" / "scenarionet" / f"{name}.pkl")
+        rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
+        assert rep.status == "ok", rep.reason
+        junctions, wedges, _, far, apart = measure(tmp_path / name / f"{name}.net.xml", 15.0)
+        assert junctions > 50 and wedges == 0 and far < 15, (name, far)
+        assert apart < 0.1 * junctions, (name, apart)
+    dropped = [u for u in rep.unconverted if u["kind"] == "lane link"]
+    assert {u["id"] for u in dropped} == {720, 732}
+    assert all("m from its end: link dropped" in u["reason"] for u in dropped)

@@ -25,7 +25,8 @@ from .topology import NetworkPlan
 
 NETCONVERT_OPTIONS = [
     "--offset.disable-normalization", "true", "--no-turnarounds", "true",
-    "--junctions.corner-detail", "5", "--junctions.limit-turn-speed", "5.5",
+    "--junctions.corner-detail", "0", "--junctions.endpoint-shape", "true",
+    "--junctions.limit-turn-speed", "5.5",
     "--tls.default-type", "static", "--geometry.remove", "false",
     "--walkingareas", "false", "--crossings.guess", "false", "--sidewalks.guess", "false",
     "--edges.join", "false", "--junctions.join", "false", "--no-internal-links", "false",

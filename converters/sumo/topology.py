@@ -40,6 +40,8 @@ MAX_JUNCTION_SPAN = 70.0
 #: one node; farther ones come from a neighbour relation that does not match the geometry
 #: (e.g. inferred for a short lane along the whole of a long one) and would chain nodes
 MAX_NEIGHBOUR_GAP = 15.0
+#: m, a recorded successor link whose lanes' end and start lie farther apart is dropped
+MAX_LINK_GAP = 5.0
 #: search steps (lanes looked at) of the exhaustive junction path search from one road lane
 #: before it falls back to shortest paths (the bundled recorded scenes need under 50)
 MAX_PATH_EXPANSIONS = 20_000
@@ -237,8 +239,19 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
             linked[new.id] = (tuple(i for i in new.entry_lanes if i not in old.entry_lanes),
                               tuple(i for i in new.exit_lanes if i not in old.exit_lanes))
             lanes[new.id] = new
-    exits = {i: [e for e in l.exit_lanes if e in lanes and e != i] for i, l in lanes.items()}
-    entries = {i: [e for e in l.entry_lanes if e in lanes and e != i] for i, l in lanes.items()}
+    # a recorded link between lanes whose end and start lie apart is a data error: joining
+    # them would pull a junction node between the two (a wedge-shaped junction polygon)
+    far = {(i, e) for i, l in lanes.items() for e in l.exit_lanes if e in lanes and e != i
+           and _gap(l, lanes[e]) > MAX_LINK_GAP}
+    far |= {(e, i) for i, l in lanes.items() for e in l.entry_lanes if e in lanes and e != i
+            and _gap(lanes[e], l) > MAX_LINK_GAP}
+    unconverted.extend({"kind": "lane link", "id": int(a),
+                        "reason": f"exit lane {b} starts {_gap(lanes[a], lanes[b]):.0f} m from "
+                                  "its end: link dropped"} for a, b in sorted(far))
+    exits = {i: [e for e in l.exit_lanes if e in lanes and e != i and (i, e) not in far]
+             for i, l in lanes.items()}
+    entries = {i: [e for e in l.entry_lanes if e in lanes and e != i and (e, i) not in far]
+               for i, l in lanes.items()}
     for i in lanes:  # make the relation symmetric
         for e in exits[i]:
             if i not in entries[e]:
@@ -444,6 +457,11 @@ def plan_network(scene: Scene, deadline: float | None = None) -> NetworkPlan:
                             "reason": "junction lane duplicates another connection between the same lanes"})
     return NetworkPlan(nodes, edges, connections, lane_edges, junction, node_of_lane, unconverted,
                        linked=linked)
+
+
+def _gap(a: Lane, b: Lane) -> float:
+    """m from the end of lane ``a`` to the start of lane ``b``."""
+    return float(np.hypot(*(b.polyline[0, :2] - a.polyline[-1, :2])))
 
 
 def _overlong_junction_lanes(lanes: dict[int, Lane], jpaths: dict[int, list[tuple[int, tuple[int, ...]]]],
