@@ -50,8 +50,7 @@ def rows(folder: Path) -> list[dict]:
         causes = collections.Counter(_cause(m["reason"]) for m in q.get("route_misses", []))
         causes.update(f"signal: {_cause(m['reason'])}" for m in q.get("signal_misses", []))
         if "on_network_rate" in failed_bars(q):
-            causes.update("states off every lane" for m in q.get("off_network", [])
-                          if m["off"] >= 0.1 * m["of"])
+            causes.update("states off every lane" for m in q.get("off_network", []))
         out.append({"scene": r["scenario_id"], "source": src, "status": r["status"],
                     "on": q.get("on_network_rate"), "route": q.get("route_rate"),
                     "signal": q.get("signal_fidelity"),
