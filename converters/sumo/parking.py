@@ -173,9 +173,10 @@ def place_parked(poses: list[ParkedPose], lanes: ClassLanes,
     (within ``clearance`` m of its centre line: :func:`block_clearance`) are stopped on it in
     driving order; one whose stretch of the lane (m from its start) comes within
     :data:`STOP_GAP` of one already stopped there gets a space at its recorded pose instead
-    (SUMO's drivers stop behind the first). A vehicle bound for a space stands on its lane for the step it is inserted, so a
-    space's stretch is moved along the lane clear of the stopped vehicles. ``taken`` (lane id ->
-    stretches of stopped vehicles) carries the lanes' stopped vehicles across calls (classes)."""
+    (SUMO's drivers stop behind the first). A vehicle bound for a space stands on its lane for
+    the step it is inserted, so a space's stretch is moved along the lane clear of the stopped
+    vehicles. ``taken`` (lane id -> stretches of stopped vehicles) carries the lanes' stopped
+    vehicles across calls (classes)."""
     taken = {} if taken is None else taken
     near = [_nearest_lane(p, lanes) for p in poses]
     out: list[ParkedSpot | None] = [None] * len(poses)

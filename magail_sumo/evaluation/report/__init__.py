@@ -30,6 +30,7 @@ from magail_sumo.evaluation.city import (EVENTS as CITY_EVENTS, KINEMATICS_FILE,
 from magail_sumo.evaluation.protocol import EvaluationError
 from magail_sumo.inputs import read_json
 from magail_sumo.evaluation.traffic import METRICS
+from magail_sumo.evaluation.traffic.events import ROAD_EDGES_DISAGREE, ROAD_EDGES_DISAGREE_VEHICLES
 from magail_sumo.evaluation.traffic.sumo_outputs import run_distributions
 from magail_sumo.outputs import (OutputError, atomic_write, claim_output_dir, inside, printable,
                                  safe_name)
@@ -41,7 +42,7 @@ from magail_sumo.workers import Progress, no_progress
 from . import animation, figures
 from .render import REALISM_FIELDS, Document
 from .scores import SceneView, Scores
-from .intervals import with_ci
+from .intervals import mean_ci, with_ci
 from .scoring import AGENT_FIELDS, collect, method_intervals, method_means, scene_view
 
 #: Traffic metrics in the main table, in order.
@@ -150,6 +151,38 @@ REFERENCE_NOTE = (
     "realistic as far as its figures approach these, not zero.")
 
 
+def road_edges_disagree(sc: Scores) -> dict[str, float]:
+    """The scenes whose road edges disagree with their log: scenario id -> the share of its
+    recorded vehicles off the road edges (``log_offroad_rate`` of its rows), above
+    :data:`~magail_sumo.evaluation.traffic.events.ROAD_EDGES_DISAGREE` and at least
+    ``ROAD_EDGES_DISAGREE_VEHICLES`` of them."""
+    out = {}
+    for r in sc.rows:
+        v, n = r.get("log_offroad_rate"), r.get("log_offroad_vehicles") or 0
+        if isinstance(v, float) and math.isfinite(v) and v > ROAD_EDGES_DISAGREE \
+                and n >= ROAD_EDGES_DISAGREE_VEHICLES:
+            out[r["scenario_id"]] = v
+    return out
+
+
+def _offroad_apart(doc: Document, sc: Scores) -> None:
+    """Off-road rates on the scenes whose road edges agree with their log and on those that
+    do not, when there are any of the latter (the metrics table mixes both)."""
+    bad = road_edges_disagree(sc)
+    if not bad:
+        return
+    good = [s for s in sc.scenes if s not in bad]
+    doc.para(f"Road edges that disagree with the log: in {len(bad)} of {len(sc.scenes)} "
+             f"scene(s) the recording itself puts more than {ROAD_EDGES_DISAGREE:.0%} of the "
+             f"vehicles (at least {ROAD_EDGES_DISAGREE_VEHICLES}) off the road edges (" + ", ".join(
+                 f"{printable(s)} {v:.2f}" for s, v in sorted(bad.items())) + "), so off-road "
+             "figures there say little. Off-road rate apart:")
+    per = {(r["scenario_id"], r["method"]): r.get("offroad_rate") for r in sc.rows}
+    doc.table(["method", f"agreeing scenes ({len(good)})", f"disagreeing scenes ({len(bad)})"],
+              [[m, *(with_ci(*mean_ci(per.get((s, m)) for s in part))
+                     for part in (good, sorted(bad)))] for m in sc.methods], "offroad-apart")
+
+
 def _scene_sections(doc: Document, sc: Scores, means: dict, cis: dict, units: dict,
                     man: dict) -> None:
     """The recorded scenes' sections: metrics, realism, figures, per-agent rows, fixes."""
@@ -166,6 +199,7 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, cis: dict, units: di
              "seeded: a second evaluation seed gives a second sample of the same scenes.")
     if "logreplay" in sc.methods:
         doc.note(REFERENCE_NOTE)
+    _offroad_apart(doc, sc)
     doc.table(["metric", "unit", "definition"],
               [[n, units[n], METRICS[n].description] for n in MAIN], "units")
     if sc.methods:

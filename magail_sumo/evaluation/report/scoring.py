@@ -37,6 +37,7 @@ from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
 )
 from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
+from magail_sumo.evaluation.traffic.events import log_offroad
 from magail_sumo.evaluation.traffic.distributions import BINS
 from magail_sumo.inputs import regular_file
 from magail_sumo.outputs import OutputError, printable
@@ -204,6 +205,7 @@ def score_pair(scene: Scene, method: str, ro: ScenarioRollouts,
                           jt.heading[..., fut], jt.log_valid[:, fut],
                           jt.object_type == int(ObjectType.VEHICLE))
         traffic = compute_metrics(inp)
+        log_rate, log_count = log_offroad(inp)
         for name in FIGURE_FEATURES:
             lv, sv = inp.log_and_sim(name)
             res.counts[name] = (_counts(lv, name), _counts(sv, name))
@@ -218,7 +220,8 @@ def score_pair(scene: Scene, method: str, ro: ScenarioRollouts,
                      f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]})")
         return res
     res.row = {"scenario_id": sid, "method": method, "rollouts": ro.shape[0],
-               **traffic, **realism}
+               **traffic, **realism, "log_offroad_rate": log_rate,
+               "log_offroad_vehicles": log_count}
     tr = scene.tracks
     for k, oid in enumerate(feat.object_id):
         row = int(np.flatnonzero(tr.id == oid)[0])

@@ -40,6 +40,31 @@ class OffroadRate(TrafficMetric):
         return _rate(inp.feature("offroad_per_step"), inp.valid & inp.is_vehicle[:, None])
 
 
+def log_offroad(inp: MetricInput) -> tuple[float, int]:
+    """:class:`OffroadRate` of the recording itself (the log's batch row) and its count: the
+    share and the number of the scene's vehicles whose recorded box leaves the road edges at
+    least once over the simulated steps; (NaN, 0) on a map without road edges or without
+    vehicles. A scene property, the same for every method: where it is high the map's road
+    edges disagree with the log, and off-road figures on that scene say little
+    (:data:`ROAD_EDGES_DISAGREE`)."""
+    if "offroad_per_step" not in inp.feat.values:
+        return float("nan"), 0
+    mask = inp.valid & inp.is_vehicle[:, None]
+    rows = mask.any(1)
+    if not rows.any():
+        return float("nan"), 0
+    off = (inp.feature("offroad_per_step")[0] & mask).any(1)[rows]
+    return float(off.mean()), int(off.sum())
+
+
+#: a scene's road edges are taken to disagree with its log when the recording puts more than
+#: this share of its vehicles off them, and at least :data:`ROAD_EDGES_DISAGREE_VEHICLES`
+#: vehicles (the MetaVQA maps: see ``../shared/data/README.md``); the report gives off-road
+#: rates on such scenes apart
+ROAD_EDGES_DISAGREE = 0.2
+ROAD_EDGES_DISAGREE_VEHICLES = 3
+
+
 @register
 class RedLightRate(TrafficMetric):
     name, unit = "red_light_rate", "share of vehicles"
