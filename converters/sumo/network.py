@@ -25,7 +25,7 @@ from .topology import NetworkPlan
 
 NETCONVERT_OPTIONS = [
     "--offset.disable-normalization", "true", "--no-turnarounds", "true",
-    "--junctions.corner-detail", "0", "--junctions.endpoint-shape", "true",
+    "--junctions.corner-detail", "0",
     "--junctions.limit-turn-speed", "5.5",
     "--tls.default-type", "static", "--geometry.remove", "false",
     "--walkingareas", "false", "--crossings.guess", "false", "--sidewalks.guess", "false",
