@@ -173,10 +173,11 @@ def place_parked(poses: list[ParkedPose], lanes: ClassLanes,
     (within ``clearance`` m of its centre line: :func:`block_clearance`) are stopped on it in
     driving order; one whose stretch of the lane (m from its start) comes within
     :data:`STOP_GAP` of one already stopped there gets a space at its recorded pose instead
-    (SUMO's drivers stop behind the first). A vehicle bound for a space stands on its lane for
-    the step it is inserted, so a space's stretch is moved along the lane clear of the stopped
-    vehicles. ``taken`` (lane id -> stretches of stopped vehicles) carries the lanes' stopped
-    vehicles across calls (classes)."""
+    (SUMO's drivers stop behind the first), as does one whose lane is shorter than itself. A
+    vehicle bound for a space stands on its lane for the step it is inserted, so a space's
+    stretch is moved along the lane clear of the stopped vehicles. ``taken`` (lane id ->
+    stretches of stopped vehicles) carries the lanes' stopped vehicles across calls
+    (classes)."""
     taken = {} if taken is None else taken
     near = [_nearest_lane(p, lanes) for p in poses]
     out: list[ParkedSpot | None] = [None] * len(poses)
@@ -194,7 +195,10 @@ def place_parked(poses: list[ParkedPose], lanes: ClassLanes,
     for i in sorted(stretch, key=lambda i: (near[i][1], stretch[i])):
         d, k, _ = near[i]
         lane, (start, end) = lanes.ids[k], stretch[i]
-        if d < clearance and _free(taken.get(lane, ()), start, end):
+        # a lane shorter than the vehicle cannot hold it: its back would stand on the lane
+        # before, in the way of whatever stops there
+        fits = float(lanes.lengths[k]) >= poses[i].length
+        if d < clearance and fits and _free(taken.get(lane, ()), start, end):
             taken.setdefault(lane, []).append((start, end))
             out[i] = ParkedSpot(lane, start, end, None)
         else:
