@@ -71,25 +71,29 @@ REVERSING_SPEED = 0.5
 
 
 def route_quality(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,
-                  unconverted: list[dict] = ()) -> tuple[float | None, list[dict]]:
+                  off_network: list[dict], unconverted: list[dict] = ()
+                  ) -> tuple[float | None, list[dict]]:
     """``route_rate`` (module doc; None when there are no moving vehicles) and
     :func:`route_misses`, from one pass over the moving vehicles."""
     moving = moving_vehicles(scene)
-    misses = route_misses(scene, seg, routes, net, moving, unconverted)
+    misses = route_misses(scene, seg, routes, net, off_network, moving, unconverted)
     return (1.0 - len(misses) / len(moving) if len(moving) else None), misses
 
 
 def route_misses(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], net,
-                 moving: np.ndarray | None = None, unconverted: list[dict] = ()) -> list[dict]:
+                 off_network: list[dict], moving: np.ndarray | None = None,
+                 unconverted: list[dict] = ()) -> list[dict]:
     """The moving vehicles (``moving``: their rows, default :func:`moving_vehicles`) behind a
     route rate below 1, each ``{"track": its id, "reason": ...}`` (track order). Reasons:
 
     * ``no route: <why>`` -- the conversion made none (why as in ``unconverted``);
     * ``no connected lane sequence`` -- its matched lanes are not joined in the network;
     * ``covers X of its states (off the network at A, reversing at B, on other lanes at C)``
-      -- the shares of its valid states lying on no lane of the network (:func:`on_lanes`,
-      off-map driving), moving backwards (velocity against the heading faster than
-      :data:`REVERSING_SPEED`), and on lanes that are not its route's."""
+      -- the shares of its valid states lying on no lane of the network (``off_network``, the
+      vehicles :func:`on_network` found off it: off-map driving), moving backwards (velocity
+      against the heading faster than :data:`REVERSING_SPEED`), and on lanes that are not its
+      route's."""
+    off_share = {m["track"]: m["off"] / m["of"] for m in off_network}
     by_track = {r.track: r for r in routes}
     why = {u.get("id"): u.get("reason", "") for u in unconverted
            if u.get("kind") in ("vehicle", "cyclist")}
@@ -110,8 +114,7 @@ def route_misses(scene: Scene, seg: LaneSegments, routes: list[VehicleRoute], ne
                 continue
             steps = np.flatnonzero(tr.valid[n])
             heading = tr.heading[n, steps].astype(np.float64)
-            xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
-            off = 1.0 - float(on_lanes(seg, xy, heading).mean())
+            off = off_share.get(tid, 0.0)
             along = tr.vx[n, steps] * np.cos(heading) + tr.vy[n, steps] * np.sin(heading)
             back = float((along < -REVERSING_SPEED).mean())
             other = max(0.0, 1.0 - cover - off)

@@ -337,8 +337,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
         rep.files = sorted(p.name for p in out.iterdir() if p.name != REPORT_FILE)
         stage = "quality"
         seg = lane_segments(net)
-        rate, misses = route_quality(scene, seg, routes, net, rep.unconverted)
         on, on_map, off = on_network(scene, seg, carried_states(scene, synthesized))
+        rate, misses = route_quality(scene, seg, routes, net, off, rep.unconverted)
         rep.quality = {
             "on_network_rate": on,
             # the same with the states carried by synthesised lanes counted as off the map
