@@ -58,7 +58,7 @@ from typing import Collection
 
 import numpy as np
 
-from magail_sumo.scene import ObjectType, Scene
+from magail_sumo.scene import Scene
 from magail_sumo.scene.types import STEP_LENGTH
 from magail_sumo.sim.boxes import signed_box_distance
 from magail_sumo.sim.frames import centre_to_front, yaw_to_sumo_angle
@@ -66,7 +66,7 @@ from magail_sumo.sim.session import OBSTACLE_PREFIX, Obstacles, SessionConfig, S
 from magail_sumo.sim.sumo_config import SumoInputs
 
 from .bundle import SceneBundle
-from .routes import PARKED_MOVE, VehicleRoute, moved_distance
+from .routes import VehicleRoute, parked_tracks
 from .signals import CHAR_CLASS, STATE_CLASS, SignalPrograms
 
 DT = STEP_LENGTH  #: s per step
@@ -128,12 +128,10 @@ class Baseline:
 
 
 def parked_boxes(scene: Scene) -> tuple[np.ndarray, list[str]]:
-    """Rows and SUMO ids (track ids) of the scene's non-moving vehicles and cyclists (moved
-    less than :data:`~.routes.PARKED_MOVE` m): the boxes :func:`parked_overlaps` checks."""
-    tr = scene.tracks
-    rows = np.flatnonzero(np.isin(tr.type, (ObjectType.VEHICLE, ObjectType.CYCLIST))
-                          & (moved_distance(scene) < PARKED_MOVE) & tr.valid.any(axis=1))
-    return rows, [str(int(i)) for i in tr.id[rows]]
+    """Rows and SUMO ids (track ids) of the scene's parked vehicles and cyclists
+    (:func:`~.routes.parked_tracks`): the boxes :func:`parked_overlaps` checks."""
+    rows = parked_tracks(scene)
+    return rows, [str(int(i)) for i in scene.tracks.id[rows]]
 
 
 def parked_overlaps(api, scene: Scene, k: int, rows: np.ndarray, skip: set[str],

@@ -21,8 +21,7 @@ Both kinds are in SUMO from the scene's start (a non-moving vehicle first seen l
 unseen; inserted later, one bound for a space would stand on its lane for its insertion step, in
 the way of the traffic), before the moving vehicles, with ``departPos="stop"`` and no
 insertion checks (recorded neighbours stand closer than SUMO's gaps), and stay past the end of
-the scene. The
-lane geometry is the built network's (:func:`class_lanes`).
+the scene. The lane geometry is the built network's (:func:`class_lanes`).
 """
 
 from __future__ import annotations
@@ -78,8 +77,9 @@ class ParkedSpot:
 
 @dataclass(frozen=True)
 class ClassLanes:
-    """Segments (S, 2) ``a``/``b`` of the normal lanes one vehicle class may use, each with its
-    lane's index into ``ids`` / ``lengths`` (SUMO's, m) / ``shapes``."""
+    """Segments (S, 2) ``a``/``b`` of the normal lanes one vehicle class may use, with their
+    bounding boxes ``lo``/``hi`` (S, 2), each with its lane's index into ``ids`` / ``lengths``
+    (SUMO's, m) / ``shapes`` / ``shape_lengths`` (m along the shape)."""
 
     a: np.ndarray
     b: np.ndarray
@@ -87,6 +87,9 @@ class ClassLanes:
     ids: tuple[str, ...]
     lengths: np.ndarray
     shapes: tuple[np.ndarray, ...]
+    lo: np.ndarray
+    hi: np.ndarray
+    shape_lengths: np.ndarray
 
 
 def class_lanes(net, vclass: str) -> ClassLanes:
@@ -107,12 +110,15 @@ def class_lanes(net, vclass: str) -> ClassLanes:
             b.append(shape[1:])
     if not ids:
         z = np.zeros((0, 2))
-        return ClassLanes(z, z, np.zeros(0, int), (), np.zeros(0), ())
+        return ClassLanes(z, z, np.zeros(0, int), (), np.zeros(0), (), z, z, np.zeros(0))
     # SUMO's lane lengths (positions along a lane are SUMO's: its length can differ from its
     # shape's), a centimetre short so that rounded positions stay on the lane
     lengths = np.array([net.getLane(i).getLength() - 0.01 for i in ids])
-    return ClassLanes(np.concatenate(a), np.concatenate(b), np.concatenate(owner), tuple(ids),
-                      lengths, tuple(shapes))
+    a_, b_ = np.concatenate(a), np.concatenate(b)
+    return ClassLanes(a_, b_, np.concatenate(owner), tuple(ids), lengths, tuple(shapes),
+                      np.minimum(a_, b_), np.maximum(a_, b_),
+                      np.array([np.linalg.norm(np.diff(sh, axis=0), axis=1).sum()
+                                for sh in shapes]))
 
 
 def block_clearance(scene: Scene, rows: np.ndarray) -> float:
@@ -239,9 +245,8 @@ def _nearest_lane(pose: ParkedPose, lanes: ClassLanes) -> tuple[float, int, floa
     if not len(lanes.a):
         return None
     reach = PARK_SEARCH + np.hypot(pose.length, pose.width)
-    lo, hi = np.minimum(lanes.a, lanes.b), np.maximum(lanes.a, lanes.b)
-    near = np.flatnonzero(np.all((lo <= (pose.x + reach, pose.y + reach))
-                                 & (hi >= (pose.x - reach, pose.y - reach)), axis=1))
+    near = np.flatnonzero(np.all((lanes.lo <= (pose.x + reach, pose.y + reach))
+                                 & (lanes.hi >= (pose.x - reach, pose.y - reach)), axis=1))
     if not len(near):
         return None
     d = box_segment_distance(pose, lanes.a[near], lanes.b[near])
@@ -249,9 +254,8 @@ def _nearest_lane(pose: ParkedPose, lanes: ClassLanes) -> tuple[float, int, floa
     if d[best] > PARK_SEARCH:
         return None
     k = int(lanes.lane[near[best]])
-    shape, lane_len = lanes.shapes[k], float(lanes.lengths[k])
-    shape_len = float(np.linalg.norm(np.diff(shape, axis=0), axis=1).sum())
-    at = _offset_along(shape, np.array([pose.x, pose.y])) * lane_len / max(shape_len, 1e-9)
+    at = _offset_along(lanes.shapes[k], np.array([pose.x, pose.y])) * float(lanes.lengths[k]) \
+        / max(float(lanes.shape_lengths[k]), 1e-9)
     return float(d[best]), k, at
 
 

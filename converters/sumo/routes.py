@@ -102,6 +102,15 @@ def moved_distance(scene: Scene) -> np.ndarray:
     return np.where(keep, d, 0.0).max(axis=1)
 
 
+def parked_tracks(scene: Scene, moved: np.ndarray | None = None) -> np.ndarray:
+    """Rows of the parked tracks: vehicles and cyclists with a valid state that move less than
+    :data:`PARKED_MOVE` m (:func:`moved_distance`, or ``moved`` when already computed)."""
+    tr = scene.tracks
+    moved = moved_distance(scene) if moved is None else moved
+    return np.flatnonzero(np.isin(tr.type, (ObjectType.VEHICLE, ObjectType.CYCLIST))
+                          & (moved < PARKED_MOVE) & tr.valid.any(axis=1))
+
+
 def _piece(plan: NetworkPlan, lane: int, pos: float) -> tuple[str, int, float] | None:
     """(edge, lane index, position on the piece in m) of a road lane position; None in junctions."""
     pieces = plan.lane_edges.get(lane)
@@ -355,7 +364,8 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
     moved = moved_distance(scene)
     routes: list[VehicleRoute] = []
     unconverted: list[dict] = []
-    parked: list[int] = []
+    parked = parked_tracks(scene, moved)  # placed together below (.parking.place_parked)
+    is_parked = set(parked.tolist())
     for n in range(tr.num_tracks):
         kind = ObjectType(int(tr.type[n]))
         tid = int(tr.id[n])
@@ -371,8 +381,7 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
         if not len(steps):
             unconverted.append({"kind": kind.name.lower(), "id": tid, "reason": "no valid state"})
             continue
-        if moved[n] < PARKED_MOVE:
-            parked.append(n)  # placed together below (.parking.place_parked)
+        if n in is_parked:
             continue
         xy = np.stack([tr.x[n, steps], tr.y[n, steps]], axis=1)
         heading = tr.heading[n, steps].astype(np.float64)
@@ -405,7 +414,7 @@ def build_routes(scene: Scene, plan: NetworkPlan, index_car: LaneIndex, index_bi
     taken: dict[str, list] = {}  # vehicles stopped on each lane, cars' and cyclists'
     clearance = block_clearance(scene, np.array([r.track for r in routes], np.int64))
     for vclass, cyclist in (("passenger", False), ("bicycle", True)):
-        rows = [n for n in parked if (tr.type[n] == ObjectType.CYCLIST) == cyclist]
+        rows = [n for n in parked.tolist() if (tr.type[n] == ObjectType.CYCLIST) == cyclist]
         if rows:
             got, missed = _parked_routes(scene, rows, vclass, net, taken, clearance)
             routes += got
