@@ -357,6 +357,19 @@ def test_lane_centre_lines_in_another_frame_are_moved_onto_their_polygons():
         assert np.allclose(a.polyline, b.polyline, atol=0.5), a.id
 
 
+def test_a_bad_lane_polygon_does_not_refuse_the_scene():
+    """A lane's polygon is read only for the frame check: one that is not a point list leaves
+    that lane unchecked and the scene reads as before (it was ignored before the check)."""
+    from converters.scenarionet import scene_from_scenarionet
+
+    raw = safe_loads(NUSCENES.read_bytes())
+    base = scene_from_scenarionet(raw)
+    key = next(k for k, f in raw["map_features"].items()
+               if "LANE" in str(f["type"]) and f.get("polygon") is not None)
+    raw["map_features"][key]["polygon"] = "not points"
+    assert scene_from_scenarionet(raw) == base
+
+
 @pytest.mark.parametrize("name", ["scene-0425", "scene-1044"])
 def test_shared_nuscenes_trainval_scene_converts_within_its_bars(name, tmp_path):
     """Two real nuScenes trainval scenes that failed before: every lane link joined lanes

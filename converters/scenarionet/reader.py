@@ -420,7 +420,10 @@ def _roadmap(features: Any, dropped: list[DroppedReference],
         path = f"map_features[{describe(key)}]"
         if ftype in _LANE_TYPES:
             if isinstance(f, dict) and f.get("polygon") is not None:
-                polygons[fid] = as_points(f["polygon"], path + ".polygon")
+                try:  # only the frame check reads it: a bad one leaves that lane unchecked
+                    polygons[fid] = as_points(f["polygon"], path + ".polygon")
+                except SceneValidationError:
+                    pass
             kinds["lanes"].append(Lane(
                 id=fid, polyline=as_points(required(f, "polyline", path), path + ".polyline"),
                 type=_LANE_TYPES[ftype],
