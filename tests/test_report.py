@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -312,8 +314,8 @@ def test_recorded_scenes_road_edges_agree(folder):
     assert "Road edges that disagree" not in (folder / "report" / "report.md").read_text()
 
 
-SHARED_VQA = ROOT.parent / "shared" / "data" / "scenarionet" / "womd_metavqa" / \
-    "sd_adv_reconstructed_v0_1bc6a4b9033b6746_random_adv.pkl"
+SHARED_VQA = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data")) \
+    / "scenarionet" / "womd_metavqa" / "sd_adv_reconstructed_v0_1bc6a4b9033b6746_random_adv.pkl"
 
 
 @pytest.mark.skipif(not SHARED_VQA.is_file(), reason="no shared MetaVQA data")
