@@ -16,8 +16,18 @@ over seeds of the mean over scenes, with the min and max over seeds; then the sc
 split part each came from. A policy whose checkpoint config trains on a scored scene is refused
 (``--allow-trained-scenes`` marks such scenes instead).
 
+Uncertainty (:mod:`magail_sumo.evaluation.bootstrap`): ``--seed-group NAME=P1,P2,P3`` says the
+policies P1..P3 (each a ``--policy``) are training seeds of one recipe NAME. Every group, every
+other policy and every baseline gets the 95 % bootstrap interval of each figure over the scored
+scenes and the group's training seeds (each scene's value is its mean over evaluation seeds), and
+every pair of them the interval of their difference in meta-metric, paired on the scenes; "A
+better than B" is printed only where that interval excludes 0. ``--json`` has them under
+``intervals`` and ``comparisons``.
+
     python benchmarks/quality.py --policy magail=runs/magail/checkpoints/latest.pt [--json]
     python benchmarks/quality.py --policy shipped=pretrained --seeds 0 --rollouts 8 --out q
+    python benchmarks/quality.py --split configs/splits/wild.yaml --policy a0=A0.pt \
+        --policy a1=A1.pt --policy a2=A2.pt --seed-group A=a0,a1,a2 --seeds 0 --rollouts 8
 """
 
 from __future__ import annotations
@@ -184,6 +194,62 @@ def read_report(folder: Path, methods: list[str]) -> tuple[dict, list[dict]]:
     return means, scene_rows
 
 
+def parse_groups(items: list[str], policies: dict[str, str]) -> dict[str, list[str]]:
+    """``NAME=P1,P2,...`` -> {NAME: [P1, P2, ...]}: training seeds of one recipe (each a
+    ``--policy`` name, in one group at most)."""
+    groups: dict[str, list[str]] = {}
+    taken: set[str] = set()
+    for item in items:
+        name, sep, members = item.partition("=")
+        names = [m for m in members.split(",") if m]
+        if not sep or not name or not names:
+            raise SystemExit(f"error: --seed-group {item!r}: expected NAME=P1,P2,...")
+        bad = [m for m in names if m not in policies or m in taken]
+        if bad:
+            raise SystemExit(f"error: --seed-group {item!r}: {bad[0]!r} is not a --policy name "
+                             "or is in another group")
+        if name in groups or name in policies:
+            raise SystemExit(f"error: --seed-group {item!r}: name {name!r} is taken")
+        groups[name] = names
+        taken.update(names)
+    return groups
+
+
+def uncertainty(scene_rows: list[dict], methods: list[str], groups: dict[str, list[str]]
+                ) -> tuple[dict, list[dict]]:
+    """(per subject — a seed group, or a method in none — the bootstrap interval of each
+    :data:`FIELDS` figure; the paired meta-metric differences of every pair of subjects)."""
+    from magail_sumo.evaluation.bootstrap import bootstrap_ci, paired_difference, verdict
+
+    grouped = {m for ms in groups.values() for m in ms}
+    subjects = {**groups, **{m: [m] for m in methods if m not in grouped}}
+    scenes = sorted({r["scenario_id"] for r in scene_rows})
+    col = {sid: k for k, sid in enumerate(scenes)}
+
+    def matrix(members: list[str], field: str) -> np.ndarray:
+        out = np.full((len(members), len(scenes)), np.nan)
+        for i, m in enumerate(members):
+            acc: dict[str, list[float]] = {}
+            for r in scene_rows:
+                if r["method"] == m and math.isfinite(r[field]):
+                    acc.setdefault(r["scenario_id"], []).append(r[field])
+            for sid, v in acc.items():
+                out[i, col[sid]] = float(np.mean(v))  # over evaluation seeds
+        return out
+
+    intervals = {name: {f: bootstrap_ci(matrix(ms, f)).as_dict() for f, _ in FIELDS}
+                 for name, ms in subjects.items()}
+    names = list(subjects)
+    comparisons = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            d = paired_difference(matrix(subjects[a], "realism_meta_metric"),
+                                  matrix(subjects[b], "realism_meta_metric"))
+            comparisons.append({"a": a, "b": b, "metric": "realism_meta_metric",
+                                "difference": d.as_dict(), "verdict": verdict(d, a, b)})
+    return {n: {"members": subjects[n], "figures": intervals[n]} for n in names}, comparisons
+
+
 def _fmt(v: float) -> str:
     return "n/a" if not math.isfinite(v) else f"{v:.4f}"
 
@@ -212,6 +278,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--timeout-s", default="1800", help="evaluate / convert --timeout-s")
     ap.add_argument("--out", type=Path, help="output folder (default: a temporary one)")
+    ap.add_argument("--seed-group", action="append", default=[], metavar="NAME=P1,P2",
+                    help="policies (--policy names) that are training seeds of one recipe: "
+                         "figures and intervals over them together (repeatable)")
     ap.add_argument("--allow-trained-scenes", action="store_true",
                     help="score scenes a policy was trained on (marked), instead of refusing")
     ap.add_argument("--reuse", action="store_true",
@@ -230,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         ap.error(f"--baselines: unknown {bad[0]} (known: {', '.join(BASELINES)})")
     policies = parse_policies(args.policy)
+    groups = parse_groups(args.seed_group, policies)
     if not policies and not baselines:
         ap.error("nothing to score: give --policy NAME=SPEC and/or --baselines")
     if args.rollouts < 1 or args.workers < 1 or any(w < 0 for w in args.windows):
@@ -330,10 +400,12 @@ def main(argv: list[str] | None = None) -> int:
                          "per_seed": vals, "seeds": [s for s in per_seed if m in per_seed[s]]})
     scored = {m: sorted({r["scenario_id"] for r in scene_rows if r["method"] == m})
               for m in methods}
+    intervals, comparisons = uncertainty(scene_rows, methods, groups)
     result = {"out": str(out), "split": str(split_path), "scenes_from": "--scenes" if
               args.scenes else "test split", "seeds": args.seeds, "rollouts": args.rollouts,
               "windows": args.windows, "methods": {**{b: b for b in baselines}, **policies},
               "scenes": scenes, "scored": scored, "rows": rows, "scene_rows": scene_rows,
+              "seed_groups": groups, "intervals": intervals, "comparisons": comparisons,
               "skipped_windows": notes, "errors": errors}
     if args.json:
         print(json.dumps(finite_json(result), indent=2))
@@ -350,6 +422,18 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'metric':<18}" + "".join(f"{m:>{width[m]}}" for m in methods))
     for f, label in FIELDS:
         print(f"{label:<18}" + "".join(f"{text[(m, f)]:>{width[m]}}" for m in methods))
+    print("95 % bootstrap intervals over the scored scenes (and a group's training seeds):")
+    shown = [("realism_meta_metric", "meta-metric"), ("simulated_collision_rate", "collision"),
+             ("simulated_offroad_rate", "off-road"), ("speed_bias", "speed bias")]
+    for name, rec in intervals.items():
+        members = f" ({', '.join(rec['members'])})" if len(rec["members"]) > 1 else ""
+        print(f"  {name}{members}: " + "; ".join(
+            f"{label} {_fmt(rec['figures'][f]['mean'])} [{_fmt(rec['figures'][f]['lo'])}, "
+            f"{_fmt(rec['figures'][f]['hi'])}]" for f, label in shown))
+    for c in comparisons:
+        d = c["difference"]
+        print(f"  meta-metric {c['a']} - {c['b']}: {_fmt(d['mean'])} [{_fmt(d['lo'])}, "
+              f"{_fmt(d['hi'])}]: {c['verdict']}")
     print("scenes scored:")
     for rec in scenes:
         mark = f"  TRAINED ON by {', '.join(rec['trained_on_by'])}" if rec["trained_on_by"] \

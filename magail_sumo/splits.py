@@ -7,6 +7,12 @@ refused) and checked when loaded: both lists non-empty, no file twice, and no te
 also a training scene — the same path, or a file of the same scene in another format (the same
 file name stem, e.g. ``data/womd/X.tfrecord`` and ``data/scenarionet/X.pkl``).
 
+A split of scenes that are not bundled in ``data/`` names where they are with ``data_root``: a
+folder (relative to the repository root, or absolute) the relative scene paths are under. It may
+read an environment variable the shell way, ``${NAME}`` or ``${NAME:-default}``, so that one split
+file serves every machine (``configs/splits/wild.yaml``: ``${MAGAIL_SUMO_SHARED_DATA:-../shared/
+data}``).
+
 This module sits low (it imports only :mod:`magail_sumo.config`) so that a training config can
 take its scenes from a split (``scenes: {split: FILE, part: train}``, :class:`~magail_sumo.
 training.config.ScenesConfig`) and evaluation reads the same file.
@@ -15,6 +21,7 @@ training.config.ScenesConfig`) and evaluation reads the same file.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -23,6 +30,28 @@ from magail_sumo.config import ConfigError, check, load_config
 
 #: the parts of a split
 PARTS: tuple[str, ...] = ("train", "test")
+
+_VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+
+
+def expand_root(text: str) -> str:
+    """``text`` with each ``${NAME}`` / ``${NAME:-default}`` replaced by the environment
+    variable ``NAME`` (the default where it is unset or empty).
+
+    :raises ConfigError: ``NAME`` is unset and has no default, or a ``$`` is not of that form.
+    """
+    def one(m: re.Match) -> str:
+        value = os.environ.get(m.group(1), "")
+        if value:
+            return value
+        if m.group(2) is None:
+            raise ConfigError(f"data_root: environment variable {m.group(1)} is not set "
+                              "(and the split gives no default: ${NAME:-default})")
+        return m.group(2)
+    out = _VAR.sub(one, text)
+    check("$" not in _VAR.sub("", text), "data_root",
+          f"{text!r}: only ${{NAME}} and ${{NAME:-default}} are expanded")
+    return out
 
 
 def scene_stem(path: str) -> str:
@@ -42,11 +71,14 @@ class SceneSplit:
         paths relative to the repository root, or absolute).
     :param test: held-out scene files, never trained on; quality figures are measured here.
     :param description: free text.
+    :param data_root: the folder relative scene paths are under (module doc; empty: the
+        repository root, i.e. the ``root`` given to :meth:`files`).
     """
 
     train: tuple[str, ...]
     test: tuple[str, ...]
     description: str = ""
+    data_root: str = ""
 
     def __post_init__(self) -> None:
         for key in PARTS:
@@ -62,19 +94,27 @@ class SceneSplit:
             check(scene_stem(f) not in train_stems, "test",
                   f"{f} is the same scene as training file {train_stems.get(scene_stem(f))}")
 
+        if self.data_root:
+            expand_root(self.data_root)  # an unusable root is refused when loaded
+
+    def paths(self, which: str, root: str | PathLike = ".") -> list[Path]:
+        """The ``train`` or ``test`` paths: relative ones under ``data_root``, itself resolved
+        against ``root`` (the repository root) where relative. Not checked to exist."""
+        if which not in PARTS:
+            raise ConfigError(f"split part {which!r}: must be 'train' or 'test'")
+        base = Path(root) / expand_root(self.data_root) if self.data_root else Path(root)
+        return [Path(f) if os.path.isabs(f) else base / f for f in getattr(self, which)]
+
     def files(self, which: str, root: str | PathLike = ".") -> list[Path]:
-        """The ``train`` or ``test`` files, relative ones resolved against ``root``.
+        """:meth:`paths`, each checked to be a file.
 
         :raises ConfigError: ``which`` is neither, or a file does not exist (naming it).
         """
-        if which not in PARTS:
-            raise ConfigError(f"split part {which!r}: must be 'train' or 'test'")
-        out = []
-        for k, f in enumerate(getattr(self, which)):
-            p = Path(f) if os.path.isabs(f) else Path(root) / f
+        out = self.paths(which, root)
+        for k, (f, p) in enumerate(zip(getattr(self, which), out)):
             if not p.is_file():
-                raise ConfigError(f"split {which}[{k}]: {f}: no such file (under {root})")
-            out.append(p)
+                raise ConfigError(f"split {which}[{k}]: {f}: no such file (under "
+                                  f"{p.parent if self.data_root else root})")
         return out
 
 

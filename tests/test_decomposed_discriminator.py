@@ -278,7 +278,8 @@ def test_config_range_checks_and_kind():
                             ("pair_hidden", [0], "layer sizes must be >= 1")):
         with pytest.raises(ConfigError, match=rf"discriminator\.decomposed\.{key}: {msg}"):
             from_dict(TrainConfig, {"discriminator": {"decomposed": {key: value}}})
-    with pytest.raises(ConfigError, match="'transformer', 'mlp' or 'decomposed'"):
+    with pytest.raises(ConfigError, match="must be one of transformer, mlp, decomposed, "
+                       "decomposed_transformer"):
         from_dict(TrainConfig, {"discriminator": {"kind": "decomp"}})
     cfg = from_dict(TrainConfig, {"discriminator": {
         "kind": "decomposed", "ignore_features": ["prev_accel"],

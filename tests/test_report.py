@@ -45,6 +45,11 @@ def test_report_files(folder):
     assert np.isfinite(metrics["speed_bias"]).all()
     md = (rep / "report.md").read_text()
     assert "| constvel |" in md and "![" in md
+    # paired bootstrap comparison over the two scenes: log replay is more realistic on both
+    diff = metrics.pivot(index="scenario_id", columns="method", values="metametric")
+    assert (diff["logreplay"] > diff["constvel"]).all()
+    row = next(line for line in md.splitlines() if line.startswith("| constvel − logreplay |"))
+    assert "| 2 |" in row and row.rstrip(" |").endswith("logreplay better than constvel")
     for img in re.findall(r"\]\((img/[^)]+)\)", md):
         assert (rep / img).stat().st_size > 1000
 

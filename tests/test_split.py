@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from conftest import ROOT
@@ -55,3 +57,49 @@ def test_missing_scene_file_named(tmp_path):
     split = load_split(path)
     with pytest.raises(ConfigError, match=r"split test\[0\]: b.pkl: no such file"):
         split.files("test", tmp_path)
+
+
+WILD = ROOT / "configs" / "splits" / "wild.yaml"
+
+
+def test_data_root_reads_the_environment_the_shell_way(tmp_path, monkeypatch):
+    (tmp_path / "d").mkdir()
+    for name in ("a.pkl", "b.pkl"):
+        (tmp_path / "d" / name).write_bytes(b"")
+    path = tmp_path / "split.yaml"
+    path.write_text("data_root: ${SPLIT_TEST_ROOT:-d}\ntrain: [a.pkl]\ntest: [b.pkl]\n")
+    monkeypatch.delenv("SPLIT_TEST_ROOT", raising=False)
+    split = load_split(path)
+    assert split.files("test", tmp_path) == [tmp_path / "d" / "b.pkl"]
+    monkeypatch.setenv("SPLIT_TEST_ROOT", str(tmp_path / "elsewhere"))
+    assert split.paths("train", tmp_path) == [tmp_path / "elsewhere" / "a.pkl"]
+    with pytest.raises(ConfigError, match=r"split train\[0\]: a.pkl: no such file \(under "
+                       + str(tmp_path / "elsewhere")):
+        split.files("train", tmp_path)
+    monkeypatch.delenv("SPLIT_TEST_ROOT")
+    for text, problem in (
+            ("${SPLIT_TEST_ROOT}", "environment variable SPLIT_TEST_ROOT is not set"),
+            ("$HOME/x", "only \\$\\{NAME\\} and \\$\\{NAME:-default\\} are expanded")):
+        path.write_text(f"data_root: {text!r}\ntrain: [a.pkl]\ntest: [b.pkl]\n")
+        with pytest.raises(ConfigError, match=problem) as err:
+            load_split(path)
+        assert "data_root" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_wild_split_at_the_scale_of_the_shared_data():
+    split = load_split(WILD)
+    assert len(split.train) == 73 and len(split.test) == 32
+    womd_test = [f for f in split.test if "nuscenes" not in f]
+    assert len(womd_test) >= 20 and len(split.train) >= 50
+    assert any("nuscenes" in f for f in split.train) and any("nuscenes" in f for f in split.test)
+    # the old split's test scenes stay test scenes, its train scenes train scenes
+    old = load_split(WOMD14)
+    stems = lambda files: {os.path.basename(f).split(".")[0] for f in files}  # noqa: E731
+    assert stems(old.test) <= stems(split.test) and stems(old.train) <= stems(split.train)
+    root = split.paths("test", ROOT)[0].parents[2]
+    if not root.is_dir():
+        pytest.skip(f"{root}: the shared data is not on this machine")
+    train, test = split.files("train", ROOT), split.files("test", ROOT)
+    ids = {p: [s.scenario_id for s in iter_scenes(p)] for p in train + test}
+    assert all(len(v) == 1 for v in ids.values())
+    assert not {ids[p][0] for p in train} & {ids[p][0] for p in test}

@@ -3,10 +3,13 @@ normaliser."""
 
 from .critic import CriticTransformerConfig, TransformerCritic
 from .decomposed import DecomposedConfig, DecomposedDiscriminator
+from .decomposed_transformer import DecomposedTransformerDiscriminator, PairEncoderConfig
 from .discriminator import (
     MLPDiscriminator, TransformerConfig, TransformerDiscriminator, imitation_reward,
 )
 from .normalizer import RunningNormalizer
 
-__all__ = ["CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator", "MLPDiscriminator", "RunningNormalizer", "TransformerConfig",
-           "TransformerCritic", "TransformerDiscriminator", "imitation_reward"]
+__all__ = ["CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator",
+           "DecomposedTransformerDiscriminator", "MLPDiscriminator", "PairEncoderConfig",
+           "RunningNormalizer", "TransformerConfig", "TransformerCritic",
+           "TransformerDiscriminator", "imitation_reward"]

@@ -134,35 +134,15 @@ def _gather_slots(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return values[b, index]
 
 
-class DecomposedDiscriminator(_TokenInput):
-    """Ego–map plus distance-weighted ego–neighbour discriminator (module doc); same outputs as
-    the other discriminators ((B, V) per-vehicle logits, (B,) scene logits) but its forwards
-    also take the poses ``pos`` (B, V, 3)."""
+class DecomposedBase(_TokenInput):
+    """What every decomposed discriminator shares (module doc): the neighbour search, the
+    weighted sum ``D_i = e_i + Σ_j w_ij·l_ij``, the scene logit and the social reward. A
+    subclass gives the terms (:meth:`terms`); its forwards take the poses ``pos`` (B, V, 3)
+    too. ``config`` is a :class:`DecomposedConfig` (its geometry fields are used here)."""
 
     #: forwards take the vehicles' poses (scene frame x, y in m, yaw in rad) as a third argument
     uses_poses = True
-
-    def __init__(self, feature_dim: int, config: DecomposedConfig | None = None) -> None:
-        super().__init__(feature_dim)
-        cfg = config or DecomposedConfig()
-        self.config = cfg
-        self.ego = _tanh_mlp([feature_dim, *cfg.ego_hidden, 1])
-        first = cfg.pair_hidden[0] if cfg.pair_hidden else 1
-        # first layer of MLP_p over [x̂_i, x̂_j, geometry], split by input block
-        self.pair_i = nn.Linear(feature_dim, first)
-        self.pair_j = nn.Linear(feature_dim, first, bias=False)
-        self.pair_geometry = nn.Linear(GEOMETRY_DIM, first, bias=False)
-        # the rest of MLP_p: tanh, the other layers; nothing when MLP_p is linear
-        self.pair_rest = nn.Sequential(nn.Tanh(), *_tanh_mlp([*cfg.pair_hidden, 1])) \
-            if cfg.pair_hidden else nn.Sequential()
-
-    def head_weights(self) -> list[torch.Tensor]:
-        """Weights of the output layers (for the logit regulariser)."""
-        if self.config.pair_hidden:
-            pair = [self.pair_rest[-1].weight]
-        else:
-            pair = [self.pair_i.weight, self.pair_j.weight, self.pair_geometry.weight]
-        return [self.ego[-1].weight, *pair]
+    config: DecomposedConfig
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor, pos: torch.Tensor,
                 neighbours: Neighbours | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -223,9 +203,50 @@ class DecomposedDiscriminator(_TokenInput):
         if pos is None:
             raise ValueError("the decomposed discriminator needs the vehicles' poses")
         nb = self.neighbours(pos, mask) if neighbours is None else neighbours
+        ego, pair = self.terms(xp * self.feature_mask, bi, vi, mask, nb)
+        tokens = (ego + (nb.weight.to(xp.dtype) * pair).sum(-1)).masked_fill(~mask, 0.0)
+        m = mask.to(tokens.dtype)
+        return tokens, (tokens * m).sum(1) / m.sum(1).clamp(min=1.0)
+
+    def terms(self, xp: torch.Tensor, bi: torch.Tensor, vi: torch.Tensor, mask: torch.Tensor,
+              nb: Neighbours) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(e, l)``: (B, V) ego–map terms and (B, V, K) pairwise terms (0 where absent or
+        not a neighbour) from the masked normalised tokens ``xp`` (N, F) of the present
+        vehicles ``(bi, vi)``."""
+        raise NotImplementedError
+
+
+class DecomposedDiscriminator(DecomposedBase):
+    """Ego–map plus distance-weighted ego–neighbour discriminator with MLP heads (module doc);
+    same outputs as the other discriminators ((B, V) per-vehicle logits, (B,) scene logits) but
+    its forwards also take the poses ``pos`` (B, V, 3)."""
+
+    def __init__(self, feature_dim: int, config: DecomposedConfig | None = None) -> None:
+        super().__init__(feature_dim)
+        cfg = config or DecomposedConfig()
+        self.config = cfg
+        self.ego = _tanh_mlp([feature_dim, *cfg.ego_hidden, 1])
+        first = cfg.pair_hidden[0] if cfg.pair_hidden else 1
+        # first layer of MLP_p over [x̂_i, x̂_j, geometry], split by input block
+        self.pair_i = nn.Linear(feature_dim, first)
+        self.pair_j = nn.Linear(feature_dim, first, bias=False)
+        self.pair_geometry = nn.Linear(GEOMETRY_DIM, first, bias=False)
+        # the rest of MLP_p: tanh, the other layers; nothing when MLP_p is linear
+        self.pair_rest = nn.Sequential(nn.Tanh(), *_tanh_mlp([*cfg.pair_hidden, 1])) \
+            if cfg.pair_hidden else nn.Sequential()
+
+    def head_weights(self) -> list[torch.Tensor]:
+        """Weights of the output layers (for the logit regulariser)."""
+        if self.config.pair_hidden:
+            pair = [self.pair_rest[-1].weight]
+        else:
+            pair = [self.pair_i.weight, self.pair_j.weight, self.pair_geometry.weight]
+        return [self.ego[-1].weight, *pair]
+
+    def terms(self, xp: torch.Tensor, bi: torch.Tensor, vi: torch.Tensor, mask: torch.Tensor,
+              nb: Neighbours) -> tuple[torch.Tensor, torch.Tensor]:
         # the heads run on present vehicles and valid pairs only (a padded batch of a large
         # scene is mostly absent slots and missing neighbours); the rest stays 0
-        xp = xp * self.feature_mask
         ego = xp.new_zeros(mask.shape).index_put((bi, vi), self.ego(xp).squeeze(-1))
         pb, pv, pk = nb.valid.nonzero(as_tuple=True)
         # row of each vehicle among the present ones; the first layer's token blocks run once
@@ -236,9 +257,7 @@ class DecomposedDiscriminator(_TokenInput):
                + self.pair_geometry(nb.geometry[pb, pv, pk].to(xp.dtype)))  # (P, H)
         pair = xp.new_zeros(nb.valid.shape).index_put((pb, pv, pk),
                                                       self.pair_rest(pre).squeeze(-1))
-        tokens = (ego + (nb.weight.to(xp.dtype) * pair).sum(-1)).masked_fill(~mask, 0.0)
-        m = mask.to(tokens.dtype)
-        return tokens, (tokens * m).sum(1) / m.sum(1).clamp(min=1.0)
+        return ego, pair
 
     @torch.no_grad()
     def social_reward(self, rewards: torch.Tensor, pos: torch.Tensor, mask: torch.Tensor,

@@ -18,6 +18,7 @@ import torch
 
 from magail_sumo.config import ConfigError
 from magail_sumo.models.decomposed import DecomposedDiscriminator
+from magail_sumo.models.decomposed_transformer import DecomposedTransformerDiscriminator
 from magail_sumo.models.discriminator import MLPDiscriminator, TransformerDiscriminator
 from magail_sumo.sensors.observation import observation_names
 
@@ -28,16 +29,22 @@ from .discriminator_trainer import DiscriminatorTrainer
 from .reward import DiscriminatorRewardWrapper
 
 
+#: ``discriminator.kind`` → builder from (``discriminator`` config, token width); the names are
+#: :data:`~magail_sumo.training.config.DISCRIMINATOR_KINDS`
+DISCRIMINATORS = {
+    "transformer": lambda d, f: TransformerDiscriminator(f, d.transformer),
+    "mlp": lambda d, f: MLPDiscriminator(f, d.mlp_hidden),
+    "decomposed": lambda d, f: DecomposedDiscriminator(f, d.decomposed),
+    "decomposed_transformer": lambda d, f: DecomposedTransformerDiscriminator(
+        f, d.decomposed, d.decomposed_transformer),
+}
+
+
 def make_discriminator(cfg: TrainConfig, feature_dim: int) -> torch.nn.Module:
     """The config's discriminator over tokens concat(s, s') of ``feature_dim`` columns, with
     ``discriminator.ignore_features`` (observation feature names, in s and in s') masked."""
     d = cfg.discriminator
-    if d.kind == "transformer":
-        disc = TransformerDiscriminator(feature_dim, d.transformer)
-    elif d.kind == "decomposed":
-        disc = DecomposedDiscriminator(feature_dim, d.decomposed)
-    else:
-        disc = MLPDiscriminator(feature_dim, d.mlp_hidden)
+    disc = DISCRIMINATORS[d.kind](d, feature_dim)
     if d.ignore_features:
         names = observation_names(cfg.env.observation)
         unknown = [f for f in d.ignore_features if f not in names]
@@ -73,7 +80,7 @@ class AdversarialReward:
             venv, disc, d.reward_t_coef, d.reward_i_coef, d.reward_floor, cfg.device, **extra,
             penalties={"collision": d.collision_penalty, "off_road": d.off_road_penalty,
                        "red_light": d.red_light_penalty},
-            social_coef=d.decomposed.social_coef if d.kind == "decomposed" else 0.0)
+            social_coef=d.decomposed.social_coef if d.decomposes else 0.0)
         trainer = DiscriminatorTrainer(
             disc, expert, d.epochs, d.batch_size, d.learning_rate, d.weight_decay,
             DiscriminatorLossConfig(d.gp_coef, d.logit_reg), cfg.seed, cfg.device)

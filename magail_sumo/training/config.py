@@ -21,6 +21,7 @@ from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
+from magail_sumo.models.decomposed_transformer import PairEncoderConfig
 from magail_sumo.models.discriminator import TransformerConfig
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.splits import PARTS, load_split
@@ -91,7 +92,10 @@ class ScenesConfig:
             scene_split = load_split(base / split)
         except ConfigError as exc:
             raise FieldError("split", str(exc)) from None
-        out["files"] = [*files, *getattr(scene_split, part)]
+        try:
+            out["files"] = [*files, *map(str, scene_split.paths(part))]
+        except ConfigError as exc:
+            raise FieldError("split", f"{split}: {exc}") from None
         return out
 
     @property
@@ -251,17 +255,29 @@ class PolicyConfig:
         check_sizes(self, "actor_hidden", "critic_hidden")
 
 
+#: ``discriminator.kind`` values (built by :func:`magail_sumo.training.adversarial.
+#: make_discriminator`); the decomposed ones take the vehicles' poses
+DISCRIMINATOR_KINDS: tuple[str, ...] = ("transformer", "mlp", "decomposed",
+                                        "decomposed_transformer")
+
+
 @dataclass(frozen=True)
 class DiscriminatorConfig:
     """GAIL discriminator and reward.
 
     :param kind: ``"transformer"`` (MAGAIL: all vehicles of a scene step together), ``"mlp"``
-        (plain per-vehicle GAIL) or ``"decomposed"`` (an ego–map term per vehicle plus
+        (plain per-vehicle GAIL), ``"decomposed"`` (an ego–map term per vehicle plus
         distance-weighted pairwise terms with its nearest neighbours; needs expert data with
-        poses, format ``magail_sumo.expert/2``).
+        poses, format ``magail_sumo.expert/2``) or ``"decomposed_transformer"`` (the same
+        decomposition with the terms from a transformer over each vehicle's neighbourhood,
+        :mod:`magail_sumo.models.decomposed_transformer`).
     :param decomposed: sizes, neighbourhood geometry (m) and social reward of the decomposed
         discriminator (:class:`~magail_sumo.models.decomposed.DecomposedConfig`; used when
-        ``kind`` is ``"decomposed"``).
+        ``kind`` is ``"decomposed"``; its geometry and social reward also for
+        ``"decomposed_transformer"``).
+    :param decomposed_transformer: sizes of the neighbourhood encoder of
+        ``"decomposed_transformer"`` (:class:`~magail_sumo.models.decomposed_transformer.
+        PairEncoderConfig`).
     :param epochs: gradient steps per PPO update, each on ``batch_size`` expert and
         ``batch_size`` policy scene steps.
     :param reward_t_coef, reward_i_coef: r = c_t·r_task + c_i·(−log(max(1 − sigmoid(D), floor))).
@@ -277,6 +293,7 @@ class DiscriminatorConfig:
     kind: str = "transformer"
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     decomposed: DecomposedConfig = field(default_factory=DecomposedConfig)
+    decomposed_transformer: PairEncoderConfig = field(default_factory=PairEncoderConfig)
     mlp_hidden: tuple[int, ...] = (256, 256)
     learning_rate: float = 1e-3
     weight_decay: float = 1e-4
@@ -293,8 +310,8 @@ class DiscriminatorConfig:
     ignore_features: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        check(self.kind in ("transformer", "mlp", "decomposed"), "kind",
-              f"must be 'transformer', 'mlp' or 'decomposed', got {show(self.kind)}")
+        check(self.kind in DISCRIMINATOR_KINDS, "kind",
+              f"must be one of {', '.join(DISCRIMINATOR_KINDS)}, got {show(self.kind)}")
         check_sizes(self, "mlp_hidden")
         check_positive(self, "learning_rate", "batch_size")
         check_positive(self, "weight_decay", "epochs", "gp_coef", "logit_reg",
@@ -302,6 +319,11 @@ class DiscriminatorConfig:
                        allow_zero=True)
         check(0.0 < self.reward_floor < 1.0, "reward_floor",
               f"must be in (0, 1), got {show(self.reward_floor)}")
+
+    @property
+    def decomposes(self) -> bool:
+        """The kind is a decomposed one (poses needed, ``decomposed.social_coef`` used)."""
+        return self.kind.startswith("decomposed")
 
 
 @dataclass(frozen=True)

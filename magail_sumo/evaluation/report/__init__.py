@@ -27,6 +27,7 @@ from pathlib import Path
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.city import (EVENTS as CITY_EVENTS, KINEMATICS_FILE, completed_ids,
                                          read_rows)
+from magail_sumo.evaluation.bootstrap import paired_difference, verdict
 from magail_sumo.evaluation.protocol import EvaluationError
 from magail_sumo.inputs import read_json
 from magail_sumo.evaluation.traffic import METRICS
@@ -183,6 +184,33 @@ def _offroad_apart(doc: Document, sc: Scores) -> None:
                      for part in (good, sorted(bad)))] for m in sc.methods], "offroad-apart")
 
 
+def _comparisons(doc: Document, sc: Scores) -> None:
+    """Each pair of methods' meta-metric difference with its paired bootstrap interval over the
+    scenes both scored (:mod:`magail_sumo.evaluation.bootstrap`); nothing with one method or
+    fewer than two shared scenes."""
+    sids = sorted(sc.scenes)
+    per = {(r["scenario_id"], r["method"]): r["metametric"] for r in sc.rows}
+    values = {m: [per.get((s, m), float("nan")) for s in sids] for m in sc.methods}
+    rows = []
+    for i, a in enumerate(sc.methods):
+        for b in sc.methods[i + 1:]:
+            shared = sum(math.isfinite(x) and math.isfinite(y)
+                         for x, y in zip(values[a], values[b]))
+            if shared < 2:
+                continue
+            d = paired_difference(values[a], values[b])
+            rows.append([f"{a} − {b}", shared, f"{d.mean:+.4f}", f"[{d.lo:+.4f}, {d.hi:+.4f}]",
+                         verdict(d, a, b)])
+    if not rows:
+        return
+    doc.para("Meta-metric differences, paired on the scenes:")
+    doc.table(["methods", "scenes", "difference", "95 % interval", "verdict"], rows,
+              "comparisons")
+    doc.note("95 % bootstrap interval of the difference of the mean meta-metric (10,000 "
+             "resamples of the scenes both methods scored, the same scenes for both); a method "
+             "is called better only where the interval excludes 0.")
+
+
 def _scene_sections(doc: Document, sc: Scores, means: dict, cis: dict, units: dict,
                     man: dict) -> None:
     """The recorded scenes' sections: metrics, realism, figures, per-agent rows, fixes."""
@@ -199,6 +227,7 @@ def _scene_sections(doc: Document, sc: Scores, means: dict, cis: dict, units: di
              "seeded: a second evaluation seed gives a second sample of the same scenes.")
     if "logreplay" in sc.methods:
         doc.note(REFERENCE_NOTE)
+    _comparisons(doc, sc)
     _offroad_apart(doc, sc)
     doc.table(["metric", "unit", "definition"],
               [[n, units[n], METRICS[n].description] for n in MAIN], "units")

@@ -92,8 +92,8 @@ class GailRun:
                  log: Callable[[str], None] | None = None) -> None:
         self.cfg, self.expert = cfg, expert
         d = cfg.discriminator
-        if d.kind == "decomposed":  # before any worker starts
-            expert.require_poses("discriminator.kind 'decomposed'")
+        if d.decomposes:  # before any worker starts
+            expert.require_poses(f"discriminator.kind {d.kind!r}")
         self.log = log or (lambda msg: None)
         cfg, self.venv = make_pool_env(cfg, self.log)
         self.cfg = cfg

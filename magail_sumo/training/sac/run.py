@@ -47,8 +47,8 @@ class SacRun:
         if self.gail and expert is None:
             raise ValueError("sac_gail needs expert data")
         d = cfg.discriminator
-        if self.gail and d.kind == "decomposed":
-            expert.require_poses("discriminator.kind 'decomposed'")
+        if self.gail and d.decomposes:
+            expert.require_poses(f"discriminator.kind {d.kind!r}")
         cfg, self.venv = make_pool_env(cfg, self.log)
         self.cfg = cfg
         try:
