@@ -333,6 +333,27 @@ def test_quality_benchmark_end_to_end(checkpoint, registry, tmp_path):
         rows[("constvel", "realism_meta_metric")]["mean"]
     man = json.loads((out / "seed0" / "manifest.json").read_text())
     assert man["methods"] == ["constvel", "logreplay", "tiny"]  # baselines once, then the policy
+    # bootstrap intervals: one scene, one seed -> the interval is the point itself
+    assert got["seed_groups"] == {} and list(got["intervals"]) == list(got["methods"])
+    for m, rec in got["intervals"].items():
+        mm = rec["figures"]["realism_meta_metric"]
+        assert rec["members"] == [m]
+        assert mm["mean"] == pytest.approx(rows[(m, "realism_meta_metric")]["mean"], abs=1e-12)
+        assert mm["lo"] == pytest.approx(mm["mean"]) and mm["hi"] == pytest.approx(mm["mean"])
+    pairs = {(c["a"], c["b"]): c for c in got["comparisons"]}
+    assert sorted(pairs) == [("constvel", "logreplay"), ("constvel", "tiny"),
+                             ("logreplay", "tiny")]
+    c = pairs[("constvel", "logreplay")]
+    assert c["difference"]["mean"] == pytest.approx(
+        rows[("constvel", "realism_meta_metric")]["mean"]
+        - rows[("logreplay", "realism_meta_metric")]["mean"], abs=1e-12)
+    assert c["verdict"] == "logreplay better than constvel"
+    # a seed group must name --policy names, each in one group
+    for group, problem in (("G=tiny,nope", "'nope' is not a --policy name"),
+                           ("G", "expected NAME=P1,P2")):
+        bad = _benchmark(["--policy", "tiny=pretrained:tiny", "--seed-group", group,
+                          "--scenes", str(HELD_OUT), "--out", str(tmp_path / "q3")], reg)
+        assert bad.returncode != 0 and problem in bad.stderr and not (tmp_path / "q3").exists()
     # a policy is never scored on a scene it was trained on
     res = _benchmark(["--policy", "tiny=pretrained:tiny", "--baselines", "--scenes", SCENE,
                       "--seeds", "0", "--rollouts", "2", "--out", str(tmp_path / "q2")], reg)

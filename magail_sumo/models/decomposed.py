@@ -216,6 +216,18 @@ class DecomposedBase(_TokenInput):
         raise NotImplementedError
 
 
+    @torch.no_grad()
+    def social_reward(self, rewards: torch.Tensor, pos: torch.Tensor, mask: torch.Tensor,
+                      coef: float, neighbours: Neighbours | None = None) -> torch.Tensor:
+        """``r_i + coef·Σ_{j∈N(i)} w_ij·r_j`` for (B, V) rewards (0 stays 0 where absent);
+        ``neighbours``: :meth:`neighbours` of ``pos`` and ``mask`` when already computed."""
+        if coef == 0.0:
+            return rewards
+        nb = self.neighbours(pos, mask) if neighbours is None else neighbours
+        social = (nb.weight.to(rewards.dtype) * _gather_slots(rewards, nb.index)).sum(-1)
+        return (rewards + coef * social).masked_fill(~mask, 0.0)
+
+
 class DecomposedDiscriminator(DecomposedBase):
     """Ego–map plus distance-weighted ego–neighbour discriminator with MLP heads (module doc);
     same outputs as the other discriminators ((B, V) per-vehicle logits, (B,) scene logits) but
@@ -258,14 +270,3 @@ class DecomposedDiscriminator(DecomposedBase):
         pair = xp.new_zeros(nb.valid.shape).index_put((pb, pv, pk),
                                                       self.pair_rest(pre).squeeze(-1))
         return ego, pair
-
-    @torch.no_grad()
-    def social_reward(self, rewards: torch.Tensor, pos: torch.Tensor, mask: torch.Tensor,
-                      coef: float, neighbours: Neighbours | None = None) -> torch.Tensor:
-        """``r_i + coef·Σ_{j∈N(i)} w_ij·r_j`` for (B, V) rewards (0 stays 0 where absent);
-        ``neighbours``: :meth:`neighbours` of ``pos`` and ``mask`` when already computed."""
-        if coef == 0.0:
-            return rewards
-        nb = self.neighbours(pos, mask) if neighbours is None else neighbours
-        social = (nb.weight.to(rewards.dtype) * _gather_slots(rewards, nb.index)).sum(-1)
-        return (rewards + coef * social).masked_fill(~mask, 0.0)
