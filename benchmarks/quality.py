@@ -254,6 +254,97 @@ def _fmt(v: float) -> str:
     return "n/a" if not math.isfinite(v) else f"{v:.4f}"
 
 
+def show(result: dict, methods: list[str], as_json: bool) -> int:
+    """Print ``result`` (the table, the intervals, the comparisons, the scenes; or JSON);
+    1 when it holds errors."""
+    rows, scenes, scored = result["rows"], result["scenes"], result["scored"]
+    intervals, comparisons, errors = result["intervals"], result["comparisons"], result["errors"]
+    if as_json:
+        print(json.dumps(finite_json(result), indent=2))
+        return 1 if errors else 0
+    split_path = Path(result["split"])
+    print(f"{len(scenes)} scene window(s) from the {result['scenes_from']} "
+          f"({os.path.relpath(split_path, ROOT) if split_path.is_relative_to(ROOT) else split_path})"
+          f", seeds {' '.join(map(str, result['seeds']))}, {result['rollouts']} rollouts; "
+          f"mean over scenes [min, max over seeds]; evaluation in {result['out']}")
+    cell = {(r["method"], r["metric"]): r for r in rows}
+    text = {(m, f): _fmt(cell[(m, f)]["mean"]) + (
+        f" [{_fmt(cell[(m, f)]['min'])}, {_fmt(cell[(m, f)]['max'])}]"
+        if len(cell[(m, f)]["seeds"]) > 1 else "") for m in methods for f, _ in FIELDS}
+    width = {m: max(len(m), *(len(text[(m, f)]) for f, _ in FIELDS)) + 2 for m in methods}
+    print(f"{'metric':<18}" + "".join(f"{m:>{width[m]}}" for m in methods))
+    for f, label in FIELDS:
+        print(f"{label:<18}" + "".join(f"{text[(m, f)]:>{width[m]}}" for m in methods))
+    print("95 % bootstrap intervals over the scored scenes (and a group's training seeds):")
+    shown = [("realism_meta_metric", "meta-metric"), ("simulated_collision_rate", "collision"),
+             ("simulated_offroad_rate", "off-road"), ("speed_bias", "speed bias")]
+    for name, rec in intervals.items():
+        members = f" ({', '.join(rec['members'])})" if len(rec["members"]) > 1 else ""
+        print(f"  {name}{members}: " + "; ".join(
+            f"{label} {_fmt(rec['figures'][f]['mean'])} [{_fmt(rec['figures'][f]['lo'])}, "
+            f"{_fmt(rec['figures'][f]['hi'])}]" for f, label in shown))
+    for c in comparisons:
+        d = c["difference"]
+        print(f"  meta-metric {c['a']} - {c['b']}: {_fmt(d['mean'])} [{_fmt(d['lo'])}, "
+              f"{_fmt(d['hi'])}]: {c['verdict']}")
+    print("scenes scored:")
+    for rec in scenes:
+        mark = f"  TRAINED ON by {', '.join(rec['trained_on_by'])}" if rec["trained_on_by"] \
+            else ""
+        missing = [m for m in methods if rec["scenario_id"] not in scored[m]]
+        print(f"  {rec['scenario_id']:<24} {rec['split']:<6} {rec['source_file']} steps "
+              f"{rec['source_steps'][0]}-{rec['source_steps'][1]}, {rec['scored_agents']} "
+              f"scored / {rec['simulated_agents']} simulated agents"
+              + (f"; not scored for {', '.join(missing)}" if missing else "") + mark)
+    for e in errors:
+        print(f"error: {e}", file=sys.stderr)
+    return 1 if errors else 0
+
+
+def merge(files: list[Path], group_items: list[str]) -> tuple[dict, list[str]]:
+    """(result, methods) of earlier ``--json`` outputs combined: their methods side by side on
+    the same scene windows, with intervals and comparisons over all of them (``group_items``:
+    ``--seed-group``). SystemExit naming the file when they cannot be combined."""
+    from magail_sumo.inputs import read_json
+
+    methods: dict[str, str] = {}
+    rows, scene_rows, errors, scenes, first = [], [], [], None, None
+    for f in files:
+        try:
+            got = read_json(f, expected="a quality.py --json output")
+            ids = sorted(r["scenario_id"] for r in got["scenes"])
+            part = {k: got[k] for k in ("seeds", "rollouts", "windows", "split")}
+        except Exception as exc:  # noqa: BLE001 - any malformed file is named, one line
+            raise SystemExit(f"error: --merge {f}: not a quality.py --json output "
+                             f"({type(exc).__name__}: {str(exc)[:200]})") from None
+        if first is None:
+            first, base = f, part
+            scenes = [{**r, "trained_on_by": []} for r in got["scenes"]]
+        elif ids != sorted(r["scenario_id"] for r in scenes) or part != base:
+            raise SystemExit(f"error: --merge {f}: other scene windows, seeds, rollouts or split "
+                             f"than {first}")
+        twice = [m for m in got["methods"] if m in methods]
+        if twice:
+            raise SystemExit(f"error: --merge {f}: method {twice[0]!r} is also in another file")
+        methods.update(got["methods"])
+        by_id = {r["scenario_id"]: r for r in got["scenes"]}
+        for r in scenes:
+            r["trained_on_by"] += by_id[r["scenario_id"]].get("trained_on_by", [])
+        rows += got["rows"]
+        scene_rows += got["scene_rows"]
+        errors += [f"{f}: {e}" for e in got["errors"]]
+    groups = parse_groups(group_items, methods)
+    names = list(methods)
+    intervals, comparisons = uncertainty(scene_rows, names, groups)
+    scored = {m: sorted({r["scenario_id"] for r in scene_rows if r["method"] == m})
+              for m in names}
+    result = {"out": ", ".join(map(str, files)), **base, "scenes_from": "merged runs",
+              "methods": methods, "scenes": scenes, "scored": scored, "rows": rows,
+              "scene_rows": scene_rows, "seed_groups": groups, "intervals": intervals,
+              "comparisons": comparisons, "skipped_windows": [], "errors": errors}
+    return result, names
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--policy", action="append", default=[], metavar="NAME=SPEC",
@@ -287,7 +378,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="no rollouts: read the reports already in --out (of a run with the "
                          "same arguments) again")
     ap.add_argument("--json", action="store_true", help="print rows as JSON")
+    ap.add_argument("--merge", nargs="+", type=Path, metavar="JSON",
+                    help="no rollouts: combine the --json outputs of earlier runs on the same "
+                         "scene windows (e.g. one per training seed) into one table with "
+                         "intervals and comparisons (with --seed-group)")
     args = ap.parse_args(argv)
+    if args.merge:
+        result, names = merge(args.merge, args.seed_group)
+        return show(result, names, args.json)
 
     from magail_sumo.errors import MagailSumoError
     from magail_sumo.policies import BASELINES
@@ -407,45 +505,7 @@ def main(argv: list[str] | None = None) -> int:
               "scenes": scenes, "scored": scored, "rows": rows, "scene_rows": scene_rows,
               "seed_groups": groups, "intervals": intervals, "comparisons": comparisons,
               "skipped_windows": notes, "errors": errors}
-    if args.json:
-        print(json.dumps(finite_json(result), indent=2))
-        return 1 if errors else 0
-    print(f"{len(scenes)} scene window(s) from the {result['scenes_from']} "
-          f"({os.path.relpath(split_path, ROOT) if split_path.is_relative_to(ROOT) else split_path})"
-          f", seeds {' '.join(map(str, args.seeds))}, {args.rollouts} rollouts; "
-          f"mean over scenes [min, max over seeds]; evaluation in {out}")
-    cell = {(r["method"], r["metric"]): r for r in rows}
-    text = {(m, f): _fmt(cell[(m, f)]["mean"]) + (
-        f" [{_fmt(cell[(m, f)]['min'])}, {_fmt(cell[(m, f)]['max'])}]"
-        if len(cell[(m, f)]["seeds"]) > 1 else "") for m in methods for f, _ in FIELDS}
-    width = {m: max(len(m), *(len(text[(m, f)]) for f, _ in FIELDS)) + 2 for m in methods}
-    print(f"{'metric':<18}" + "".join(f"{m:>{width[m]}}" for m in methods))
-    for f, label in FIELDS:
-        print(f"{label:<18}" + "".join(f"{text[(m, f)]:>{width[m]}}" for m in methods))
-    print("95 % bootstrap intervals over the scored scenes (and a group's training seeds):")
-    shown = [("realism_meta_metric", "meta-metric"), ("simulated_collision_rate", "collision"),
-             ("simulated_offroad_rate", "off-road"), ("speed_bias", "speed bias")]
-    for name, rec in intervals.items():
-        members = f" ({', '.join(rec['members'])})" if len(rec["members"]) > 1 else ""
-        print(f"  {name}{members}: " + "; ".join(
-            f"{label} {_fmt(rec['figures'][f]['mean'])} [{_fmt(rec['figures'][f]['lo'])}, "
-            f"{_fmt(rec['figures'][f]['hi'])}]" for f, label in shown))
-    for c in comparisons:
-        d = c["difference"]
-        print(f"  meta-metric {c['a']} - {c['b']}: {_fmt(d['mean'])} [{_fmt(d['lo'])}, "
-              f"{_fmt(d['hi'])}]: {c['verdict']}")
-    print("scenes scored:")
-    for rec in scenes:
-        mark = f"  TRAINED ON by {', '.join(rec['trained_on_by'])}" if rec["trained_on_by"] \
-            else ""
-        missing = [m for m in methods if rec["scenario_id"] not in scored[m]]
-        print(f"  {rec['scenario_id']:<24} {rec['split']:<6} {rec['source_file']} steps "
-              f"{rec['source_steps'][0]}-{rec['source_steps'][1]}, {rec['scored_agents']} "
-              f"scored / {rec['simulated_agents']} simulated agents"
-              + (f"; not scored for {', '.join(missing)}" if missing else "") + mark)
-    for e in errors:
-        print(f"error: {e}", file=sys.stderr)
-    return 1 if errors else 0
+    return show(result, methods, args.json)
 
 
 if __name__ == "__main__":

@@ -348,6 +348,25 @@ def test_quality_benchmark_end_to_end(checkpoint, registry, tmp_path):
         rows[("constvel", "realism_meta_metric")]["mean"]
         - rows[("logreplay", "realism_meta_metric")]["mean"], abs=1e-12)
     assert c["verdict"] == "logreplay better than constvel"
+    # --merge: runs made apart (here: a copy of the policy's rows under another name, as a
+    # second training seed would be) combined, the two as one seed group, no rollouts
+    (tmp_path / "a.json").write_text(res.stdout)
+    twin = {**got, "methods": {"tiny2": "pretrained:tiny"},
+            "rows": [{**r, "method": "tiny2"} for r in got["rows"] if r["method"] == "tiny"],
+            "scene_rows": [{**r, "method": "tiny2"} for r in got["scene_rows"]
+                           if r["method"] == "tiny"]}
+    (tmp_path / "b.json").write_text(json.dumps(twin))
+    merged = _benchmark(["--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                         "--seed-group", "T=tiny,tiny2", "--json"], reg)
+    assert merged.returncode == 0, merged.stderr[-2000:]
+    m = json.loads(merged.stdout)
+    assert list(m["methods"]) == ["constvel", "logreplay", "tiny", "tiny2"]
+    assert list(m["intervals"]) == ["T", "constvel", "logreplay"]
+    assert m["intervals"]["T"]["members"] == ["tiny", "tiny2"]
+    assert m["intervals"]["T"]["figures"]["realism_meta_metric"]["mean"] == pytest.approx(
+        rows[("tiny", "realism_meta_metric")]["mean"], abs=1e-12)
+    again = _benchmark(["--merge", str(tmp_path / "a.json"), str(tmp_path / "a.json")], reg)
+    assert again.returncode != 0 and "method 'constvel' is also in another file" in again.stderr
     # a seed group must name --policy names, each in one group
     for group, problem in (("G=tiny,nope", "'nope' is not a --policy name"),
                            ("G", "expected NAME=P1,P2")):
