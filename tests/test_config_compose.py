@@ -106,7 +106,11 @@ def test_the_frozen_flat_configs_are_the_34_of_the_table():
 #: penalty and route-relative control's offset range (issue 32) default to none / unused
 ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "city.progress_reward": 0.0, "discriminator.red_light_penalty": 0.0,
-               "env.limits.max_offset": 1.5}
+               "env.limits.max_offset": 1.5, "discriminator.decomposed_transformer.embed_dim": 64,
+               "discriminator.decomposed_transformer.num_layers": 2,
+               "discriminator.decomposed_transformer.num_heads": 4,
+               "discriminator.decomposed_transformer.ff_dim": 128,
+               "discriminator.decomposed_transformer.dropout": 0.0}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}
