@@ -21,8 +21,10 @@ policies P1..P3 (each a ``--policy``) are training seeds of one recipe NAME. Eve
 other policy and every baseline gets the 95 % bootstrap interval of each figure over the scored
 scenes and the group's training seeds (each scene's value is its mean over evaluation seeds), and
 every pair of them the interval of their difference in meta-metric, paired on the scenes; "A
-better than B" is printed only where that interval excludes 0. ``--json`` has them under
-``intervals`` and ``comparisons``.
+better than B" is printed only where that interval excludes 0. The off-road rates are also given
+on the scenes whose road edges agree with their log (the report's rule; ``*_agreeing``).
+``--json`` has them under ``intervals`` and ``comparisons``; ``--merge`` combines the ``--json``
+outputs of runs made apart (one per training seed) without new rollouts.
 
     python benchmarks/quality.py --policy magail=runs/magail/checkpoints/latest.pt [--json]
     python benchmarks/quality.py --policy shipped=pretrained --seeds 0 --rollouts 8 --out q
@@ -183,7 +185,8 @@ def read_report(folder: Path, methods: list[str]) -> tuple[dict, list[dict]]:
             per_scene.append(b)
             scene_rows.append({"method": m, "scenario_id": r["scenario_id"],
                                **{f: b[f] for f, _ in FIELDS},
-                               **{f: float(r[f]) for f in EXTRA}})
+                               **{f: float(r[f]) for f in EXTRA},
+                               "road_edges_agree": road_edges_agree(r)})
         means[m] = {}
         for f, _ in FIELDS:
             if f in SUMMARY_COLUMN:
@@ -239,6 +242,14 @@ def uncertainty(scene_rows: list[dict], methods: list[str], groups: dict[str, li
 
     intervals = {name: {f: bootstrap_ci(matrix(ms, f)).as_dict() for f, _ in FIELDS}
                  for name, ms in subjects.items()}
+    # off-road on the scenes whose road edges agree with their log (the off-road goal's
+    # scenes); a scene is taken to agree unless a row says otherwise
+    disagree = {r["scenario_id"] for r in scene_rows if r.get("road_edges_agree") is False}
+    agree_cols = [col[sid] for sid in scenes if sid not in disagree]
+    for name, ms in subjects.items():
+        for f in ("simulated_offroad_rate", "offroad_rate"):
+            iv = bootstrap_ci(matrix(ms, f)[:, agree_cols]).as_dict()
+            intervals[name][f + "_agreeing"] = {**iv, "scenes": len(agree_cols)}
     names = list(subjects)
     comparisons = []
     for i, a in enumerate(names):
@@ -248,6 +259,23 @@ def uncertainty(scene_rows: list[dict], methods: list[str], groups: dict[str, li
             comparisons.append({"a": a, "b": b, "metric": "realism_meta_metric",
                                 "difference": d.as_dict(), "verdict": verdict(d, a, b)})
     return {n: {"members": subjects[n], "figures": intervals[n]} for n in names}, comparisons
+
+
+def road_edges_agree(row: dict) -> bool:
+    """Whether a metrics.csv row's scene has road edges that agree with its log: the report's
+    rule (:func:`magail_sumo.evaluation.report.road_edges_disagree`: not more than
+    ``ROAD_EDGES_DISAGREE`` of the recorded vehicles, or fewer than
+    ``ROAD_EDGES_DISAGREE_VEHICLES``, off the road edges)."""
+    from magail_sumo.evaluation.traffic.events import (ROAD_EDGES_DISAGREE,
+                                                       ROAD_EDGES_DISAGREE_VEHICLES)
+
+    try:
+        share, count = float(row.get("log_offroad_rate", "nan")), float(
+            row.get("log_offroad_vehicles") or 0)
+    except ValueError:
+        return True
+    return not (math.isfinite(share) and share > ROAD_EDGES_DISAGREE
+                and count >= ROAD_EDGES_DISAGREE_VEHICLES)
 
 
 def _fmt(v: float) -> str:
@@ -276,8 +304,13 @@ def show(result: dict, methods: list[str], as_json: bool) -> int:
     for f, label in FIELDS:
         print(f"{label:<18}" + "".join(f"{text[(m, f)]:>{width[m]}}" for m in methods))
     print("95 % bootstrap intervals over the scored scenes (and a group's training seeds):")
+    agreeing = next(iter(intervals.values()), {}).get("figures", {}).get(
+        "simulated_offroad_rate_agreeing", {})
     shown = [("realism_meta_metric", "meta-metric"), ("simulated_collision_rate", "collision"),
-             ("simulated_offroad_rate", "off-road"), ("speed_bias", "speed bias")]
+             ("simulated_offroad_rate", "off-road"),
+             ("simulated_offroad_rate_agreeing",
+              f"off-road where road edges agree ({agreeing.get('scenes', 0)} scenes)"),
+             ("speed_bias", "speed bias")]
     for name, rec in intervals.items():
         members = f" ({', '.join(rec['members'])})" if len(rec["members"]) > 1 else ""
         print(f"  {name}{members}: " + "; ".join(
@@ -333,6 +366,10 @@ def merge(files: list[Path], group_items: list[str]) -> tuple[dict, list[str]]:
         rows += got["rows"]
         scene_rows += got["scene_rows"]
         errors += [f"{f}: {e}" for e in got["errors"]]
+    known = {r["scenario_id"]: r["road_edges_agree"] for r in scene_rows
+             if "road_edges_agree" in r}  # a scene property: any run that recorded it
+    for r in scene_rows:
+        r.setdefault("road_edges_agree", known.get(r["scenario_id"], True))
     groups = parse_groups(group_items, methods)
     names = list(methods)
     intervals, comparisons = uncertainty(scene_rows, names, groups)
