@@ -174,7 +174,7 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
     card = json.loads(entry.checkpoint.with_suffix(".json").read_text())
     assert card["checkpoint"]["sha256"] == pt.sha256(entry.checkpoint)
     trained = {scene_stem(f) for f in card["config"]["scenes"]["files"]}
-    split = load_split(SPLIT)
+    split = load_split(ROOT / card["split"]["file"])  # the split it was trained under
     assert trained and trained <= {scene_stem(f) for f in split.train}
     assert not trained & {scene_stem(f) for f in split.test}
     # the evaluation layout with the policy's optional features (the default: the leader
