@@ -97,12 +97,17 @@ class SceneSplit:
         if self.data_root:
             expand_root(self.data_root)  # an unusable root is refused when loaded
 
+    def base(self, root: str | PathLike = ".") -> Path:
+        """The folder relative scene paths are under: ``data_root`` resolved against ``root``
+        (the repository root) where relative, or ``root`` itself without one."""
+        return Path(root) / expand_root(self.data_root) if self.data_root else Path(root)
+
     def paths(self, which: str, root: str | PathLike = ".") -> list[Path]:
-        """The ``train`` or ``test`` paths: relative ones under ``data_root``, itself resolved
-        against ``root`` (the repository root) where relative. Not checked to exist."""
+        """The ``train`` or ``test`` paths, relative ones under :meth:`base`. Not checked to
+        exist."""
         if which not in PARTS:
             raise ConfigError(f"split part {which!r}: must be 'train' or 'test'")
-        base = Path(root) / expand_root(self.data_root) if self.data_root else Path(root)
+        base = self.base(root)
         return [Path(f) if os.path.isabs(f) else base / f for f in getattr(self, which)]
 
     def files(self, which: str, root: str | PathLike = ".") -> list[Path]:
@@ -114,7 +119,7 @@ class SceneSplit:
         for k, (f, p) in enumerate(zip(getattr(self, which), out)):
             if not p.is_file():
                 raise ConfigError(f"split {which}[{k}]: {f}: no such file (under "
-                                  f"{p.parent if self.data_root else root})")
+                                  f"{self.base(root)})")
         return out
 
 

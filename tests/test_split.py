@@ -76,6 +76,11 @@ def test_data_root_reads_the_environment_the_shell_way(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match=r"split train\[0\]: a.pkl: no such file \(under "
                        + str(tmp_path / "elsewhere")):
         split.files("train", tmp_path)
+    # a missing file in a subfolder names the data root it was looked for under
+    path.write_text("data_root: d\ntrain: [a.pkl]\ntest: [sub/b.pkl]\n")
+    with pytest.raises(ConfigError, match=r"split test\[0\]: sub/b.pkl: no such file \(under "
+                       + str(tmp_path / "d") + r"\)$"):
+        load_split(path).files("test", tmp_path)
     monkeypatch.delenv("SPLIT_TEST_ROOT")
     for text, problem in (
             ("${SPLIT_TEST_ROOT}", "environment variable SPLIT_TEST_ROOT is not set"),

@@ -92,10 +92,7 @@ class ScenesConfig:
             scene_split = load_split(base / split)
         except ConfigError as exc:
             raise FieldError("split", str(exc)) from None
-        try:
-            out["files"] = [*files, *map(str, scene_split.paths(part))]
-        except ConfigError as exc:
-            raise FieldError("split", f"{split}: {exc}") from None
+        out["files"] = [*files, *map(str, scene_split.paths(part))]  # its root checked on load
         return out
 
     @property
