@@ -14,7 +14,7 @@ import torch
 from conftest import WOMD_DIR
 from magail_sumo.config import ConfigError, from_dict
 from magail_sumo.models import (DecomposedConfig, DecomposedTransformerDiscriminator,
-                                PairEncoderConfig)
+                                SetEncoderConfig)
 from magail_sumo.training.discriminator_loss import DiscriminatorLossConfig, discriminator_loss
 
 SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
@@ -29,7 +29,7 @@ def one_torch_thread():
 
 
 def _model(feature_dim=6, **kw) -> DecomposedTransformerDiscriminator:
-    enc = PairEncoderConfig(embed_dim=16, num_layers=2, num_heads=2, ff_dim=32)
+    enc = SetEncoderConfig(embed_dim=16, num_layers=2, num_heads=2, ff_dim=32)
     model = DecomposedTransformerDiscriminator(feature_dim, DecomposedConfig(**kw), enc).eval()
     model.normalizer.update(torch.randn(500, feature_dim) * 2.0 + 0.5)
     return model

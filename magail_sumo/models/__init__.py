@@ -3,13 +3,14 @@ normaliser."""
 
 from .critic import CriticTransformerConfig, TransformerCritic
 from .decomposed import DecomposedConfig, DecomposedDiscriminator
-from .decomposed_transformer import DecomposedTransformerDiscriminator, PairEncoderConfig
+from .decomposed_transformer import DecomposedTransformerDiscriminator
 from .discriminator import (
-    MLPDiscriminator, TransformerConfig, TransformerDiscriminator, imitation_reward,
+    MLPDiscriminator, SetEncoderConfig, TransformerConfig, TransformerDiscriminator,
+    imitation_reward,
 )
 from .normalizer import RunningNormalizer
 
 __all__ = ["CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator",
-           "DecomposedTransformerDiscriminator", "MLPDiscriminator", "PairEncoderConfig",
+           "DecomposedTransformerDiscriminator", "MLPDiscriminator", "SetEncoderConfig",
            "RunningNormalizer", "TransformerConfig", "TransformerCritic",
            "TransformerDiscriminator", "imitation_reward"]

@@ -17,33 +17,16 @@ size), so padding never reaches a present token and groups never see each other.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 from torch import nn
 
-from .discriminator import check_set_encoder_sizes, set_encoder
+from .discriminator import SetEncoderConfig, set_encoder
 
 
-@dataclass(frozen=True)
-class CriticTransformerConfig:
-    """Sizes of :class:`TransformerCritic` (``policy.critic_transformer`` in the training config).
-
-    :param embed_dim: token width (a multiple of ``num_heads``).
-    :param num_layers: encoder layers. :param num_heads: attention heads.
-    :param ff_dim: hidden width of each layer's feed-forward block.
-    :param dropout: dropout of the encoder layers, in [0, 1) (active only in training mode).
-    """
-
-    embed_dim: int = 64
-    num_layers: int = 2
-    num_heads: int = 4
-    ff_dim: int = 128
-    dropout: float = 0.0
-
-    def __post_init__(self) -> None:
-        check_set_encoder_sizes(self)
+#: sizes of :class:`TransformerCritic` (``policy.critic_transformer`` in the training config):
+#: a :class:`~magail_sumo.models.discriminator.SetEncoderConfig`
+CriticTransformerConfig = SetEncoderConfig
 
 
 def group_positions(group: torch.Tensor) -> tuple[torch.Tensor, int, int]:

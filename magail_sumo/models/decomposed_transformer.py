@@ -21,35 +21,18 @@ terms read off the per-token outputs of one encoder instead of two MLPs:
 
 Arrays: N present vehicles give an (N, K + 1, E) batch of sequences; no loop over vehicles.
 Config: ``discriminator.kind: decomposed_transformer`` with sizes in
-``discriminator.decomposed_transformer`` (:class:`PairEncoderConfig`) and the geometry in
+``discriminator.decomposed_transformer`` (a :class:`~magail_sumo.models.discriminator.
+SetEncoderConfig`) and the geometry in
 ``discriminator.decomposed`` (its ``ego_hidden`` / ``pair_hidden`` are not used).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import nn
 
 from .decomposed import GEOMETRY_DIM, DecomposedBase, DecomposedConfig, Neighbours
-from .discriminator import check_set_encoder_sizes, set_encoder
-
-
-@dataclass(frozen=True)
-class PairEncoderConfig:
-    """Sizes of the neighbourhood encoder of :class:`DecomposedTransformerDiscriminator`
-    (``embed_dim`` E, ``num_layers``, ``num_heads`` dividing E, feed-forward ``ff_dim``,
-    ``dropout`` in [0, 1))."""
-
-    embed_dim: int = 64
-    num_layers: int = 2
-    num_heads: int = 4
-    ff_dim: int = 128
-    dropout: float = 0.0
-
-    def __post_init__(self) -> None:
-        check_set_encoder_sizes(self)
+from .discriminator import SetEncoderConfig, set_encoder
 
 
 class DecomposedTransformerDiscriminator(DecomposedBase):
@@ -58,10 +41,10 @@ class DecomposedTransformerDiscriminator(DecomposedBase):
     DecomposedDiscriminator` (forwards take the poses ``pos`` (B, V, 3))."""
 
     def __init__(self, feature_dim: int, config: DecomposedConfig | None = None,
-                 encoder: PairEncoderConfig | None = None) -> None:
+                 encoder: SetEncoderConfig | None = None) -> None:
         super().__init__(feature_dim)
         self.config = config or DecomposedConfig()
-        enc = encoder or PairEncoderConfig()
+        enc = encoder or SetEncoderConfig()
         self.encoder_config = enc
         self.embed = nn.Linear(feature_dim, enc.embed_dim)
         self.ego_type = nn.Parameter(torch.zeros(enc.embed_dim))

@@ -59,6 +59,27 @@ def check_set_encoder_sizes(cfg) -> None:
         raise FieldError("dropout", f"must be in [0, 1), got {cfg.dropout}")
 
 
+@dataclass(frozen=True)
+class SetEncoderConfig:
+    """Sizes of a :func:`set_encoder` (the transformer critic's, ``policy.critic_transformer``;
+    the decomposed transformer discriminator's, ``discriminator.decomposed_transformer``).
+
+    :param embed_dim: token width (a multiple of ``num_heads``).
+    :param num_layers: encoder layers. :param num_heads: attention heads.
+    :param ff_dim: hidden width of each layer's feed-forward block.
+    :param dropout: dropout of the encoder layers, in [0, 1) (active only in training mode).
+    """
+
+    embed_dim: int = 64
+    num_layers: int = 2
+    num_heads: int = 4
+    ff_dim: int = 128
+    dropout: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_set_encoder_sizes(self)
+
+
 def set_encoder(embed_dim: int, num_heads: int, ff_dim: int, dropout: float, num_layers: int
                 ) -> nn.TransformerEncoder:
     """The vehicle-set encoder of the discriminator and the critic: post-LN, GELU, batch first,

@@ -21,8 +21,7 @@ from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
-from magail_sumo.models.decomposed_transformer import PairEncoderConfig
-from magail_sumo.models.discriminator import TransformerConfig
+from magail_sumo.models.discriminator import SetEncoderConfig, TransformerConfig
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.splits import PARTS, load_split
 
@@ -273,8 +272,8 @@ class DiscriminatorConfig:
         ``kind`` is ``"decomposed"``; its geometry and social reward also for
         ``"decomposed_transformer"``).
     :param decomposed_transformer: sizes of the neighbourhood encoder of
-        ``"decomposed_transformer"`` (:class:`~magail_sumo.models.decomposed_transformer.
-        PairEncoderConfig`).
+        ``"decomposed_transformer"`` (:class:`~magail_sumo.models.discriminator.
+        SetEncoderConfig`).
     :param epochs: gradient steps per PPO update, each on ``batch_size`` expert and
         ``batch_size`` policy scene steps.
     :param reward_t_coef, reward_i_coef: r = c_t·r_task + c_i·(−log(max(1 − sigmoid(D), floor))).
@@ -290,7 +289,7 @@ class DiscriminatorConfig:
     kind: str = "transformer"
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     decomposed: DecomposedConfig = field(default_factory=DecomposedConfig)
-    decomposed_transformer: PairEncoderConfig = field(default_factory=PairEncoderConfig)
+    decomposed_transformer: SetEncoderConfig = field(default_factory=SetEncoderConfig)
     mlp_hidden: tuple[int, ...] = (256, 256)
     learning_rate: float = 1e-3
     weight_decay: float = 1e-4
