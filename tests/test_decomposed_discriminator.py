@@ -1,6 +1,8 @@
-"""Decomposed discriminator (ego–map + distance-weighted ego–neighbour terms): equivariance,
-masking, distance weights, neighbourhood limits, gradient penalty, social reward, expert poses
-(format /1 vs /2), env poses, and real training runs with exact resume."""
+"""Decomposed discriminators (ego–map + distance-weighted ego–neighbour terms), with MLP heads
+(``kind: decomposed``) and with a transformer over each vehicle's neighbourhood
+(``kind: decomposed_transformer``): equivariance, masking, distance weights, neighbourhood
+limits, the decomposition read off the encoder's tokens, gradient penalty, social reward, expert
+poses (format /1 vs /2), env poses, and real training runs of both kinds with exact resume."""
 
 from __future__ import annotations
 
@@ -15,8 +17,9 @@ import torch
 
 from conftest import WOMD_DIR
 from magail_sumo.config import ConfigError, from_dict
-from magail_sumo.models import DecomposedConfig, DecomposedDiscriminator
-from magail_sumo.training.discriminator_loss import discriminator_loss
+from magail_sumo.models import (DecomposedConfig, DecomposedDiscriminator,
+                                DecomposedTransformerDiscriminator, SetEncoderConfig)
+from magail_sumo.training.discriminator_loss import DiscriminatorLossConfig, discriminator_loss
 
 SCENE = str(WOMD_DIR / "850c48d8bbfa008f.tfrecord")
 
@@ -30,10 +33,18 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
-def _model(feature_dim=6, **kw) -> DecomposedDiscriminator:
+#: the transformer kind's encoder in these tests
+TINY_ENCODER = SetEncoderConfig(embed_dim=16, num_layers=2, num_heads=2, ff_dim=32)
+#: assert_close tolerances per kind where the transformer's float error needs its own
+TOL = {"mlp": {}, "transformer": {"atol": 1e-6, "rtol": 1e-5}}
+
+
+def _model(feature_dim=6, kind="mlp", **kw):
+    """A small decomposed discriminator of ``kind`` ("mlp" heads or "transformer")."""
     cfg = DecomposedConfig(**{"ego_hidden": (16,), "pair_hidden": (16, 8), **kw})
-    model = DecomposedDiscriminator(feature_dim, cfg).eval()
-    model.normalizer.update(torch.randn(500, feature_dim) * 2.0 + 0.5)
+    model = DecomposedDiscriminator(feature_dim, cfg) if kind == "mlp" else \
+        DecomposedTransformerDiscriminator(feature_dim, cfg, TINY_ENCODER)
+    model.eval().normalizer.update(torch.randn(500, feature_dim) * 2.0 + 0.5)
     return model
 
 
@@ -49,9 +60,21 @@ def _ego(model, x):
     return model.ego(model.normalizer(x) * model.feature_mask).squeeze(-1)
 
 
-def test_permutation_of_vehicles_permutes_the_logits():
+def _alone(model, x):
+    """e_i of raw tokens (B, V, F) as if each vehicle had no neighbour: the ego MLP, or the
+    transformer kind's encoder over the ego token alone."""
+    if isinstance(model, DecomposedDiscriminator):
+        return _ego(model, x)
+    h = model.embed(model.normalizer(x) * model.feature_mask) + model.ego_type
+    b, v, e = h.shape
+    out = model.encoder(h.reshape(b * v, 1, e))
+    return model.ego_head(out[:, 0]).reshape(b, v)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "transformer"])
+def test_permutation_of_vehicles_permutes_the_logits(kind):
     torch.manual_seed(0)
-    model = _model(max_neighbors=3)
+    model = _model(kind=kind, max_neighbors=3)
     x = torch.randn(2, 6, 6)
     pos = torch.stack([_poses(6, 1), _poses(6, 2)])
     mask = torch.tensor([[1, 1, 0, 1, 1, 1], [1, 1, 1, 1, 1, 1]], dtype=torch.bool)
@@ -61,12 +84,13 @@ def test_permutation_of_vehicles_permutes_the_logits():
     torch.testing.assert_close(tok_p, tok[:, perm], atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(scene_p, scene, atol=1e-5, rtol=1e-5)
     # every vehicle has neighbours here: the pairwise terms are in play
-    assert bool((tok - _ego(model, x)).abs()[mask].min() > 1e-6)
+    assert bool((tok - _alone(model, x)).abs()[mask].min() > 1e-6)
 
 
-def test_an_absent_vehicle_changes_nothing():
+@pytest.mark.parametrize("kind", ["mlp", "transformer"])
+def test_an_absent_vehicle_changes_nothing(kind):
     torch.manual_seed(1)
-    model = _model()
+    model = _model(kind=kind)
     x, pos = torch.randn(1, 4, 6), _poses(4, 3)[None]
     mask = torch.ones(1, 4, dtype=torch.bool)
     tok, scene = model(x, mask, pos)
@@ -75,8 +99,8 @@ def test_an_absent_vehicle_changes_nothing():
     pos5 = torch.cat([pos, pos[:, :1] + torch.tensor([0.5, 0.0, 1.0])], 1)
     mask5 = torch.cat([mask, torch.zeros(1, 1, dtype=torch.bool)], 1)
     tok5, scene5 = model(x5, mask5, pos5)
-    torch.testing.assert_close(tok5[:, :4], tok)
-    torch.testing.assert_close(scene5, scene)
+    torch.testing.assert_close(tok5[:, :4], tok, **TOL[kind])
+    torch.testing.assert_close(scene5, scene, **TOL[kind])
     assert tok5[0, 4] == 0
     # the same vehicle present does change vehicle 0's logit
     tok6, _ = model(x5.clamp(-3, 3), torch.ones(1, 5, dtype=torch.bool), pos5)
@@ -86,7 +110,7 @@ def test_an_absent_vehicle_changes_nothing():
     masked[0, 2] = False
     tok_m, _ = model(x, masked, pos)
     three, _ = model(x[:, [0, 1, 3]], mask[:, [0, 1, 3]], pos[:, [0, 1, 3]])
-    torch.testing.assert_close(tok_m[:, [0, 1, 3]], three)
+    torch.testing.assert_close(tok_m[:, [0, 1, 3]], three, **TOL[kind])
     assert tok_m[0, 2] == 0
 
 
@@ -268,6 +292,82 @@ def test_social_reward_arithmetic():
     assert torch.equal(model.social_reward(r, pos, mask, 0.0), r)
 
 
+# ------------------------------------------------ the transformer kind (decomposed_transformer)
+def test_transformer_kind_is_ego_term_plus_weighted_neighbour_tokens():
+    torch.manual_seed(2)
+    alpha, beta, radius = 0.8, 7.0, 25.0
+    model = _model(kind="transformer", alpha=alpha, beta=beta, radius=radius,
+                   max_neighbors=4)
+    x = torch.randn(1, 3, 6)
+    pos = torch.tensor([[[1650.0, -5500.0, 0.3], [1659.0, -5497.0, -0.2],
+                         [1640.0, -5510.0, 2.0]]])
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    tok, scene = model(x, mask, pos)
+    nb = model.neighbours(pos, mask)
+    # vehicle 0's sequence by hand: ego token, then its neighbours in the order found
+    xm = model.normalizer(x[0]) * model.feature_mask
+    h = model.embed(xm)
+    k = int(nb.valid[0, 0].sum())
+    assert k == 2
+    idx = nb.index[0, 0, :k]
+    seq = torch.cat([(h[0] + model.ego_type)[None],
+                     h[idx] + model.geometry(nb.geometry[0, 0, :k])])[None]
+    out = model.encoder(seq)[0]
+    e0 = model.ego_head(out[0]).squeeze()
+    l0 = model.pair_head(out[1:]).squeeze(-1)
+    w = alpha * torch.exp(-nb.distance[0, 0, :k] / beta)
+    torch.testing.assert_close(tok[0, 0], e0 + (w * l0).sum(), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(scene[0], tok[0].mean(), atol=1e-6, rtol=1e-6)
+    # alpha 0: the ego term alone (which still sees the neighbours through attention)
+    model0 = _model(kind="transformer", alpha=0.0, beta=beta, radius=radius)
+    model0.load_state_dict(model.state_dict())
+    tok0, _ = model0(x, mask, pos)
+    torch.testing.assert_close(tok0[0, 0], e0, atol=1e-5, rtol=1e-5)
+
+
+def test_transformer_kind_sees_no_vehicle_beyond_the_radius():
+    torch.manual_seed(3)
+    model = _model(kind="transformer", radius=20.0)
+    x = torch.randn(1, 2, 6)
+    far = torch.tensor([[[1650.0, -5500.0, 0.0], [1680.0, -5500.0, 0.0]]])
+    tok, _ = model(x, torch.ones(1, 2, dtype=torch.bool), far)
+    torch.testing.assert_close(tok, _alone(model, x), atol=1e-5, rtol=1e-5)
+
+
+def test_transformer_kind_gradient_penalty_and_loss_reach_every_part():
+    torch.manual_seed(4)
+    model = _model(kind="transformer").train()
+    x_e, x_p = torch.randn(4, 5, 6), torch.randn(4, 5, 6)
+    mask = torch.ones(4, 5, dtype=torch.bool)
+    mask[1, 3:] = False
+    pos = torch.stack([_poses(5, s) for s in range(4)])
+    loss = discriminator_loss(model, x_e, mask, x_p, mask, DiscriminatorLossConfig(0.1, 0.1),
+                              expert_pos=pos, policy_pos=pos)
+    loss.total.backward()
+    assert math.isfinite(float(loss.total.detach())) and loss.gradient_penalty > 0
+    for name in ("embed.weight", "ego_type", "geometry.weight", "ego_head.weight",
+                 "pair_head.weight"):
+        grad = dict(model.named_parameters())[name].grad
+        assert grad is not None and float(grad.abs().sum()) > 0, name
+
+
+def test_config_builds_the_transformer_kind_and_checks_sizes():
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import make_discriminator
+
+    cfg = from_dict(TrainConfig, {"discriminator": {
+        "kind": "decomposed_transformer", "decomposed": {"radius": 15.0, "social_coef": 0.5},
+        "decomposed_transformer": {"embed_dim": 32, "num_heads": 4}}})
+    assert cfg.discriminator.decomposes
+    disc = make_discriminator(cfg, 226)
+    assert isinstance(disc, DecomposedTransformerDiscriminator)
+    assert disc.config.radius == 15.0 and disc.encoder_config.embed_dim == 32
+    with pytest.raises(ConfigError, match=r"discriminator\.decomposed_transformer\.num_heads: "
+                       r"must divide embed_dim"):
+        from_dict(TrainConfig, {"discriminator": {"decomposed_transformer": {
+            "embed_dim": 30, "num_heads": 4}}})
+
+
 def test_config_range_checks_and_kind():
     from magail_sumo.training.config import TrainConfig
     from magail_sumo.training.trainer import make_discriminator
@@ -441,17 +541,22 @@ def test_deferred_rewards_with_poses_equal_per_step_rewards(setup):
 
 
 @pytest.mark.sumo
-def test_decomposed_training_resumes_exactly(setup):
+@pytest.mark.parametrize("kind,prefix,moved", [
+    ("decomposed", "pair_", "pair_j.weight"),
+    ("decomposed_transformer", "encoder.", "pair_head.weight")])
+def test_decomposed_training_resumes_exactly(setup, kind, prefix, moved):
     from magail_sumo.training.trainer import load_checkpoint, train
 
     root, cfg = setup
-    straight = train(cfg, run_dir=root / "straight", log=lambda s: None)
-    half = train(replace(cfg, updates=1), run_dir=root / "split", log=lambda s: None)
+    cfg = replace(cfg, discriminator=replace(cfg.discriminator, kind=kind,
+                                             decomposed_transformer=TINY_ENCODER))
+    straight = train(cfg, run_dir=root / f"straight-{kind}", log=lambda s: None)
+    half = train(replace(cfg, updates=1), run_dir=root / f"split-{kind}", log=lambda s: None)
     resumed = train(cfg, resume=half, log=lambda s: None)
     a = load_checkpoint(straight / "checkpoints" / "latest.pt")
     b = load_checkpoint(resumed / "checkpoints" / "latest.pt")
     assert a["update"] == b["update"] == 2
-    assert any(k.startswith("pair_") for k in a["discriminator"])
+    assert any(k.startswith(prefix) for k in a["discriminator"])
     for key in ("policy", "discriminator"):
         assert a[key].keys() == b[key].keys()
         for k in a[key]:
@@ -459,4 +564,4 @@ def test_decomposed_training_resumes_exactly(setup):
     assert a["num_timesteps"] == b["num_timesteps"]
     # the discriminator did train (its weights moved from the first checkpoint)
     first = load_checkpoint(straight / "checkpoints" / "update_000001.pt")["discriminator"]
-    assert not torch.equal(first["pair_j.weight"], a["discriminator"]["pair_j.weight"])
+    assert not torch.equal(first[moved], a["discriminator"][moved])
