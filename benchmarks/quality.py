@@ -262,20 +262,16 @@ def uncertainty(scene_rows: list[dict], methods: list[str], groups: dict[str, li
 
 
 def road_edges_agree(row: dict) -> bool:
-    """Whether a metrics.csv row's scene has road edges that agree with its log: the report's
-    rule (:func:`magail_sumo.evaluation.report.road_edges_disagree`: not more than
-    ``ROAD_EDGES_DISAGREE`` of the recorded vehicles, or fewer than
-    ``ROAD_EDGES_DISAGREE_VEHICLES``, off the road edges)."""
-    from magail_sumo.evaluation.traffic.events import (ROAD_EDGES_DISAGREE,
-                                                       ROAD_EDGES_DISAGREE_VEHICLES)
+    """Whether a metrics.csv row's scene has road edges that agree with its log (the report's
+    rule, :func:`magail_sumo.evaluation.traffic.events.road_edges_disagree_with_log`)."""
+    from magail_sumo.evaluation.traffic.events import road_edges_disagree_with_log
 
     try:
         share, count = float(row.get("log_offroad_rate", "nan")), float(
             row.get("log_offroad_vehicles") or 0)
     except ValueError:
         return True
-    return not (math.isfinite(share) and share > ROAD_EDGES_DISAGREE
-                and count >= ROAD_EDGES_DISAGREE_VEHICLES)
+    return not road_edges_disagree_with_log(share, count)
 
 
 def _fmt(v: float) -> str:

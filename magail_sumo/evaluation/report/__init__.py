@@ -31,7 +31,9 @@ from magail_sumo.evaluation.bootstrap import paired_difference, verdict
 from magail_sumo.evaluation.protocol import EvaluationError
 from magail_sumo.inputs import read_json
 from magail_sumo.evaluation.traffic import METRICS
-from magail_sumo.evaluation.traffic.events import ROAD_EDGES_DISAGREE, ROAD_EDGES_DISAGREE_VEHICLES
+from magail_sumo.evaluation.traffic.events import (ROAD_EDGES_DISAGREE,
+                                                   ROAD_EDGES_DISAGREE_VEHICLES,
+                                                   road_edges_disagree_with_log)
 from magail_sumo.evaluation.traffic.sumo_outputs import run_distributions
 from magail_sumo.outputs import (OutputError, atomic_write, claim_output_dir, inside, printable,
                                  safe_name)
@@ -160,8 +162,7 @@ def road_edges_disagree(sc: Scores) -> dict[str, float]:
     out = {}
     for r in sc.rows:
         v, n = r.get("log_offroad_rate"), r.get("log_offroad_vehicles") or 0
-        if isinstance(v, float) and math.isfinite(v) and v > ROAD_EDGES_DISAGREE \
-                and n >= ROAD_EDGES_DISAGREE_VEHICLES:
+        if isinstance(v, float) and road_edges_disagree_with_log(v, n):
             out[r["scenario_id"]] = v
     return out
 

@@ -5,6 +5,8 @@ braking: acceleration < -3 m/s²)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .base import MetricInput, TrafficMetric, register
@@ -63,6 +65,13 @@ def log_offroad(inp: MetricInput) -> tuple[float, int]:
 #: rates on such scenes apart
 ROAD_EDGES_DISAGREE = 0.2
 ROAD_EDGES_DISAGREE_VEHICLES = 3
+
+
+def road_edges_disagree_with_log(share: float, count: float) -> bool:
+    """Whether a scene's road edges disagree with its log, from :func:`log_offroad`'s share and
+    count of the recorded vehicles off them (NaN share: no road edges, no verdict: False)."""
+    return math.isfinite(share) and share > ROAD_EDGES_DISAGREE \
+        and count >= ROAD_EDGES_DISAGREE_VEHICLES
 
 
 @register
