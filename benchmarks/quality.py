@@ -218,47 +218,56 @@ def parse_groups(items: list[str], policies: dict[str, str]) -> dict[str, list[s
     return groups
 
 
-def uncertainty(scene_rows: list[dict], methods: list[str], groups: dict[str, list[str]]
-                ) -> tuple[dict, list[dict]]:
-    """(per subject — a seed group, or a method in none — the bootstrap interval of each
-    :data:`FIELDS` figure; the paired meta-metric differences of every pair of subjects)."""
+def summarise(scene_rows: list[dict], methods: list[str], groups: dict[str, list[str]]
+              ) -> dict:
+    """The result entries computed from the per-scene rows: ``scored`` (each method's scene
+    windows), ``seed_groups``, ``intervals`` (per subject — a seed group, or a method in none —
+    the bootstrap interval of each :data:`FIELDS` figure, and of the off-road rates on the scenes
+    whose road edges agree with their log) and ``comparisons`` (the paired meta-metric
+    difference of every pair of subjects)."""
     from magail_sumo.evaluation.bootstrap import bootstrap_ci, paired_difference, verdict
 
     grouped = {m for ms in groups.values() for m in ms}
     subjects = {**groups, **{m: [m] for m in methods if m not in grouped}}
     scenes = sorted({r["scenario_id"] for r in scene_rows})
     col = {sid: k for k, sid in enumerate(scenes)}
-
-    def matrix(members: list[str], field: str) -> np.ndarray:
-        out = np.full((len(members), len(scenes)), np.nan)
-        for i, m in enumerate(members):
-            acc: dict[str, list[float]] = {}
-            for r in scene_rows:
-                if r["method"] == m and math.isfinite(r[field]):
-                    acc.setdefault(r["scenario_id"], []).append(r[field])
-            for sid, v in acc.items():
-                out[i, col[sid]] = float(np.mean(v))  # over evaluation seeds
-        return out
-
-    intervals = {name: {f: bootstrap_ci(matrix(ms, f)).as_dict() for f, _ in FIELDS}
-                 for name, ms in subjects.items()}
+    fields = [f for f, _ in FIELDS] + ["offroad_rate"]
+    values: dict[tuple[str, str], dict[str, list[float]]] = {}  # (method, field) -> per scene
+    for r in scene_rows:
+        for f in fields:
+            if math.isfinite(r[f]):
+                values.setdefault((r["method"], f), {}).setdefault(r["scenario_id"], []).append(
+                    r[f])
+    mats = {}  # (subject, field) -> (members, scenes), each cell its mean over evaluation seeds
+    for name, members in subjects.items():
+        for f in fields:
+            m = np.full((len(members), len(scenes)), np.nan)
+            for i, member in enumerate(members):
+                for sid, v in values.get((member, f), {}).items():
+                    m[i, col[sid]] = float(np.mean(v))
+            mats[(name, f)] = m
     # off-road on the scenes whose road edges agree with their log (the off-road goal's
     # scenes); a scene is taken to agree unless a row says otherwise
     disagree = {r["scenario_id"] for r in scene_rows if r.get("road_edges_agree") is False}
     agree_cols = [col[sid] for sid in scenes if sid not in disagree]
-    for name, ms in subjects.items():
+    intervals = {}
+    for name in subjects:
+        intervals[name] = {f: bootstrap_ci(mats[(name, f)]).as_dict() for f, _ in FIELDS}
         for f in ("simulated_offroad_rate", "offroad_rate"):
-            iv = bootstrap_ci(matrix(ms, f)[:, agree_cols]).as_dict()
+            iv = bootstrap_ci(mats[(name, f)][:, agree_cols]).as_dict()
             intervals[name][f + "_agreeing"] = {**iv, "scenes": len(agree_cols)}
     names = list(subjects)
     comparisons = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
-            d = paired_difference(matrix(subjects[a], "realism_meta_metric"),
-                                  matrix(subjects[b], "realism_meta_metric"))
+            d = paired_difference(mats[(a, "realism_meta_metric")],
+                                  mats[(b, "realism_meta_metric")])
             comparisons.append({"a": a, "b": b, "metric": "realism_meta_metric",
                                 "difference": d.as_dict(), "verdict": verdict(d, a, b)})
-    return {n: {"members": subjects[n], "figures": intervals[n]} for n in names}, comparisons
+    scored = {m: sorted({r["scenario_id"] for r in scene_rows if r["method"] == m})
+              for m in methods}
+    return {"scored": scored, "seed_groups": groups, "comparisons": comparisons,
+            "intervals": {n: {"members": subjects[n], "figures": intervals[n]} for n in names}}
 
 
 def road_edges_agree(row: dict) -> bool:
@@ -366,15 +375,11 @@ def merge(files: list[Path], group_items: list[str]) -> tuple[dict, list[str]]:
              if "road_edges_agree" in r}  # a scene property: any run that recorded it
     for r in scene_rows:
         r.setdefault("road_edges_agree", known.get(r["scenario_id"], True))
-    groups = parse_groups(group_items, methods)
     names = list(methods)
-    intervals, comparisons = uncertainty(scene_rows, names, groups)
-    scored = {m: sorted({r["scenario_id"] for r in scene_rows if r["method"] == m})
-              for m in names}
     result = {"out": ", ".join(map(str, files)), **base, "scenes_from": "merged runs",
-              "methods": methods, "scenes": scenes, "scored": scored, "rows": rows,
-              "scene_rows": scene_rows, "seed_groups": groups, "intervals": intervals,
-              "comparisons": comparisons, "skipped_windows": [], "errors": errors}
+              "methods": methods, "scenes": scenes, "rows": rows, "scene_rows": scene_rows,
+              **summarise(scene_rows, names, parse_groups(group_items, methods)),
+              "skipped_windows": [], "errors": errors}
     return result, names
 
 
@@ -529,15 +534,12 @@ def main(argv: list[str] | None = None) -> int:
                          "min": min(fin) if fin else float("nan"),
                          "max": max(fin) if fin else float("nan"),
                          "per_seed": vals, "seeds": [s for s in per_seed if m in per_seed[s]]})
-    scored = {m: sorted({r["scenario_id"] for r in scene_rows if r["method"] == m})
-              for m in methods}
-    intervals, comparisons = uncertainty(scene_rows, methods, groups)
     result = {"out": str(out), "split": str(split_path), "scenes_from": "--scenes" if
               args.scenes else "test split", "seeds": args.seeds, "rollouts": args.rollouts,
               "windows": args.windows, "methods": {**{b: b for b in baselines}, **policies},
-              "scenes": scenes, "scored": scored, "rows": rows, "scene_rows": scene_rows,
-              "seed_groups": groups, "intervals": intervals, "comparisons": comparisons,
-              "skipped_windows": notes, "errors": errors}
+              "scenes": scenes, "rows": rows, "scene_rows": scene_rows,
+              **summarise(scene_rows, methods, groups), "skipped_windows": notes,
+              "errors": errors}
     return show(result, methods, args.json)
 
 
