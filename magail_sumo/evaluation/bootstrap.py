@@ -45,22 +45,35 @@ class Interval:
         return {"mean": self.mean, "lo": self.lo, "hi": self.hi}
 
 
-def _matrix(values) -> np.ndarray:
+def _as_matrix(values) -> np.ndarray:
+    """``values`` as a float (R, N) matrix (a 1-D array is one row)."""
     m = np.asarray(values, dtype=np.float64)
     if m.ndim == 1:
         m = m[None, :]
     if m.ndim != 2:
         raise ValueError(f"expected (training seeds, scenes) values, got shape {m.shape}")
-    keep = np.isfinite(m).any(0)  # a scene no row scored tells nothing
-    return m[:, keep][np.isfinite(m[:, keep]).any(1)]
+    return m
+
+
+def _matrix(values) -> np.ndarray:
+    """:func:`_as_matrix` without the scenes no row scored (they tell nothing) and the rows
+    that scored none."""
+    m = _as_matrix(values)
+    m = m[:, np.isfinite(m).any(0)]
+    return m[np.isfinite(m).any(1)]
+
+
+def _finite_mean(x: np.ndarray) -> np.ndarray:
+    """The mean of the finite entries along the last axis; NaN where there are none."""
+    ok = np.isfinite(x)
+    n = ok.sum(-1)
+    return np.where(n > 0, np.where(ok, x, 0.0).sum(-1) / np.maximum(n, 1), np.nan)
 
 
 def figure(values) -> float:
     """The mean over rows of each row's mean over its finite scenes (NaN: none)."""
     m = _matrix(values)
-    if m.size == 0:
-        return float("nan")
-    return float(np.mean(np.nanmean(m, axis=1)))
+    return float(_finite_mean(_finite_mean(m))) if m.size else float("nan")
 
 
 def _replicates(m: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -70,50 +83,47 @@ def _replicates(m: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np
     rows = rng.integers(0, m.shape[0], size=(reps, m.shape[0])) if m.shape[0] > 1 \
         else np.zeros((reps, 1), dtype=np.int64)
     picked = m[rows[:, :, None], cols[:, None, :]]  # (reps, R, N)
-    ok = np.isfinite(picked)
-    count = ok.sum(2)
-    row_mean = np.where(ok, picked, 0.0).sum(2) / np.maximum(count, 1)
-    row_mean = np.where(count > 0, row_mean, np.nan)
-    ok = np.isfinite(row_mean)
-    n = ok.sum(1)
-    return np.where(n > 0, np.where(ok, row_mean, 0.0).sum(1) / np.maximum(n, 1), np.nan)
+    return _finite_mean(_finite_mean(picked))
 
 
 def _columns(n: int, reps: int, rng: np.random.Generator) -> np.ndarray:
     return rng.integers(0, n, size=(reps, n)) if n > 1 else np.zeros((reps, 1), dtype=np.int64)
 
 
+def _interval(mean: float, rep: np.ndarray) -> Interval:
+    """``mean`` with the percentile interval of the finite replicates ``rep``."""
+    rep = rep[np.isfinite(rep)]
+    lo, hi = np.percentile(rep, LEVEL) if rep.size else (np.nan, np.nan)
+    return Interval(mean, float(lo), float(hi))
+
+
+_NONE = Interval(float("nan"), float("nan"), float("nan"))
+
+
 def bootstrap_ci(values, reps: int = REPS, seed: int = 0) -> Interval:
     """:class:`Interval` of the figure of ``values`` (R, N) or (N,) (module doc)."""
     m = _matrix(values)
     if m.size == 0:
-        return Interval(float("nan"), float("nan"), float("nan"))
+        return _NONE
     rng = np.random.default_rng(seed)
-    rep = _replicates(m, _columns(m.shape[1], reps, rng), rng)
-    rep = rep[np.isfinite(rep)]
-    lo, hi = np.percentile(rep, LEVEL) if rep.size else (np.nan, np.nan)
-    return Interval(figure(m), float(lo), float(hi))
+    return _interval(figure(m), _replicates(m, _columns(m.shape[1], reps, rng), rng))
 
 
 def paired_difference(a, b, reps: int = REPS, seed: int = 0) -> Interval:
     """:class:`Interval` of ``figure(a) − figure(b)`` for two methods' (R_a, N) and (R_b, N)
     values over the same N scenes (column k is the same scene in both; module doc). Only the
     scenes both scored are used."""
-    ma, mb = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    ma, mb = (ma[None] if ma.ndim == 1 else ma), (mb[None] if mb.ndim == 1 else mb)
+    ma, mb = _as_matrix(a), _as_matrix(b)
     if ma.shape[1] != mb.shape[1]:
         raise ValueError(f"the two methods' values cover {ma.shape[1]} and {mb.shape[1]} scenes")
     both = np.isfinite(ma).any(0) & np.isfinite(mb).any(0)
-    ma, mb = ma[:, both], mb[:, both]
-    ma, mb = ma[np.isfinite(ma).any(1)], mb[np.isfinite(mb).any(1)]
+    ma, mb = _matrix(ma[:, both]), _matrix(mb[:, both])  # every kept column stays: aligned
     if ma.size == 0 or mb.size == 0:
-        return Interval(float("nan"), float("nan"), float("nan"))
+        return _NONE
     rng = np.random.default_rng(seed)
     cols = _columns(ma.shape[1], reps, rng)
     rep = _replicates(ma, cols, rng) - _replicates(mb, cols, rng)
-    rep = rep[np.isfinite(rep)]
-    lo, hi = np.percentile(rep, LEVEL) if rep.size else (np.nan, np.nan)
-    return Interval(figure(ma) - figure(mb), float(lo), float(hi))
+    return _interval(figure(ma) - figure(mb), rep)
 
 
 def verdict(diff: Interval, a: str, b: str, higher_is_better: bool = True) -> str:
