@@ -110,7 +110,8 @@ ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "discriminator.decomposed_transformer.num_layers": 2,
                "discriminator.decomposed_transformer.num_heads": 4,
                "discriminator.decomposed_transformer.ff_dim": 128,
-               "discriminator.decomposed_transformer.dropout": 0.0}
+               "discriminator.decomposed_transformer.dropout": 0.0,
+               "env.limits.max_steer_rate": 0.0}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}

@@ -133,12 +133,20 @@ def test_a_policy_without_reseed_is_built_per_rollout(scene):
 
 # ---------------------------------------------------------------------------- env and policy
 @pytest.mark.sumo
-@pytest.mark.parametrize("spec", ["random", "checkpoint"])
+@pytest.mark.parametrize("spec", ["random", "checkpoint", "correlated"])
 def test_simulate_reuses_one_env_and_gives_the_fresh_rollouts(spec, scene, checkpoint, tmp_path,
-                                                              env_configs):
-    """Both policies act for many worlds at once: the batch's rollouts run in one batched env
+                                                              env_configs, monkeypatch):
+    """The policies act for many worlds at once: the batch's rollouts run in one batched env
     (one world per rollout) and give byte for byte what a fresh env and policy per rollout
-    give."""
+    give (with step-to-step correlated noise too, which remembers each agent's past)."""
+    if spec == "correlated":
+        from magail_sumo import pretrained
+        from magail_sumo.agents.noise import NoiseShape
+
+        pretrained.export(checkpoint, "smooth", tmp_path / "reg", noise_scale=0.5,
+                          noise_shape=NoiseShape(weights=(1.0, 0.5), correlation=(0.7, 0.5)))
+        monkeypatch.setenv(pretrained.ENV_VAR, str(tmp_path / "reg"))
+        spec = "pretrained:smooth"
     spec = str(checkpoint) if spec == "checkpoint" else spec
     ro = methods.simulate(scene, spec, range(len(SEEDS)), seed=0, bundle_dir=BUNDLE)
     assert len(env_configs) == 1  # one env for the batch

@@ -35,14 +35,17 @@ class Policy(Protocol):
       seed's ``"steer_throttle"``); the env is built with it.
     * ``guard``: a :class:`~magail_sumo.env.guard.GuardConfig` the env drives its actions
       through (a checkpoint trained behind the gap guard).
+    * ``limits``: the :class:`~magail_sumo.sim.dynamics.BicycleLimits` the env moves it with (a
+      checkpoint trained with a steering rate limit).
     * ``reseed(seed)``: put the policy in the state building it with ``seed`` gives (it then
       draws the same random numbers as a fresh one): evaluation reuses one policy for all the
       rollouts of a batch, reseeded per rollout, and builds a policy without it anew.
-    * ``reseed_worlds(seeds)`` and ``act_batch(observations, worlds)``: batched rollouts
-      (:func:`~magail_sumo.agents.rollout.rollout_worlds` over a
+    * ``reseed_worlds(seeds)`` and ``act_batch(observations, worlds, agents)``: batched
+      rollouts (:func:`~magail_sumo.agents.rollout.rollout_worlds` over a
       :class:`~magail_sumo.env.batched.BatchedSceneEnv`): ``act_batch`` takes (n, D)
       observations of every world's live agents, grouped by ``worlds`` (n,) ascending and each
-      world's in sorted-name order, and returns (n, 2) actions, world ``w`` acting as ``act``
+      world's in sorted-name order, and ``agents`` (n,), integer keys that stay each agent's
+      for the rollout (its fleet row; for a policy with memory), and returns (n, 2) actions, world ``w`` acting as ``act``
       of the policy reseeded with ``seeds[w]`` would; evaluation runs all rollouts of a scene
       at once with a policy that has both (:func:`batched`).
     """
@@ -58,7 +61,7 @@ def batched(policy) -> bool:
 
 
 #: the optional :class:`Policy` attributes that are env settings (``EnvConfig`` fields)
-ENV_SETTINGS = ("observation", "action_layout", "guard")
+ENV_SETTINGS = ("observation", "action_layout", "guard", "limits")
 
 
 def env_settings(policy) -> dict:

@@ -21,10 +21,11 @@ class RandomPolicy:
         """Batched rollouts: world ``w`` draws as ``RandomPolicy(seeds[w])`` does."""
         self.world_rngs = [np.random.default_rng(s) for s in seeds]
 
-    def act_batch(self, observations: np.ndarray, worlds: np.ndarray) -> np.ndarray:
+    def act_batch(self, observations: np.ndarray, worlds: np.ndarray,
+                  agents: np.ndarray | None = None) -> np.ndarray:
         """(n, 2) actions of every world's agents (grouped by ``worlds``, ascending, each
         world's in sorted-name order), world ``w`` drawing from its own stream
-        (:meth:`reseed_worlds`) as :meth:`act` does."""
+        (:meth:`reseed_worlds`) as :meth:`act` does (``agents``, their keys, unused)."""
         counts = np.bincount(np.asarray(worlds, np.int64), minlength=len(self.world_rngs))
         parts = [rng.uniform(-1.0, 1.0, (int(c), ACTION_SIZE)).astype(np.float32)
                  for c, rng in zip(counts, self.world_rngs, strict=True)]

@@ -94,7 +94,7 @@ def rollout_worlds(env, policy, seeds, on_step: Callable[[int, np.ndarray, np.nd
     reseeded per world (``reseed_worlds(seeds)``) and told the scene (its optional
     ``begin(scene, env)``), then each step ``policy.act_batch`` over every world's live
     agents (grouped by world, each world's in sorted-name order, so its draws are those of a
-    single-world rollout) -> ``env.step_arrays`` -> ``on_step(t, rows, actions, step)`` (``t``
+    single-world rollout; their fleet rows as the agents' keys) -> ``env.step_arrays`` -> ``on_step(t, rows, actions, step)`` (``t``
     the log step before the step, ``rows`` the fleet rows it moved, ``actions`` their (n, 2)
     actions, ``step`` the :class:`~magail_sumo.env.outcomes.ArrayStep`; post-step states are
     in ``env.fleet``), until the episode is over (``env.finished``) or ``max_steps`` steps are
@@ -116,7 +116,7 @@ def rollout_worlds(env, policy, seeds, on_step: Callable[[int, np.ndarray, np.nd
         rows = rows[np.lexsort((rank[rows % per], rows // per))]
         actions[:] = 0.0
         if rows.size:
-            actions[rows] = policy.act_batch(st.observations[rows], rows // per)
+            actions[rows] = policy.act_batch(st.observations[rows], rows // per, rows)
         t = env.t
         st = env.step_arrays(actions)
         n += 1

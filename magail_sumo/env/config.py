@@ -160,10 +160,11 @@ class EnvConfig:
               f"must be (height, width) >= 1, got {show(self.render_size)}")
         lim = self.limits
         for name in ("max_accel", "max_brake", "max_steer", "max_speed", "max_reverse_speed",
-                     "max_offset"):
+                     "max_offset", "max_steer_rate"):
             v = getattr(lim, name)
-            ok = math.isfinite(v) and (v >= 0 if name == "max_reverse_speed" else v > 0)
-            check(ok, f"limits.{name}", f"must be {'>= 0' if name == 'max_reverse_speed' else '> 0'}"
+            zero_ok = name in ("max_reverse_speed", "max_steer_rate")
+            ok = math.isfinite(v) and (v >= 0 if zero_ok else v > 0)
+            check(ok, f"limits.{name}", f"must be {'>= 0' if zero_ok else '> 0'}"
                   f", got {show(v)}")
         obs = self.observation
         for name in ("lidar", "side", "lane_line"):

@@ -164,7 +164,8 @@ class Fleet:
               layout: str, dt: float, paths: Paths | None = None) -> None:
         """Move rows ``k`` one step of ``dt`` s by the bicycle model under clean normalised
         (A, 2) ``action`` (in ``layout``, clipped to ``limits``); it becomes their previous
-        action. The ``accel_offset`` layout steers along the rows' reference paths in
+        action (with a steering rate limit, ``limits.max_steer_rate``, the steering applied).
+        The ``accel_offset`` layout steers along the rows' reference paths in
         ``paths`` (:func:`magail_sumo.sim.tracking.follow`); a row without one keeps its
         heading."""
         accel, second = dynamics.denormalise(action, limits, layout)
@@ -181,6 +182,10 @@ class Fleet:
                     limits)
         else:
             steer = second
+            if limits.max_steer_rate > 0:  # the applied steering becomes the previous action
+                _, prev = dynamics.denormalise(self.prev_action[k], limits, layout)
+                steer = dynamics.limit_steer_rate(steer, prev, limits, dt)
+                action = dynamics.normalise(accel, steer, limits, layout)
         self.set_state(k, dynamics.step(state, accel, steer, wheelbase, dt, limits))
         self.prev_action[k] = action
 

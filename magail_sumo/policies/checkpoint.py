@@ -11,7 +11,9 @@ policy, ``a = tanh(mu(o) + k·sigma ⊙ eps)`` with ``eps ~ N(0, I)`` drawn from
 ``torch.Generator`` seeded with the rollout seed (agents served in sorted-name order, so a
 rollout is reproducible whatever order the env lists them in) and ``k`` the policy's
 ``noise_scale`` (1 by default; ``magail-sumo evaluate --noise-scale``: a sampling temperature
-on the Gaussian's standard deviation); deterministically
+on the Gaussian's standard deviation; ``eps`` is white unless the policy's ``noise_shape``, from a
+pretrained card, weights it per action and correlates it from step to step,
+:mod:`magail_sumo.agents.noise`); deterministically
 (``magail-sumo evaluate --deterministic``) the tanh of the Gaussian mean, ``a = tanh(mu(o))``. Any checkpoint ``magail-sumo train`` writes works (GAIL / MAGAIL updates and
 behavioural cloning, with an MLP or a transformer critic: the critic is loaded with the policy
 but never evaluated).
@@ -41,11 +43,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from magail_sumo.agents.noise import NoiseProcess, NoiseShape
 from magail_sumo.config import to_dict
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.sensors.config import ObservationConfig
 
 from magail_sumo.sensors.observation import observation_bounds
+from magail_sumo.sim.dynamics import BicycleLimits
 from magail_sumo.training.checkpoints import CheckpointError
 from magail_sumo.training.policies import load_policy
 
@@ -71,15 +75,28 @@ class CheckpointPolicy:
         self.name = name
         self.deterministic = bool(deterministic)
         self.generator = torch.Generator(device=policy.device).manual_seed(int(seed))
+        self.noise = NoiseProcess(NoiseShape())
+
+    @property
+    def noise_shape(self) -> NoiseShape:
+        """Per-action weights and step-to-step correlation of the sampling noise
+        (:mod:`magail_sumo.agents.noise`; default: white noise, as trained)."""
+        return self.noise.shape
+
+    @noise_shape.setter
+    def noise_shape(self, shape: NoiseShape) -> None:
+        self.noise = NoiseProcess(shape)
 
     def reseed(self, seed: int) -> None:
         """Sample from here on as the policy built with ``seed`` does (the next rollout)."""
         self.generator.manual_seed(int(seed))
+        self.noise.reset()
 
     def reseed_worlds(self, seeds) -> None:
         """Batched rollouts: world ``w`` samples from here on as the policy built with
         ``seeds[w]`` does (:meth:`act_batch`)."""
         dev = self.policy.device
+        self.noise.reset()
         self.world_generators = [torch.Generator(device=dev).manual_seed(int(s)) for s in seeds]
 
     def _tensor(self, x: np.ndarray) -> torch.Tensor:
@@ -89,9 +106,11 @@ class CheckpointPolicy:
                                   f"policy expects {self.obs_dim}")
         return torch.as_tensor(x, device=self.policy.device)
 
-    def _actions(self, obs: torch.Tensor, generator: torch.Generator | None) -> np.ndarray:
+    def _actions(self, obs: torch.Tensor, generator: torch.Generator | None,
+                 keys: np.ndarray | None) -> np.ndarray:
         """(n, 2) actions of one world's agents (module doc): sampled with ``generator``'s
-        noise, drawn in row order, or the tanh of the mean when deterministic."""
+        draws, in row order, shaped by :attr:`noise_shape` for the agents ``keys``, or the tanh
+        of the mean when deterministic."""
         if self.deterministic:
             a = self.policy._predict(obs, deterministic=True)
         else:
@@ -99,6 +118,9 @@ class CheckpointPolicy:
             mean, std = gauss.distribution.mean, gauss.distribution.stddev
             eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype,
                               device=mean.device)
+            if not self.noise.shape.plain:  # the policy's own noise keeps the draws' bits
+                eps = torch.as_tensor(self.noise(eps.cpu().numpy(), keys), dtype=mean.dtype,
+                                      device=mean.device)
             a = torch.tanh(mean + self.noise_scale * std * eps)
         return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
 
@@ -109,15 +131,19 @@ class CheckpointPolicy:
         # sampling: one draw order for a rollout, whatever the env's
         names = list(observations) if self.deterministic else sorted(observations)
         x = np.stack([np.asarray(observations[n], np.float32).reshape(-1) for n in names])
-        return dict(zip(names, self._actions(self._tensor(x), self.generator)))
+        keys = None if self.noise.shape.white else self.noise.key(names)
+        return dict(zip(names, self._actions(self._tensor(x), self.generator, keys)))
 
     @torch.no_grad()
-    def act_batch(self, observations: np.ndarray, worlds: np.ndarray) -> np.ndarray:
+    def act_batch(self, observations: np.ndarray, worlds: np.ndarray,
+                  agents: np.ndarray | None = None) -> np.ndarray:
         """(n, 2) actions of the agents of every world of a batched env
         (:func:`~magail_sumo.agents.rollout_worlds`): ``observations`` (n, D) grouped by
         ``worlds`` (ascending), each world's agents in sorted-name order; world ``w`` acts
         exactly as :meth:`act` of a policy reseeded with ``seeds[w]`` of
-        :meth:`reseed_worlds` (its noise from its own generator, drawn in that order). The
+        :meth:`reseed_worlds` (its noise from its own generator, drawn in that order;
+        ``agents`` (n,), integers that stay each agent's for the rollout, e.g. fleet rows,
+        carry correlated noise from step to step and are needed only for it). The
         forward pass runs per world: one pass over every world's agents would round the last
         float bits otherwise (matrix products' rounding depends on their row count), and a
         rollout would then depend on which rollouts shared its batch."""
@@ -130,8 +156,11 @@ class CheckpointPolicy:
         obs = self._tensor(x)
         worlds = np.asarray(worlds, np.int64)
         bounds = np.flatnonzero(np.diff(worlds)) + 1
+        if agents is None and not (self.deterministic or self.noise.shape.white):
+            raise ValueError(f"{self.name}: correlated sampling noise needs act_batch's agents")
         return np.concatenate([
-            self._actions(obs[lo:hi], None if gens is None else gens[int(worlds[lo])])
+            self._actions(obs[lo:hi], None if gens is None else gens[int(worlds[lo])],
+                          None if agents is None else np.asarray(agents)[lo:hi])
             for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, worlds.size])])
 
 
@@ -163,11 +192,13 @@ def policy_observation(trained: EnvConfig) -> ObservationConfig:
 
 def target_env(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:
     """The env a checkpoint trained in ``trained`` drives: ``target``, or evaluation's (the
-    defaults) with the policy's action layout, optional features and gap guard (the policy's
-    ``action_layout``, ``observation`` and ``guard`` attributes make evaluation build its env
-    so)."""
+    defaults) with the policy's action layout, optional features, gap guard and steering rate
+    limit (the policy's ``action_layout``, ``observation``, ``guard`` and ``limits`` attributes
+    make evaluation build its env so)."""
     return target or EnvConfig(action_layout=trained.action_layout,
-                               observation=policy_observation(trained), guard=trained.guard)
+                               observation=policy_observation(trained), guard=trained.guard,
+                               limits=BicycleLimits(
+                                   max_steer_rate=trained.limits.max_steer_rate))
 
 
 def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = False,
@@ -184,4 +215,6 @@ def load_actor_policy(path: str | Path, seed: int = 0, deterministic: bool = Fal
     pol.observation = policy_observation(cfg.env)
     if cfg.env.guard.on:
         pol.guard = cfg.env.guard  # trained behind the gap guard: evaluation keeps it
+    if cfg.env.limits.max_steer_rate > 0:  # trained with a steering rate limit: kept too
+        pol.limits = target_env(cfg.env, None).limits
     return pol

@@ -23,6 +23,7 @@ from typing import Callable, Union
 import torch
 
 from magail_sumo.agents.base import Policy, PolicyError, check_noise_scale
+from magail_sumo.agents.noise import NoiseShape
 from magail_sumo.agents.random_policy import RandomPolicy
 from magail_sumo.agents.idm import IdmPolicy
 from magail_sumo.agents.specs import BASELINES, BUILTIN_POLICIES, GUARDED
@@ -153,7 +154,8 @@ def make_policy(spec: str, seed: int, deterministic: bool = False,
             raise PolicyError(f"{spec}: no policy loader for '.pt' checkpoints")
         policy = _checkpoint_policy(spec, loader, entry.checkpoint, seed, deterministic)
         scale = card_noise_scale(entry)
-        return policy if scale is None else _scaled(spec, policy, scale)
+        policy = policy if scale is None else _scaled(spec, policy, scale)
+        return _shaped(spec, policy, card_noise_shape(entry))
     path = Path(spec)
     if path.is_file():
         loader = POLICY_LOADERS.get(path.suffix)
@@ -184,6 +186,26 @@ def card_noise_scale(entry) -> float | None:
                           "with \"noise_scale\"")
     return check_noise_scale(sampling["noise_scale"],
                              f"pretrained:{entry.name}: card's sampling.noise_scale")
+
+
+def card_noise_shape(entry) -> NoiseShape:
+    """The per-action weights and step correlation of the sampling noise a pretrained policy's
+    card gives (``sampling.noise_weights`` / ``noise_correlation``,
+    :mod:`magail_sumo.agents.noise`); white noise when it gives none."""
+    sampling = entry.card.get("sampling")
+    if not isinstance(sampling, dict):
+        return NoiseShape()
+    return NoiseShape.from_card(sampling, f"pretrained:{entry.name}: card's sampling")
+
+
+def _shaped(spec: str, policy: Policy, shape: NoiseShape) -> Policy:
+    """``policy`` sampling with noise of ``shape`` (refused if shaped noise cannot be had)."""
+    if hasattr(policy, "noise_shape"):
+        policy.noise_shape = shape
+    elif not shape.plain:
+        raise PolicyError(f"policy {spec}: {type(policy).__name__} has no sampling noise to "
+                          f"shape ({shape})")
+    return policy
 
 
 def _scaled(spec: str, policy: Policy, scale: float) -> Policy:

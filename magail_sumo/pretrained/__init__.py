@@ -11,7 +11,9 @@ argument replaces it) holding, per policy ``NAME``:
   ``split`` (the split file and its ``train`` / ``test`` files, or null) and ``figures`` (e.g.
   the rows of ``benchmarks/quality.py --json``, or null), and optionally ``sampling``
   (``{"noise_scale": k, "note": how k was chosen}``: evaluation samples the policy with noise
-  scale ``k`` unless ``--noise-scale`` says otherwise; absent or null: 1).
+  scale ``k`` unless ``--noise-scale`` says otherwise; absent or null: 1; optionally also
+  ``"noise_weights"`` and ``"noise_correlation"``, one number per action: the noise's shape,
+  :mod:`magail_sumo.agents.noise`, kept whatever ``--noise-scale`` says).
 
 and one ``index.json``, ``{"default": NAME}`` (or ``null``): the policy ``pretrained`` alone
 means. ``NAME`` is a file name of ``[A-Za-z0-9._-]`` (not starting with ``.``) and not the name
@@ -32,6 +34,7 @@ from typing import Any
 
 from magail_sumo.inputs import InputFileError, open_regular
 from magail_sumo.agents.base import check_noise_scale
+from magail_sumo.agents.noise import NoiseShape
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.outputs import atomic_paths, inside, is_safe_name, printable
 from magail_sumo.splits import load_split, scene_stem
@@ -182,7 +185,8 @@ def resolve(spec: str, root: str | PathLike | None = None) -> Pretrained:
 def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = None, *,
            description: str = "", split: str | PathLike | None = None,
            figures: Any = None, make_default: bool = False,
-           noise_scale: float | None = None, noise_note: str = "") -> Pretrained:
+           noise_scale: float | None = None, noise_note: str = "",
+           noise_shape: NoiseShape | None = None) -> Pretrained:
     """Add a training checkpoint to a registry folder as ``NAME.pt`` + ``NAME.json``.
 
     The checkpoint is read safely and written back with only the policy, the run config and
@@ -190,7 +194,8 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
     ``split`` (a split file, :mod:`magail_sumo.splits`) the card records it, and a
     checkpoint whose config trains on one of its test scenes (same file name stem) is refused.
     ``make_default`` names it in ``index.json``. ``noise_scale`` (with ``noise_note``, how it
-    was chosen) is the card's ``sampling``. Every argument is checked before anything is
+    was chosen, and ``noise_shape``, the noise's weights and correlation when not plain) is the
+    card's ``sampling``. Every argument is checked before anything is
     written; then ``NAME.pt``, ``NAME.json`` (and ``index.json``) are written to temporary files
     and replace the old ones only once all are written
     (:func:`~magail_sumo.outputs.atomic_paths`): a bad argument, a crash or a full disk leaves
@@ -206,6 +211,11 @@ def export(checkpoint: str | PathLike, name: str, root: str | PathLike | None = 
     if noise_scale is not None:
         sampling = {"noise_scale": check_noise_scale(noise_scale, "--noise-scale"),
                     "note": noise_note}
+        if noise_shape is not None and not noise_shape.plain:
+            sampling.update(noise_weights=list(noise_shape.weights),
+                            noise_correlation=list(noise_shape.correlation))
+    elif noise_shape is not None and not noise_shape.plain:
+        raise PretrainedError("a noise shape needs its noise scale (--noise-scale)")
     state = load_checkpoint(checkpoint)
     split_rec = None
     if split is not None:

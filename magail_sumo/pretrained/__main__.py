@@ -12,7 +12,9 @@ import argparse
 import sys
 import traceback
 
+from magail_sumo.agents.noise import NoiseShape
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.sim.dynamics import ACTION_SIZE
 from magail_sumo.outputs import os_error, printable
 
 from . import available, default_name, export, read_figures, registry_dir
@@ -51,6 +53,11 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--noise-scale", type=float, help="the noise scale evaluation samples it "
                                                       "with (card's sampling; default 1)")
     ex.add_argument("--noise-note", default="", help="how that noise scale was chosen")
+    ex.add_argument("--noise-weights", type=float, nargs=ACTION_SIZE, metavar="W",
+                    help="the noise's weight per action (default 1 each)")
+    ex.add_argument("--noise-correlation", type=float, nargs=ACTION_SIZE, metavar="RHO",
+                    help="the noise's step-to-step correlation per action, in [0, 1) "
+                         "(default 0: white; magail_sumo.agents.noise)")
     for p in (ls, ex):
         p.add_argument("--dir", help="registry folder (default: $MAGAIL_SUMO_PRETRAINED_DIR or "
                                      "the package's folder)")
@@ -67,7 +74,10 @@ def main(argv: list[str] | None = None) -> int:
         figures = read_figures(args.figures) if args.figures else None
         entry = export(args.checkpoint, args.name, args.dir, description=args.description,
                        split=args.split, figures=figures, make_default=args.default,
-                       noise_scale=args.noise_scale, noise_note=args.noise_note)
+                       noise_scale=args.noise_scale, noise_note=args.noise_note,
+                       noise_shape=NoiseShape(
+                           weights=args.noise_weights or NoiseShape().weights,
+                           correlation=args.noise_correlation or NoiseShape().correlation))
         print(f"{entry.checkpoint} (+ {entry.checkpoint.with_suffix('.json').name})")
         return 0
     except KeyboardInterrupt:

@@ -36,6 +36,9 @@ class BicycleLimits:
     :param max_reverse_speed: reverse speed cap (m/s, positive number).
     :param max_offset: largest lateral offset from the reference path (m) in the
         ``accel_offset`` layout (:mod:`magail_sumo.sim.tracking`).
+    :param max_steer_rate: largest change of the front-wheel angle per second (rad/s; 0: no
+        limit): a step's steering is clipped to ``prev ± max_steer_rate·dt`` around the
+        previous step's (:func:`limit_steer_rate`), a steering actuator's rate limit.
     """
 
     max_accel: float = 6.0
@@ -44,6 +47,7 @@ class BicycleLimits:
     max_speed: float = 40.0
     max_reverse_speed: float = 5.0
     max_offset: float = 1.5
+    max_steer_rate: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -70,6 +74,16 @@ def clip_action(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits
     a_c = np.clip(a, -limits.max_brake, limits.max_accel)
     d_c = np.clip(d, -limits.max_steer, limits.max_steer)
     return a_c, d_c, bad | (a_c != a) | (d_c != d)
+
+
+def limit_steer_rate(steer: np.ndarray, prev: np.ndarray, limits: BicycleLimits, dt: float
+                     ) -> np.ndarray:
+    """Front-wheel angles ``steer`` (rad) within ``max_steer_rate·dt`` of the previous step's
+    ``prev`` (rad), unchanged when ``limits.max_steer_rate`` is 0 (no limit)."""
+    if limits.max_steer_rate <= 0:
+        return steer
+    step = limits.max_steer_rate * dt
+    return np.clip(steer, prev - step, prev + step)
 
 
 #: Layouts of the two entries of a normalised action: ours, the seed's (steering first), and
