@@ -565,3 +565,12 @@ def test_decomposed_training_resumes_exactly(setup, kind, prefix, moved):
     # the discriminator did train (its weights moved from the first checkpoint)
     first = load_checkpoint(straight / "checkpoints" / "update_000001.pt")["discriminator"]
     assert not torch.equal(first[moved], a["discriminator"][moved])
+
+
+def test_every_configurable_kind_has_a_builder_and_no_other():
+    """``discriminator.kind``'s choices (the config layer, no torch) and the builders'
+    registry (the training layer) name the same kinds."""
+    from magail_sumo.training.adversarial import DISCRIMINATORS
+    from magail_sumo.training.config import DISCRIMINATOR_KINDS
+
+    assert sorted(DISCRIMINATORS) == sorted(DISCRIMINATOR_KINDS)
