@@ -5,7 +5,6 @@ traceback), argument checks shared by the commands."""
 from __future__ import annotations
 
 import json
-import pickle
 import shutil
 import subprocess
 import sys

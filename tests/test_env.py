@@ -14,7 +14,6 @@ from magail_sumo.config import ConfigError
 from magail_sumo.env import REPLAY_LIMITS, EnvConfig, SumoDrivingEnv, expert_actions
 from magail_sumo.env.collision import first_overlap
 from magail_sumo.env.events import StopLines, off_road
-from magail_sumo.sensors.traffic_lights import RED
 
 SCENES = ("850c48d8bbfa008f", "637f20cafde22ff8", "2831b6fde0420b0d")
 

@@ -14,7 +14,6 @@ import pytest
 
 from conftest import WOMD_DIR
 from magail_sumo.cli.main import main
-from magail_sumo.env.scene_specs import scene_specs
 from magail_sumo.config import from_dict
 from magail_sumo.expert import ExpertDataError, ExpertDataset, observation_hash
 from magail_sumo.sensors.config import BeamSpec

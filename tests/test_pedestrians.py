@@ -16,7 +16,7 @@ import pytest
 
 from conftest import ROOT, WOMD_DIR
 from converters import load_scene
-from converters.sumo.pedestrians import SIDEWALK_WIDTH, _axes
+from converters.sumo.pedestrians import _axes
 from converters.sumo.scenario import ConvertOptions, convert_scene, options_key
 from magail_sumo.scene import ObjectType
 from magail_sumo.sim.session import PERSON_PREFIX, Obstacles, SessionConfig, SumoSession
