@@ -44,8 +44,8 @@ class NoiseShape:
                 vals = tuple(float(v) for v in values)
             except (TypeError, ValueError):
                 vals = ()
-            if len(vals) != ACTION_SIZE or not all(
-                    math.isfinite(v) and lo <= v and (v < hi or hi == math.inf) for v in vals):
+            if len(vals) != ACTION_SIZE or not all(math.isfinite(v) and lo <= v < hi
+                                                   for v in vals):
                 bound = ">= 0" if hi == math.inf else "in [0, 1)"
                 raise PolicyError(f"noise {field} must be {ACTION_SIZE} numbers {bound} (one per "
                                   f"action), got {values!r}")
