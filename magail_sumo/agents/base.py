@@ -46,8 +46,9 @@ class Policy(Protocol):
       observations of every world's live agents, grouped by ``worlds`` (n,) ascending and each
       world's in sorted-name order, and ``agents`` (n,), integer keys that stay each agent's
       for the rollout (its fleet row; for a policy with memory), and returns (n, 2) actions,
-      world ``w`` acting as ``act`` of the policy reseeded with ``seeds[w]`` would; evaluation runs all rollouts of a scene
-      at once with a policy that has both (:func:`batched`).
+      world ``w`` acting as ``act`` of the policy reseeded with ``seeds[w]`` would;
+      evaluation runs all rollouts of a scene at once with a policy that has both
+      (:func:`batched`).
     """
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...

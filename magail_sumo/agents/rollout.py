@@ -96,8 +96,8 @@ def rollout_worlds(env, policy, seeds, on_step: Callable[[int, np.ndarray, np.nd
     agents (grouped by world, each world's in sorted-name order, so its draws are those of a
     single-world rollout; their fleet rows as the agents' keys) -> ``env.step_arrays`` ->
     ``on_step(t, rows, actions, step)`` (``t`` the log step before the step, ``rows`` the
-    fleet rows it moved, ``actions`` their (n, 2) actions, ``step`` the :class:`~magail_sumo.env.outcomes.ArrayStep`; post-step states are
-    in ``env.fleet``), until the episode is over (``env.finished``) or ``max_steps`` steps are
+    fleet rows it moved, ``actions`` their (n, 2) actions, ``step`` the
+    :class:`~magail_sumo.env.outcomes.ArrayStep`; post-step states are in ``env.fleet``), until the episode is over (``env.finished``) or ``max_steps`` steps are
     taken. Returns the number of steps taken."""
     if len(seeds) != env.worlds:
         raise ValueError(f"rollout_worlds: {len(seeds)} seeds for {env.worlds} worlds")
