@@ -97,8 +97,9 @@ def rollout_worlds(env, policy, seeds, on_step: Callable[[int, np.ndarray, np.nd
     single-world rollout; their fleet rows as the agents' keys) -> ``env.step_arrays`` ->
     ``on_step(t, rows, actions, step)`` (``t`` the log step before the step, ``rows`` the
     fleet rows it moved, ``actions`` their (n, 2) actions, ``step`` the
-    :class:`~magail_sumo.env.outcomes.ArrayStep`; post-step states are in ``env.fleet``), until the episode is over (``env.finished``) or ``max_steps`` steps are
-    taken. Returns the number of steps taken."""
+    :class:`~magail_sumo.env.outcomes.ArrayStep`; post-step states are in ``env.fleet``),
+    until the episode is over (``env.finished``) or ``max_steps`` steps are taken. Returns the
+    number of steps taken."""
     if len(seeds) != env.worlds:
         raise ValueError(f"rollout_worlds: {len(seeds)} seeds for {env.worlds} worlds")
     st = env.reset_arrays(seed=int(seeds[0]))
