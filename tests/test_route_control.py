@@ -218,9 +218,10 @@ def test_pursuit_past_the_paths_end_drives_on():
 
 def test_idm_acceleration_and_its_bend_and_light_rules():
     """IDM: free road accelerates below the desired speed; a close standing leader brakes;
-    a bend ahead lowers the desired speed; a red light seen brakes to stop before the line
-    it assumes, counting the distance down step by step."""
-    from magail_sumo.agents.idm import IdmParams, IdmPolicy, bend_speed, idm_accel
+    a bend ahead lowers the desired speed; a red light brakes to stop before its stop line,
+    the harder the nearer the line; a light with its line out of range, or green, does not."""
+    from magail_sumo.agents.idm import IdmPolicy
+    from magail_sumo.models.idm import IdmParams, bend_speed, idm_accel
     from magail_sumo.sensors.observation import observation_names
 
     p = IdmParams()
@@ -235,23 +236,28 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     obs = np.zeros(len(names), np.float32)
     obs[names.index("speed")] = 10.0
     obs[names.index("leader_gap")] = pol.observation.leader_range  # none
+    obs[names.index("light_gap")] = 50.0  # none
     obs[[names.index(f"route_x_{d:g}") for d in (5, 10, 20)]] = (5.0, 10.0, 20.0)
     free = pol.act({"a": obs})["a"]
     assert free[0] > 0 and free[1] == 0.0
     obs[names.index("light")] = 3.0
-    first = pol.act({"a": obs})["a"][0]
-    later = pol.act({"a": obs})["a"][0]
-    assert first < 0 and later < first  # the line draws nearer: harder braking
+    assert pol.act({"a": obs})["a"][0] == free[0]  # red, but no stop line within range
+    obs[names.index("light_gap")] = 40.0
+    far = pol.act({"a": obs})["a"][0]
+    obs[names.index("light_gap")] = 15.0
+    near = pol.act({"a": obs})["a"][0]
+    assert near < far < 0  # the nearer the line, the harder the braking
+    accel = pol.rule.accel(obs[None])[0]
+    assert accel == pytest.approx(-10.0 ** 2 / (2 * (15.0 - p.s0)))
     obs[names.index("light")] = 1.0
-    assert pol.act({"a": obs})["a"][0] > 0 and not pol._to_line
+    assert pol.act({"a": obs})["a"][0] == free[0]
 
 
 @pytest.mark.sumo
 def test_idm_route_follower_completes_trips_in_a_real_city():
     """The IDM route follower (``--policy idm``) on the real cologne8 city for 60 s: agents
     arrive at their routes' ends; collisions and red-light runs are rare (its leader sensor
-    looks straight ahead, so it misses some crossing traffic; the light sensor gives no
-    stop-line distance)."""
+    looks straight ahead, so it misses some crossing traffic)."""
     from magail_sumo.agents import env_settings
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
     from magail_sumo.env.config import EnvConfig

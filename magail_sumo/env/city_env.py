@@ -52,6 +52,7 @@ from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
+from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.lane_graph import LaneGraph
@@ -417,7 +418,7 @@ class SumoCityEnv(FleetEnv):
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
                        f.dest[agents], f.dest_yaw[agents], cmd, route)
         obs = self.suite.observe(world[0], ego, 0, lanes,
-                                 light=np.where(dist < 50.0, light, 0))
+                                 light=np.where(dist < LIGHT_RANGE, light, 0), light_gap=dist)
         self.sensor_time += time.perf_counter() - clock
         return {f.names[k]: obs[i] for i, k in enumerate(agents)}, world
 

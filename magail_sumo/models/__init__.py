@@ -1,5 +1,5 @@
-"""Neural networks: discriminators (reward networks), the transformer critic, and their input
-normaliser."""
+"""Neural networks: discriminators (reward networks), the transformer critic, their input
+normaliser, and the action priors a policy learns a residual to (the IDM rule)."""
 
 from .critic import CriticTransformerConfig, TransformerCritic
 from .decomposed import DecomposedConfig, DecomposedDiscriminator
@@ -8,9 +8,11 @@ from .discriminator import (
     MLPDiscriminator, SetEncoderConfig, TransformerConfig, TransformerDiscriminator,
     imitation_reward,
 )
+from .idm import IdmParams, IdmRule
 from .normalizer import RunningNormalizer
+from .priors import ACTION_PRIORS, make_prior
 
-__all__ = ["CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator",
-           "DecomposedTransformerDiscriminator", "MLPDiscriminator", "SetEncoderConfig",
+__all__ = ["ACTION_PRIORS", "CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator",
+           "DecomposedTransformerDiscriminator", "IdmParams", "IdmRule", "MLPDiscriminator", "SetEncoderConfig",
            "RunningNormalizer", "TransformerConfig", "TransformerCritic",
-           "TransformerDiscriminator", "imitation_reward"]
+           "TransformerDiscriminator", "imitation_reward", "make_prior"]

@@ -6,7 +6,8 @@ Gaussian with a state-independent log-std parameter, squashed by tanh into [-1, 
 shared features extractor is :class:`NormalizedObservation` — a
 :class:`~magail_sumo.models.normalizer.RunningNormalizer` (fitted on the expert observations,
 stored in the policy's state dict). The actor is an MLP (64-64 tanh by default) applied to each
-vehicle alone, shared by all vehicles. Two critics:
+vehicle alone, shared by all vehicles; with an action prior (:mod:`magail_sumo.models.priors`)
+its mean is a residual added to the prior's pre-tanh action. Two critics:
 
 * ``critic="mlp"`` (default): SB3's per-vehicle value MLP (64-64 tanh by default). In a
   rollout forward over a whole vector-env observation (the slot layout and mask
@@ -45,6 +46,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from .critic import CriticTransformerConfig, TransformerCritic, scene_groups
 from .normalizer import RunningNormalizer
+from .priors import prior_mean
 
 #: attribute of an observation tensor holding its rows' (N,) int64 scene-step group ids
 SCENE_GROUPS_ATTR = "scene_groups"
@@ -98,11 +100,15 @@ class TanhGaussianPolicy(ActorCriticPolicy):
         ``value_net.*`` (MLP head) or ``critic.*`` (transformer).
     :param critic_transformer: sizes of the transformer critic (default
         :class:`~magail_sumo.models.critic.CriticTransformerConfig`).
+    :param action_prior: a rule from raw observation rows to normalised actions
+        (:mod:`magail_sumo.models.priors`) whose ``atanh`` is added to the actor's mean: the
+        actor learns a residual to it. None: no prior.
     """
 
     def __init__(self, observation_space: gym.spaces.Space, action_space: gym.spaces.Box,
                  lr_schedule: Any, critic: str = "mlp",
                  critic_transformer: CriticTransformerConfig | None = None,
+                 action_prior: Callable[[np.ndarray], np.ndarray] | None = None,
                  **kwargs: Any) -> None:
         if critic not in CRITICS:
             raise ValueError(f"critic must be one of {list(CRITICS)}, got {critic!r}")
@@ -118,6 +124,9 @@ class TanhGaussianPolicy(ActorCriticPolicy):
         # read by _build, which ActorCriticPolicy.__init__ calls
         self.__dict__["critic_kind"] = critic
         self.__dict__["critic_config"] = critic_transformer or CriticTransformerConfig()
+        self.__dict__["action_prior"] = action_prior
+        #: the prior's pre-tanh mean for the observations being evaluated (:meth:`_set_prior`)
+        self.__dict__["_prior_mean"] = None
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
         #: slot -> scene index of the vector env's observation, and the env's slot mask source
         self._slot_scene: np.ndarray | None = None
@@ -134,8 +143,31 @@ class TanhGaussianPolicy(ActorCriticPolicy):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(critic=self.critic_kind, critic_transformer=self.critic_config)
+        data.update(critic=self.critic_kind, critic_transformer=self.critic_config,
+                    action_prior=self.action_prior)
         return data
+
+    # ------------------------------------------------------------------ action prior
+    def _set_prior(self, obs: torch.Tensor) -> None:
+        """Compute the prior's pre-tanh mean for the raw observations ``obs`` (read by
+        :meth:`_get_action_dist_from_latent` in the same call); nothing without a prior."""
+        if self.action_prior is None:
+            return
+        mean = prior_mean(self.action_prior, obs.detach().cpu().numpy())
+        self._prior_mean = torch.as_tensor(mean, dtype=obs.dtype, device=obs.device)
+
+    def _get_action_dist_from_latent(self, latent_pi: torch.Tensor):
+        mean = self.action_net(latent_pi)
+        if self.action_prior is not None:
+            prior = self._prior_mean
+            if prior is None or prior.shape != mean.shape:
+                raise RuntimeError("the action prior was not computed for these observations")
+            mean = mean + prior
+        return self.action_dist.proba_distribution(mean, self.log_std)
+
+    def get_distribution(self, obs: torch.Tensor):
+        self._set_prior(obs)
+        return super().get_distribution(obs)
 
     @property
     def obs_normalizer(self) -> RunningNormalizer:
@@ -196,17 +228,20 @@ class TanhGaussianPolicy(ActorCriticPolicy):
         if self.critic_kind == "mlp":
             rows = self.rollout_rows(obs)
             if rows is None:
+                self._set_prior(obs)
                 return super().forward(obs, deterministic)
             # a rollout step: only the slots holding an agent are evaluated (and draw noise);
             # a free slot gets action, value and log-probability 0, never used (the masked
             # buffer drops free slot-steps, GAE never bootstraps across a re-assignment)
             n, i = obs.shape[0], torch.as_tensor(rows, device=obs.device)
+            self._set_prior(obs[i])
             actions, values, log_prob = super().forward(obs[i], deterministic)
             out = (actions.new_zeros((n, *actions.shape[1:])), values.new_zeros((n, 1)),
                    log_prob.new_zeros(n))
             out[0][i], out[1][i], out[2][i] = actions, values, log_prob
             return out
         group = self.critic_groups(obs)
+        self._set_prior(obs)
         pi_features, vf_features = self._features(obs)
         dist = self._get_action_dist_from_latent(self.mlp_extractor.forward_actor(pi_features))
         actions = dist.get_actions(deterministic=deterministic)
@@ -216,6 +251,7 @@ class TanhGaussianPolicy(ActorCriticPolicy):
 
     def evaluate_actions(self, obs: torch.Tensor, actions: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        self._set_prior(obs)
         if self.critic_kind == "mlp":
             return super().evaluate_actions(obs, actions)
         if getattr(obs, SCENE_GROUPS_ATTR, None) is None:

@@ -107,6 +107,12 @@ class SensorMaps:
         self.lights = lights
         self.lanes = LaneIndex.build(roadmap.lanes, cell=lane_cell)
 
+    @cached_property
+    def lane_ends(self) -> np.ndarray:
+        """(L, 2) the last point (x, y) of each lane's centre line (m, scene frame)."""
+        ends = [l.polyline[-1, :2] for l in self.roadmap.lanes]
+        return np.asarray(ends, np.float64).reshape(-1, 2)
+
 
 class SensorInput:
     """What the sensors read at one step, for the A observing agents (rows ``ego.index`` of
@@ -116,16 +122,19 @@ class SensorInput:
     :param lanes: the agents' lane query when the caller already computed it this step.
     :param light: (A,) live light codes (0 none, 1 green, 2 yellow, 3 red); default: the
         maps' light source at log step ``step`` on each agent's current lane.
+    :param light_gap: (A,) live distances (m) to the stop line of that light (inf: none
+        ahead); default: from the maps (:attr:`light_gap`).
     """
 
     def __init__(self, maps: SensorMaps, boxes: Boxes, ego: EgoState, step: int,
-                 lanes: LaneQuery | None = None, light: np.ndarray | None = None) -> None:
+                 lanes: LaneQuery | None = None, light: np.ndarray | None = None,
+                 light_gap: np.ndarray | None = None) -> None:
         self.maps, self.boxes, self.ego, self.step = maps, boxes, ego, step
         self.index = idx = np.asarray(ego.index, np.int64)
         self.x, self.y = boxes.x[idx], boxes.y[idx]
         self.yaw = np.asarray(boxes.yaw, np.float64)[idx]
         self.origins = np.stack([self.x, self.y], axis=1)
-        self._lanes, self._light = lanes, light
+        self._lanes, self._light, self._light_gap = lanes, light, light_gap
 
     def __len__(self) -> int:
         return int(self.index.shape[0])
@@ -143,6 +152,22 @@ class SensorInput:
         light = self.maps.lights.lookup(self.step, self.lanes.lane) if self._light is None \
             else np.asarray(self._light)
         return light.astype(np.float64)
+
+    @cached_property
+    def light_gap(self) -> np.ndarray:
+        """(A,) float64 distance (m) to the stop line of the current lane's light, inf when
+        none is ahead: live when given; from a recording, the straight distance to the end of
+        an approach lane that shows its exits' signal (WOMD records the signal on the lanes
+        that start at the stop line), inf on a lane carrying its own record (past the line)
+        or without a light."""
+        if self._light_gap is not None:
+            return np.asarray(self._light_gap, np.float64)
+        lane = self.lanes.lane
+        ahead = self.maps.lights.at_end(lane) & (self.light > 0)
+        end = self.maps.lane_ends[np.maximum(lane, 0)] if len(self.maps.lane_ends) else \
+            np.zeros((len(lane), 2))
+        gap = np.hypot(end[:, 0] - self.x, end[:, 1] - self.y)
+        return np.where(ahead, gap, np.inf)
 
 
 class Sensor(ABC):
@@ -247,11 +272,12 @@ def sensor_class(name: str) -> type[Sensor]:
 def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
     route command when ``config.command``, the route look-ahead when ``config.route_points``,
-    the leader when ``config.leader``)."""
+    the leader when ``config.leader``, the stop-line distance when ``config.light_gap``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
         raise KeyError(f"unknown observation layout {config.layout!r} (known: "
                        f"{', '.join(LAYOUTS)})") from None
     return layout + (("command",) if config.command else ()) + \
-        (("route",) if config.route_points else ()) + (("leader",) if config.leader else ())
+        (("route",) if config.route_points else ()) + (("leader",) if config.leader else ()) + \
+        (("light_gap",) if config.light_gap else ())

@@ -58,6 +58,8 @@ class ObservationConfig:
         agent's path; off by default.
     :param leader_range: how far ahead the leader sensor looks (m); its gap reads this when
         nobody is ahead.
+    :param light_gap: append ``light_gap``: the distance (m) to the stop line of the
+        ``light`` the agent sees (:mod:`magail_sumo.sensors.units.light_gap`); off by default.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -70,6 +72,7 @@ class ObservationConfig:
     route_points: tuple[float, ...] = ()
     leader: bool = False
     leader_range: float = 50.0
+    light_gap: bool = False
 
     def __post_init__(self) -> None:
         layout = layout_name(self.layout)

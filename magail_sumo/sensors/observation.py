@@ -31,6 +31,9 @@ then 2 per distance   (``route_points`` only) route look-ahead: ego-frame x, y (
 then 2                (``leader: true`` only) ``leader_gap`` (m), ``leader_closing`` (m/s)
                       to the road user ahead in the agent's path
                       (:mod:`magail_sumo.sensors.units.leader`)
+then 1                (``light_gap: true`` only) ``light_gap``: distance (m) to the stop line
+                      of the light ahead, 50 when none
+                      (:mod:`magail_sumo.sensors.units.light_gap`)
 ====================  ======================================================================
 
 Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
@@ -50,8 +53,8 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 (:data:`~magail_sumo.sensors.base.LAYOUTS`) lists the units in order — ``ego``: ``ego``,
 ``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``scene_frame``:
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
-``command`` with ``command: true``, ``route`` with ``route_points`` and ``leader`` with
-``leader: true``. The suite is built from
+``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
+``leader: true`` and ``light_gap`` with ``light_gap: true``. The suite is built from
 a road map and a light source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)``
 for a recorded scene).
 """
@@ -150,17 +153,20 @@ class SensorSuite:
         return self.lanes.query(x, y, yaw)
 
     def observe(self, boxes: Boxes, ego: EgoState, step: int,
-                lanes: LaneQuery | None = None, light: np.ndarray | None = None) -> np.ndarray:
+                lanes: LaneQuery | None = None, light: np.ndarray | None = None,
+                light_gap: np.ndarray | None = None) -> np.ndarray:
         """(A, D) float32 observations of the agents at log step ``step`` (layout: module doc).
 
         :param lanes: the agents' :meth:`lane_query` when already computed this step.
         :param light: (A,) current-lane light codes (0 none, 1 green, 2 yellow, 3 red) from a
             live source (a SUMO run without a recording); default: the suite's light source.
+        :param light_gap: (A,) live distances (m) to that light's stop line (inf: none);
+            default: from the suite's maps.
         """
         a = np.asarray(ego.index).shape[0]
         if a == 0:
             return np.zeros((0, self.size), np.float32)
-        inp = SensorInput(self.maps, boxes, ego, step, lanes, light)
+        inp = SensorInput(self.maps, boxes, ego, step, lanes, light, light_gap)
         out = np.empty((a, self.size), np.float32)
         k = 0
         for sensor, width in zip(self.sensors, self._widths):  # a fixed handful, not per agent

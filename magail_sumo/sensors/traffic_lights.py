@@ -35,12 +35,19 @@ class LightSource(Protocol):
     def lookup(self, step: int, lane: np.ndarray) -> np.ndarray:
         """(A,) light codes of lane indices at a log step (0 for lane -1)."""
 
+    def at_end(self, lane: np.ndarray) -> np.ndarray:
+        """(A,) bool: the lane's light stands at its end (an approach lane showing its exits'
+        signal; its stop line is where it ends), False for lane -1 and for lanes whose own
+        record it is (the stop line at their start, behind an agent on them)."""
+
 
 @dataclass(frozen=True)
 class LightTable:
-    """(T, L) light codes per log step and lane index (lane order of ``RoadMap.lanes``)."""
+    """(T, L) light codes per log step and lane index (lane order of ``RoadMap.lanes``), and
+    (L,) which lanes take their light from their exits (:meth:`LightSource.at_end`)."""
 
     codes: np.ndarray
+    inherited: np.ndarray | None = None
 
     @classmethod
     def build(cls, scene: Scene) -> "LightTable":
@@ -61,6 +68,7 @@ class LightTable:
             own[rows, cols] = LIGHT_CODES[sig.state[known].astype(np.int64)]
         codes = own.copy()
         signalled = set(np.unique(cols).tolist()) if known.any() else set()
+        inherited = np.zeros(len(lanes), bool)
         for k, lane in enumerate(lanes):  # once per scene: approach lanes take their exits' lights
             if k in signalled:
                 continue
@@ -69,7 +77,8 @@ class LightTable:
                 sub = own[:, exits]
                 best = np.argmax(_RANK[sub], axis=1)
                 codes[:, k] = sub[np.arange(t_steps), best]
-        return cls(codes)
+                inherited[k] = True
+        return cls(codes, inherited)
 
     def lookup(self, step: int, lane: np.ndarray) -> np.ndarray:
         """(A,) light codes of lane indices at a log step (0 for lane -1 or steps past the log)."""
@@ -77,6 +86,12 @@ class LightTable:
         if not 0 <= step < self.codes.shape[0] or self.codes.shape[1] == 0:
             return np.zeros(lane.shape, np.int8)
         return np.where(lane >= 0, self.codes[step, np.maximum(lane, 0)], 0).astype(np.int8)
+
+    def at_end(self, lane: np.ndarray) -> np.ndarray:
+        lane = np.asarray(lane, np.int64)
+        if self.inherited is None or self.inherited.size == 0:
+            return np.zeros(lane.shape, bool)
+        return (lane >= 0) & self.inherited[np.maximum(lane, 0)]
 
 
 #: light source of a map without recorded signals: every lane reads 0 (none) at every step

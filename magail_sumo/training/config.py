@@ -22,6 +22,7 @@ from magail_sumo.env.config import SCENE_CACHE, EnvConfig
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import SetEncoderConfig, TransformerConfig
+from magail_sumo.models.priors import ACTION_PRIORS, make_prior
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.splits import PARTS, load_split
 
@@ -237,6 +238,10 @@ class PolicyConfig:
         :class:`~magail_sumo.models.critic.TransformerCritic`).
     :param critic_transformer: sizes of the transformer critic (used when ``critic`` is
         ``"transformer"``).
+    :param action_prior: ``"none"`` or a rule the actor learns a residual to
+        (:mod:`magail_sumo.models.priors`): ``"idm"``, the IDM route follower (needs
+        ``env.action_layout: accel_offset`` and ``env.observation`` ``leader`` and
+        ``light_gap``).
     """
 
     actor_hidden: tuple[int, ...] = (64, 64)
@@ -244,10 +249,14 @@ class PolicyConfig:
     log_std_init: float = 0.0
     critic: Literal["mlp", "transformer"] = "mlp"
     critic_transformer: CriticTransformerConfig = field(default_factory=CriticTransformerConfig)
+    action_prior: str = "none"
 
     def __post_init__(self) -> None:
         check(self.critic in ("mlp", "transformer"), "critic",
               f"must be 'mlp' or 'transformer', got {show(self.critic)}")
+        check(self.action_prior == "none" or self.action_prior in ACTION_PRIORS,
+              "action_prior", f"must be one of none, {', '.join(ACTION_PRIORS)}, got "
+              f"{show(self.action_prior)}")
         check_sizes(self, "actor_hidden", "critic_hidden")
 
 
@@ -388,6 +397,14 @@ class TrainConfig:
                   f"algorithm {self.algorithm} branches on the route command: must be true")
             check(self.algorithm != "sac" or obs.layout == "ego", "env.observation.layout",
                   "algorithm sac needs the 'ego' layout (its task reward reads dest_distance)")
+        if self.policy.action_prior != "none":
+            check(self.algorithm in ("gail", "bc"), "policy.action_prior",
+                  f"only the PPO-family policies take one, not algorithm {self.algorithm}")
+            try:
+                make_prior(self.policy.action_prior, self.env.observation, self.env.limits,
+                           self.env.action_layout)
+            except ValueError as exc:
+                check(False, "policy.action_prior", str(exc))
         check(self.updates >= 0, "updates", f"must be >= 0, got {self.updates}")
         check(self.checkpoint_every >= 1, "checkpoint_every",
               f"must be >= 1, got {self.checkpoint_every}")

@@ -12,6 +12,7 @@ import numpy as np
 from gymnasium import spaces
 
 from magail_sumo.models.policies import TanhGaussianPolicy
+from magail_sumo.models.priors import make_prior
 from magail_sumo.sensors.observation import observation_bounds
 from magail_sumo.sim.dynamics import ACTION_SIZE
 
@@ -33,6 +34,10 @@ def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     if p.critic == "transformer":
         kwargs.update(net_arch={"pi": list(p.actor_hidden), "vf": []}, critic="transformer",
                       critic_transformer=p.critic_transformer)
+    prior = make_prior(p.action_prior, cfg.env.observation, cfg.env.limits,
+                       cfg.env.action_layout)
+    if prior is not None:
+        kwargs["action_prior"] = prior
     return kwargs
 
 

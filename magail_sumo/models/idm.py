@@ -1,0 +1,134 @@
+"""The Intelligent Driver Model as a rule from observations to route-relative actions.
+
+:class:`IdmRule` maps observation rows (``action_layout: accel_offset``) to normalised actions:
+the IDM acceleration (Treiber, Hennecke & Helbing 2000) towards the road user ahead in the
+agent's path (the ``leader`` observation: gap ``s`` m, closing speed ``Δv`` m/s) and a lateral
+offset of 0 (pure pursuit keeps the agent on its route's lanes, :mod:`magail_sumo.sim.tracking`):
+
+    a = a_max · [1 − (v / v0)^4 − (s* / s)^2],   s* = s0 + v·T + v·Δv / (2·sqrt(a_max·b))
+
+(free road: no interaction term). The desired speed is lowered before bends: the route
+look-ahead (``route_points``) gives each point's curvature ``κ = 2·|y| / (x² + y²)`` (the arc
+from the car through it), and ``v0`` is at most ``sqrt(a_lat / κ)`` (lateral acceleration
+``a_lat``). Before a red or yellow light (the ``light`` observation) whose stop line is
+``light_gap`` m ahead (:mod:`magail_sumo.sensors.units.light_gap`) it brakes to stop ``s0``
+before the line, ``v² / (2·d)`` (at most ``max_brake``), keeping the IDM acceleration when that
+is lower. Pure array functions of the observation, no memory: the same rule drives the
+``idm`` baseline (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
+add a residual to (:mod:`magail_sumo.models.priors`).
+
+Units: m, s, m/s, m/s²; actions normalised by :func:`magail_sumo.sim.dynamics.normalise`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from magail_sumo.sensors.observation import ObservationConfig, observation_names
+from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
+from magail_sumo.sim.dynamics import BicycleLimits, normalise
+
+#: light codes of the ``light`` observation that stop an IDM driver (yellow, red)
+STOP_LIGHTS = (2.0, 3.0)
+
+
+@dataclass(frozen=True)
+class IdmParams:
+    """IDM parameters (urban defaults).
+
+    :param v0: desired speed (m/s). :param T: time headway (s). :param s0: standstill gap (m).
+    :param a_max: maximum acceleration (m/s²). :param b: comfortable deceleration (m/s²).
+    :param max_brake: the hardest braking for a light (m/s²).
+    :param a_lat: the lateral acceleration bends are taken at (m/s²).
+    :param dt: the env's step (s).
+    """
+
+    v0: float = 13.9
+    T: float = 1.5
+    s0: float = 2.0
+    a_max: float = 1.5
+    b: float = 2.0
+    max_brake: float = 6.0
+    a_lat: float = 2.0
+    dt: float = 0.1
+
+
+def idm_accel(v: np.ndarray, gap: np.ndarray, closing: np.ndarray, p: IdmParams,
+              v0: np.ndarray | float | None = None) -> np.ndarray:
+    """(A,) IDM acceleration (m/s²) at speeds ``v`` with leaders ``gap`` m ahead closing at
+    ``closing`` m/s (``gap`` inf: free road), desired speed ``v0`` (default ``p.v0``)."""
+    v0 = p.v0 if v0 is None else np.maximum(v0, 0.5)
+    v = np.maximum(np.asarray(v, np.float64), 0.0)
+    star = p.s0 + v * p.T + v * closing / (2.0 * np.sqrt(p.a_max * p.b))
+    gap = np.maximum(np.asarray(gap, np.float64), 0.1)
+    interact = np.where(np.isfinite(gap), (np.maximum(star, 0.0) / gap) ** 2, 0.0)
+    return p.a_max * (1.0 - (v / v0) ** 4 - interact)
+
+
+def bend_speed(route_xy: np.ndarray, a_lat: float) -> np.ndarray:
+    """(A,) speed (m/s) for the sharpest bend of the route look-ahead ``route_xy`` ((A, 2·P)
+    ego-frame x, y per point): ``sqrt(a_lat / κ)``, κ of the arc through each point."""
+    xy = np.asarray(route_xy, np.float64).reshape(route_xy.shape[0], -1, 2)
+    d2 = np.maximum((xy ** 2).sum(axis=2), 1.0)
+    kappa = (2.0 * np.abs(xy[:, :, 1]) / d2).max(axis=1)
+    return np.sqrt(a_lat / np.maximum(kappa, 1e-6))
+
+
+def light_brake(v: np.ndarray, light: np.ndarray, gap: np.ndarray, p: IdmParams,
+                light_range: float) -> np.ndarray:
+    """(A,) the deceleration (m/s², ≤ 0) that stops ``s0`` before a red or yellow light's stop
+    line ``gap`` m ahead (``gap`` ≥ ``light_range``: none ahead, +inf returned: no limit):
+    ``v² / (2·(gap − s0))``, at most ``max_brake``; within 0.1 m of that point (or past it)
+    the speed is brought to 0 in one step (``v / dt``, at most ``max_brake``), so a car
+    at the line stands rather than creeps over it."""
+    stop = np.isin(light, STOP_LIGHTS) & (gap < light_range - 1e-6)
+    v = np.maximum(v, 0.0)
+    room = gap - p.s0
+    need = np.where(room > 0.1, v * v / (2.0 * np.maximum(room, 0.1)), v / p.dt)
+    return np.where(stop, -np.minimum(need, p.max_brake), np.inf)
+
+
+class IdmRule:
+    """IDM on route-relative control as a function of observation rows (module doc).
+
+    :param observation: the observation the rows follow; it must have the ``leader`` and
+        ``light_gap`` features (route look-ahead points are used for bends when present).
+    :param limits: the vehicle limits actions are normalised by.
+    :raises ValueError: an observation without the leader or the stop-line distance.
+    """
+
+    action_layout = "accel_offset"
+
+    def __init__(self, observation: ObservationConfig, limits: BicycleLimits | None = None,
+                 params: IdmParams | None = None) -> None:
+        if not (observation.leader and observation.light_gap):
+            raise ValueError("the IDM rule reads the leader and the stop-line distance: set "
+                             "observation.leader and observation.light_gap to true")
+        self.observation = observation
+        self.limits = limits or BicycleLimits()
+        self.params = params or IdmParams()
+        names = observation_names(observation)
+        self._col = [names.index(n) for n in ("speed", "leader_gap", "leader_closing", "light",
+                                              "light_gap")]
+        self._route = [names.index(f"route_{a}_{d:g}") for d in observation.route_points
+                       for a in "xy"]
+
+    def accel(self, obs: np.ndarray) -> np.ndarray:
+        """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D)."""
+        obs = np.asarray(obs, np.float64)
+        v, gap, closing, light, to_line = (obs[:, c] for c in self._col)
+        p = self.params
+        none = gap >= self.observation.leader_range - 1e-6  # the sensor reads its range
+        gap = np.where(none, np.inf, gap)
+        closing = np.where(none, 0.0, closing)
+        v0 = np.minimum(p.v0, bend_speed(obs[:, self._route], p.a_lat)) if self._route \
+            else None
+        accel = idm_accel(v, gap, closing, p, v0)
+        return np.minimum(accel, light_brake(v, light, to_line, p, LIGHT_RANGE))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """(A, 2) normalised ``accel_offset`` actions of observation rows ``obs`` (A, D)."""
+        accel = self.accel(obs)
+        return normalise(accel, np.zeros_like(accel), self.limits, self.action_layout)

@@ -1,0 +1,164 @@
+"""The stop-line distance sensor (``observation.light_gap``) on real recorded scenes and in a
+real SUMO city, and the action prior (``policy.action_prior: idm``): an untrained actor drives
+like the IDM rule, its log-probabilities are those of the Gaussian centred on the prior, and a
+checkpoint brings the prior back in evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import ROOT, SCENARIONET_DIR, WOMD_DIR, tiny_checkpoint
+from converters import load_scene
+from magail_sumo.config import ConfigError, from_dict
+from magail_sumo.models.idm import IdmRule
+from magail_sumo.models.priors import PRIOR_CLIP
+from magail_sumo.sensors.observation import (
+    Boxes, EgoState, ObservationConfig, SensorSuite, observation_names,
+)
+from magail_sumo.sensors.traffic_lights import LightTable
+from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
+from magail_sumo.training.config import TrainConfig
+from magail_sumo.training.policies import make_policy
+
+OBS = {"leader": True, "light_gap": True, "route_points": [10.0, 20.0, 40.0]}
+PRIOR_ENV = {"action_layout": "accel_offset", "observation": OBS}
+
+
+def _log_observations(path, every: int = 5):
+    """(rows, speed) of every recorded vehicle every ``every`` log steps, observed with the
+    stop-line distance."""
+    scene = load_scene(path)
+    cfg = ObservationConfig(light_gap=True)
+    suite = SensorSuite(scene, cfg)
+    names = observation_names(cfg)
+    tr, rows, speed = scene.tracks, [], []
+    for t in range(0, scene.num_steps, every):
+        idx = np.flatnonzero(tr.valid[:, t])
+        v = np.hypot(tr.vx[idx, t], tr.vy[idx, t]).astype(np.float64)
+        boxes = Boxes(tr.x[idx, t], tr.y[idx, t], tr.heading[idx, t].astype(np.float64),
+                      tr.length[idx, t], tr.width[idx, t], v)
+        ego = EgoState(np.arange(idx.size), v, np.zeros((idx.size, 2)),
+                       np.zeros((idx.size, 2)), np.zeros(idx.size))
+        rows.append(suite.observe(boxes, ego, t))
+        speed.append(v)
+    return np.concatenate(rows), np.concatenate(speed), names, scene
+
+
+@pytest.mark.parametrize("path", [WOMD_DIR / "637f20cafde22ff8.tfrecord",
+                                  SCENARIONET_DIR / "7b24d74b506c94ce.pkl"],
+                         ids=lambda p: p.stem)
+def test_stop_line_distance_of_recorded_drivers_waiting_at_red(path):
+    """Recorded vehicles standing at a red light see its stop line a few metres ahead (the
+    first of a queue within 5 m), never beyond the range; with no light the sensor reads its
+    range; every value lies within the declared bounds."""
+    obs, speed, names, scene = _log_observations(path)
+    light, gap = obs[:, names.index("light")], obs[:, names.index("light_gap")]
+    assert ((gap >= 0) & (gap <= LIGHT_RANGE)).all()
+    assert (gap[light == 0] == LIGHT_RANGE).all()
+    waiting = (light == 3) & (speed < 0.5) & (gap < LIGHT_RANGE)
+    assert waiting.sum() >= 5, "the scene has vehicles waiting at a red light"
+    assert gap[waiting].min() < 5.0 and np.median(gap[waiting]) < 25.0
+    table = LightTable.build(scene)
+    assert table.inherited is not None and table.inherited.any()
+    own = np.flatnonzero(~table.inherited & (table.codes > 0).any(axis=0))
+    assert not table.at_end(own).any() and not table.at_end(np.array([-1])).any()
+
+
+@pytest.mark.sumo
+def test_city_stop_line_distance_is_sumo_next_signal():
+    """In a SUMO city the sensor reads SUMO's distance to each agent's next signal
+    (``getNextTLS``), capped at the range, and the range where the light reads none."""
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+
+    cfg = CityEnvConfig(observation=ObservationConfig(**OBS), action_layout="accel_offset",
+                        max_agents=100, warmup_s=300, max_steps=50)
+    env = SumoCityEnv(ROOT / "data" / "sumo" / "cologne8" / "cologne8.sumocfg", cfg)
+    names = observation_names(cfg.observation)
+    near = 0
+    try:
+        obs, _ = env.reset(seed=0)
+        vehicle = env._session.api.vehicle
+        for step in range(40):
+            obs, *_ = env.step({a: np.array([0.2, 0.0], np.float32) for a in obs})
+            for agent, row in obs.items() if step % 5 == 4 else ():
+                nxt = vehicle.getNextTLS(agent)
+                want = min(nxt[0][2], LIGHT_RANGE) if nxt else LIGHT_RANGE
+                if row[names.index("light")] == 0:
+                    want = LIGHT_RANGE
+                assert row[names.index("light_gap")] == pytest.approx(want, abs=1e-3), agent
+                near += want < LIGHT_RANGE
+    finally:
+        env.close()
+    assert near >= 3, "some agents have a signal within range"
+
+
+def _prior_config(**policy) -> TrainConfig:
+    return from_dict(TrainConfig, {"env": PRIOR_ENV, "policy": {"action_prior": "idm",
+                                                               **policy}})
+
+
+def _rows(names: list[str]) -> np.ndarray:
+    obs = np.zeros((4, len(names)), np.float32)
+    obs[:, names.index("speed")] = [0.0, 8.0, 10.0, 12.0]
+    obs[:, names.index("leader_gap")] = [50.0, 50.0, 6.0, 50.0]
+    obs[:, names.index("light")] = [0, 0, 0, 3]
+    obs[:, names.index("light_gap")] = [50.0, 50.0, 50.0, 20.0]
+    for d in (10, 20, 40):
+        obs[:, names.index(f"route_x_{d}")] = d
+    return obs
+
+
+def test_untrained_actor_with_the_idm_prior_drives_like_the_rule():
+    """An untrained actor's deterministic action is the IDM rule's (its last layer starts near
+    0); the log-probability PPO evaluates is the forward pass's; without the prior the same
+    actor is centred near 0."""
+    cfg = _prior_config()
+    names = observation_names(cfg.env.observation)
+    obs = torch.as_tensor(_rows(names))
+    rule = IdmRule(cfg.env.observation, cfg.env.limits)(obs.numpy())
+    torch.manual_seed(0)
+    policy = make_policy(cfg)
+    with torch.no_grad():
+        act = policy._predict(obs, deterministic=True).numpy()
+        assert np.abs(act - np.clip(rule, -PRIOR_CLIP, PRIOR_CLIP)).max() < 0.05
+        assert act[2, 0] < -0.3 and act[3, 0] < -0.3 and act[0, 0] > 0.1
+        sampled, _, log_prob = policy.forward(obs)
+        _, again, _ = policy.evaluate_actions(obs, sampled)
+        assert torch.allclose(again, log_prob, atol=1e-5)
+    plain = make_policy(from_dict(TrainConfig, {"env": PRIOR_ENV}))
+    with torch.no_grad():
+        assert np.abs(plain._predict(obs, deterministic=True).numpy()).max() < 0.05
+
+
+def test_checkpoint_brings_the_prior_back(tmp_path):
+    """A checkpoint trained with the prior acts with it in evaluation (the policy is rebuilt
+    from the run's config)."""
+    from magail_sumo.policies import load_checkpoint_policy
+
+    path = tiny_checkpoint(tmp_path / "prior.pt", PRIOR_ENV)
+    # the tiny checkpoint has no prior: write one with it
+    state = torch.load(path, weights_only=True)
+    state["config"]["policy"]["action_prior"] = "idm"
+    torch.save(state, path)
+    pol = load_checkpoint_policy(path, seed=0, deterministic=True)
+    names = observation_names(ObservationConfig(**OBS))
+    rows = _rows(names)
+    act = pol.act({str(i): r for i, r in enumerate(rows)})
+    got = np.stack([act[str(i)] for i in range(len(rows))])
+    assert got[2, 0] < -0.3 and got[0, 0] > 0.1
+
+
+@pytest.mark.parametrize("settings, problem", [
+    ({"env": {"observation": OBS}, "policy": {"action_prior": "idm"}}, "accel_offset"),
+    ({"env": {"action_layout": "accel_offset"}, "policy": {"action_prior": "idm"}},
+     "light_gap"),
+    ({"policy": {"action_prior": "pid"}}, "must be one of none, idm"),
+    ({"algorithm": "sac_gail", "env": {**PRIOR_ENV, "observation": {**OBS, "command": True}},
+      "policy": {"action_prior": "idm"}}, "PPO-family"),
+])
+def test_bad_prior_settings_are_one_line(settings, problem):
+    with pytest.raises(ConfigError, match=problem) as err:
+        from_dict(TrainConfig, settings)
+    assert "policy.action_prior" in str(err.value) or "action_prior" in str(err.value)
