@@ -1,5 +1,6 @@
 """The stop-line distance sensor (``observation.light_gap``) on real recorded scenes and in a
-real SUMO city, and the action prior (``policy.action_prior: idm``): an untrained actor drives
+real SUMO city, the give-way sensor (``observation.give_way``) in a real city, and the action
+prior (``policy.action_prior: idm``): an untrained actor drives
 like the IDM rule, its log-probabilities are those of the Gaussian centred on the prior, and a
 checkpoint brings the prior back in evaluation."""
 
@@ -92,6 +93,50 @@ def test_city_stop_line_distance_is_sumo_next_signal():
     finally:
         env.close()
     assert near >= 3, "some agents have a signal within range"
+
+
+@pytest.mark.sumo
+def test_city_give_way_conflict_is_a_sumo_junction_foe():
+    """In a SUMO city the give-way features name a conflict SUMO's junction model has: a foe
+    the agent must respond to, the agent's distance to the conflict, and the foe's time to it
+    at its speed; none (the caps) otherwise."""
+    from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
+    from magail_sumo.sensors.units.give_way import GIVE_WAY_HORIZON, GIVE_WAY_RANGE
+
+    cfg = CityEnvConfig(observation=ObservationConfig(**OBS, give_way=True),
+                        action_layout="accel_offset", max_agents=100, warmup_s=600,
+                        max_steps=60)
+    env = SumoCityEnv(ROOT / "data" / "sumo" / "cologne8" / "cologne8.sumocfg", cfg)
+    names = observation_names(cfg.observation)
+    gi, ti = names.index("give_way_gap"), names.index("give_way_time")
+    seen = matched = 0
+    try:
+        obs, _ = env.reset(seed=0)
+        vehicle = env._session.api.vehicle
+        for step in range(60):
+            obs, _, term, trunc, _ = env.step({a: np.array([0.1, 0.0], np.float32)
+                                               for a in obs})
+            speed = dict(zip(env._sumo.ids, env._sumo.speed))
+            for agent, row in obs.items():
+                if term[agent] or trunc[agent]:  # taken out of SUMO after this observation
+                    continue
+                gap, time = row[gi], row[ti]
+                if gap == GIVE_WAY_RANGE or agent not in speed:  # none, or not in SUMO now
+                    assert gap == GIVE_WAY_RANGE and time == GIVE_WAY_HORIZON
+                    continue
+                seen += 1
+                foes = [(d, min(max(fd, 0) / max(speed[f], 0.1), GIVE_WAY_HORIZON))
+                        for f, d, fd, _, fx, _, _, respond, _ in
+                        vehicle.getJunctionFoes(agent, GIVE_WAY_RANGE)
+                        if respond and d > 0 and fx > 0]
+                matched += any(d == pytest.approx(gap, abs=1e-3) and
+                               t == pytest.approx(time, abs=1e-3) for d, t in foes)
+    finally:
+        env.close()
+    assert seen >= 5, "some agents meet a junction conflict"
+    # agents taken out at the end of a step leave SUMO after the others were observed: a
+    # conflict with one of them is gone when the test asks SUMO again
+    assert matched >= 0.8 * seen, (matched, seen)
 
 
 def _prior_config(**policy) -> TrainConfig:

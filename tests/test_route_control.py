@@ -219,7 +219,8 @@ def test_pursuit_past_the_paths_end_drives_on():
 def test_idm_acceleration_and_its_bend_and_light_rules():
     """IDM: free road accelerates below the desired speed; a close standing leader brakes;
     a bend ahead lowers the desired speed; a red light brakes to stop before its stop line,
-    the harder the nearer the line; a light with its line out of range, or green, does not."""
+    the harder the nearer the line; a light with its line out of range, or green, does not;
+    a junction conflict is given way to only when the road user would arrive too soon."""
     from magail_sumo.agents.idm import IdmPolicy
     from magail_sumo.models.idm import IdmParams, bend_speed, idm_accel
     from magail_sumo.sensors.observation import observation_names
@@ -237,6 +238,7 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     obs[names.index("speed")] = 10.0
     obs[names.index("leader_gap")] = pol.observation.leader_range  # none
     obs[names.index("light_gap")] = 50.0  # none
+    obs[[names.index("give_way_gap"), names.index("give_way_time")]] = (50.0, 10.0)  # none
     obs[[names.index(f"route_x_{d:g}") for d in (5, 10, 20)]] = (5.0, 10.0, 20.0)
     free = pol.act({"a": obs})["a"]
     assert free[0] > 0 and free[1] == 0.0
@@ -250,6 +252,11 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     accel = pol.rule.accel(obs[None])[0]
     assert accel == pytest.approx(-10.0 ** 2 / (2 * (15.0 - p.s0)))
     obs[names.index("light")] = 1.0
+    assert pol.act({"a": obs})["a"][0] == free[0]
+    # a junction conflict 20 m ahead: a road user 2 s from it is given way to, one 9 s away not
+    obs[[names.index("give_way_gap"), names.index("give_way_time")]] = (20.0, 2.0)
+    assert pol.rule.accel(obs[None])[0] == pytest.approx(-10.0 ** 2 / (2 * (20.0 - p.s0)))
+    obs[names.index("give_way_time")] = 9.0
     assert pol.act({"a": obs})["a"][0] == free[0]
 
 

@@ -52,6 +52,7 @@ from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
 )
+from magail_sumo.sensors.units.give_way import GIVE_WAY_RANGE
 from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
@@ -396,6 +397,31 @@ class SumoCityEnv(FleetEnv):
                 dist[j] = d
         return code, dist
 
+    def _give_way(self, agents: np.ndarray) -> np.ndarray:
+        """(A, 2) each agent's give-way conflict (:mod:`magail_sumo.sensors.units.give_way`):
+        the distance (m) to the conflict of the road user it must respond to that reaches its
+        conflict first, and that road user's time (s) to it; inf, inf when none.
+
+        From SUMO's junction model: ``getJunctionFoes`` per agent (libsumo has no bulk query),
+        keeping foes the agent must respond to, that have not left the conflict, while the
+        agent has not entered it (an agent in the conflict is committed: it clears it).
+        """
+        vehicle, names, v = self._session.api.vehicle, self.fleet.names, self._sumo
+        out = np.full((agents.size, 2), np.inf)
+        speed = dict(zip(v.ids, v.speed.tolist()))
+        for j, k in enumerate(agents.tolist()):  # one libsumo query per agent
+            try:
+                foes = vehicle.getJunctionFoes(names[k], GIVE_WAY_RANGE)
+            except Exception:  # vehicle not (yet) in SUMO
+                continue
+            for foe, ego_d, foe_d, _, foe_exit, _, _, respond, _ in foes:
+                if not respond or ego_d <= 0.0 or foe_exit <= 0.0:
+                    continue
+                t = max(foe_d, 0.0) / max(speed.get(foe, 0.0), 0.1)
+                if t < out[j, 1]:
+                    out[j] = ego_d, t
+        return out
+
     def _observe(self, agents: np.ndarray, lanes: LaneQuery | None = None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, list[str]]]:
         """Step stage 6: observations of fleet rows ``agents`` (sorted) and the world
@@ -417,8 +443,10 @@ class SumoCityEnv(FleetEnv):
                                          ob.route_points)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
                        f.dest[agents], f.dest_yaw[agents], cmd, route)
+        give_way = self._give_way(agents) if ob.give_way else None
         obs = self.suite.observe(world[0], ego, 0, lanes,
-                                 light=np.where(dist < LIGHT_RANGE, light, 0), light_gap=dist)
+                                 light=np.where(dist < LIGHT_RANGE, light, 0), light_gap=dist,
+                                 give_way=give_way)
         self.sensor_time += time.perf_counter() - clock
         return {f.names[k]: obs[i] for i, k in enumerate(agents)}, world
 

@@ -13,7 +13,11 @@ from the car through it), and ``v0`` is at most ``sqrt(a_lat / κ)`` (lateral ac
 ``a_lat``). Before a red or yellow light (the ``light`` observation) whose stop line is
 ``light_gap`` m ahead (:mod:`magail_sumo.sensors.units.light_gap`) it brakes to stop ``s0``
 before the line, ``v² / (2·d)`` (at most ``max_brake``), keeping the IDM acceleration when that
-is lower. Pure array functions of the observation, no memory: the same rule drives the
+is lower. With the give-way observation (``give_way``,
+:mod:`magail_sumo.sensors.units.give_way`) it accepts the gap before a road user it must give
+way to only when it clears the conflict (``clear`` m past its entry, accelerating at ``a_max``
+from ``v``) ``margin`` s before that road user arrives; otherwise it stops ``s0`` before the
+conflict the same way. Pure array functions of the observation, no memory: the same rule drives the
 ``idm`` baseline (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
 add a residual to (:mod:`magail_sumo.models.priors`).
 
@@ -27,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
+from magail_sumo.sensors.units.give_way import GIVE_WAY_RANGE
 from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
 from magail_sumo.sim.dynamics import BicycleLimits, normalise
 
@@ -43,6 +48,9 @@ class IdmParams:
     :param max_brake: the hardest braking for a light (m/s²).
     :param a_lat: the lateral acceleration bends are taken at (m/s²).
     :param dt: the env's step (s).
+    :param clear: the length of a junction conflict to cross (m).
+    :param margin: the time (s) a road user given way to must still be away when the agent
+        has cleared the conflict.
     """
 
     v0: float = 13.9
@@ -53,6 +61,8 @@ class IdmParams:
     max_brake: float = 6.0
     a_lat: float = 2.0
     dt: float = 0.1
+    clear: float = 8.0
+    margin: float = 1.0
 
 
 def idm_accel(v: np.ndarray, gap: np.ndarray, closing: np.ndarray, p: IdmParams,
@@ -90,6 +100,24 @@ def light_brake(v: np.ndarray, light: np.ndarray, gap: np.ndarray, p: IdmParams,
     return np.where(stop, -np.minimum(need, p.max_brake), np.inf)
 
 
+def time_to_cover(d: np.ndarray, v: np.ndarray, a: float) -> np.ndarray:
+    """(A,) time (s) to cover ``d`` m from speed ``v`` accelerating at ``a`` m/s²:
+    ``(sqrt(v² + 2·a·d) − v) / a``."""
+    v = np.maximum(v, 0.0)
+    return (np.sqrt(v * v + 2.0 * a * np.maximum(d, 0.0)) - v) / a
+
+
+def give_way_brake(v: np.ndarray, gap: np.ndarray, foe_time: np.ndarray, p: IdmParams,
+                   give_way_range: float) -> np.ndarray:
+    """(A,) the deceleration (m/s², ≤ 0) that stops ``s0`` before a junction conflict ``gap``
+    m ahead when the road user given way to (``foe_time`` s away from it) leaves too small a
+    gap (module doc); +inf where the gap is accepted or there is none."""
+    seen = gap < give_way_range - 1e-6
+    wait = seen & (foe_time < time_to_cover(gap + p.clear, v, p.a_max) + p.margin)
+    stop = np.full(np.shape(v), 3.0)  # a code STOP_LIGHTS holds: stop at the line
+    return np.where(wait, light_brake(v, stop, gap, p, give_way_range), np.inf)
+
+
 class IdmRule:
     """IDM on route-relative control as a function of observation rows (module doc).
 
@@ -114,6 +142,8 @@ class IdmRule:
                                               "light_gap")]
         self._route = [names.index(f"route_{a}_{d:g}") for d in observation.route_points
                        for a in "xy"]
+        self._give_way = [names.index(n) for n in ("give_way_gap", "give_way_time")] \
+            if observation.give_way else []
 
     def accel(self, obs: np.ndarray) -> np.ndarray:
         """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D)."""
@@ -126,7 +156,11 @@ class IdmRule:
         v0 = np.minimum(p.v0, bend_speed(obs[:, self._route], p.a_lat)) if self._route \
             else None
         accel = idm_accel(v, gap, closing, p, v0)
-        return np.minimum(accel, light_brake(v, light, to_line, p, LIGHT_RANGE))
+        accel = np.minimum(accel, light_brake(v, light, to_line, p, LIGHT_RANGE))
+        if self._give_way:
+            conflict, foe_time = obs[:, self._give_way[0]], obs[:, self._give_way[1]]
+            accel = np.minimum(accel, give_way_brake(v, conflict, foe_time, p, GIVE_WAY_RANGE))
+        return accel
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """(A, 2) normalised ``accel_offset`` actions of observation rows ``obs`` (A, D)."""

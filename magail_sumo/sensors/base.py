@@ -124,17 +124,23 @@ class SensorInput:
         maps' light source at log step ``step`` on each agent's current lane.
     :param light_gap: (A,) live distances (m) to the stop line of that light (inf: none
         ahead); default: from the maps (:attr:`light_gap`).
+    :param give_way: (A, 2) live distance (m) to the conflict point of the road user to give
+        way to and its time (s) to reach it (inf, inf: none); default: none (no junction
+        model without SUMO).
     """
 
     def __init__(self, maps: SensorMaps, boxes: Boxes, ego: EgoState, step: int,
                  lanes: LaneQuery | None = None, light: np.ndarray | None = None,
-                 light_gap: np.ndarray | None = None) -> None:
+                 light_gap: np.ndarray | None = None,
+                 give_way: np.ndarray | None = None) -> None:
         self.maps, self.boxes, self.ego, self.step = maps, boxes, ego, step
         self.index = idx = np.asarray(ego.index, np.int64)
         self.x, self.y = boxes.x[idx], boxes.y[idx]
         self.yaw = np.asarray(boxes.yaw, np.float64)[idx]
         self.origins = np.stack([self.x, self.y], axis=1)
         self._lanes, self._light, self._light_gap = lanes, light, light_gap
+        self.give_way = np.full((len(idx), 2), np.inf) if give_way is None else \
+            np.asarray(give_way, np.float64).reshape(len(idx), 2)
 
     def __len__(self) -> int:
         return int(self.index.shape[0])
@@ -272,7 +278,8 @@ def sensor_class(name: str) -> type[Sensor]:
 def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
     route command when ``config.command``, the route look-ahead when ``config.route_points``,
-    the leader when ``config.leader``, the stop-line distance when ``config.light_gap``)."""
+    the leader when ``config.leader``, the stop-line distance when ``config.light_gap``, the
+    give-way conflict when ``config.give_way``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
@@ -280,4 +287,4 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
                        f"{', '.join(LAYOUTS)})") from None
     return layout + (("command",) if config.command else ()) + \
         (("route",) if config.route_points else ()) + (("leader",) if config.leader else ()) + \
-        (("light_gap",) if config.light_gap else ())
+        (("light_gap",) if config.light_gap else ()) + (("give_way",) if config.give_way else ())

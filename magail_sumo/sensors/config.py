@@ -60,6 +60,10 @@ class ObservationConfig:
         nobody is ahead.
     :param light_gap: append ``light_gap``: the distance (m) to the stop line of the
         ``light`` the agent sees (:mod:`magail_sumo.sensors.units.light_gap`); off by default.
+    :param give_way: append ``give_way_gap`` and ``give_way_time``: the distance (m) to the
+        conflict point of the next road user the agent must give way to at a junction ahead,
+        and the time (s) that road user needs to reach it (SUMO's junction model, so a city
+        feature; :mod:`magail_sumo.sensors.units.give_way`); off by default.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -73,6 +77,7 @@ class ObservationConfig:
     leader: bool = False
     leader_range: float = 50.0
     light_gap: bool = False
+    give_way: bool = False
 
     def __post_init__(self) -> None:
         layout = layout_name(self.layout)

@@ -34,6 +34,9 @@ then 2                (``leader: true`` only) ``leader_gap`` (m), ``leader_closi
 then 1                (``light_gap: true`` only) ``light_gap``: distance (m) to the stop line
                       of the light ahead, 50 when none
                       (:mod:`magail_sumo.sensors.units.light_gap`)
+then 2                (``give_way: true`` only) ``give_way_gap`` (m), ``give_way_time`` (s):
+                      the junction conflict of the road user to give way to, 50 / 10 when
+                      none (:mod:`magail_sumo.sensors.units.give_way`)
 ====================  ======================================================================
 
 Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
@@ -54,7 +57,7 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 ``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``scene_frame``:
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
-``leader: true`` and ``light_gap`` with ``light_gap: true``. The suite is built from
+``leader: true``, ``light_gap`` with ``light_gap: true`` and ``give_way`` with ``give_way: true``. The suite is built from
 a road map and a light source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)``
 for a recorded scene).
 """
@@ -154,7 +157,8 @@ class SensorSuite:
 
     def observe(self, boxes: Boxes, ego: EgoState, step: int,
                 lanes: LaneQuery | None = None, light: np.ndarray | None = None,
-                light_gap: np.ndarray | None = None) -> np.ndarray:
+                light_gap: np.ndarray | None = None,
+                give_way: np.ndarray | None = None) -> np.ndarray:
         """(A, D) float32 observations of the agents at log step ``step`` (layout: module doc).
 
         :param lanes: the agents' :meth:`lane_query` when already computed this step.
@@ -162,11 +166,13 @@ class SensorSuite:
             live source (a SUMO run without a recording); default: the suite's light source.
         :param light_gap: (A,) live distances (m) to that light's stop line (inf: none);
             default: from the suite's maps.
+        :param give_way: (A, 2) live give-way conflict: distance (m), the road user's time to
+            it (s) (inf: none); default: none.
         """
         a = np.asarray(ego.index).shape[0]
         if a == 0:
             return np.zeros((0, self.size), np.float32)
-        inp = SensorInput(self.maps, boxes, ego, step, lanes, light, light_gap)
+        inp = SensorInput(self.maps, boxes, ego, step, lanes, light, light_gap, give_way)
         out = np.empty((a, self.size), np.float32)
         k = 0
         for sensor, width in zip(self.sensors, self._widths):  # a fixed handful, not per agent
