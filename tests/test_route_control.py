@@ -251,6 +251,9 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     assert near < far < 0  # the nearer the line, the harder the braking
     accel = pol.rule.accel(obs[None])[0]
     assert accel == pytest.approx(-10.0 ** 2 / (2 * (15.0 - p.s0)))
+    standing = obs.copy()
+    standing[[names.index("speed"), names.index("light_gap")]] = (0.0, p.s0 + 0.5)
+    assert pol.rule.accel(standing[None])[0] == -p.max_brake  # held at the line, no creeping
     obs[names.index("light")] = 1.0
     assert pol.act({"a": obs})["a"][0] == free[0]
     # a junction conflict 20 m ahead: a road user 2 s from it is given way to, one 9 s away not

@@ -47,7 +47,8 @@ class IdmParams:
     :param a_max: maximum acceleration (m/s²). :param b: comfortable deceleration (m/s²).
     :param max_brake: the hardest braking for a light (m/s²).
     :param a_lat: the lateral acceleration bends are taken at (m/s²).
-    :param dt: the env's step (s).
+    :param hold: within this many metres of the point where it stops for a light or a road
+        user given way to, the rule brakes fully (m).
     :param clear: the length of a junction conflict to cross (m).
     :param margin: the time (s) a road user given way to must still be away when the agent
         has cleared the conflict.
@@ -60,7 +61,7 @@ class IdmParams:
     b: float = 2.0
     max_brake: float = 6.0
     a_lat: float = 2.0
-    dt: float = 0.1
+    hold: float = 1.0
     clear: float = 8.0
     margin: float = 1.0
 
@@ -90,13 +91,14 @@ def light_brake(v: np.ndarray, light: np.ndarray, gap: np.ndarray, p: IdmParams,
                 light_range: float) -> np.ndarray:
     """(A,) the deceleration (m/s², ≤ 0) that stops ``s0`` before a red or yellow light's stop
     line ``gap`` m ahead (``gap`` ≥ ``light_range``: none ahead, +inf returned: no limit):
-    ``v² / (2·(gap − s0))``, at most ``max_brake``; within 0.1 m of that point (or past it)
-    the speed is brought to 0 in one step (``v / dt``, at most ``max_brake``), so a car
-    at the line stands rather than creeps over it."""
+    ``v² / (2·(gap − s0))``, at most ``max_brake``; within ``hold`` m of that point (or past
+    it) ``max_brake``, which holds a standing car there (route-relative control does not
+    reverse, :func:`magail_sumo.sim.tracking.no_reverse`) rather than letting it creep over
+    the line, as a residual policy's sampling noise would around a prior of 0."""
     stop = np.isin(light, STOP_LIGHTS) & (gap < light_range - 1e-6)
     v = np.maximum(v, 0.0)
     room = gap - p.s0
-    need = np.where(room > 0.1, v * v / (2.0 * np.maximum(room, 0.1)), v / p.dt)
+    need = np.where(room > p.hold, v * v / (2.0 * np.maximum(room, p.hold)), p.max_brake)
     return np.where(stop, -np.minimum(need, p.max_brake), np.inf)
 
 
