@@ -290,3 +290,4 @@ def test_idm_route_follower_completes_trips_in_a_real_city():
     agents = sum(reasons.values())
     assert reasons["destination"] + reasons["arrived"] >= 10, reasons
     assert reasons["collision"] + reasons["red_light"] <= 0.1 * agents, reasons
+    assert reasons["red_light"] <= 0.02 * agents, reasons  # it reads the stop line
