@@ -139,8 +139,7 @@ class SensorInput:
         self.yaw = np.asarray(boxes.yaw, np.float64)[idx]
         self.origins = np.stack([self.x, self.y], axis=1)
         self._lanes, self._light, self._light_gap = lanes, light, light_gap
-        self.give_way = np.full((len(idx), 2), np.inf) if give_way is None else \
-            np.asarray(give_way, np.float64).reshape(len(idx), 2)
+        self._give_way = give_way
 
     def __len__(self) -> int:
         return int(self.index.shape[0])
@@ -158,6 +157,14 @@ class SensorInput:
         light = self.maps.lights.lookup(self.step, self.lanes.lane) if self._light is None \
             else np.asarray(self._light)
         return light.astype(np.float64)
+
+    @cached_property
+    def give_way(self) -> np.ndarray:
+        """(A, 2) float64 give-way conflict (distance m, the road user's time s to it) when
+        given live; inf, inf (none) otherwise: only SUMO has a junction model."""
+        if self._give_way is None:
+            return np.full((len(self), 2), np.inf)
+        return np.asarray(self._give_way, np.float64).reshape(len(self), 2)
 
     @cached_property
     def light_gap(self) -> np.ndarray:
