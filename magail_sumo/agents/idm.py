@@ -36,7 +36,11 @@ class IdmPolicy:
                                              route_points=ROUTE_POINTS)
         self.limits = BicycleLimits()
         self.rule = IdmRule(self.observation, self.limits, params)
-        self.params = self.rule.params
+
+    @property
+    def params(self) -> IdmParams:
+        """The rule's IDM parameters."""
+        return self.rule.params
 
     def reseed(self, seed: int) -> None:
         """A fresh rollout (nothing to forget: the rule keeps no memory)."""

@@ -12,7 +12,8 @@ from .idm import IdmParams, IdmRule
 from .normalizer import RunningNormalizer
 from .priors import ACTION_PRIORS, make_prior
 
-__all__ = ["ACTION_PRIORS", "CriticTransformerConfig", "DecomposedConfig", "DecomposedDiscriminator",
-           "DecomposedTransformerDiscriminator", "IdmParams", "IdmRule", "MLPDiscriminator", "SetEncoderConfig",
-           "RunningNormalizer", "TransformerConfig", "TransformerCritic",
-           "TransformerDiscriminator", "imitation_reward", "make_prior"]
+__all__ = ["ACTION_PRIORS", "CriticTransformerConfig", "DecomposedConfig",
+           "DecomposedDiscriminator", "DecomposedTransformerDiscriminator", "IdmParams",
+           "IdmRule", "MLPDiscriminator", "SetEncoderConfig", "RunningNormalizer",
+           "TransformerConfig", "TransformerCritic", "TransformerDiscriminator",
+           "imitation_reward", "make_prior"]

@@ -17,8 +17,8 @@ is lower. With the give-way observation (``give_way``,
 :mod:`magail_sumo.sensors.units.give_way`) it accepts the gap before a road user it must give
 way to only when it clears the conflict (``clear`` m past its entry, accelerating at ``a_max``
 from ``v``) ``margin`` s before that road user arrives; otherwise it stops ``s0`` before the
-conflict the same way. Pure array functions of the observation, no memory: the same rule drives the
-``idm`` baseline (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
+conflict the same way. Pure array functions of the observation, no memory: the same rule drives
+the ``idm`` baseline (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
 add a residual to (:mod:`magail_sumo.models.priors`).
 
 Units: m, s, m/s, m/s²; actions normalised by :func:`magail_sumo.sim.dynamics.normalise`.
@@ -87,19 +87,25 @@ def bend_speed(route_xy: np.ndarray, a_lat: float) -> np.ndarray:
     return np.sqrt(a_lat / np.maximum(kappa, 1e-6))
 
 
-def light_brake(v: np.ndarray, light: np.ndarray, gap: np.ndarray, p: IdmParams,
-                light_range: float) -> np.ndarray:
-    """(A,) the deceleration (m/s², ≤ 0) that stops ``s0`` before a red or yellow light's stop
-    line ``gap`` m ahead (``gap`` ≥ ``light_range``: none ahead, +inf returned: no limit):
-    ``v² / (2·(gap − s0))``, at most ``max_brake``; within ``hold`` m of that point (or past
-    it) ``max_brake``, which holds a standing car there (route-relative control does not
-    reverse, :func:`magail_sumo.sim.tracking.no_reverse`) rather than letting it creep over
-    the line, as a residual policy's sampling noise would around a prior of 0."""
-    stop = np.isin(light, STOP_LIGHTS) & (gap < light_range - 1e-6)
+def stop_brake(v: np.ndarray, gap: np.ndarray, p: IdmParams) -> np.ndarray:
+    """(A,) the deceleration (m/s², ≤ 0) that stops ``s0`` before a point ``gap`` m ahead
+    (a stop line, a junction conflict): ``v² / (2·(gap − s0))``, at most ``max_brake``;
+    within ``hold`` m of the stopping point (or past it) ``max_brake``, which holds a standing
+    car there (route-relative control does not reverse,
+    :func:`magail_sumo.sim.tracking.no_reverse`) rather than letting it creep over the line, as
+    a residual policy's sampling noise would around a prior of 0."""
     v = np.maximum(v, 0.0)
     room = gap - p.s0
     need = np.where(room > p.hold, v * v / (2.0 * np.maximum(room, p.hold)), p.max_brake)
-    return np.where(stop, -np.minimum(need, p.max_brake), np.inf)
+    return -np.minimum(need, p.max_brake)
+
+
+def light_brake(v: np.ndarray, light: np.ndarray, gap: np.ndarray, p: IdmParams,
+                light_range: float) -> np.ndarray:
+    """(A,) :func:`stop_brake` before a red or yellow light's stop line ``gap`` m ahead; +inf
+    (no limit) for other lights or a line out of range (``gap`` ≥ ``light_range``)."""
+    stop = np.isin(light, STOP_LIGHTS) & (gap < light_range - 1e-6)
+    return np.where(stop, stop_brake(v, gap, p), np.inf)
 
 
 def time_to_cover(d: np.ndarray, v: np.ndarray, a: float) -> np.ndarray:
@@ -111,13 +117,12 @@ def time_to_cover(d: np.ndarray, v: np.ndarray, a: float) -> np.ndarray:
 
 def give_way_brake(v: np.ndarray, gap: np.ndarray, foe_time: np.ndarray, p: IdmParams,
                    give_way_range: float) -> np.ndarray:
-    """(A,) the deceleration (m/s², ≤ 0) that stops ``s0`` before a junction conflict ``gap``
-    m ahead when the road user given way to (``foe_time`` s away from it) leaves too small a
-    gap (module doc); +inf where the gap is accepted or there is none."""
+    """(A,) :func:`stop_brake` before a junction conflict ``gap`` m ahead when the road user
+    given way to (``foe_time`` s away from it) leaves too small a gap (module doc); +inf where
+    the gap is accepted or there is none."""
     seen = gap < give_way_range - 1e-6
     wait = seen & (foe_time < time_to_cover(gap + p.clear, v, p.a_max) + p.margin)
-    stop = np.full(np.shape(v), 3.0)  # a code STOP_LIGHTS holds: stop at the line
-    return np.where(wait, light_brake(v, stop, gap, p, give_way_range), np.inf)
+    return np.where(wait, stop_brake(v, gap, p), np.inf)
 
 
 class IdmRule:
