@@ -237,6 +237,7 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     obs = np.zeros(len(names), np.float32)
     obs[names.index("speed")] = 10.0
     obs[names.index("leader_gap")] = pol.observation.leader_range  # none
+    obs[names.index("path_leader_gap")] = pol.observation.leader_range  # none
     obs[names.index("light_gap")] = 50.0  # none
     obs[[names.index("give_way_gap"), names.index("give_way_time")]] = (50.0, 10.0)  # none
     obs[[names.index(f"route_x_{d:g}") for d in (5, 10, 20)]] = (5.0, 10.0, 20.0)
@@ -266,8 +267,7 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
 @pytest.mark.sumo
 def test_idm_route_follower_completes_trips_in_a_real_city():
     """The IDM route follower (``--policy idm``) on the real cologne8 city for 60 s: agents
-    arrive at their routes' ends; collisions and red-light runs are rare (its leader sensor
-    looks straight ahead, so it misses some crossing traffic)."""
+    arrive at their routes' ends; collisions and red-light runs are rare."""
     from magail_sumo.agents import env_settings
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
     from magail_sumo.env.config import EnvConfig

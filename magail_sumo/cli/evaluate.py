@@ -54,6 +54,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="SUMO vehicle classes that may become agents (default passenger: "
                         "buses, trams, trucks, bicycles and every vehicle with stops stay "
                         "SUMO-driven)")
+    p.add_argument("--city-agent-tight-turns", action="store_true",
+                   help="vehicles whose route turns tighter than a car can (SUMO's on-the-spot "
+                        "turnarounds) become agents too (default: SUMO drives them)")
     p.add_argument("--city-humans", metavar="EXPERT_DIR",
                    help="expert data of recorded human drivers (magail-sumo expert's --out): "
                         "city rows then give the JS divergence of the agents' and SUMO's "
@@ -112,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
                             control_fraction=args.city_control_fraction, seed=args.seed,
                             agent_classes=tuple(c.strip() for c in
                                                 args.city_agent_classes.split(",") if c.strip()),
+                            agent_tight_turns=args.city_agent_tight_turns,
                             fcd=args.fcd_rollouts > 0, humans=args.city_humans,
                             deterministic=args.deterministic, noise_scale=args.noise_scale,
                             timeout_s=args.timeout_s)

@@ -3,10 +3,11 @@
 The city counterpart of :class:`~magail_sumo.env.driving_env.SumoDrivingEnv`: every vehicle of
 the SUMO demand that departs (or is present when the episode starts) becomes an agent with
 probability ``control_fraction`` (seeded); the rest stay SUMO-driven background traffic that
-reacts to the agents. Agents move by the kinematic bicycle model from normalised actions
-in [-1, 1]² (``[accel, steer]``, or route-relative ``[accel, offset]`` in the ``accel_offset``
-layout: steered along their route's lanes, :mod:`magail_sumo.sim.tracking`) and are placed in
-SUMO with ``moveToXY``; they see the same sensors as in recorded scenes, with the map taken
+reacts to the agents (as do vehicles of other classes than ``agent_classes``, vehicles with
+stops, and vehicles whose route turns tighter than a car can, ``agent_tight_turns``). Agents
+move by the kinematic bicycle model from normalised actions in [-1, 1]² (``[accel, steer]``,
+or route-relative ``[accel, offset]`` in the ``accel_offset`` layout: steered along their
+route's lanes, :mod:`magail_sumo.sim.tracking`) and are placed in SUMO with ``moveToXY``; they see the same sensors as in recorded scenes, with the map taken
 from the SUMO network (:func:`~magail_sumo.sim.sumo_map.network_map`) and the current-lane
 light from SUMO's signal state. Each agent's route, from where it joined, is its reference
 path (:func:`~magail_sumo.sim.lane_graph.LaneGraph.route_path`: the lane centrelines of its
@@ -50,14 +51,15 @@ from magail_sumo.errors import MagailSumoError
 from magail_sumo.sensors.command import command_index, one_hot
 from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
-    Boxes, EgoState, ObservationConfig, SensorSuite, observation_bounds,
+    Boxes, EgoState, ObservationConfig, PathAhead, SensorSuite, observation_bounds,
 )
 from magail_sumo.sensors.units.give_way import GIVE_WAY_RANGE
 from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.lane_graph import LaneGraph
-from magail_sumo.sim.paths import Paths
+from magail_sumo.sim.paths import TURN_ARC, Paths, tightest_turn
+from magail_sumo.sim.tracking import trial
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import (SumoConfigError, SumoInputs, check_demand, read_config,
                                          scenario_name)
@@ -66,6 +68,7 @@ from magail_sumo.sim.sumo_map import NetworkMap, network_map
 from .actions import ACTION_COUNTS
 from .guard import GuardConfig
 from .fleet import Fleet, resized
+from .events import off_road
 from .fcd import EpisodeFcd
 from .step import END_OF_EPISODE, FleetEnv
 
@@ -105,6 +108,11 @@ class CityEnvConfig:
         become agents; the others (buses, trams, trucks, bicycles, ... by default) stay
         SUMO-driven. A vehicle with stops on its route (a bus line, a delivery) stays
         SUMO-driven whatever its class: the policy cannot serve stops.
+    :param agent_tight_turns: a vehicle whose route, from where it would join, turns tighter
+        than the vehicle can where the wider turn it makes leaves the road (SUMO's on-the-spot
+        turnarounds, 1.3-1.6 m, against 3.6 m for a 5 m car; ``SumoCityEnv._too_tight``)
+        stays SUMO-driven (False, the default: the bicycle model cannot follow the route there;
+        counted in ``SumoCityEnv.tight_turns``) or becomes an agent all the same (True).
     :param fcd_dir: folder for SUMO FCD recordings of episodes, each with a ``.sumocfg`` that
         replays it in ``sumo-gui`` on the city's network (None: none; as ``EnvConfig.fcd_dir``).
     :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
@@ -128,6 +136,7 @@ class CityEnvConfig:
     max_agents: int | None = None
     guard: GuardConfig = field(default_factory=GuardConfig)
     agent_classes: tuple[str, ...] = ("passenger",)
+    agent_tight_turns: bool = False
     fcd_dir: str | None = None
     fcd_every: int = 0
     progress_reward: float = 0.0
@@ -136,7 +145,8 @@ class CityEnvConfig:
     def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
                  warmup_s: float, max_steps: int,
                  agent_classes: tuple[str, ...] = ("passenger",),
-                 progress_reward: float = 0.0) -> "CityEnvConfig":
+                 progress_reward: float = 0.0,
+                 agent_tight_turns: bool = False) -> "CityEnvConfig":
         """A city's settings with the observation, limits, event rules (the city's events of
         ``env.terminate_on``), SUMO seed and action layout of a recorded-scene
         :class:`~magail_sumo.env.config.EnvConfig` ``env``, so one policy drives both."""
@@ -146,7 +156,8 @@ class CityEnvConfig:
                    off_road_margin=env.off_road_margin,
                    destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
                    action_layout=env.action_layout, max_agents=max_agents, guard=env.guard,
-                   agent_classes=tuple(agent_classes), fcd_dir=env.fcd_dir,
+                   agent_classes=tuple(agent_classes),
+                   agent_tight_turns=bool(agent_tight_turns), fcd_dir=env.fcd_dir,
                    fcd_every=env.fcd_every, progress_reward=progress_reward)
 
     def __post_init__(self) -> None:
@@ -269,6 +280,9 @@ class SumoCityEnv(FleetEnv):
         self._graph = LaneGraph(self._session.api)
         #: agents whose route's next edge could not be reached from their lanes (path cut)
         self.cut_paths = 0
+        #: chosen vehicles left SUMO-driven for a turn tighter than they can make
+        #: (``agent_tight_turns``)
+        self.tight_turns = 0
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()
@@ -345,12 +359,15 @@ class SumoCityEnv(FleetEnv):
                 continue
             waiting.pop(vid, None)
             self._decided.add(vid)
-            n_active += 1
             i = pos[vid]
+            path = self._graph.route_path(vid)
+            if not self.config.agent_tight_turns and self._too_tight(path.points, v.length[i]):
+                self.tight_turns += 1  # SUMO drives it: the bicycle cannot make that turn
+                continue
+            n_active += 1
             k = f.add(vid, v.x[i], v.y[i], v.yaw[i], v.speed[i], v.length[i], v.width[i])
             if f.capacity > self._lc.shape[0]:
                 self._lc, self._ld = resized(self._lc, f.capacity), resized(self._ld, f.capacity)
-            path = self._graph.route_path(vid)
             self.cut_paths += not path.complete
             f.path[k] = self.paths.add(path.points)
             f.hint[k] = self.paths.project(f.path[k:k + 1], f.x[k:k + 1], f.y[k:k + 1])[0][0]
@@ -362,6 +379,21 @@ class SumoCityEnv(FleetEnv):
             f.in_sumo[k] = True
             new.append(k)
         return np.array(new, np.int64)
+
+    def _too_tight(self, points: np.ndarray, length: float) -> bool:
+        """The path ``points`` has a turn tighter than a vehicle of box ``length`` can make
+        (:func:`~magail_sumo.sim.paths.tightest_turn` below its
+        :func:`~magail_sumo.sim.dynamics.turning_radius`) where following it at a crawl
+        (:func:`~magail_sumo.sim.tracking.trial`, from 8 m before to 12 m after the turn)
+        takes it off the road (the env's off-road rule): a turnaround inside a wide junction,
+        where the wider circle stays on its lanes, can be driven."""
+        cfg = self.config
+        radius, s = tightest_turn(points)
+        if radius >= dynamics.turning_radius(length, cfg.limits):
+            return False
+        poses = trial(points, s - 8.0, s + TURN_ARC + 12.0, length, cfg.limits)
+        lanes = self.suite.lane_query(poses.x, poses.y, poses.yaw)
+        return bool(off_road(lanes.distance, cfg.lane_width, cfg.off_road_margin).any())
 
     def _world(self, agents: np.ndarray) -> tuple[Boxes, list[str]]:
         """Boxes of the agents (first rows) then every other SUMO vehicle, with their ids."""
@@ -432,8 +464,8 @@ class SumoCityEnv(FleetEnv):
         light, dist = self._next_lights(agents)
         self._lc[agents], self._ld[agents] = light, dist
         ob = self.config.observation
-        cmd = route = None
-        if ob.command or ob.route_points:
+        cmd = route = ahead = None
+        if ob.command or ob.route_points or ob.path_leader:
             paths = f.path[agents]
             s = self._route_progress(agents)
             if ob.command:
@@ -441,8 +473,10 @@ class SumoCityEnv(FleetEnv):
             if ob.route_points:
                 route = self.paths.ahead(paths, s, f.x[agents], f.y[agents], f.yaw[agents],
                                          ob.route_points)
+            if ob.path_leader:
+                ahead = PathAhead(self.paths, paths, f.hint[agents], s)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
-                       f.dest[agents], f.dest_yaw[agents], cmd, route)
+                       f.dest[agents], f.dest_yaw[agents], cmd, route, ahead)
         give_way = self._give_way(agents) if ob.give_way else None
         obs = self.suite.observe(world[0], ego, 0, lanes,
                                  light=np.where(dist < LIGHT_RANGE, light, 0), light_gap=dist,

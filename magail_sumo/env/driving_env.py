@@ -50,7 +50,8 @@ from converters import load_scene
 from converters.sumo.bundle import SceneBundle
 from magail_sumo.scene import Scene
 from magail_sumo.sensors.command import RouteCommands
-from magail_sumo.sensors.observation import Boxes, EgoState, SensorSuite, observation_bounds
+from magail_sumo.sensors.observation import (Boxes, EgoState, PathAhead, SensorSuite,
+                                             observation_bounds)
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import SHAPES, FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.paths import Paths
@@ -479,8 +480,12 @@ class SumoDrivingEnv(FleetEnv):
         if ob.route_points:
             route = self._commands.ahead(rows, f.x[agents], f.y[agents], f.yaw[agents],
                                          ob.route_points)
+        ahead = None
+        if ob.path_leader and self.paths is not None:  # route-relative control's paths
+            s = self._route_progress(agents)
+            ahead = PathAhead(self.paths, f.path[agents], f.hint[agents], s)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
-                       f.dest[agents], f.dest_yaw[agents], cmd, route)
+                       f.dest[agents], f.dest_yaw[agents], cmd, route, ahead)
         obs = self.suite.observe(world[0], ego, self.t, lanes)
         self.sensor_time += time.perf_counter() - clock
         return obs, world

@@ -5,7 +5,13 @@ A policy picks its acceleration freely; the guard only lowers it where keeping i
 the agent unable to stop behind its leader. The leader is the nearest road user ahead in the
 agent's path at the step's start (:func:`magail_sumo.sensors.units.leader.nearest_ahead`: box
 centre ahead, boxes overlapping sideways, within ``range`` m; the other box's extents taken
-along the agent's axes, so a vehicle crossing the path counts with its length).
+along the agent's axes, so a vehicle crossing the path counts with its length). With
+``kind: path`` the leader is read along the agent's reference path instead (route-relative
+control; :func:`magail_sumo.sensors.units.path_leader.along_path`: the nearest road user
+reaching into the agent's lane corridor ahead, the gap along the path; an env without
+reference paths reads straight ahead as with ``gap``): straight ahead, a
+guard stops agents for vehicles on crossing and neighbouring lanes that will never be in their
+way, and jams a city.
 
 Safe speed (m/s; the stopping-distance form of Gipps' and SUMO's Krauss model): with gap ``g``
 (m, bumper to bumper) less the standstill gap ``min_gap``, the leader's speed along the agent's
@@ -37,14 +43,15 @@ from magail_sumo.config import check, check_positive, show
 from magail_sumo.sim.dynamics import BicycleLimits, denormalise, normalise
 
 #: ``GuardConfig.kind`` choices
-GUARD_KINDS: tuple[str, ...] = ("none", "gap")
+GUARD_KINDS: tuple[str, ...] = ("none", "gap", "path")
 
 
 @dataclass(frozen=True)
 class GuardConfig:
     """The gap guard (module doc).
 
-    :param kind: ``"none"`` (off) or ``"gap"``.
+    :param kind: ``"none"`` (off), ``"gap"`` or ``"path"`` (the leader along the agent's
+        reference path, module doc).
     :param decel: braking the guard assumes of the agent and its leader (m/s², > 0; SUMO's
         default passenger car: 4.5).
     :param tau: the agent's reaction time (s, >= 0; SUMO's default: 1.0).

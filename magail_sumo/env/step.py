@@ -7,9 +7,9 @@
 
 1. **clean actions** — the action dict to a clean (A, 2) array over the live agents
    (:func:`~magail_sumo.env.actions.checked_actions`), counting what was fixed;
-2. **guard** — with ``guard.kind: gap``, accelerations that would leave an agent unable to
-   stop behind its leader are lowered (:mod:`~magail_sumo.env.guard`; hook ``_world``: the
-   road users at the step's start);
+2. **guard** — with ``guard.kind: gap`` (or ``path``), accelerations that would leave an
+   agent unable to stop behind its leader are lowered (:mod:`~magail_sumo.env.guard`; hook
+   ``_world``: the road users at the step's start);
 3. **dynamics** — the live agents move one step by the bicycle model
    (:meth:`~magail_sumo.env.fleet.Fleet.drive`; in the ``accel_offset`` layout steered along
    their reference paths, :mod:`magail_sumo.sim.tracking`);
@@ -49,7 +49,9 @@ from typing import Any, Sequence
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from magail_sumo.sensors.base import PathAhead
 from magail_sumo.sensors.units.leader import nearest_ahead
+from magail_sumo.sensors.units.path_leader import along_path
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles
 from magail_sumo.sim.paths import Paths
 
@@ -159,8 +161,14 @@ class FleetEnv(ParallelEnv):
         if not g.on or act.size == 0:
             return clean
         boxes, _ = self._world(act)
-        gap, along, found = nearest_ahead(boxes, np.arange(act.size), f.x[act], f.y[act],
-                                          f.yaw[act], g.range, oriented=True)
+        if g.kind == "path" and self.paths is not None:  # along the reference paths
+            s = self._route_progress(act)
+            gap, along, found = along_path(boxes, np.arange(act.size),
+                                           PathAhead(self.paths, f.path[act], f.hint[act], s),
+                                           g.range)
+        else:
+            gap, along, found = nearest_ahead(boxes, np.arange(act.size), f.x[act], f.y[act],
+                                              f.yaw[act], g.range, oriented=True)
         out, lowered = guarded(clean, f.speed[act], gap, along, found, g, cfg.limits,
                                cfg.action_layout, self.dt)
         self.guarded += int(lowered.sum())

@@ -81,9 +81,9 @@ SUMMARY_FIELDS = tuple(f.name for f in fields(SumoRunSummary))
 #: :class:`SumoRunSummary` field, then the policy's own counts (0 / {} for ``sumo``)
 ROW_FIELDS = ("scenario", "method", "begin_s", "end_s", "seed", *SUMMARY_FIELDS, "agents",
               "agent_steps", "terminations", "removed", "peak_agents", "speed_js_humans",
-              "accel_js_humans")
+              "accel_js_humans", "tight_turns")
 #: row fields that rows written before them lack (read as NaN)
-LATER_FIELDS = ("peak_agents", "speed_js_humans", "accel_js_humans")
+LATER_FIELDS = ("peak_agents", "speed_js_humans", "accel_js_humans", "tight_turns")
 #: in a scenario's city folder: the speed / acceleration counts of agents, SUMO's drivers and
 #: the recorded humans (:mod:`~magail_sumo.evaluation.city_kinematics`)
 KINEMATICS_FILE = "kinematics.json"
@@ -106,6 +106,9 @@ class CitySettings:
     :param timeout_s: seconds each run may take (None: no limit).
     :param agent_classes: SUMO vehicle classes that may become agents (the rest, and every
         vehicle with stops, stay SUMO-driven).
+    :param agent_tight_turns: vehicles whose route turns tighter than they can (SUMO's
+        on-the-spot turnarounds) become agents too (default: SUMO drives them;
+        ``CityEnvConfig.agent_tight_turns``).
     :param fcd: record the policy's run as SUMO FCD (``city/<scenario>/<method>/fcd/``) with a
         ``.sumocfg`` that replays it in ``sumo-gui`` on the city's network.
     :param humans: expert data of recorded humans (``magail-sumo expert``'s folder): the
@@ -123,6 +126,7 @@ class CitySettings:
     noise_scale: float | None = None
     timeout_s: float | None = DEFAULT_TIMEOUT_S
     agent_classes: tuple[str, ...] = ("passenger",)
+    agent_tight_turns: bool = False
     fcd: bool = False
     humans: str | None = None
 
@@ -170,6 +174,8 @@ class PolicyRun:
         or None when not recorded.
     :param kinematics: speed / acceleration counts of the agents
         (:class:`~magail_sumo.evaluation.city_kinematics.Group` ``as_json``).
+    :param tight_turns: chosen vehicles left SUMO-driven because their route turns tighter
+        than they can (``SumoCityEnv.tight_turns``).
     """
 
     begin_s: float
@@ -183,6 +189,7 @@ class PolicyRun:
     fcd: tuple[str, str] | None = None
     peak_agents: int = 0
     kinematics: dict = field(default_factory=dict)
+    tight_turns: int = 0
 
 
 #: in a method's city folder: the ids of the agents that ended at their destination
@@ -253,6 +260,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
     cfg = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)), max_agents=st.max_agents,
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
                                  agent_classes=st.agent_classes,
+                                 agent_tight_turns=st.agent_tight_turns,
                                  max_steps=st.steps)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
     state = env.warm_state()
@@ -289,6 +297,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         begin = began[0]
         end = round(float(env.sumo_time), 3)
         counts = dict(env.action_counts)
+        tight = env.tight_turns
     finally:
         env.close()  # SUMO writes its outputs here
     fcd = None
@@ -298,7 +307,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
                      job.state_copy if state is not None else None, fcd, peak,
-                     agents.as_json())
+                     agents.as_json(), tight)
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
@@ -337,6 +346,7 @@ def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRu
             "agent_steps": run.agent_steps if policy else 0,
             "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING),
             "peak_agents": run.peak_agents if policy else 0,
+            "tight_turns": run.tight_turns if policy else 0,
             "speed_js_humans": dist["speed"], "accel_js_humans": dist["accel"]}
 
 

@@ -2,8 +2,10 @@
 
 :class:`IdmRule` maps observation rows (``action_layout: accel_offset``) to normalised actions:
 the IDM acceleration (Treiber, Hennecke & Helbing 2000) towards the road user ahead in the
-agent's path (the ``leader`` observation: gap ``s`` m, closing speed ``Δv`` m/s) and a lateral
-offset of 0 (pure pursuit keeps the agent on its route's lanes, :mod:`magail_sumo.sim.tracking`):
+agent's path (the ``path_leader`` observation when the rows have it: along the reference path,
+:mod:`magail_sumo.sensors.units.path_leader`; else the straight-ahead ``leader``: gap ``s`` m,
+closing speed ``Δv`` m/s) and a lateral offset of 0 (pure pursuit keeps the agent on its
+route's lanes, :mod:`magail_sumo.sim.tracking`):
 
     a = a_max · [1 − (v / v0)^4 − (s* / s)^2],   s* = s0 + v·T + v·Δv / (2·sqrt(a_max·b))
 
@@ -128,8 +130,9 @@ def give_way_brake(v: np.ndarray, gap: np.ndarray, foe_time: np.ndarray, p: IdmP
 class IdmRule:
     """IDM on route-relative control as a function of observation rows (module doc).
 
-    :param observation: the observation the rows follow; it must have the ``leader`` and
-        ``light_gap`` features (route look-ahead points are used for bends when present).
+    :param observation: the observation the rows follow; it must have the ``leader`` (or
+        ``path_leader``) and ``light_gap`` features (route look-ahead points are used for
+        bends when present).
     :param limits: the vehicle limits actions are normalised by.
     :raises ValueError: an observation without the leader or the stop-line distance.
     """
@@ -138,15 +141,17 @@ class IdmRule:
 
     def __init__(self, observation: ObservationConfig, limits: BicycleLimits | None = None,
                  params: IdmParams | None = None) -> None:
-        if not (observation.leader and observation.light_gap):
+        if not ((observation.leader or observation.path_leader) and observation.light_gap):
             raise ValueError("the IDM rule reads the leader and the stop-line distance: set "
-                             "observation.leader and observation.light_gap to true")
+                             "observation.leader (or observation.path_leader) and "
+                             "observation.light_gap to true")
         self.observation = observation
         self.limits = limits or BicycleLimits()
         self.params = params or IdmParams()
         names = observation_names(observation)
-        self._col = [names.index(n) for n in ("speed", "leader_gap", "leader_closing", "light",
-                                              "light_gap")]
+        lead = "path_leader" if observation.path_leader else "leader"
+        self._col = [names.index(n) for n in ("speed", f"{lead}_gap", f"{lead}_closing",
+                                              "light", "light_gap")]
         self._route = [names.index(f"route_{a}_{d:g}") for d in observation.route_points
                        for a in "xy"]
         self._give_way = [names.index(n) for n in ("give_way_gap", "give_way_time")] \

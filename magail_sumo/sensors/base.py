@@ -36,6 +36,8 @@ from .raycast import box_edges
 from .worlds import BoxGroups
 
 if TYPE_CHECKING:
+    from magail_sumo.sim.paths import Paths
+
     from .config import ObservationConfig
     from .traffic_lights import LightSource
 
@@ -87,6 +89,8 @@ class EgoState:
         recorded routes, e.g. a city).
     :param route: (A, 2·P) route look-ahead, x and y (m, ego frame) of each of the P
         ``ObservationConfig.route_points``, used with them; None: zeros (no recorded routes).
+    :param path: the agents' reference paths (:class:`PathAhead`), read by the path leader
+        (``ObservationConfig.path_leader``); None: none (free steering).
     """
 
     index: np.ndarray
@@ -96,6 +100,19 @@ class EgoState:
     destination_yaw: np.ndarray
     command: np.ndarray | None = None
     route: np.ndarray | None = None
+    path: "PathAhead | None" = None
+
+
+@dataclass(frozen=True)
+class PathAhead:
+    """The observing agents' (A,) reference paths: rows ``rows`` of the path store ``paths``
+    (:class:`~magail_sumo.sim.paths.Paths`; -1: no path), their progress point indices
+    ``at`` (within each path) and arc lengths ``s`` (m) of their positions on them."""
+
+    paths: "Paths"
+    rows: np.ndarray
+    at: np.ndarray
+    s: np.ndarray
 
 
 class SensorMaps:
@@ -286,7 +303,7 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
     route command when ``config.command``, the route look-ahead when ``config.route_points``,
     the leader when ``config.leader``, the stop-line distance when ``config.light_gap``, the
-    give-way conflict when ``config.give_way``)."""
+    give-way conflict when ``config.give_way``, the path leader when ``config.path_leader``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
@@ -294,4 +311,5 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
                        f"{', '.join(LAYOUTS)})") from None
     return layout + (("command",) if config.command else ()) + \
         (("route",) if config.route_points else ()) + (("leader",) if config.leader else ()) + \
-        (("light_gap",) if config.light_gap else ()) + (("give_way",) if config.give_way else ())
+        (("light_gap",) if config.light_gap else ()) + (("give_way",) if config.give_way else ()) \
+        + (("path_leader",) if config.path_leader else ())

@@ -64,6 +64,10 @@ class ObservationConfig:
         conflict point of the next road user the agent must give way to at a junction ahead,
         and the time (s) that road user needs to reach it (SUMO's junction model, so a city
         feature; :mod:`magail_sumo.sensors.units.give_way`); off by default.
+    :param path_leader: append ``path_leader_gap`` (m) and ``path_leader_closing`` (m/s): the
+        nearest road user in the agent's lane corridor ahead along its reference path, within
+        ``leader_range`` (:mod:`magail_sumo.sensors.units.path_leader`; straight ahead for an
+        agent without one); off by default.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -78,6 +82,7 @@ class ObservationConfig:
     leader_range: float = 50.0
     light_gap: bool = False
     give_way: bool = False
+    path_leader: bool = False
 
     def __post_init__(self) -> None:
         layout = layout_name(self.layout)

@@ -37,6 +37,10 @@ then 1                (``light_gap: true`` only) ``light_gap``: distance (m) to 
 then 2                (``give_way: true`` only) ``give_way_gap`` (m), ``give_way_time`` (s):
                       the junction conflict of the road user to give way to, 50 / 10 when
                       none (:mod:`magail_sumo.sensors.units.give_way`)
+then 2                (``path_leader: true`` only) ``path_leader_gap`` (m),
+                      ``path_leader_closing`` (m/s) to the road user in the agent's lane
+                      corridor ahead along its reference path
+                      (:mod:`magail_sumo.sensors.units.path_leader`)
 ====================  ======================================================================
 
 Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
@@ -57,8 +61,8 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 ``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``scene_frame``:
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
-``leader: true``, ``light_gap`` with ``light_gap: true`` and ``give_way`` with
-``give_way: true``. The suite is built from a road map and a light source
+``leader: true``, ``light_gap`` with ``light_gap: true``, ``give_way`` with
+``give_way: true`` and ``path_leader`` with ``path_leader: true``. The suite is built from a road map and a light source
 (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)`` for a recorded scene).
 """
 
@@ -72,7 +76,7 @@ import numpy as np
 from magail_sumo.scene import RoadMap, Scene
 
 from .base import (
-    Boxes, EgoState, Sensor, SensorInput, SensorMaps, sensor_class, sensor_order,
+    Boxes, EgoState, PathAhead, Sensor, SensorInput, SensorMaps, sensor_class, sensor_order,
 )
 from .command import COMMAND_NAMES
 from .config import TWO_PI, BeamSpec, ObservationConfig
@@ -80,7 +84,7 @@ from .lanes import LaneQuery
 from .traffic_lights import NO_LIGHTS, LightSource, LightTable
 
 __all__ = ["COMMAND_NAMES", "TWO_PI", "BeamSpec", "Boxes", "EgoState", "ObservationConfig",
-           "SensorSuite", "observation_bounds", "observation_names"]
+           "PathAhead", "SensorSuite", "observation_bounds", "observation_names"]
 
 
 def _sensor_classes(cfg: ObservationConfig, sensors: Sequence[str] | None) -> list[type[Sensor]]:

@@ -60,6 +60,13 @@ class VehicleState:
     speed: np.ndarray
 
 
+def turning_radius(length: np.ndarray | float, limits: BicycleLimits) -> np.ndarray:
+    """Radius (m) of the tightest circle a vehicle of box ``length`` (m) can drive: the
+    bicycle model at full steering, ``wheelbase / tan(max_steer)`` (wheelbase
+    :data:`WHEELBASE_RATIO` of the length; a 5 m car at 0.7 rad: 3.6 m)."""
+    return WHEELBASE_RATIO * np.asarray(length, np.float64) / np.tan(limits.max_steer)
+
+
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to [-pi, pi) (floor modulo; a float32 array stays float32)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi

@@ -25,6 +25,8 @@ SPACING = 1.0
 #: projection window around the hint: points behind, points ahead (at 40 m/s and 0.1-s steps a
 #: vehicle moves 4 points per step)
 WINDOW = (4, 48)
+#: the stretch of path (m) over which :func:`tightest_radius` measures turns
+TURN_ARC = 4.0
 
 
 def resample(points: np.ndarray, spacing: float = SPACING) -> tuple[np.ndarray, np.ndarray]:
@@ -196,6 +198,24 @@ class Paths:
         _, _, h0 = self.at(rows, s)
         _, _, h1 = self.at(rows, s + lookahead)
         return (h1 - h0 + np.pi) % (2 * np.pi) - np.pi
+
+
+def tightest_turn(points: np.ndarray, arc: float = TURN_ARC) -> tuple[float, float]:
+    """The tightest turn of polyline ``points`` ((M, 2), m): its radius (m) and the arc
+    length (m) where it begins. Over every stretch of ``arc`` m (resampled at 0.5 m) the
+    radius is the stretch's length over its heading change, ``arc / |Δθ|``; the least of them
+    (inf, 0 for a straight path or one shorter than ``arc``). A turn held over the stretch reads
+    its radius; a kink between two lane shapes spreads over the stretch and reads wide. SUMO's
+    on-the-spot turnaround (a half circle of about 1.6 m between the two directions' lane
+    centres) reads 1.3-1.6 m."""
+    p, s = resample(points, 0.5)
+    k = int(round(arc / 0.5))
+    if p.shape[0] < 3 or p.shape[0] - 1 <= k:
+        return float("inf"), 0.0
+    heading = np.unwrap(np.arctan2(*np.diff(p, axis=0)[:, ::-1].T))
+    turn = np.abs(heading[k:] - heading[:-k])
+    i = int(turn.argmax())
+    return (float(arc / turn[i]), float(s[i])) if turn[i] > 1e-9 else (float("inf"), 0.0)
 
 
 def _grown(a: np.ndarray, n: int) -> np.ndarray:

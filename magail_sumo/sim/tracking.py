@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .dynamics import BicycleLimits, VehicleState, wrap_angle
+from .dynamics import WHEELBASE_RATIO, BicycleLimits, VehicleState, step, wrap_angle
 from .paths import Paths
 
 #: pure-pursuit look-ahead: seconds of travel at the current speed, and the least distance (m)
@@ -67,3 +67,27 @@ def follow(paths: Paths, rows: np.ndarray, hint: np.ndarray, state: VehicleState
 def no_reverse(accel: np.ndarray, speed: np.ndarray, dt: float) -> np.ndarray:
     """``accel`` raised so that one step does not take the speed below 0."""
     return np.maximum(accel, -np.maximum(speed, 0.0) / dt)
+
+
+def trial(points: np.ndarray, s0: float, s1: float, length: float, limits: BicycleLimits,
+          speed: float = 2.5, dt: float = 0.1) -> VehicleState:
+    """Poses of a vehicle of box ``length`` (m) following polyline ``points`` ((M, 2), m) at
+    zero offset and a constant ``speed`` (m/s), from arc length ``s0`` (on the path, heading
+    along it) until its progress reaches ``s1`` (m) or it has driven twice that far: the
+    (T,) states of every ``dt``-s step, what route-relative control would make of that
+    stretch (e.g. whether a turn tighter than the vehicle can make keeps it on the road)."""
+    paths = Paths.of([points])
+    rows = np.zeros(1, np.int64)
+    x, y, yaw = paths.at(rows, np.array([max(s0, 0.0)]))
+    state = VehicleState(x, y, yaw, np.array([float(speed)]))
+    wheelbase = np.array([WHEELBASE_RATIO * float(length)])
+    hint = np.array([int(round(max(s0, 0.0) / paths.spacing))])  # not a later pass nearby
+    out = [state]
+    for _ in range(int(np.ceil(2.0 * max(s1 - s0, 0.0) / (speed * dt))) + 1):
+        steer, hint = follow(paths, rows, hint, state, wheelbase, np.zeros(1), limits)
+        state = step(state, np.zeros(1), steer, wheelbase, dt, limits)
+        out.append(state)
+        if paths.project(rows, state.x, state.y, hint)[1][0] >= s1:
+            break
+    return VehicleState(*(np.concatenate([getattr(o, f) for o in out])
+                          for f in ("x", "y", "yaw", "speed")))

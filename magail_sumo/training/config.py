@@ -118,6 +118,8 @@ class CityConfig:
     :param progress_reward: the city env's reward per metre an agent moves along its route
         (the task reward r_task of city training, weighted by ``discriminator.reward_t_coef``
         with the penalties there; 0: none).
+    :param agent_tight_turns: vehicles whose route turns tighter than they can become agents
+        too (default: SUMO drives them; ``CityEnvConfig.agent_tight_turns``).
     """
 
     max_agents: int = 256
@@ -126,6 +128,7 @@ class CityConfig:
     max_steps: int = 200
     agent_classes: tuple[str, ...] = ("passenger",)
     progress_reward: float = 0.0
+    agent_tight_turns: bool = False
 
     def __post_init__(self) -> None:
         check(self.max_agents >= 1, "max_agents", f"must be >= 1, got {self.max_agents}")
@@ -144,7 +147,8 @@ class CityConfig:
                                       control_fraction=self.control_fraction,
                                       warmup_s=self.warmup_s, max_steps=self.max_steps,
                                       agent_classes=self.agent_classes,
-                                      progress_reward=self.progress_reward)
+                                      progress_reward=self.progress_reward,
+                                      agent_tight_turns=self.agent_tight_turns)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ class Leader(Sensor):
 
     @classmethod
     def names(cls, config) -> list[str]:
-        return ["leader_gap", "leader_closing"]
+        return [f"{cls.name}_gap", f"{cls.name}_closing"]
 
     @classmethod
     def bounds(cls, config) -> tuple[np.ndarray, np.ndarray]:
@@ -40,10 +40,15 @@ class Leader(Sensor):
         rng = float(self.config.leader_range)
         out = np.zeros((len(inp), 2), np.float32)
         out[:, 0] = rng
-        gap, along, found = nearest_ahead(inp.boxes, inp.index, inp.x, inp.y, inp.yaw, rng)
+        gap, along, found = self.find(inp, rng)
         out[found, 0] = gap[found]
         out[found, 1] = inp.ego.speed[found] - along[found]
         return out
+
+    def find(self, inp: SensorInput, rng: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A,) gap (m), the leader's speed along the agent's heading (m/s) and whether the
+        agent has one within ``rng`` m (:func:`nearest_ahead`)."""
+        return nearest_ahead(inp.boxes, inp.index, inp.x, inp.y, inp.yaw, rng)
 
 
 def nearest_ahead(b: Boxes, index: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
