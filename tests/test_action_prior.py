@@ -101,7 +101,8 @@ def test_city_give_way_conflict_is_a_sumo_junction_foe():
     the agent must respond to, the agent's distance to the conflict, and the foe's time to it
     at its speed; none (the caps) otherwise."""
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
-    from magail_sumo.sensors.units.give_way import GIVE_WAY_HORIZON, GIVE_WAY_RANGE
+    from magail_sumo.sensors.units.give_way import (COMMITTED, GIVE_WAY_HORIZON,
+                                                   GIVE_WAY_RANGE)
 
     cfg = CityEnvConfig(observation=ObservationConfig(**OBS, give_way=True),
                         action_layout="accel_offset", max_agents=100, warmup_s=600,
@@ -128,7 +129,7 @@ def test_city_give_way_conflict_is_a_sumo_junction_foe():
                 foes = [(d, min(max(fd, 0) / max(speed[f], 0.1), GIVE_WAY_HORIZON))
                         for f, d, fd, _, fx, _, _, respond, _ in
                         vehicle.getJunctionFoes(agent, GIVE_WAY_RANGE)
-                        if respond and d > 0 and fx > 0]
+                        if respond and d > COMMITTED and fx > 0]
                 matched += any(d == pytest.approx(gap, abs=1e-3) and
                                t == pytest.approx(time, abs=1e-3) for d, t in foes)
     finally:

@@ -98,13 +98,16 @@ def test_oncoming_traffic_blocks_the_path_when_standing_in_it_not_when_passing()
 
 def test_two_standing_oncoming_agents_in_each_others_path_do_not_wait_for_ever():
     """Opposing left turners stopped inside a junction, each reaching into the other's path:
-    the agent of the higher box row goes first (it does not see the other)."""
+    on a tie the agent of the higher box row goes first (it does not see the other)."""
     paths = Paths.of([np.array([[0.0, 0.0], [30.0, 0.0]]),
                       np.array([[12.0, 2.4], [-18.0, 2.4]])])
     boxes = _boxes([(0.0, 0.0, 0.2), (12.0, 2.4, np.pi + 0.2)], speeds=[0.0, 0.0])
     ahead = PathAhead(paths, np.array([0, 1]), np.zeros(2, np.int64), np.zeros(2))
-    _, _, found = along_path(boxes, np.arange(2), ahead, 50.0)
+    gap, _, found = along_path(boxes, np.arange(2), ahead, 50.0)
     assert found.tolist() == [True, False]
+    # one of them driving: no deadlock to break (it passes beside; it waits for the standing)
+    moving = _boxes([(0.0, 0.0, 0.2), (12.0, 2.4, np.pi + 0.2)], speeds=[0.0, 3.0])
+    assert along_path(moving, np.arange(2), ahead, 50.0)[2].tolist() == [False, True]
 
 
 def test_an_agent_without_a_path_reads_the_straight_ahead_leader():

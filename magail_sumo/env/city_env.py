@@ -53,7 +53,7 @@ from magail_sumo.sensors.lanes import LaneQuery
 from magail_sumo.sensors.observation import (
     Boxes, EgoState, ObservationConfig, PathAhead, SensorSuite, observation_bounds,
 )
-from magail_sumo.sensors.units.give_way import GIVE_WAY_RANGE
+from magail_sumo.sensors.units.give_way import COMMITTED, GIVE_WAY_RANGE
 from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
@@ -436,7 +436,8 @@ class SumoCityEnv(FleetEnv):
 
         From SUMO's junction model: ``getJunctionFoes`` per agent (libsumo has no bulk query),
         keeping foes the agent must respond to, that have not left the conflict, while the
-        agent has not entered it (an agent in the conflict is committed: it clears it).
+        agent is more than :data:`~magail_sumo.sensors.units.give_way.COMMITTED` m from it
+        (an agent at or in the conflict is committed: it clears it).
         """
         vehicle, names, v = self._session.api.vehicle, self.fleet.names, self._sumo
         out = np.full((agents.size, 2), np.inf)
@@ -447,7 +448,7 @@ class SumoCityEnv(FleetEnv):
             except Exception:  # vehicle not (yet) in SUMO
                 continue
             for foe, ego_d, foe_d, _, foe_exit, _, _, respond, _ in foes:
-                if not respond or ego_d <= 0.0 or foe_exit <= 0.0:
+                if not respond or ego_d <= COMMITTED or foe_exit <= 0.0:
                     continue
                 t = max(foe_d, 0.0) / max(speed.get(foe, 0.0), 0.1)
                 if t < out[j, 1]:

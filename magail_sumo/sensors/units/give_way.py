@@ -7,7 +7,8 @@ the junction meets that road user's (the conflict's entry), capped at :data:`GIV
 speed, capped at :data:`GIVE_WAY_HORIZON` (0 when it is in the conflict already). Of the
 road users the agent must respond to (SUMO's junction model: the foe has the right of way, or
 neither has), the one that reaches its conflict first; none (the caps) when there is none
-within range or the agent has the way. Only a SUMO run has a junction model
+within range or the agent has the way, nor for an agent within :data:`COMMITTED` m of the
+conflict (it clears it). Only a SUMO run has a junction model
 (``traci.vehicle.getJunctionFoes``: the city env passes these values); a recorded scene with
 log background reads none.
 """
@@ -22,6 +23,10 @@ from ..base import Sensor, SensorInput, register
 GIVE_WAY_RANGE = 50.0
 #: the longest time reported (s); also what reads when none is ahead
 GIVE_WAY_HORIZON = 10.0
+#: an agent this close to a conflict's entry (m) is committed: it clears the conflict rather
+#: than stopping inside it with its nose in the other road user's lane (which then waits for
+#: it as it waits for that road user)
+COMMITTED = 1.0
 
 
 @register

@@ -15,10 +15,11 @@ beyond the agent's progress ``s`` and within
 of it (``Δ``: the other's heading less the path's there, so a vehicle standing across the
 path blocks it with its length); an oncoming road user (``|Δ|`` > 135°) driving at
 :data:`STANDING` m/s or more counts with its width only, ``w_agent/2 + w_o/2``: it is in the
-path when head-on, not when it passes beside. Two agents standing oncoming in each other's
-path (opposing left turners inside a junction, whose boxes reach into each other's corridor)
-would each wait for the other for ever: of such a pair the agent of the higher box row does
-not see the other (it moves, and the other moves once it drives on). ``path_leader_gap`` (m) is ``s_o − s − l_agent/2 −
+path when head-on, not when it passes beside. Two agents standing in each other's path
+(opposing left turners inside a junction, or a car that stopped for a crossing road user with
+its nose in that road user's lane: their boxes reach into each other's corridor) would each
+wait for the other for ever: of such a pair the one with the larger gap (more room; the higher
+box row on a tie) does not see the other, so it moves on, and the other once it has gone. ``path_leader_gap`` (m) is ``s_o − s − l_agent/2 −
 (|cos Δ|·l_o/2 + |sin Δ|·w_o/2)`` (bumper to bumper along the path; negative when they
 overlap), ``path_leader_closing`` (m/s) the agent's speed less the other's speed along the
 path there (> 0: the gap shrinks); of those within ``leader_range``, the nearest. Without one:
@@ -154,17 +155,22 @@ def _along_path(bx, by, byaw, blen, bwid, bspeed, index, px, py, ps, start, coun
             gap_out[i] = best
             along_out[i] = best_along
             lead[i] = bj
-    # a standing oncoming pair of agents in each other's path: the higher row goes first
+    # two standing agents in each other's path: the one with more room goes first
     agent_of = np.full(bx.shape[0], -1, np.int64)
     for i in range(a):
         agent_of[index[i]] = i
+    free = np.zeros(a, np.bool_)
     for i in range(a):
         j = lead[i]
         if j < 0 or agent_of[j] < 0:
             continue
         k = agent_of[j]
-        if lead[k] == index[i] and index[i] > j and abs(bspeed[index[i]]) < STANDING and \
-                abs(bspeed[j]) < STANDING and np.cos(byaw[j] - byaw[index[i]]) < ONCOMING:
+        if lead[k] == index[i] and abs(bspeed[index[i]]) < STANDING and \
+                abs(bspeed[j]) < STANDING and \
+                (gap_out[i] > gap_out[k] or (gap_out[i] == gap_out[k] and index[i] > j)):
+            free[i] = True
+    for i in range(a):
+        if free[i]:
             found[i] = False
             gap_out[i] = np.inf
             along_out[i] = 0.0
