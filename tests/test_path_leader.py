@@ -99,8 +99,8 @@ def test_oncoming_traffic_blocks_the_path_when_standing_in_it_not_when_passing()
 def test_two_standing_oncoming_agents_in_each_others_path_do_not_wait_for_ever():
     """Opposing left turners stopped inside a junction, each reaching into the other's path:
     on a tie the agent of the higher box row goes first (it does not see the other)."""
-    paths = Paths.of([np.array([[0.0, 0.0], [30.0, 0.0]]),
-                      np.array([[12.0, 2.4], [-18.0, 2.4]])])
+    paths = Paths.of([np.array([[0.0, 0.0], [80.0, 0.0]]),
+                      np.array([[12.0, 2.4], [-68.0, 2.4]])])
     boxes = _boxes([(0.0, 0.0, 0.2), (12.0, 2.4, np.pi + 0.2)], speeds=[0.0, 0.0])
     ahead = PathAhead(paths, np.array([0, 1]), np.zeros(2, np.int64), np.zeros(2))
     gap, _, found = along_path(boxes, np.arange(2), ahead, 50.0)
@@ -108,6 +108,16 @@ def test_two_standing_oncoming_agents_in_each_others_path_do_not_wait_for_ever()
     # one of them driving: no deadlock to break (it passes beside; it waits for the standing)
     moving = _boxes([(0.0, 0.0, 0.2), (12.0, 2.4, np.pi + 0.2)], speeds=[0.0, 3.0])
     assert along_path(moving, np.arange(2), ahead, 50.0)[2].tolist() == [False, True]
+
+
+def test_near_its_paths_end_an_agent_also_looks_straight_ahead():
+    """Past a path's end route-relative control drives on along its last heading (a recorded
+    route ends where its log does): the car there is seen."""
+    paths = Paths.of([np.array([[0.0, 0.0], [20.0, 0.0]])])
+    boxes = _boxes([(15.0, 0.0, 0.0), (35.0, 0.0, 0.0)])
+    ahead = PathAhead(paths, np.zeros(1, np.int64), np.array([15]), np.array([15.0]))
+    gap, _, found = along_path(boxes, np.zeros(1, np.int64), ahead, 50.0)
+    assert found[0] and gap[0] == pytest.approx(20.0 - 5.0)
 
 
 def test_an_agent_without_a_path_reads_the_straight_ahead_leader():

@@ -24,7 +24,10 @@ box row on a tie) does not see the other, so it moves on, and the other once it 
 overlap), ``path_leader_closing`` (m/s) the agent's speed less the other's speed along the
 path there (> 0: the gap shrinks); of those within ``leader_range``, the nearest. Without one:
 ``leader_range``, 0. An agent without a reference path (free steering) reads the
-straight-ahead :func:`~magail_sumo.sensors.units.leader.nearest_ahead` leader instead. One
+straight-ahead :func:`~magail_sumo.sensors.units.leader.nearest_ahead` leader instead, and one
+with less than ``leader_range`` of its path left the nearer of the two (past its path's end
+route-relative control drives on along the last heading: a recorded route ends where its log
+does). One
 numba kernel over the agent × road-user pairs within reach (in a batched env only the agent's
 own world's road users and the shared ones).
 """
@@ -77,26 +80,33 @@ def along_path(b, index: np.ndarray, path, rng: float
     speed = np.zeros(n) if b.speed is None else f(b.speed)
     p = path.paths
     rows = np.ascontiguousarray(path.rows, np.int64)
-    gap, along, found = _along_path(
+    gap, along, found, freed = _along_path(
         f(b.x), f(b.y), f(b.yaw), f(b.length), f(b.width), speed,
         np.ascontiguousarray(index, np.int64), p.x, p.y, p.s, p.start, p.count, rows,
         np.ascontiguousarray(path.at, np.int64), f(path.s), float(rng), float(p.spacing),
         g.world, g.offsets, g.rows)
-    none = rows < 0
-    if none.any():  # no reference path: straight ahead
-        idx = np.asarray(index, np.int64)[none]
-        yaw = np.asarray(b.yaw, np.float64)
-        gap[none], along[none], found[none] = nearest_ahead(
-            b, idx, np.asarray(b.x, np.float64)[idx], np.asarray(b.y, np.float64)[idx],
-            yaw[idx], rng)
+    # no reference path, or less than the range of it left: (also) straight ahead, the path
+    # running on along its last heading as route-relative control drives it
+    left = np.full(a, -np.inf)
+    has = rows >= 0
+    left[has] = p.length(rows[has]) - np.asarray(path.s, np.float64)[has]
+    short = (~has | (left < rng)) & ~freed
+    if short.any():
+        idx = np.asarray(index, np.int64)[short]
+        g2, a2, f2 = nearest_ahead(b, idx, np.asarray(b.x, np.float64)[idx],
+                                   np.asarray(b.y, np.float64)[idx],
+                                   np.asarray(b.yaw, np.float64)[idx], rng)
+        use = f2 & (~found[short] | (g2 < gap[short]))
+        sel = np.flatnonzero(short)[use]
+        gap[sel], along[sel], found[sel] = g2[use], a2[use], True
     return gap, along, found
 
 
 @numba.njit(cache=True)
 def _along_path(bx, by, byaw, blen, bwid, bspeed, index, px, py, ps, start, count, prow, pat,
                 s_ego, rng, spacing, world, offsets, rows):
-    """:func:`along_path` for agents with a path (rows ``prow`` >= 0); ties go to the lowest
-    box row."""
+    """:func:`along_path` for agents with a path (rows ``prow`` >= 0), and which of them a
+    standing pair's release freed; ties go to the lowest box row."""
     a = index.shape[0]
     gap_out, along_out = np.full(a, np.inf), np.zeros(a)
     found = np.zeros(a, np.bool_)
@@ -174,4 +184,4 @@ def _along_path(bx, by, byaw, blen, bwid, bspeed, index, px, py, ps, start, coun
             found[i] = False
             gap_out[i] = np.inf
             along_out[i] = 0.0
-    return gap_out, along_out, found
+    return gap_out, along_out, found, free
