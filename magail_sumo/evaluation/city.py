@@ -346,8 +346,8 @@ def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRu
             "agent_steps": run.agent_steps if policy else 0,
             "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING),
             "peak_agents": run.peak_agents if policy else 0,
-            "tight_turns": run.tight_turns if policy else 0,
-            "speed_js_humans": dist["speed"], "accel_js_humans": dist["accel"]}
+            "speed_js_humans": dist["speed"], "accel_js_humans": dist["accel"],
+            "tight_turns": run.tight_turns if policy else 0}
 
 
 @dataclass
