@@ -5,9 +5,10 @@ each policy on each city (the same window, warm-up and seed for every method), t
 city and policy: trips completed against SUMO's drivers in the same window, vehicles taken out
 for a collision or leaving the road and red-light runs as shares of the learned trips (agents
 that drove in the window), mean travel time against SUMO's, the most agents alive at once,
-and with ``--humans EXPERT_DIR`` the Jensen-Shannon divergence of the agents' and of SUMO's
-drivers' speed and 1-s acceleration distributions from the recorded humans'
-(:mod:`magail_sumo.evaluation.city_kinematics`).
+the vehicles left SUMO-driven for a turn tighter than a car can make (``tight``,
+``CityEnvConfig.agent_tight_turns``), and with ``--humans EXPERT_DIR`` the Jensen-Shannon
+divergence of the agents' and of SUMO's drivers' speed and 1-s acceleration distributions from
+the recorded humans' (:mod:`magail_sumo.evaluation.city_kinematics`).
 
 Usage (evaluate on cities the policies were not trained on)::
 
@@ -35,7 +36,7 @@ def _share(n: float, d: float) -> float:
 def table(folders: list[Path]) -> list[str]:
     """The goal figures of every policy row of ``folders``' ``city.json``, as lines."""
     lines = [f"{'city':<14} {'policy':<34} {'trips':>6} {'sumo':>6} {'ratio':>6} "
-             f"{'removed':>8} {'red':>6} {'tt_ratio':>8} {'peak':>5} {'agents':>6} "
+             f"{'removed':>8} {'red':>6} {'tt_ratio':>8} {'peak':>5} {'agents':>6} {'tight':>5} "
              f"{'speedJS':>7} {'accJS':>6} {'sumo_speedJS':>12} {'sumo_accJS':>10}"]
     for folder in folders:
         rows, _ = read_rows(folder)
@@ -52,6 +53,7 @@ def table(folders: list[Path]) -> list[str]:
                 f"{_share(out, r['agents']):>8.1%} {_share(ends.get('red_light', 0), r['agents']):>6.1%} "
                 f"{_share(r['travel_time_s'], s['travel_time_s']):>8.2f} "
                 f"{r.get('peak_agents', math.nan):>5.0f} {r['agents']:>6} "
+                f"{r.get('tight_turns', math.nan):>5.0f} "
                 f"{r.get('speed_js_humans', math.nan):>7.3f} "
                 f"{r.get('accel_js_humans', math.nan):>6.3f} "
                 f"{s.get('speed_js_humans', math.nan):>12.3f} "
