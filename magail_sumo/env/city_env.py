@@ -5,10 +5,11 @@ the SUMO demand that departs (or is present when the episode starts) becomes an 
 probability ``control_fraction`` (seeded); the rest stay SUMO-driven background traffic that
 reacts to the agents (as do vehicles of other classes than ``agent_classes``, vehicles with
 stops, and vehicles whose route turns tighter than a car can, ``agent_tight_turns``). Agents
-move by the kinematic bicycle model from normalised actions in [-1, 1]² (``[accel, steer]``,
-or route-relative ``[accel, offset]`` in the ``accel_offset`` layout: steered along their
-route's lanes, :mod:`magail_sumo.sim.tracking`) and are placed in SUMO with ``moveToXY``; they see the same sensors as in recorded scenes, with the map taken
-from the SUMO network (:func:`~magail_sumo.sim.sumo_map.network_map`) and the current-lane
+move by the kinematic bicycle model from normalised actions in [-1, 1]² (``[accel, steer]``, or
+route-relative ``[accel, offset]`` in the ``accel_offset`` layout: steered along their route's
+lanes, :mod:`magail_sumo.sim.tracking`) and are placed in SUMO with ``moveToXY``; they see the
+same sensors as in recorded scenes, with the map taken from the SUMO network
+(:func:`~magail_sumo.sim.sumo_map.network_map`) and the current-lane
 light from SUMO's signal state. Each agent's route, from where it joined, is its reference
 path (:func:`~magail_sumo.sim.lane_graph.LaneGraph.route_path`: the lane centrelines of its
 SUMO route through the junctions' internal lanes); the route look-ahead and route command

@@ -12,24 +12,24 @@ beyond the agent's progress ``s`` and within
 
     |lateral offset| < w_agent/2 + |sin Δ|·l_o/2 + |cos Δ|·w_o/2
 
-of it (``Δ``: the other's heading less the path's there, so a vehicle standing across the
-path blocks it with its length); an oncoming road user (``|Δ|`` > 135°) driving at
+of it (``Δ``: the other's heading less the path's there, so a vehicle standing across the path
+blocks it with its length); an oncoming road user (``|Δ|`` > 135°) driving at
 :data:`STANDING` m/s or more counts with its width only, ``w_agent/2 + w_o/2``: it is in the
 path when head-on, not when it passes beside. Two agents standing in each other's path
 (opposing left turners inside a junction, or a car that stopped for a crossing road user with
 its nose in that road user's lane: their boxes reach into each other's corridor) would each
 wait for the other for ever: of such a pair the one with the larger gap (more room; the higher
-box row on a tie) does not see the other, so it moves on, and the other once it has gone. ``path_leader_gap`` (m) is ``s_o − s − l_agent/2 −
-(|cos Δ|·l_o/2 + |sin Δ|·w_o/2)`` (bumper to bumper along the path; negative when they
-overlap), ``path_leader_closing`` (m/s) the agent's speed less the other's speed along the
-path there (> 0: the gap shrinks); of those within ``leader_range``, the nearest. Without one:
-``leader_range``, 0. An agent without a reference path (free steering) reads the
-straight-ahead :func:`~magail_sumo.sensors.units.leader.nearest_ahead` leader instead, and one
-with less than ``leader_range`` of its path left the nearer of the two (past its path's end
-route-relative control drives on along the last heading: a recorded route ends where its log
-does). One
-numba kernel over the agent × road-user pairs within reach (in a batched env only the agent's
-own world's road users and the shared ones).
+box row on a tie) does not see the other, so it moves on, and the other once it has gone.
+``path_leader_gap`` (m) is ``s_o − s − l_agent/2 − (|cos Δ|·l_o/2 + |sin Δ|·w_o/2)``
+(bumper to bumper along the path; negative when they overlap), ``path_leader_closing`` (m/s)
+the agent's speed less the other's speed along the path there (> 0: the gap shrinks); of those
+within ``leader_range``, the nearest. Without one: ``leader_range``, 0. An agent without a
+reference path (free steering) reads the straight-ahead
+:func:`~magail_sumo.sensors.units.leader.nearest_ahead` leader instead, and one with less than
+``leader_range`` of its path left the nearer of the two (past its path's end route-relative
+control drives on along the last heading: a recorded route ends where its log does). One numba
+kernel over the agent × road-user pairs within reach (in a batched env only the agent's own
+world's road users and the shared ones).
 """
 
 from __future__ import annotations
