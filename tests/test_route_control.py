@@ -141,6 +141,39 @@ def test_city_agents_follow_their_routes_lanes():
 
 
 @pytest.mark.sumo
+def test_route_paths_cross_junctions_on_every_internal_lane():
+    """A connection that crosses its junction on two internal lanes (a left turn waiting
+    inside the junction: libsumo gives the first internal lane's link as the lane reached plus
+    the next internal lane) is followed on both: on the real cologne8 network every
+    connection's chain of internal lanes joins up, end to start, from the lane it leaves to the
+    lane it reaches (before, the second internal lane was skipped and the path cut a chord
+    across the junction, 3 m off its lanes)."""
+    from magail_sumo.sim.lane_graph import LaneGraph
+    from magail_sumo.sim.session import SessionConfig, SumoSession
+
+    net = ROOT / "data" / "sumo" / "cologne8" / "cologne8.net.xml"
+    with SumoSession(net=net, config=SessionConfig(subscribe=False)) as sess:
+        api = sess.api
+        g = LaneGraph(api)
+        junction = ":cluster_1098574052_1098574061_247379905"
+        assert g._via("-28675510#11_0", "-22917421#14") == (
+            "-22917421#14_0", [f"{junction}_14_0", f"{junction}_22_0"])
+        gaps, two = [], 0
+        for lane in api.lane.getIDList():
+            if lane.startswith(":"):
+                continue
+            for reached, via in g.links(lane):
+                if not via:
+                    continue
+                chain = g.internal_chain(via)
+                two += len(chain) > 1
+                ends = [g.shape(lane)] + [g.shape(x) for x in chain] + [g.shape(reached)]
+                gaps += [float(np.hypot(*(a[-1] - b[0]))) for a, b in zip(ends, ends[1:])]
+    assert two >= 20  # cologne8 has many such connections
+    assert max(gaps) < 0.5, max(gaps)
+
+
+@pytest.mark.sumo
 def test_recorded_scene_expert_follows_its_recorded_route():
     """In a real recorded scene, the expert's accelerations with offset 0 (its actions in the
     ``accel_offset`` layout) keep every agent within centimetres of its recorded track."""

@@ -88,13 +88,25 @@ class LaneGraph:
         for reached, internal in self.links(lane):
             if reached.rsplit("_", 1)[0] != edge:
                 continue
-            chain = []
-            while internal and internal.startswith(":") and len(chain) < 8:
-                chain.append(internal)
-                nxt = self.links(internal)
-                internal = nxt[0][0] if nxt else ""
-            return reached, chain
+            return reached, self.internal_chain(internal)
         return None
+
+    def internal_chain(self, internal: str) -> list[str]:
+        """The internal lanes from ``internal`` on to the junction's exit lane, in order.
+
+        A connection can cross its junction on more than one internal lane (a left turn that
+        waits inside the junction: the internal junction lane that follows, the ``via`` of the
+        first internal lane's own link). libsumo reports an internal lane's link as (the normal
+        lane reached, the next internal lane or ""), so the chain follows the ``via``."""
+        chain: list[str] = []
+        while internal.startswith(":") and len(chain) < 8:
+            chain.append(internal)
+            nxt = self.links(internal)
+            if not nxt:
+                break
+            reached, via = nxt[0]
+            internal = via or reached
+        return chain
 
     def route_path(self, vehicle: str, change_length: float = CHANGE_LENGTH) -> RoutePath:
         """The reference path of SUMO vehicle ``vehicle`` from where it is now (module doc)."""
@@ -111,15 +123,12 @@ class LaneGraph:
         parts: list[np.ndarray] = []
         if lane.startswith(":"):  # inside a junction: finish its internal lane(s) first
             parts.append(_from(self.shape(lane), pos, self.api.lane.getLength(lane)))
-            steps = 0
-            while lane.startswith(":") and steps < 8:
-                nxt = self.links(lane)
-                if not nxt:
-                    return RoutePath(np.concatenate(parts), False)
-                lane = nxt[0][0]
-                if lane.startswith(":"):
-                    parts.append(self.shape(lane))
-                steps += 1
+            chain = self.internal_chain(lane)
+            parts.extend(self.shape(x) for x in chain[1:])
+            nxt = self.links(chain[-1])
+            if not nxt:
+                return RoutePath(np.concatenate(parts), False)
+            lane = nxt[0][0]
             pos = 0.0
             edge = lane.rsplit("_", 1)[0]
             i = route.index(edge, i) if edge in route[i:] else i + 1
