@@ -6,9 +6,11 @@ city and policy: trips completed against SUMO's drivers in the same window, vehi
 for a collision or leaving the road and red-light runs as shares of the learned trips (agents
 that drove in the window), mean travel time against SUMO's, the most agents alive at once,
 the vehicles left SUMO-driven for a turn tighter than a car can make (``tight``,
-``CityEnvConfig.agent_tight_turns``), and with ``--humans EXPERT_DIR`` the Jensen-Shannon
-divergence of the agents' and of SUMO's drivers' speed and 1-s acceleration distributions from
-the recorded humans' (:mod:`magail_sumo.evaluation.city_kinematics`).
+``CityEnvConfig.agent_tight_turns``), the SUMO-driven vehicles released from giving way to
+standing agents (``unblk``, ``CityEnvConfig.unblock_s``), and with ``--humans EXPERT_DIR``
+the Jensen-Shannon divergence of the agents' and of SUMO's drivers' speed and 1-s
+acceleration distributions from the recorded humans'
+(:mod:`magail_sumo.evaluation.city_kinematics`).
 
 Usage (evaluate on cities the policies were not trained on)::
 
@@ -37,6 +39,7 @@ def table(folders: list[Path]) -> list[str]:
     """The goal figures of every policy row of ``folders``' ``city.json``, as lines."""
     lines = [f"{'city':<14} {'policy':<34} {'trips':>6} {'sumo':>6} {'ratio':>6} "
              f"{'removed':>8} {'red':>6} {'tt_ratio':>8} {'peak':>5} {'agents':>6} {'tight':>5} "
+             f"{'unblk':>5} "
              f"{'speedJS':>7} {'accJS':>6} {'sumo_speedJS':>12} {'sumo_accJS':>10}"]
     for folder in folders:
         rows, _ = read_rows(folder)
@@ -54,6 +57,7 @@ def table(folders: list[Path]) -> list[str]:
                 f"{_share(r['travel_time_s'], s['travel_time_s']):>8.2f} "
                 f"{r.get('peak_agents', math.nan):>5.0f} {r['agents']:>6} "
                 f"{r.get('tight_turns', math.nan):>5.0f} "
+                f"{r.get('unblocked', math.nan):>5.0f} "
                 f"{r.get('speed_js_humans', math.nan):>7.3f} "
                 f"{r.get('accel_js_humans', math.nan):>6.3f} "
                 f"{s.get('speed_js_humans', math.nan):>12.3f} "
@@ -72,6 +76,8 @@ def main() -> None:
     ap.add_argument("--max-agents", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--humans", help="expert data of recorded humans (the JS columns)")
+    ap.add_argument("--unblock-s", type=float, default=CitySettings.unblock_s,
+                    help="CityEnvConfig.unblock_s (0: no release of blocked junctions)")
     ap.add_argument("--out", default="out/bench_city")
     ap.add_argument("--table-only", action="store_true", help="print the table of OUT only")
     args = ap.parse_args()
@@ -79,7 +85,8 @@ def main() -> None:
     folders = [out / str(i) for i in range(len(args.policy))]
     if not args.table_only:
         st = CitySettings(steps=args.steps, warmup_s=args.warmup_s, max_agents=args.max_agents,
-                          seed=args.seed, timeout_s=None, humans=args.humans)
+                          seed=args.seed, timeout_s=None, humans=args.humans,
+                          unblock_s=args.unblock_s)
         for spec, folder in zip(args.policy, folders):
             res = evaluate_city(spec, args.city, folder, st)
             for e in res.errors:

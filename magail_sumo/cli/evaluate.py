@@ -57,6 +57,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--city-agent-tight-turns", action="store_true",
                    help="vehicles whose route turns tighter than a car can (SUMO's on-the-spot "
                         "turnarounds) become agents too (default: SUMO drives them)")
+    p.add_argument("--city-unblock-s", type=float, default=10.0, metavar="S",
+                   help="SUMO-driven vehicles that have waited S seconds next to an agent "
+                        "standing as long on a junction stop giving way to standing agents "
+                        "(0: never; default 10)")
     p.add_argument("--city-humans", metavar="EXPERT_DIR",
                    help="expert data of recorded human drivers (magail-sumo expert's --out): "
                         "city rows then give the JS divergence of the agents' and SUMO's "
@@ -116,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
                             agent_classes=tuple(c.strip() for c in
                                                 args.city_agent_classes.split(",") if c.strip()),
                             agent_tight_turns=args.city_agent_tight_turns,
+                            unblock_s=args.city_unblock_s,
                             fcd=args.fcd_rollouts > 0, humans=args.city_humans,
                             deterministic=args.deterministic, noise_scale=args.noise_scale,
                             timeout_s=args.timeout_s)

@@ -56,6 +56,7 @@ from magail_sumo.sensors.observation import (
 )
 from magail_sumo.sensors.units.give_way import COMMITTED, GIVE_WAY_RANGE
 from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
+from magail_sumo.sensors.units.path_leader import along_path
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.lane_graph import LaneGraph
@@ -72,6 +73,10 @@ from .fleet import Fleet, resized
 from .events import off_road
 from .fcd import EpisodeFcd
 from .step import END_OF_EPISODE, FleetEnv
+from .unblock import STAND_SPEED, release
+
+#: steps between two looks for agents and SUMO's drivers blocking each other (1 s)
+UNBLOCK_EVERY = 10
 
 #: Events of the city env, in the order the first one found becomes the reason.
 CITY_EVENTS: tuple[str, ...] = ("collision", "off_road", "red_light", "destination")
@@ -114,6 +119,10 @@ class CityEnvConfig:
         turnarounds, 1.3-1.6 m, against 3.6 m for a 5 m car; ``SumoCityEnv._too_tight``)
         stays SUMO-driven (False, the default: the bicycle model cannot follow the route there;
         counted in ``SumoCityEnv.tight_turns``) or becomes an agent all the same (True).
+    :param unblock_s: a SUMO-driven vehicle that has waited this long (s) next to an agent
+        standing as long on a junction stops giving way to the standing agents among its
+        junction foes, so the two cannot wait for each other for ever
+        (:mod:`magail_sumo.env.unblock`; counted in ``SumoCityEnv.unblocked``; 0: never).
     :param fcd_dir: folder for SUMO FCD recordings of episodes, each with a ``.sumocfg`` that
         replays it in ``sumo-gui`` on the city's network (None: none; as ``EnvConfig.fcd_dir``).
     :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
@@ -138,6 +147,7 @@ class CityEnvConfig:
     guard: GuardConfig = field(default_factory=GuardConfig)
     agent_classes: tuple[str, ...] = ("passenger",)
     agent_tight_turns: bool = False
+    unblock_s: float = 10.0
     fcd_dir: str | None = None
     fcd_every: int = 0
     progress_reward: float = 0.0
@@ -147,7 +157,8 @@ class CityEnvConfig:
                  warmup_s: float, max_steps: int,
                  agent_classes: tuple[str, ...] = ("passenger",),
                  progress_reward: float = 0.0,
-                 agent_tight_turns: bool = False) -> "CityEnvConfig":
+                 agent_tight_turns: bool = False,
+                 unblock_s: float = 10.0) -> "CityEnvConfig":
         """A city's settings with the observation, limits, event rules (the city's events of
         ``env.terminate_on``), SUMO seed and action layout of a recorded-scene
         :class:`~magail_sumo.env.config.EnvConfig` ``env``, so one policy drives both."""
@@ -158,12 +169,15 @@ class CityEnvConfig:
                    destination_radius=env.destination_radius, sumo_seed=env.sumo_seed,
                    action_layout=env.action_layout, max_agents=max_agents, guard=env.guard,
                    agent_classes=tuple(agent_classes),
-                   agent_tight_turns=bool(agent_tight_turns), fcd_dir=env.fcd_dir,
+                   agent_tight_turns=bool(agent_tight_turns),
+                   unblock_s=float(unblock_s), fcd_dir=env.fcd_dir,
                    fcd_every=env.fcd_every, progress_reward=progress_reward)
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.progress_reward) and self.progress_reward >= 0):
             raise ValueError(f"progress_reward must be >= 0, got {self.progress_reward}")
+        if not (np.isfinite(self.unblock_s) and self.unblock_s >= 0):
+            raise ValueError(f"unblock_s must be >= 0, got {self.unblock_s}")
         if self.max_agents is not None and self.max_agents < 1:
             raise ValueError(f"max_agents must be >= 1 or None, got {self.max_agents}")
         if self.action_layout not in dynamics.ACTION_LAYOUTS:
@@ -284,6 +298,9 @@ class SumoCityEnv(FleetEnv):
         #: chosen vehicles left SUMO-driven for a turn tighter than they can make
         #: (``agent_tight_turns``)
         self.tight_turns = 0
+        #: SUMO-driven vehicles released from giving way to standing agents (``unblock_s``)
+        self.unblocked = 0
+        self._stood = np.zeros(n_max)  # seconds each agent has stood
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
         self._decided: set[str] = set()
@@ -369,6 +386,8 @@ class SumoCityEnv(FleetEnv):
             k = f.add(vid, v.x[i], v.y[i], v.yaw[i], v.speed[i], v.length[i], v.width[i])
             if f.capacity > self._lc.shape[0]:
                 self._lc, self._ld = resized(self._lc, f.capacity), resized(self._ld, f.capacity)
+                self._stood = resized(self._stood, f.capacity)
+            self._stood[k] = 0.0
             self.cut_paths += not path.complete
             f.path[k] = self.paths.add(path.points)
             f.hint[k] = self.paths.project(f.path[k:k + 1], f.x[k:k + 1], f.y[k:k + 1])[0][0]
@@ -491,7 +510,12 @@ class SumoCityEnv(FleetEnv):
         """Step stage 3: place the live agents in SUMO at their poses."""
         f = self.fleet
         act = f.live()
-        self._session.move(f.names_of(act), f.x[act], f.y[act], f.yaw[act], f.length[act])
+        # route-relative agents stay on their SUMO routes' lanes (keepRoute 3), so SUMO's
+        # signals and junction foes of them are those of their routes; free steering may leave
+        # the route (2: mapped anywhere)
+        keep = 3 if self.config.action_layout == "accel_offset" else 2
+        self._session.move(f.names_of(act), f.x[act], f.y[act], f.yaw[act], f.length[act],
+                           keep_route=keep)
 
     def _sumo_step(self) -> tuple[list[str], list[str]]:
         """Step stage 4: SUMO steps; its vehicles are read; agents SUMO took out are noted."""
@@ -503,7 +527,41 @@ class SumoCityEnv(FleetEnv):
             k = f.index.get(vid)
             if k is not None:
                 f.in_sumo[k] = False
+        self._unblock()
         return departed, arrived
+
+    def _unblock(self) -> None:
+        """The agents' standing times; once a second, SUMO-driven vehicles waiting next to an
+        agent standing on a junction stop giving way to standing agents
+        (:func:`magail_sumo.env.unblock.release`, ``unblock_s``)."""
+        f, after = self.fleet, self.config.unblock_s
+        live = f.live()
+        self._stood[live] = np.where(f.speed[live] < STAND_SPEED, self._stood[live] + self.dt,
+                                     0.0)
+        if after <= 0 or self.t % UNBLOCK_EVERY or not live.size:
+            return
+        v = self._sumo
+        stood = self._stood[live]
+        rng = self.config.observation.leader_range
+
+        def blocks(i: int, j: int) -> bool:
+            """SUMO vehicle j stands in agent live[i]'s path, and the agent not in j's (its
+            SUMO route's lanes): SUMO's junction model, not the agent's box, holds j."""
+            k = live[i:i + 1]
+            pair = Boxes(*(np.array([getattr(f, a)[k[0]], getattr(v, a)[j]])
+                           for a in ("x", "y", "yaw", "length", "width", "speed")))
+            ahead = PathAhead(self.paths, f.path[k], f.hint[k], self._route_progress(k))
+            if not along_path(pair, np.zeros(1, np.int64), ahead, rng)[2][0]:
+                return False
+            theirs = Paths.of([self._graph.route_path(v.ids[j]).points])
+            row = np.zeros(1, np.int64)
+            at, s = theirs.project(row, v.x[j:j + 1], v.y[j:j + 1])
+            return not along_path(pair, np.ones(1, np.int64), PathAhead(theirs, row, at, s),
+                                  rng)[2][0]
+
+        self.unblocked += release(self._session.api, v.ids, v.x, v.y, v.speed, v.edge,
+                                  dict(zip(f.names_of(live), stood.tolist())), f.x[live],
+                                  f.y[live], stood, after, blocks)
 
     def _before_move(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each stepped agent's next signal as last observed: red, and its distance (m)."""

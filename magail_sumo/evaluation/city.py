@@ -81,9 +81,10 @@ SUMMARY_FIELDS = tuple(f.name for f in fields(SumoRunSummary))
 #: :class:`SumoRunSummary` field, then the policy's own counts (0 / {} for ``sumo``)
 ROW_FIELDS = ("scenario", "method", "begin_s", "end_s", "seed", *SUMMARY_FIELDS, "agents",
               "agent_steps", "terminations", "removed", "peak_agents", "speed_js_humans",
-              "accel_js_humans", "tight_turns")
+              "accel_js_humans", "tight_turns", "unblocked")
 #: row fields that rows written before them lack (read as NaN)
-LATER_FIELDS = ("peak_agents", "speed_js_humans", "accel_js_humans", "tight_turns")
+LATER_FIELDS = ("peak_agents", "speed_js_humans", "accel_js_humans", "tight_turns",
+                "unblocked")
 #: in a scenario's city folder: the speed / acceleration counts of agents, SUMO's drivers and
 #: the recorded humans (:mod:`~magail_sumo.evaluation.city_kinematics`)
 KINEMATICS_FILE = "kinematics.json"
@@ -109,6 +110,9 @@ class CitySettings:
     :param agent_tight_turns: vehicles whose route turns tighter than they can (SUMO's
         on-the-spot turnarounds) become agents too (default: SUMO drives them;
         ``CityEnvConfig.agent_tight_turns``).
+    :param unblock_s: SUMO-driven vehicles that have waited this long (s) next to an agent
+        standing as long on a junction stop giving way to standing agents (0: never;
+        ``CityEnvConfig.unblock_s``).
     :param fcd: record the policy's run as SUMO FCD (``city/<scenario>/<method>/fcd/``) with a
         ``.sumocfg`` that replays it in ``sumo-gui`` on the city's network.
     :param humans: expert data of recorded humans (``magail-sumo expert``'s folder): the
@@ -127,6 +131,7 @@ class CitySettings:
     timeout_s: float | None = DEFAULT_TIMEOUT_S
     agent_classes: tuple[str, ...] = ("passenger",)
     agent_tight_turns: bool = False
+    unblock_s: float = 10.0
     fcd: bool = False
     humans: str | None = None
 
@@ -142,7 +147,9 @@ class CitySettings:
                                                 f"{self.max_agents}"),
                          (0.0 < self.control_fraction <= 1.0,
                           f"--city-control-fraction must be in (0, 1], got "
-                          f"{self.control_fraction}")):
+                          f"{self.control_fraction}"),
+                         (math.isfinite(self.unblock_s) and self.unblock_s >= 0,
+                          f"--city-unblock-s must be >= 0, got {self.unblock_s}")):
             if not ok:
                 raise EvaluationError(what)
 
@@ -176,6 +183,8 @@ class PolicyRun:
         (:class:`~magail_sumo.evaluation.city_kinematics.Group` ``as_json``).
     :param tight_turns: chosen vehicles left SUMO-driven because their route turns tighter
         than they can (``SumoCityEnv.tight_turns``).
+    :param unblocked: SUMO-driven vehicles released from giving way to standing agents
+        (``SumoCityEnv.unblocked``).
     """
 
     begin_s: float
@@ -190,6 +199,7 @@ class PolicyRun:
     peak_agents: int = 0
     kinematics: dict = field(default_factory=dict)
     tight_turns: int = 0
+    unblocked: int = 0
 
 
 #: in a method's city folder: the ids of the agents that ended at their destination
@@ -261,7 +271,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
                                  agent_classes=st.agent_classes,
                                  agent_tight_turns=st.agent_tight_turns,
-                                 max_steps=st.steps)
+                                 unblock_s=st.unblock_s, max_steps=st.steps)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
     state = env.warm_state()
     if state is not None:
@@ -297,7 +307,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         begin = began[0]
         end = round(float(env.sumo_time), 3)
         counts = dict(env.action_counts)
-        tight = env.tight_turns
+        tight, unblocked = env.tight_turns, env.unblocked
     finally:
         env.close()  # SUMO writes its outputs here
     fcd = None
@@ -307,7 +317,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
                      job.state_copy if state is not None else None, fcd, peak,
-                     agents.as_json(), tight)
+                     agents.as_json(), tight, unblocked)
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
@@ -347,7 +357,8 @@ def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRu
             "terminations": dict(ends), "removed": sum(ends.get(e, 0) for e in REMOVING),
             "peak_agents": run.peak_agents if policy else 0,
             "speed_js_humans": dist["speed"], "accel_js_humans": dist["accel"],
-            "tight_turns": run.tight_turns if policy else 0}
+            "tight_turns": run.tight_turns if policy else 0,
+            "unblocked": run.unblocked if policy else 0}
 
 
 @dataclass

@@ -303,7 +303,8 @@ class SumoSession:
 
     def move(self, ids: Sequence[str], x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
              length: np.ndarray, edges: Sequence[str] | None = None,
-             lanes: Sequence[int] | None = None, match_threshold: float = 5.0) -> None:
+             lanes: Sequence[int] | None = None, match_threshold: float = 5.0,
+             keep_route: int = 2) -> None:
         """Place vehicles at box-centre poses for the next step (``moveToXY``, keepRoute=2).
 
         SUMO searches every lane within ``match_threshold`` metres of the target to attach the
@@ -312,6 +313,11 @@ class SumoSession:
         lane is that close (a vehicle driven off the road; tested).
 
         :param edges, lanes: optional map-matching hints (edge id, lane index) per vehicle.
+        :param keep_route: ``moveToXY``'s keepRoute: 2 maps onto any lane (SUMO may replace the
+            vehicle's route by the edge it lands on); 3 (2 + keep the route) maps onto the
+            lanes of the vehicle's route only, so the signals and junction foes SUMO gives
+            for it stay those of its route; a vehicle 3 cannot place (off its route) is placed
+            with 2.
         """
         ls = _libsumo()
         fx, fy = centre_to_front(np.asarray(x), np.asarray(y), np.asarray(yaw), length)
@@ -320,8 +326,14 @@ class SumoSession:
             edge = edges[k] if edges is not None else ""
             lane = lanes[k] if lanes is not None else -1
             try:
-                ls.vehicle.moveToXY(vid, edge, lane, float(fx[k]), float(fy[k]), float(angle[k]),
-                                    2, match_threshold)
+                try:
+                    ls.vehicle.moveToXY(vid, edge, lane, float(fx[k]), float(fy[k]),
+                                        float(angle[k]), keep_route, match_threshold)
+                except Exception:  # libsumo raises its own types
+                    if keep_route == 2:
+                        raise
+                    ls.vehicle.moveToXY(vid, edge, lane, float(fx[k]), float(fy[k]),
+                                        float(angle[k]), 2, match_threshold)
             except Exception as exc:
                 raise SimulationError(f"moving vehicle {vid} failed at t={self.time:.1f} s: "
                                       f"{_one_line(exc)}") from None

@@ -120,6 +120,9 @@ class CityConfig:
         with the penalties there; 0: none).
     :param agent_tight_turns: vehicles whose route turns tighter than they can become agents
         too (default: SUMO drives them; ``CityEnvConfig.agent_tight_turns``).
+    :param unblock_s: SUMO-driven vehicles that have waited this long (s) next to an agent
+        standing as long on a junction stop giving way to standing agents (0: never;
+        ``CityEnvConfig.unblock_s``).
     """
 
     max_agents: int = 256
@@ -129,6 +132,7 @@ class CityConfig:
     agent_classes: tuple[str, ...] = ("passenger",)
     progress_reward: float = 0.0
     agent_tight_turns: bool = False
+    unblock_s: float = 10.0
 
     def __post_init__(self) -> None:
         check(self.max_agents >= 1, "max_agents", f"must be >= 1, got {self.max_agents}")
@@ -140,6 +144,7 @@ class CityConfig:
         check(self.warmup_s >= 0, "warmup_s", f"must be >= 0, got {self.warmup_s}")
         check(self.max_steps >= 1, "max_steps", f"must be >= 1, got {self.max_steps}")
         check_positive(self, "progress_reward", allow_zero=True)
+        check_positive(self, "unblock_s", allow_zero=True)
 
     def env_config(self, env: EnvConfig):
         """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
@@ -148,7 +153,8 @@ class CityConfig:
                                       warmup_s=self.warmup_s, max_steps=self.max_steps,
                                       agent_classes=self.agent_classes,
                                       progress_reward=self.progress_reward,
-                                      agent_tight_turns=self.agent_tight_turns)
+                                      agent_tight_turns=self.agent_tight_turns,
+                                      unblock_s=self.unblock_s)
 
 
 @dataclass(frozen=True)
