@@ -147,7 +147,7 @@ def test_route_paths_cross_junctions_on_every_internal_lane():
     the next internal lane) is followed on both: on the real cologne8 network every
     connection's chain of internal lanes joins up, end to start, from the lane it leaves to the
     lane it reaches (before, the second internal lane was skipped and the path cut a chord
-    across the junction, 3 m off its lanes)."""
+    across the junction, up to 20.8 m off its lanes)."""
     from magail_sumo.sim.lane_graph import LaneGraph
     from magail_sumo.sim.session import SessionConfig, SumoSession
 

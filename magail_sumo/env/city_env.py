@@ -560,8 +560,7 @@ class SumoCityEnv(FleetEnv):
                                   rng)[2][0]
 
         self.unblocked += release(self._session.api, v.ids, v.x, v.y, v.speed, v.edge,
-                                  dict(zip(f.names_of(live), stood.tolist())), f.x[live],
-                                  f.y[live], stood, after, blocks)
+                                  f.names_of(live), f.x[live], f.y[live], stood, after, blocks)
 
     def _before_move(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each stepped agent's next signal as last observed: red, and its distance (m)."""

@@ -27,7 +27,7 @@ driver leaves its path; two such drivers ran into their agents in one 2-min wind
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -43,7 +43,7 @@ FOE_STOOD = 1.0
 IGNORE_PARAM = "junctionModel.ignoreIDs"
 
 
-def release(api, ids, x, y, speed, edges, agents: dict[str, float], agent_x: np.ndarray,
+def release(api, ids, x, y, speed, edges, agents: Sequence[str], agent_x: np.ndarray,
             agent_y: np.ndarray, agent_stood: np.ndarray, after_s: float,
             blocks: Callable[[int, int], bool]) -> int:
     """Let SUMO-driven vehicles stop giving way to standing agents (module doc); the number of
@@ -52,9 +52,9 @@ def release(api, ids, x, y, speed, edges, agents: dict[str, float], agent_x: np.
     :param api: the running simulation's ``libsumo`` module.
     :param ids, x, y, speed, edges: every SUMO vehicle now (ids; box centres, m; m/s; road
         ids, internal lanes' edges start with ``:``).
-    :param agents: each live agent's id and how long (s) it has stood.
-    :param agent_x, agent_y, agent_stood: the same agents' box centres (m) and standing
-        times (s), in ``agents``' order.
+    :param agents: the live agents' ids.
+    :param agent_x, agent_y, agent_stood: the same agents' box centres (m) and how long (s)
+        each has stood, in ``agents``' order.
     :param blocks: ``blocks(i, j)``: SUMO vehicle ``j`` (index of ``ids``) stands in agent
         ``i``'s path (position in ``agents``).
     """
@@ -62,21 +62,21 @@ def release(api, ids, x, y, speed, edges, agents: dict[str, float], agent_x: np.
     if not stuck.any():
         return 0
     edge = dict(zip(ids, edges))
-    names = list(agents)
+    stood = dict(zip(agents, np.asarray(agent_stood, np.float64).tolist()))
     sx, sy = np.asarray(x, np.float64), np.asarray(y, np.float64)
     standing = np.asarray(speed, np.float64) < STAND_SPEED
     released = 0
     for i in np.flatnonzero(stuck):  # a few agents at most: the stuck ones on a junction
-        if not edge.get(names[i], "").startswith(":"):
+        if not edge.get(agents[i], "").startswith(":"):
             continue
         near = standing & (np.hypot(sx - agent_x[i], sy - agent_y[i]) < RANGE)
         for j in np.flatnonzero(near):
             vid = ids[j]
-            if vid in agents or not blocks(int(i), int(j)) or \
+            if vid in stood or not blocks(int(i), int(j)) or \
                     api.vehicle.getWaitingTime(vid) < after_s:
                 continue
             foes = [f[0] for f in api.vehicle.getJunctionFoes(vid, FOE_RANGE)
-                    if f[7] and agents.get(f[0], 0.0) >= FOE_STOOD]
+                    if f[7] and stood.get(f[0], 0.0) >= FOE_STOOD]
             have = api.vehicle.getParameter(vid, IGNORE_PARAM).split()
             new = [f for f in dict.fromkeys(foes) if f not in have]
             if new:

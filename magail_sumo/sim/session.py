@@ -305,7 +305,7 @@ class SumoSession:
              length: np.ndarray, edges: Sequence[str] | None = None,
              lanes: Sequence[int] | None = None, match_threshold: float = 5.0,
              keep_route: int = 2) -> None:
-        """Place vehicles at box-centre poses for the next step (``moveToXY``, keepRoute=2).
+        """Place vehicles at box-centre poses for the next step (``moveToXY``).
 
         SUMO searches every lane within ``match_threshold`` metres of the target to attach the
         vehicle to; its default (100 m) costs ~300 µs per call on a real converted junction,
