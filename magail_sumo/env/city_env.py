@@ -65,7 +65,7 @@ from magail_sumo.sim.tracking import trial
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import (SumoConfigError, SumoInputs, check_demand, read_config,
                                          scenario_name)
-from magail_sumo.sim.sumo_map import NetworkMap, network_map
+from magail_sumo.sim.sumo_map import NetworkMap, internal_junctions, network_map
 
 from .actions import ACTION_COUNTS
 from .guard import GuardConfig
@@ -75,6 +75,8 @@ from .fcd import EpisodeFcd
 from .step import END_OF_EPISODE, FleetEnv
 from .unblock import STAND_SPEED, release
 
+#: m/s above which a foe at an internal junction counts as coming (a standing one is waiting)
+MOVING = 0.5
 #: steps between two looks for agents and SUMO's drivers blocking each other (1 s)
 UNBLOCK_EVERY = 10
 
@@ -232,6 +234,9 @@ class SumoCityEnv(FleetEnv):
         self._fcd = EpisodeFcd(STEP_LENGTH, self._fcd_frame, self._fcd_replay, cfg.fcd_dir,
                                cfg.fcd_every)
         self.network: NetworkMap = network_map(net_file)
+        #: each internal junction's lanes to let pass (the give-way fallback, :meth:`_give_way`)
+        self._internal = internal_junctions(net_file)
+        self._link: dict[str, tuple] = {}  # internal lane -> its link (reached, prio, ..., via)
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         # no recorded signals: _observe passes each agent's live SUMO light
         self.suite = SensorSuite.from_map(self.network.roadmap, None, cfg.observation)
@@ -457,7 +462,11 @@ class SumoCityEnv(FleetEnv):
         From SUMO's junction model: ``getJunctionFoes`` per agent (libsumo has no bulk query),
         keeping foes the agent must respond to, that have not left the conflict, while the
         agent is more than :data:`~magail_sumo.sensors.units.give_way.COMMITTED` m from it
-        (an agent at or in the conflict is committed: it clears it).
+        (an agent at or in the conflict is committed: it clears it). SUMO gives no foes for a
+        vehicle moved onto an internal lane (it keeps no upcoming links for it), so for an
+        agent inside a junction before an internal junction it must wait at (a left turn
+        across oncoming traffic) the foes are read from the network instead
+        (:meth:`_internal_give_way`).
         """
         vehicle, names, v = self._session.api.vehicle, self.fleet.names, self._sumo
         out = np.full((agents.size, 2), np.inf)
@@ -473,7 +482,49 @@ class SumoCityEnv(FleetEnv):
                 t = max(foe_d, 0.0) / max(speed.get(foe, 0.0), 0.1)
                 if t < out[j, 1]:
                     out[j] = ego_d, t
+        self._internal_give_way(agents, out, speed)
         return out
+
+    def _internal_give_way(self, agents: np.ndarray, out: np.ndarray,
+                           speed: dict[str, float]) -> None:
+        """Fill ``out`` (:meth:`_give_way`) for agents SUMO gave no foe that stand on an
+        internal lane whose link reaches an internal junction without priority: the distance
+        (m) to the end of that lane (where the internal junction waits) and the time (s) of the
+        first foe: a vehicle moving on one of the junction's foe internal lanes (0 s), or one
+        moving on a foe approach lane within the give-way range (its distance to the junction
+        over its speed). The lanes are the network's (``<junction type="internal">``)."""
+        api, names = self._session.api, self.fleet.names
+        edge = dict(zip(self._sumo.ids, self._sumo.edge))
+        for j, k in enumerate(agents.tolist()):
+            if np.isfinite(out[j, 1]) or not edge.get(names[k], "").startswith(":"):
+                continue
+            try:
+                lane = api.vehicle.getLaneID(names[k])
+                ego_d = api.lane.getLength(lane) - api.vehicle.getLanePosition(names[k])
+            except Exception:  # vehicle not (yet) in SUMO
+                continue
+            link = self._link.get(lane)
+            if link is None:
+                links = api.lane.getLinks(lane) if lane.startswith(":") else ()
+                link = self._link[lane] = links[0] if links else ()
+            if not link or link[1] or not link[4] or ego_d <= COMMITTED:
+                continue  # no internal junction ahead, priority there, or committed
+            incoming, internal = self._internal.get(link[4], ((), ()))
+            t = np.inf
+            for foe_lane in internal:
+                if any(speed.get(f, 0.0) > MOVING for f in api.lane.getLastStepVehicleIDs(
+                        foe_lane)):
+                    t = 0.0
+            for src in incoming:
+                if src == lane or src.startswith(":"):
+                    continue
+                end = api.lane.getLength(src)
+                for foe in api.lane.getLastStepVehicleIDs(src):
+                    d, v = end - api.vehicle.getLanePosition(foe), speed.get(foe, 0.0)
+                    if d < GIVE_WAY_RANGE and v > MOVING:
+                        t = min(t, d / v)
+            if np.isfinite(t):
+                out[j] = ego_d, t
 
     def _observe(self, agents: np.ndarray, lanes: LaneQuery | None = None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, list[str]]]:

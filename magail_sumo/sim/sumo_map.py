@@ -100,3 +100,33 @@ def network_map(net_file: str | PathLike) -> NetworkMap:
     (x0, y0), (x1, y1) = net.getBBoxXY()
     return NetworkMap(RoadMap(lanes=tuple(lanes), road_edges=tuple(edges), road_lines=tuple(lines)),
                       tuple(ids), (float(x0), float(y0), float(x1), float(y1)))
+
+
+def internal_junctions(net_file: str | PathLike) -> dict[str, tuple[tuple[str, ...],
+                                                                   tuple[str, ...]]]:
+    """The internal junctions of a ``.net.xml`` (or ``.net.xml.gz``): for each (its id, which
+    is the id of the internal lane that waits there, e.g. a left turn's second internal lane)
+    the lanes whose vehicles it must let pass: ``incLanes`` (its own approach and the foes'
+    approach lanes) and ``intLanes`` (the foes' internal lanes), as SUMO's net format gives
+    them.
+
+    :raises MagailSumoError: missing or unreadable network file.
+    """
+    import gzip
+    import xml.etree.ElementTree as ET
+
+    path = Path(net_file)
+    opener = gzip.open if path.suffix == ".gz" else open
+    out: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {}
+    try:
+        with opener(path, "rb") as fh:
+            for _, el in ET.iterparse(fh):
+                if el.tag == "junction" and el.get("type") == "internal":
+                    out[el.get("id", "")] = (tuple(el.get("incLanes", "").split()),
+                                             tuple(el.get("intLanes", "").split()))
+                if el.tag in ("edge", "junction", "connection"):
+                    el.clear()
+    except (OSError, ET.ParseError, EOFError) as exc:
+        raise MagailSumoError(f"{path}: cannot read SUMO network ({' '.join(str(exc).split())})") \
+            from None
+    return out
