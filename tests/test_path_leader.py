@@ -110,6 +110,37 @@ def test_two_standing_oncoming_agents_in_each_others_path_do_not_wait_for_ever()
     assert along_path(moving, np.arange(2), ahead, 50.0)[2].tolist() == [False, True]
 
 
+@pytest.mark.parametrize("b_pose, goes", [((0.25, -2.4, 0.2), 1), ((0.25, -3.5, 0.9), 0)])
+def test_of_two_standing_agents_touching_at_a_merge_the_one_driving_clear_goes(b_pose, goes):
+    """Two agents standing where their lanes merge inside a junction, B angled towards A's
+    lane, their boxes touching: each reads the other in its path (gaps about -2 to -5 m). The
+    one whose box reaches no deeper into the other's when moved 1 m along its heading goes (it
+    drives away along its side); the larger gap, which the rule went by alone, chose the other
+    one here, which then drove into the first one's side (a Wildau collision, 2-min IDM run)."""
+    from magail_sumo.sensors.units.path_leader import TRIAL_MOVE, _depth
+
+    x, y, head = b_pose
+    paths = Paths.of([np.array([[0.0, 0.0], [80.0, 0.0]]),
+                      np.array([[x, y], [x + 40.0 * np.cos(head), y + 40.0 * np.sin(head)]])])
+    boxes = _boxes([(0.0, 0.0, 0.0), b_pose], speeds=[0.0, 0.0])
+    ahead = PathAhead(paths, np.array([0, 1]), np.zeros(2, np.int64), np.zeros(2))
+    found = along_path(boxes, np.arange(2), ahead, 50.0)[2]
+    assert found.tolist() == [goes == 1, goes == 0]
+    # the geometry: touching, and only the one that goes drives clear
+    arrays = [np.asarray(v, np.float64) for v in (boxes.x, boxes.y, boxes.yaw, boxes.length,
+                                                  boxes.width)]
+    stay = 1 - goes
+    assert 0.0 < _depth(*arrays, 0, 1, 0.0) < 0.1
+    assert _depth(*arrays, goes, stay, TRIAL_MOVE) <= _depth(*arrays, goes, stay, 0.0)
+    assert _depth(*arrays, stay, goes, TRIAL_MOVE) > _depth(*arrays, stay, goes, 0.0)
+    # each saw the other, and by the gaps alone the other one would have gone
+    one = _boxes([(0.0, 0.0, 0.0), b_pose], speeds=[0.0, 3.0])
+    two = _boxes([(0.0, 0.0, 0.0), b_pose], speeds=[3.0, 0.0])
+    g0 = along_path(one, np.arange(2), ahead, 50.0)[0][0]
+    g1 = along_path(two, np.arange(2), ahead, 50.0)[0][1]
+    assert np.isfinite([g0, g1]).all() and ((g0 > g1) == (stay == 0))
+
+
 def test_near_its_paths_end_an_agent_also_looks_straight_ahead():
     """Past a path's end route-relative control drives on along its last heading (a recorded
     route ends where its log does): the car there is seen."""

@@ -18,8 +18,12 @@ blocks it with its length); an oncoming road user (``|Δ|`` > 135°) driving at
 path when head-on, not when it passes beside. Two agents standing in each other's path
 (opposing left turners inside a junction, or a car that stopped for a crossing road user with
 its nose in that road user's lane: their boxes reach into each other's corridor) would each
-wait for the other for ever: of such a pair the one with the larger gap (more room; the higher
-box row on a tie) does not see the other, so it moves on, and the other once it has gone.
+wait for the other for ever: of such a pair the one that can move :data:`TRIAL_MOVE` m along
+its heading without its box reaching deeper into the other's (where two lanes merge inside a
+junction, the one angled in ahead: the other would drive into its side), else the one with the
+larger gap
+(more room; the higher box row on a tie) does not see the other, so it moves on, and the other
+once it has gone.
 ``path_leader_gap`` (m) is ``s_o − s − l_agent/2 − (|cos Δ|·l_o/2 + |sin Δ|·w_o/2)``
 (bumper to bumper along the path; negative when they overlap), ``path_leader_closing`` (m/s)
 the agent's speed less the other's speed along the path there (> 0: the gap shrinks); of those
@@ -47,6 +51,9 @@ PAST_RANGE = 10.0
 ONCOMING = -0.7071
 #: speed (m/s) below which an oncoming road user is standing (it blocks with its length)
 STANDING = 1.0
+#: metres a standing agent of a pair in each other's path is moved, as a trial, to see whether
+#: it can go without touching the other
+TRIAL_MOVE = 1.0
 
 
 @register
@@ -175,9 +182,16 @@ def _along_path(bx, by, byaw, blen, bwid, bspeed, index, px, py, ps, start, coun
         if j < 0 or agent_of[j] < 0:
             continue
         k = agent_of[j]
-        if lead[k] == index[i] and abs(bspeed[index[i]]) < STANDING and \
-                abs(bspeed[j]) < STANDING and \
-                (gap_out[i] > gap_out[k] or (gap_out[i] == gap_out[k] and index[i] > j)):
+        me = index[i]
+        if lead[k] != me or abs(bspeed[me]) >= STANDING or abs(bspeed[j]) >= STANDING:
+            continue
+        clear_i = _depth(bx, by, byaw, blen, bwid, me, j, TRIAL_MOVE) <= \
+            _depth(bx, by, byaw, blen, bwid, me, j, 0.0)
+        clear_k = _depth(bx, by, byaw, blen, bwid, j, me, TRIAL_MOVE) <= \
+            _depth(bx, by, byaw, blen, bwid, j, me, 0.0)
+        if clear_i != clear_k:
+            free[i] = clear_i
+        elif gap_out[i] > gap_out[k] or (gap_out[i] == gap_out[k] and me > j):
             free[i] = True
     for i in range(a):
         if free[i]:
@@ -185,3 +199,19 @@ def _along_path(bx, by, byaw, blen, bwid, bspeed, index, px, py, ps, start, coun
             gap_out[i] = np.inf
             along_out[i] = 0.0
     return gap_out, along_out, found, free
+
+
+@numba.njit(cache=True)
+def _depth(bx, by, byaw, blen, bwid, i, j, move):
+    """How deep (m) box ``i`` moved ``move`` m along its heading reaches into box ``j``: the
+    least overlap over the separating axes of the two rectangles; 0 when they are apart."""
+    ci, si = np.cos(byaw[i]), np.sin(byaw[i])
+    cj, sj = np.cos(byaw[j]), np.sin(byaw[j])
+    dx = bx[j] - (bx[i] + move * ci)
+    dy = by[j] - (by[i] + move * si)
+    depth = np.inf
+    for ax, ay in ((ci, si), (-si, ci), (cj, sj), (-sj, cj)):
+        ri = 0.5 * blen[i] * abs(ci * ax + si * ay) + 0.5 * bwid[i] * abs(-si * ax + ci * ay)
+        rj = 0.5 * blen[j] * abs(cj * ax + sj * ay) + 0.5 * bwid[j] * abs(-sj * ax + cj * ay)
+        depth = min(depth, ri + rj - abs(dx * ax + dy * ay))
+    return max(depth, 0.0)
