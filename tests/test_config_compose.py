@@ -105,7 +105,7 @@ def test_the_frozen_flat_configs_are_the_34_of_the_table():
 #: published city runs), now only passenger cars (issue 32); the city task reward, the red-light
 #: penalty and route-relative control's offset range (issue 32) default to none / unused;
 #: the release of junctions agents and SUMO's drivers block (city.unblock_s, issue 32) is on
-#: (10 s): runs before it had none
+#: (10 s): runs before it had none; the speed-limit observation (issue 32) is off
 ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "city.progress_reward": 0.0, "discriminator.red_light_penalty": 0.0,
                "env.limits.max_offset": 1.5, "discriminator.decomposed_transformer.embed_dim": 64,
@@ -116,7 +116,7 @@ ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "env.limits.max_steer_rate": 0.0, "env.observation.light_gap": False,
                "env.observation.give_way": False, "policy.action_prior": "none",
                "city.agent_tight_turns": False, "env.observation.path_leader": False,
-               "city.unblock_s": 10.0}
+               "city.unblock_s": 10.0, "env.observation.speed_limit": False}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}

@@ -59,6 +59,24 @@ def test_paths_project_at_ahead_and_turn():
     assert got[0] == pytest.approx([10.0, -1.0], abs=1e-5)
 
 
+def test_paths_carry_the_roads_speed_limits_and_the_lowest_ahead():
+    """A path added with per-point speed limits keeps, at each resampled point, the limit of
+    the segment it lies on; the query gives the limit at the progress point and the lowest
+    one within reach with its distance (0 / unknown: the limit here)."""
+    # 0-10 m at 13.9 m/s, a repeated point, 10-20 m at 8.3, 20-30 m unknown
+    pts = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    paths = Paths.of([pts, pts], limits=[np.array([13.9, 99.0, 8.3, 0.0, 0.0]), None])
+    lim = paths.limit[paths.start[0]:paths.start[0] + paths.count[0]]
+    assert lim[:10].tolist() == [13.9] * 10 and lim[10:20].tolist() == [8.3] * 10
+    assert (lim[20:] == 0).all() and (paths.limit[paths.start[1]:paths.n_points] == 0).all()
+    here, low, gap = paths.limits_ahead(np.array([0, 0, 0, 1]), np.array([2, 12, 25, 2]), 50.0)
+    assert here.tolist() == [13.9, 8.3, 0.0, 0.0]
+    assert low.tolist() == [8.3, 8.3, 0.0, 0.0] and gap.tolist() == [8.0, 0.0, 0.0, 0.0]
+    # out of reach: the limit here
+    _, low, gap = paths.limits_ahead(np.array([0]), np.array([2]), 5.0)
+    assert (low[0], gap[0]) == (13.9, 0.0)
+
+
 def test_pursuit_converges_to_the_path_and_to_the_offset():
     """A car starting 1 m right of a path converges onto it, through a 15-m-radius left turn,
     and holds a commanded 1-m offset to its left."""
@@ -295,13 +313,28 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     assert pol.rule.accel(obs[None])[0] == pytest.approx(-10.0 ** 2 / (2 * (20.0 - p.s0)))
     obs[names.index("give_way_time")] = 9.0
     assert pol.act({"a": obs})["a"][0] == free[0]
+    # speed limits: 10 m/s on a 30 km/h road brakes; a 30 km/h limit 40 m ahead of a 50 km/h
+    # road leaves a desired speed of sqrt(8.33² + 2·b·40) (above 10: still accelerating),
+    # 5 m ahead sqrt(8.33² + 2·b·5) (below 10: braking); unknown (0): the default v0
+    lim = [names.index(n) for n in ("speed_limit", "speed_limit_ahead", "speed_limit_gap")]
+    obs[lim] = (8.33, 8.33, 0.0)
+    assert pol.rule.accel(obs[None])[0] < 0
+    obs[lim] = (13.89, 8.33, 40.0)
+    assert 0 < pol.rule.accel(obs[None])[0] < pol.rule.accel(
+        np.where(np.isin(np.arange(obs.size), lim), 0, obs)[None])[0]
+    obs[lim] = (13.89, 8.33, 5.0)
+    assert pol.rule.accel(obs[None])[0] < 0
+    obs[lim] = 0.0
+    assert pol.act({"a": obs})["a"][0] == free[0]
 
 
 @pytest.mark.sumo
 def test_idm_route_follower_completes_trips_in_a_real_city():
     """The IDM route follower (``--policy idm``) on the real cologne8 city for 60 s: agents
-    arrive at their routes' ends; collisions and red-light runs are rare."""
+    arrive at their routes' ends; collisions and red-light runs are rare; they read SUMO's
+    lane speed limits (cologne8 has 30 and 50 km/h roads) and keep to them."""
     from magail_sumo.agents import env_settings
+    from magail_sumo.sensors.observation import observation_names
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
     from magail_sumo.env.config import EnvConfig
     from magail_sumo.policies import make_policy
@@ -311,15 +344,29 @@ def test_idm_route_follower_completes_trips_in_a_real_city():
                                  control_fraction=1.0, warmup_s=300, max_steps=600)
     env = SumoCityEnv(ROOT / "data" / "sumo" / "cologne8" / "cologne8.sumocfg", cfg)
     reasons = collections.Counter()
+    limit = observation_names(pol.observation).index("speed_limit")
+    read = fast = 0
+    lane_speeds = []
     try:
         obs, _ = env.reset(seed=0)
-        for _ in range(600):
+        api = env._session.api
+        for t in range(600):
             obs, _, term, trunc, info = env.step(pol.act(obs))
             for name in term:
                 if term[name] or trunc[name]:
                     reasons[info[name]["reason"]] += 1
+            if t % 50 == 49:  # the speed-limit observation is the SUMO lane's; kept to
+                running = set(api.vehicle.getIDList())
+                for name, o in obs.items():
+                    lane = api.vehicle.getLaneID(name) if name in running else ""
+                    if lane and not lane.startswith(":"):
+                        lane_speeds.append(api.lane.getMaxSpeed(lane))
+                        read += abs(o[limit] - lane_speeds[-1]) < 0.01
+                        fast += o[0] > lane_speeds[-1] + 0.5
     finally:
         env.close()
+    assert read >= 0.95 * len(lane_speeds) and fast == 0, (read, fast, len(lane_speeds))
+    assert min(lane_speeds) < 9.0 < 13.0 < max(lane_speeds)  # 30 and 50 km/h roads both
     agents = sum(reasons.values())
     assert reasons["destination"] + reasons["arrived"] >= 10, reasons
     assert reasons["collision"] + reasons["red_light"] <= 0.1 * agents, reasons

@@ -3,8 +3,9 @@
 :class:`IdmPolicy` drives each agent along its route (``action_layout: accel_offset``: zero
 lateral offset, pure pursuit keeps it on the route's lanes, :mod:`magail_sumo.sim.tracking`)
 with the IDM acceleration towards the road user ahead in its lane corridor along the route (the
-path leader, :mod:`magail_sumo.sensors.units.path_leader`), slowing before bends seen in
-the route look-ahead (5, 10, 20 m), stopping at the stop line of a red or yellow light and
+path leader, :mod:`magail_sumo.sensors.units.path_leader`) at the road's speed limit
+(:mod:`magail_sumo.sensors.units.speed_limit`; before a lower one it slows down to it),
+slowing before bends seen in the route look-ahead (5, 10, 20 m), stopping at the stop line of a red or yellow light and
 giving way at junctions (in SUMO runs, where the junction model says so): the rule of
 :class:`magail_sumo.models.idm.IdmRule`, which has the equations. It reads nothing but its
 observations and keeps no memory, so it is a baseline for what route-relative control makes
@@ -34,7 +35,8 @@ class IdmPolicy:
 
     def __init__(self, seed: int = 0, params: IdmParams | None = None) -> None:
         self.observation = ObservationConfig(leader=True, light_gap=True, give_way=True,
-                                             path_leader=True, route_points=ROUTE_POINTS)
+                                             path_leader=True, route_points=ROUTE_POINTS,
+                                             speed_limit=True)
         self.limits = BicycleLimits()
         self.rule = IdmRule(self.observation, self.limits, params)
 

@@ -394,7 +394,7 @@ class SumoCityEnv(FleetEnv):
                 self._stood = resized(self._stood, f.capacity)
             self._stood[k] = 0.0
             self.cut_paths += not path.complete
-            f.path[k] = self.paths.add(path.points)
+            f.path[k] = self.paths.add(path.points, path.limits)
             f.hint[k] = self.paths.project(f.path[k:k + 1], f.x[k:k + 1], f.y[k:k + 1])[0][0]
             end = self.paths.length(f.path[k:k + 1])
             px, py, heading = self.paths.at(f.path[k:k + 1], end)
@@ -537,7 +537,7 @@ class SumoCityEnv(FleetEnv):
         self._lc[agents], self._ld[agents] = light, dist
         ob = self.config.observation
         cmd = route = ahead = None
-        if ob.command or ob.route_points or ob.path_leader:
+        if ob.command or ob.route_points or ob.path_leader or ob.speed_limit:
             paths = f.path[agents]
             s = self._route_progress(agents)
             if ob.command:
@@ -545,7 +545,7 @@ class SumoCityEnv(FleetEnv):
             if ob.route_points:
                 route = self.paths.ahead(paths, s, f.x[agents], f.y[agents], f.yaw[agents],
                                          ob.route_points)
-            if ob.path_leader:
+            if ob.path_leader or ob.speed_limit:
                 ahead = PathAhead(self.paths, paths, f.hint[agents], s)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
                        f.dest[agents], f.dest_yaw[agents], cmd, route, ahead)

@@ -320,10 +320,22 @@ class SumoDrivingEnv(FleetEnv):
     def _recorded_paths(self, rows: np.ndarray) -> Paths:
         """Reference paths of track ``rows`` (route-relative control): each one's recorded
         route, its valid positions from first to last (the route the recorded route
-        look-ahead reads, :mod:`magail_sumo.sensors.command`)."""
-        tr = self.scene.tracks
-        return Paths.of([np.stack([tr.x[r, tr.valid[r]], tr.y[r, tr.valid[r]]], axis=1)
-                         if tr.valid[r].any() else np.zeros((1, 2)) for r in rows.tolist()])
+        look-ahead reads, :mod:`magail_sumo.sensors.command`), with the recorded speed limit
+        of the lane at each position (the nearest lane running its way; 0: none or not
+        recorded)."""
+        tr, lanes = self.scene.tracks, self.scene.roadmap.lanes
+        limit = np.array([ln.speed_limit for ln in lanes] + [0.0])  # [-1]: no lane
+        polylines, limits = [], []
+        for r in rows.tolist():
+            v = tr.valid[r]
+            if not v.any():
+                polylines.append(np.zeros((1, 2)))
+                limits.append(np.zeros(1))
+                continue
+            x, y, h = (np.asarray(a[r, v], np.float64) for a in (tr.x, tr.y, tr.heading))
+            polylines.append(np.stack([x, y], axis=1))
+            limits.append(limit[self.suite.lane_query(x, y, h).lane])
+        return Paths.of(polylines, limits=limits)
 
     def _advance(self) -> None:
         """Place SUMO's controlled and log-replayed vehicles at log step t + 1, step SUMO."""
@@ -481,7 +493,7 @@ class SumoDrivingEnv(FleetEnv):
             route = self._commands.ahead(rows, f.x[agents], f.y[agents], f.yaw[agents],
                                          ob.route_points)
         ahead = None
-        if ob.path_leader and self.paths is not None:  # route-relative control's paths
+        if (ob.path_leader or ob.speed_limit) and self.paths is not None:  # route-relative
             s = self._route_progress(agents)
             ahead = PathAhead(self.paths, f.path[agents], f.hint[agents], s)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],

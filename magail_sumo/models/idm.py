@@ -9,10 +9,13 @@ route's lanes, :mod:`magail_sumo.sim.tracking`):
 
     a = a_max · [1 − (v / v0)^4 − (s* / s)^2],   s* = s0 + v·T + v·Δv / (2·sqrt(a_max·b))
 
-(free road: no interaction term). The desired speed is lowered before bends: the route
-look-ahead (``route_points``) gives each point's curvature ``κ = 2·|y| / (x² + y²)`` (the arc
-from the car through it), and ``v0`` is at most ``sqrt(a_lat / κ)`` (lateral acceleration
-``a_lat``). Before a red or yellow light (the ``light`` observation) whose stop line is
+(free road: no interaction term). The desired speed ``v0`` is the road's speed limit where
+the observation has it (``speed_limit``, :mod:`magail_sumo.sensors.units.speed_limit`; times
+``limit_factor``; ``v0`` where the limit is unknown), at most ``sqrt(v_low² + 2·b·d)`` before a
+lower limit ``v_low`` ``d`` m ahead (it brakes comfortably down to it by its start). It is
+lowered before bends: the route look-ahead (``route_points``) gives each point's curvature
+``κ = 2·|y| / (x² + y²)`` (the arc from the car through it), and ``v0`` is at most
+``sqrt(a_lat / κ)`` (lateral acceleration ``a_lat``). Before a red or yellow light (the ``light`` observation) whose stop line is
 ``light_gap`` m ahead (:mod:`magail_sumo.sensors.units.light_gap`) it brakes to stop ``s0``
 before the line, ``v² / (2·d)`` (at most ``max_brake``), keeping the IDM acceleration when that
 is lower. With the give-way observation (``give_way``,
@@ -45,7 +48,9 @@ STOP_LIGHTS = (2.0, 3.0)
 class IdmParams:
     """IDM parameters (urban defaults).
 
-    :param v0: desired speed (m/s). :param T: time headway (s). :param s0: standstill gap (m).
+    :param v0: desired speed (m/s) where the speed limit is unknown or not observed.
+    :param limit_factor: the desired speed as a multiple of a known speed limit.
+    :param T: time headway (s). :param s0: standstill gap (m).
     :param a_max: maximum acceleration (m/s²). :param b: comfortable deceleration (m/s²).
     :param max_brake: the hardest braking for a light (m/s²).
     :param a_lat: the lateral acceleration bends are taken at (m/s²).
@@ -57,6 +62,7 @@ class IdmParams:
     """
 
     v0: float = 13.9
+    limit_factor: float = 1.0
     T: float = 1.5
     s0: float = 2.0
     a_max: float = 1.5
@@ -78,6 +84,18 @@ def idm_accel(v: np.ndarray, gap: np.ndarray, closing: np.ndarray, p: IdmParams,
     gap = np.maximum(np.asarray(gap, np.float64), 0.1)
     interact = np.where(np.isfinite(gap), (np.maximum(star, 0.0) / gap) ** 2, 0.0)
     return p.a_max * (1.0 - (v / v0) ** 4 - interact)
+
+
+def desired_speed(limit: np.ndarray, low: np.ndarray, gap: np.ndarray, p: IdmParams
+                  ) -> np.ndarray:
+    """(A,) desired speed (m/s) under the speed limits: ``limit_factor`` times the limit
+    here (``p.v0`` where 0, unknown), at most ``sqrt((f·low)² + 2·b·gap)`` for the lowest
+    limit ``low`` ``gap`` m ahead (0: unknown)."""
+    f = p.limit_factor
+    here = np.where(limit > 0, f * limit, p.v0)
+    before = np.where(low > 0, np.sqrt((f * low) ** 2 + 2.0 * p.b * np.maximum(gap, 0.0)),
+                      np.inf)
+    return np.minimum(here, before)
 
 
 def bend_speed(route_xy: np.ndarray, a_lat: float) -> np.ndarray:
@@ -156,6 +174,9 @@ class IdmRule:
                        for a in "xy"]
         self._give_way = [names.index(n) for n in ("give_way_gap", "give_way_time")] \
             if observation.give_way else []
+        self._limit = [names.index(n) for n in ("speed_limit", "speed_limit_ahead",
+                                                 "speed_limit_gap")] \
+            if observation.speed_limit else []
 
     def accel(self, obs: np.ndarray) -> np.ndarray:
         """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D)."""
@@ -165,8 +186,10 @@ class IdmRule:
         none = gap >= self.observation.leader_range - 1e-6  # the sensor reads its range
         gap = np.where(none, np.inf, gap)
         closing = np.where(none, 0.0, closing)
-        v0 = np.minimum(p.v0, bend_speed(obs[:, self._route], p.a_lat)) if self._route \
-            else None
+        v0 = desired_speed(*(obs[:, c] for c in self._limit), p) if self._limit \
+            else np.full(len(obs), p.v0)
+        if self._route:
+            v0 = np.minimum(v0, bend_speed(obs[:, self._route], p.a_lat))
         accel = idm_accel(v, gap, closing, p, v0)
         accel = np.minimum(accel, light_brake(v, light, to_line, p, LIGHT_RANGE))
         if self._give_way:

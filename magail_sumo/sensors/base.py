@@ -90,7 +90,8 @@ class EgoState:
     :param route: (A, 2·P) route look-ahead, x and y (m, ego frame) of each of the P
         ``ObservationConfig.route_points``, used with them; None: zeros (no recorded routes).
     :param path: the agents' reference paths (:class:`PathAhead`), read by the path leader
-        (``ObservationConfig.path_leader``); None: none (free steering).
+        (``ObservationConfig.path_leader``) and the speed limits
+        (``ObservationConfig.speed_limit``); None: none (free steering).
     """
 
     index: np.ndarray
@@ -303,7 +304,8 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     """The sensor names of ``config``'s observation vector, in order (its layout, then the
     route command when ``config.command``, the route look-ahead when ``config.route_points``,
     the leader when ``config.leader``, the stop-line distance when ``config.light_gap``, the
-    give-way conflict when ``config.give_way``, the path leader when ``config.path_leader``)."""
+    give-way conflict when ``config.give_way``, the path leader when ``config.path_leader``,
+    the speed limits when ``config.speed_limit``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
@@ -312,4 +314,5 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     return layout + (("command",) if config.command else ()) + \
         (("route",) if config.route_points else ()) + (("leader",) if config.leader else ()) + \
         (("light_gap",) if config.light_gap else ()) + (("give_way",) if config.give_way else ()) \
-        + (("path_leader",) if config.path_leader else ())
+        + (("path_leader",) if config.path_leader else ()) \
+        + (("speed_limit",) if config.speed_limit else ())

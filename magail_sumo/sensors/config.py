@@ -68,6 +68,10 @@ class ObservationConfig:
         nearest road user in the agent's lane corridor ahead along its reference path, within
         ``leader_range`` (:mod:`magail_sumo.sensors.units.path_leader`; straight ahead for an
         agent without one); off by default.
+    :param speed_limit: append ``speed_limit``, ``speed_limit_ahead`` (m/s) and
+        ``speed_limit_gap`` (m): the road's speed limit at the agent's place on its reference
+        path and the lowest one within ``leader_range`` ahead with its distance
+        (:mod:`magail_sumo.sensors.units.speed_limit`; 0 where unknown); off by default.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -83,6 +87,7 @@ class ObservationConfig:
     light_gap: bool = False
     give_way: bool = False
     path_leader: bool = False
+    speed_limit: bool = False
 
     def __post_init__(self) -> None:
         layout = layout_name(self.layout)

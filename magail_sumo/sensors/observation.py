@@ -41,6 +41,10 @@ then 2                (``path_leader: true`` only) ``path_leader_gap`` (m),
                       ``path_leader_closing`` (m/s) to the road user in the agent's lane
                       corridor ahead along its reference path
                       (:mod:`magail_sumo.sensors.units.path_leader`)
+then 3                (``speed_limit: true`` only) ``speed_limit``, ``speed_limit_ahead``
+                      (m/s), ``speed_limit_gap`` (m): the speed limit on the agent's path
+                      here and the lowest one ahead with its distance, 0 when unknown
+                      (:mod:`magail_sumo.sensors.units.speed_limit`)
 ====================  ======================================================================
 
 Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
@@ -61,8 +65,8 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 ``lane``, ``lidar``, ``side``, ``lane_line``, ``light``, ``destination``; ``scene_frame``:
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
-``leader: true``, ``light_gap`` with ``light_gap: true``, ``give_way`` with ``give_way: true``
-and ``path_leader`` with ``path_leader: true``. The suite is built from a road map and a light
+``leader: true``, ``light_gap`` with ``light_gap: true``, ``give_way`` with ``give_way: true``,
+``path_leader`` with ``path_leader: true`` and ``speed_limit`` with ``speed_limit: true``. The suite is built from a road map and a light
 source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)`` for a recorded scene).
 """
 

@@ -27,11 +27,14 @@ CHANGE_LENGTH = 25.0
 
 @dataclass(frozen=True)
 class RoutePath:
-    """A vehicle's reference path: ``points`` ((M, 2), m, network frame) and whether it runs
-    to the end of the route (``complete``; False: cut where the next edge is unreachable)."""
+    """A vehicle's reference path: ``points`` ((M, 2), m, network frame), whether it runs
+    to the end of the route (``complete``; False: cut where the next edge is unreachable) and
+    the lanes' speed limits along it (``limits``)."""
 
     points: np.ndarray
     complete: bool
+    #: (M,) the speed limit (m/s) of the lane from each point to the next (SUMO's lane speed)
+    limits: np.ndarray | None = None
 
 
 class LaneGraph:
@@ -47,12 +50,21 @@ class LaneGraph:
         self._links: dict[str, list[tuple[str, str]]] = {}
         self._lanes: dict[str, list[str]] = {}
         self._allows: dict[tuple[str, str], bool] = {}
+        self._speed: dict[str, float] = {}
 
     def shape(self, lane: str) -> np.ndarray:
         """(M, 2) centreline of ``lane`` (m)."""
         out = self._shape.get(lane)
         if out is None:
             out = self._shape[lane] = np.asarray(self.api.lane.getShape(lane), np.float64)
+        return out
+
+    def speed(self, lane: str) -> float:
+        """Speed limit of ``lane`` (m/s; inside a junction, the one netconvert gives the
+        turn)."""
+        out = self._speed.get(lane)
+        if out is None:
+            out = self._speed[lane] = float(self.api.lane.getMaxSpeed(lane))
         return out
 
     def links(self, lane: str) -> list[tuple[str, str]]:
@@ -121,13 +133,20 @@ class LaneGraph:
         i = max(int(v.getRouteIndex(vehicle)), 0)
         vclass = v.getVehicleClass(vehicle)
         parts: list[np.ndarray] = []
+        speeds: list[np.ndarray] = []
+
+        def part(points: np.ndarray, on: str) -> None:
+            parts.append(points)
+            speeds.append(np.full(len(points), self.speed(on)))
+
         if lane.startswith(":"):  # inside a junction: finish its internal lane(s) first
-            parts.append(_from(self.shape(lane), pos, self.api.lane.getLength(lane)))
+            part(_from(self.shape(lane), pos, self.api.lane.getLength(lane)), lane)
             chain = self.internal_chain(lane)
-            parts.extend(self.shape(x) for x in chain[1:])
+            for x in chain[1:]:
+                part(self.shape(x), x)
             nxt = self.links(chain[-1])
             if not nxt:
-                return RoutePath(np.concatenate(parts), False)
+                return RoutePath(np.concatenate(parts), False, np.concatenate(speeds))
             lane = nxt[0][0]
             pos = 0.0
             edge = lane.rsplit("_", 1)[0]
@@ -137,7 +156,7 @@ class LaneGraph:
             d = shape[1] - shape[0]
             n = float(np.hypot(*d))
             if n > 0:
-                parts.append(shape[:1] - d / n * before)
+                part(shape[:1] - d / n * before, lane)
         complete = True
         while True:
             shape = self.shape(lane)
@@ -153,20 +172,22 @@ class LaneGraph:
                                  and self._via(c, route[i + 1]) is not None)
                 if options:
                     target = options[0][1]
-                    parts.append(_cut(shape, pos, length)[0])
+                    part(_cut(shape, pos, length)[0], lane)
                     t_len = self.api.lane.getLength(target)
                     pos = min(pos + change_length, max(t_len - 1.0, pos))
                     lane, shape, length = target, self.shape(target), t_len
                     via = self._via(lane, route[i + 1])
                 else:
                     complete = False
-            parts.append(_from(shape, pos, length))
+            part(_from(shape, pos, length), lane)
             if last or via is None:
                 break
             reached, internal = via
-            parts.extend(self.shape(x) for x in internal)
+            for x in internal:
+                part(self.shape(x), x)
             lane, pos, i = reached, 0.0, i + 1
-        return RoutePath(np.concatenate(parts), complete and i + 1 >= len(route))
+        return RoutePath(np.concatenate(parts), complete and i + 1 >= len(route),
+                         np.concatenate(speeds))
 
 
 def _from(shape: np.ndarray, pos: float, length: float) -> np.ndarray:

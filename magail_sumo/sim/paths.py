@@ -7,7 +7,9 @@ short window of points around the vehicle's last progress point (a hint kept per
 route that passes the same place twice, a loop or a U-turn, is not confused with itself). All
 paths live end to end in three 1-D arrays ``x, y, s`` (``s``: arc length from the path's start,
 m); path ``r`` holds points ``start[r] .. start[r] + count[r] - 1``. Adding a path appends
-(arrays grow by doubling), so a city's paths are added as its agents join.
+(arrays grow by doubling), so a city's paths are added as its agents join. A fourth array,
+``limit``, holds the speed limit (m/s) of the road at each point, from the segment the point
+lies on (0: unknown), when the path was added with limits.
 
 Frames and units: scene frame (SUMO's network frame in cities), metres, radians (CCW from +x).
 Every query works on arrays over many vehicles at once; positions past either end of a path are
@@ -33,19 +35,35 @@ def resample(points: np.ndarray, spacing: float = SPACING) -> tuple[np.ndarray, 
     """(K, 2) points of polyline ``points`` ((M, 2), m) equally spaced along its arc, at most
     ``spacing`` m apart, first and last point kept, and (K,) their arc lengths (m); repeated
     points dropped; a polyline of no length is one point."""
+    p, s, _ = _resampled(points, None, spacing)
+    return p, s
+
+
+def _resampled(points: np.ndarray, values: np.ndarray | None, spacing: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`resample`, and ``values`` ((M,) one per point of ``points``, or None) carried
+    to the resampled points: each takes the value of the input segment it lies on (the value
+    of that segment's first point; the last point's on the last point)."""
     p = np.asarray(points, np.float64).reshape(-1, 2)
-    p = p[np.isfinite(p).all(axis=1)]
+    finite = np.isfinite(p).all(axis=1)
+    p = p[finite]
+    v = None if values is None else np.asarray(values, np.float64).reshape(-1)[finite]
     if p.shape[0] == 0:
         raise ValueError("a path needs at least one finite point")
     seg = np.hypot(*np.diff(p, axis=0).T)
     keep = np.concatenate([[True], seg > 1e-9])
     p, seg = p[keep], seg[seg > 1e-9]
+    if v is not None:  # a repeated point's value is the segment's that starts there
+        v = v[np.concatenate([keep[1:], [True]])]
     if p.shape[0] == 1:
-        return p, np.zeros(1)
+        return p, np.zeros(1), v
     arc = np.concatenate([[0.0], np.cumsum(seg)])
     n = max(2, int(np.ceil(arc[-1] / spacing)) + 1)
     s = np.linspace(0.0, arc[-1], n)
-    return np.stack([np.interp(s, arc, p[:, 0]), np.interp(s, arc, p[:, 1])], axis=1), s
+    out = np.stack([np.interp(s, arc, p[:, 0]), np.interp(s, arc, p[:, 1])], axis=1)
+    if v is not None:
+        v = v[np.minimum(np.searchsorted(arc, s, side="right") - 1, p.shape[0] - 1)]
+    return out, s, v
 
 
 @dataclass(eq=False)
@@ -60,6 +78,12 @@ class Paths:
     n_paths: int = 0
     n_points: int = 0
     spacing: float = SPACING
+    #: speed limit (m/s) at each point; 0: unknown (module doc)
+    limit: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.limit is None:
+            self.limit = np.zeros(self.x.shape[0])
 
     @classmethod
     def empty(cls, paths: int = 16, points: int = 1024, spacing: float = SPACING) -> "Paths":
@@ -68,27 +92,34 @@ class Paths:
                    spacing=float(spacing))
 
     @classmethod
-    def of(cls, polylines, spacing: float = SPACING) -> "Paths":
-        """Paths of ``polylines`` (each (M, 2) m), rows in that order."""
+    def of(cls, polylines, spacing: float = SPACING, limits=None) -> "Paths":
+        """Paths of ``polylines`` (each (M, 2) m), rows in that order; ``limits``: each
+        one's speed limits (:meth:`add`), or None."""
         out = cls.empty(max(1, len(polylines)), spacing=spacing)
-        for p in polylines:
-            out.add(p)
+        for i, p in enumerate(polylines):
+            out.add(p, None if limits is None else limits[i])
         return out
 
     def __len__(self) -> int:
         return self.n_paths
 
-    def add(self, points: np.ndarray) -> int:
-        """Append the path of polyline ``points`` ((M, 2), m; resampled); its row."""
-        p, s = resample(points, self.spacing)
+    def add(self, points: np.ndarray, limits: np.ndarray | None = None) -> int:
+        """Append the path of polyline ``points`` ((M, 2), m; resampled); its row.
+
+        :param limits: (M,) the speed limit (m/s, 0: unknown) of the road from each point to
+            the next; None: unknown throughout."""
+        p, s, lim = _resampled(points, limits, self.spacing)
         k, m = self.n_points, p.shape[0]
         if k + m > self.x.shape[0]:
             size = max(k + m, 2 * self.x.shape[0])
-            self.x, self.y, self.s = (_grown(a, size) for a in (self.x, self.y, self.s))
+            self.x, self.y, self.s, self.limit = (_grown(a, size) for a in
+                                                  (self.x, self.y, self.s, self.limit))
         if self.n_paths == self.start.shape[0]:
             size = 2 * self.n_paths
             self.start, self.count = _grown(self.start, size), _grown(self.count, size)
         self.x[k:k + m], self.y[k:k + m], self.s[k:k + m] = p[:, 0], p[:, 1], s
+        self.limit[k:k + m] = 0.0 if lim is None else np.where(np.isfinite(lim) & (lim > 0),
+                                                               lim, 0.0)
         r = self.n_paths
         self.start[r], self.count[r] = k, m
         self.n_paths += 1
@@ -190,6 +221,28 @@ class Paths:
         out[:, :, 0] = c * dx + sn * dy
         out[:, :, 1] = -sn * dx + c * dy
         return out.reshape(rows.size, 2 * d.size)
+
+    def limits_ahead(self, rows: np.ndarray, at: np.ndarray, reach: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Speed limits of paths ``rows`` from progress points ``at`` ((A,) indices within
+        each path) to ``reach`` m on: (A,) the limit at the progress point (m/s, 0: unknown),
+        (A,) the lowest known limit ahead within reach (the limit here when none is lower) and
+        (A,) how far ahead (m) it begins (0 when it is the limit here)."""
+        rows = np.asarray(rows, np.int64)
+        if rows.size == 0:
+            z = np.zeros(0)
+            return z, z, z
+        base, cnt = self.start[rows], self.count[rows]
+        at = np.clip(np.asarray(at, np.int64), 0, cnt - 1)
+        k = at[:, None] + np.arange(int(np.ceil(reach / self.spacing)) + 1)[None, :]
+        flat = base[:, None] + np.minimum(k, cnt[:, None] - 1)
+        lim = np.where((k < cnt[:, None]) & (self.limit[flat] > 0), self.limit[flat], np.inf)
+        here = self.limit[base + at]
+        j = np.argmin(lim, axis=1)
+        low = lim[np.arange(rows.size), j]
+        lower = np.isfinite(low) & ((here <= 0) | (low < here))
+        gap = self.s[flat[np.arange(rows.size), j]] - self.s[base + at]
+        return (here, np.where(lower, low, here), np.where(lower, np.maximum(gap, 0.0), 0.0))
 
     def turn(self, rows: np.ndarray, s: np.ndarray, lookahead: float) -> np.ndarray:
         """(A,) heading change (rad, wrapped, CCW positive) of paths ``rows`` between arc
