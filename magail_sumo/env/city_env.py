@@ -59,7 +59,7 @@ from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
 from magail_sumo.sensors.units.path_leader import along_path
 from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
-from magail_sumo.sim.lane_graph import LaneGraph
+from magail_sumo.sim.lane_graph import LaneGraph, crossing
 from magail_sumo.sim.paths import TURN_ARC, Paths, tightest_turn
 from magail_sumo.sim.tracking import trial
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
@@ -237,6 +237,7 @@ class SumoCityEnv(FleetEnv):
         #: each internal junction's lanes to let pass (the give-way fallback, :meth:`_give_way`)
         self._internal = internal_junctions(net_file)
         self._link: dict[str, tuple] = {}  # internal lane -> its link (reached, prio, ..., via)
+        self._crossings: dict[tuple[str, str], float] = {}  # (lane, foe lane) -> position
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         # no recorded signals: _observe passes each agent's live SUMO light
         self.suite = SensorSuite.from_map(self.network.roadmap, None, cfg.observation)
@@ -490,9 +491,12 @@ class SumoCityEnv(FleetEnv):
         """Fill ``out`` (:meth:`_give_way`) for agents SUMO gave no foe that stand on an
         internal lane whose link reaches an internal junction without priority: the distance
         (m) to the end of that lane (where the internal junction waits) and the time (s) of the
-        first foe: a vehicle moving on one of the junction's foe internal lanes (0 s), or one
-        moving on a foe approach lane within the give-way range (its distance to the junction
-        over its speed). The lanes are the network's (``<junction type="internal">``)."""
+        first foe: a vehicle moving on one of the junction's foe internal lanes that has not
+        passed where that lane crosses the agent's next internal lane (its distance to the
+        crossing over its speed; a lane that only merges with it at its end crosses there), or
+        one moving on a foe approach lane within the give-way range (its distance to the
+        junction over its speed). The lanes are the network's (``<junction type="internal">``).
+        """
         api, names = self._session.api, self.fleet.names
         edge = dict(zip(self._sumo.ids, self._sumo.edge))
         for j, k in enumerate(agents.tolist()):
@@ -512,9 +516,14 @@ class SumoCityEnv(FleetEnv):
             incoming, internal = self._internal.get(link[4], ((), ()))
             t = np.inf
             for foe_lane in internal:
-                if any(speed.get(f, 0.0) > MOVING for f in api.lane.getLastStepVehicleIDs(
-                        foe_lane)):
-                    t = 0.0
+                cross = self._crossing_on(link[4], foe_lane)
+                for f in api.lane.getLastStepVehicleIDs(foe_lane):
+                    v = speed.get(f, 0.0)
+                    if v <= MOVING:
+                        continue
+                    front = api.vehicle.getLanePosition(f)
+                    if front - api.vehicle.getLength(f) < cross:  # not past the crossing
+                        t = min(t, max(cross - front, 0.0) / v)
             for src in incoming:
                 if src == lane or src.startswith(":"):
                     continue
@@ -525,6 +534,22 @@ class SumoCityEnv(FleetEnv):
                         t = min(t, d / v)
             if np.isfinite(t):
                 out[j] = ego_d, t
+
+    def _crossing_on(self, lane: str, foe_lane: str) -> float:
+        """Lane position (m, SUMO's lane length) on internal lane ``foe_lane`` where it crosses
+        internal lane ``lane`` (:func:`~magail_sumo.sim.lane_graph.crossing`); its length
+        when they do not cross (they merge at its end). Cached."""
+        key = (lane, foe_lane)
+        out = self._crossings.get(key)
+        if out is None:
+            g = self._graph
+            shape = g.shape(foe_lane)
+            length = float(self._session.api.lane.getLength(foe_lane))
+            at = crossing(g.shape(lane), shape)
+            geometric = float(np.hypot(*np.diff(shape, axis=0).T).sum())
+            out = length if at is None or geometric <= 0 else at * length / geometric
+            self._crossings[key] = out
+        return out
 
     def _observe(self, agents: np.ndarray, lanes: LaneQuery | None = None
                  ) -> tuple[dict[str, np.ndarray], tuple[Boxes, list[str]]]:

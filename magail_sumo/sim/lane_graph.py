@@ -190,6 +190,28 @@ class LaneGraph:
                          np.concatenate(speeds))
 
 
+def crossing(path: np.ndarray, other: np.ndarray) -> float | None:
+    """Arc length (m) along polyline ``other`` ((M, 2)) of its first crossing with polyline
+    ``path`` ((K, 2)); None when they do not cross (two lanes that merge only touch at their
+    ends, which counts as no crossing)."""
+    a0, a1 = path[:-1, None, :], path[1:, None, :]
+    b0, b1 = other[None, :-1, :], other[None, 1:, :]
+    da, db = a1 - a0, b1 - b0
+    den = da[..., 0] * db[..., 1] - da[..., 1] * db[..., 0]
+    w = b0 - a0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[..., 0] * db[..., 1] - w[..., 1] * db[..., 0]) / den
+        u = (w[..., 0] * da[..., 1] - w[..., 1] * da[..., 0]) / den
+    eps = 1e-6
+    hit = (np.abs(den) > 1e-12) & (t > eps) & (t < 1 - eps) & (u > eps) & (u < 1 - eps)
+    if not hit.any():
+        return None
+    seg = np.hypot(*np.diff(other, axis=0).T)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    j = np.nonzero(hit)[1]
+    return float(min(arc[k] + u[i, k] * seg[k] for i, k in zip(np.nonzero(hit)[0], j)))
+
+
 def _from(shape: np.ndarray, pos: float, length: float) -> np.ndarray:
     """The part of lane ``shape`` from lane position ``pos`` (m, SUMO's lane length
     ``length``, which may differ from the shape's geometric length) to its end."""
