@@ -20,8 +20,8 @@ lowered before bends: the route look-ahead (``route_points``) gives each point's
 before the line, ``v² / (2·d)`` (at most ``max_brake``), keeping the IDM acceleration when that
 is lower. With the give-way observation (``give_way``,
 :mod:`magail_sumo.sensors.units.give_way`) it accepts the gap before a road user it must give
-way to only when it clears the conflict (``clear`` m past its entry, accelerating at ``a_max``
-from ``v``) ``margin`` s before that road user arrives; otherwise it stops ``s0`` before the
+way to only when it clears the conflict (``clear`` m past its entry, accelerating at
+``a_clear`` from ``v``) ``margin`` s before that road user arrives; otherwise it stops ``s0`` before the
 conflict the same way. Pure array functions of the observation, no memory: the same rule drives
 the ``idm`` baseline (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
 add a residual to (:mod:`magail_sumo.models.priors`).
@@ -46,12 +46,17 @@ STOP_LIGHTS = (2.0, 3.0)
 
 @dataclass(frozen=True)
 class IdmParams:
-    """IDM parameters (urban defaults).
+    """IDM parameters (urban defaults). A headway ``T`` of 1 s and ``a_max`` of 2 m/s²
+    discharge a queue at a green light about as fast as SUMO's default drivers (20 cars past
+    the line in 40 s, 15 with 1.5 s and 1.5 m/s², which cost the cologne8 city 19 of 382 trips
+    in 10 min); gaps at junctions are still judged at 1.5 m/s² (``a_clear``).
 
     :param v0: desired speed (m/s) where the speed limit is unknown or not observed.
     :param limit_factor: the desired speed as a multiple of a known speed limit.
     :param T: time headway (s). :param s0: standstill gap (m).
     :param a_max: maximum acceleration (m/s²). :param b: comfortable deceleration (m/s²).
+    :param a_clear: the acceleration (m/s²) a gap at a junction is judged by (how soon the
+        agent clears the conflict): lower than ``a_max``, so a gap is taken with time to spare.
     :param max_brake: the hardest braking for a light (m/s²).
     :param a_lat: the lateral acceleration bends are taken at (m/s²).
     :param hold: within this many metres of the point where it stops for a light or a road
@@ -63,10 +68,11 @@ class IdmParams:
 
     v0: float = 13.9
     limit_factor: float = 1.0
-    T: float = 1.5
+    T: float = 1.0
     s0: float = 2.0
-    a_max: float = 1.5
+    a_max: float = 2.0
     b: float = 2.0
+    a_clear: float = 1.5
     max_brake: float = 6.0
     a_lat: float = 2.0
     hold: float = 1.0
@@ -141,7 +147,7 @@ def give_way_brake(v: np.ndarray, gap: np.ndarray, foe_time: np.ndarray, p: IdmP
     given way to (``foe_time`` s away from it) leaves too small a gap (module doc); +inf where
     the gap is accepted or there is none."""
     seen = gap < give_way_range - 1e-6
-    wait = seen & (foe_time < time_to_cover(gap + p.clear, v, p.a_max) + p.margin)
+    wait = seen & (foe_time < time_to_cover(gap + p.clear, v, p.a_clear) + p.margin)
     return np.where(wait, stop_brake(v, gap, p), np.inf)
 
 
