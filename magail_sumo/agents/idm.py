@@ -3,9 +3,8 @@
 :class:`IdmPolicy` drives each agent along its route (``action_layout: accel_offset``: zero
 lateral offset, pure pursuit keeps it on the route's lanes, :mod:`magail_sumo.sim.tracking`)
 with the IDM acceleration towards the road user ahead in its lane corridor along the route (the
-path leader, :mod:`magail_sumo.sensors.units.path_leader`) at the road's speed limit
-(:mod:`magail_sumo.sensors.units.speed_limit`; before a lower one it slows down to it),
-slowing before bends seen in the route look-ahead (5, 10, 20 m), stopping at the stop line of a red or yellow light and
+path leader, :mod:`magail_sumo.sensors.units.path_leader`), slowing before bends seen in
+the route look-ahead (5, 10, 20 m), stopping at the stop line of a red or yellow light and
 giving way at junctions (in SUMO runs, where the junction model says so): the rule of
 :class:`magail_sumo.models.idm.IdmRule`, which has the equations. It reads nothing but its
 observations and keeps no memory, so it is a baseline for what route-relative control makes
@@ -29,14 +28,18 @@ ROUTE_POINTS = (5.0, 10.0, 20.0)
 
 
 class IdmPolicy:
-    """IDM along the route (module doc); ``seed`` is unused (the policy is deterministic)."""
+    """IDM along the route (module doc); ``seed`` is unused (the policy is deterministic).
+    With ``speed_limits`` it also reads the road's speed limits and drives at them
+    (:mod:`magail_sumo.sensors.units.speed_limit`): off by default, as on cologne8 it then
+    completed 57 fewer of 383 trips in 10 min (``docs/results/city.md``)."""
 
     action_layout = IdmRule.action_layout
 
-    def __init__(self, seed: int = 0, params: IdmParams | None = None) -> None:
+    def __init__(self, seed: int = 0, params: IdmParams | None = None,
+                 speed_limits: bool = False) -> None:
         self.observation = ObservationConfig(leader=True, light_gap=True, give_way=True,
                                              path_leader=True, route_points=ROUTE_POINTS,
-                                             speed_limit=True)
+                                             speed_limit=speed_limits)
         self.limits = BicycleLimits()
         self.rule = IdmRule(self.observation, self.limits, params)
 
