@@ -264,10 +264,10 @@ def test_idm_with_the_path_leader_keeps_clear_of_the_cars_ahead_in_a_real_city()
     ahead, 32 of 362 agents collided in 5 min, mostly at merges and junction turns). Without
     the release of blocked junctions (``unblock_s`` 0): in this window two SUMO drivers it
     released ran into the agents they had waited for (5 collisions instead of 2), a weakness
-    of the release measured in docs/results/city.md. 2 pairs of 156 agents collide here (in
-    the 10-min benchmark window 1.1 % of the agents): both where an agent stands on a
-    junction's internal lane and SUMO names it no junction foe for a car arriving on the
-    main road (docs/results/city.md)."""
+    of the release measured in docs/results/city.md. An agent that stopped on a junction's
+    internal lane turning out of a side road gets its foes on the main road from the network
+    (SUMO names none for it): without that, one pulled out in front of an agent coming on the
+    main road here (4 of 156 agents collided; 2 with it)."""
     pol, env = _idm_city(WILDAU, 1200, unblock_s=0.0)
     reasons = collections.Counter()
     try:
@@ -279,7 +279,7 @@ def test_idm_with_the_path_leader_keeps_clear_of_the_cars_ahead_in_a_real_city()
         env.close()
     agents = sum(reasons.values())
     assert reasons["destination"] + reasons["arrived"] >= 20, reasons
-    assert reasons["collision"] + reasons["off_road"] <= 0.03 * agents, reasons
+    assert reasons["collision"] + reasons["off_road"] <= 0.02 * agents, reasons
 
 
 @pytest.mark.sumo

@@ -77,6 +77,9 @@ from .unblock import STAND_SPEED, release
 
 #: m/s above which a foe at an internal junction counts as coming (a standing one is waiting)
 MOVING = 0.5
+#: SUMO link states without the right of way (minor, green minor, stop, equal, all-way stop,
+#: off-blinking) and with it (green major, major, off-no-signal)
+MINOR, MAJOR = frozenset("mgs=wo"), frozenset("GMO")
 #: steps between two looks for agents and SUMO's drivers blocking each other (1 s)
 UNBLOCK_EVERY = 10
 
@@ -238,6 +241,8 @@ class SumoCityEnv(FleetEnv):
         self._internal = internal_junctions(net_file)
         self._link: dict[str, tuple] = {}  # internal lane -> its link (reached, prio, ..., via)
         self._crossings: dict[tuple[str, str], float] = {}  # (lane, foe lane) -> position
+        self._approach: dict[str, tuple[str, int]] = {}  # first internal lane -> (lane, link)
+        self._foes: dict[str, tuple[str, ...]] = {}  # internal lane -> crossing internal lanes
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         # no recorded signals: _observe passes each agent's live SUMO light
         self.suite = SensorSuite.from_map(self.network.roadmap, None, cfg.observation)
@@ -484,6 +489,7 @@ class SumoCityEnv(FleetEnv):
                 if t < out[j, 1]:
                     out[j] = ego_d, t
         self._internal_give_way(agents, out, speed)
+        self._minor_link_give_way(agents, out, speed)
         return out
 
     def _internal_give_way(self, agents: np.ndarray, out: np.ndarray,
@@ -534,6 +540,80 @@ class SumoCityEnv(FleetEnv):
                         t = min(t, d / v)
             if np.isfinite(t):
                 out[j] = ego_d, t
+
+    def _minor_link_give_way(self, agents: np.ndarray, out: np.ndarray,
+                             speed: dict[str, float]) -> None:
+        """Fill ``out`` (:meth:`_give_way`) for agents SUMO gave no foe that are inside a
+        junction on a connection without the right of way (its live link state minor: ``m``,
+        ``g``, ``s``, ``=``, ``w``, ``o``), e.g. a car turning out of a side road that stopped
+        on the junction and is about to pull out (SUMO keeps no upcoming links for a vehicle
+        moved onto an internal lane, so it names no foe): the first vehicle that comes on a
+        crossing connection with the right of way (``lane.getInternalFoes``; live state ``G``,
+        ``M`` or ``O``), on its internal lane before the crossing or on its approach lane
+        within the give-way range, gives the distance (m) to the crossing and its time (s) to
+        it."""
+        api, names = self._session.api, self.fleet.names
+        edge = dict(zip(self._sumo.ids, self._sumo.edge))
+        for j, k in enumerate(agents.tolist()):
+            if np.isfinite(out[j, 1]) or not edge.get(names[k], "").startswith(":"):
+                continue
+            try:
+                lane = api.vehicle.getLaneID(names[k])
+                pos = api.vehicle.getLanePosition(names[k])
+            except Exception:  # vehicle not (yet) in SUMO
+                continue
+            if self._link_state(lane) not in MINOR:
+                continue
+            best_d, best_t = np.inf, np.inf
+            for foe_lane in self._internal_foes(lane):
+                if self._link_state(foe_lane) not in MAJOR:
+                    continue
+                ego_d = self._crossing_on(foe_lane, lane) - pos
+                if ego_d <= COMMITTED:
+                    continue  # at or past the crossing: it clears it
+                cross = self._crossing_on(lane, foe_lane)
+                t = np.inf
+                for f in api.lane.getLastStepVehicleIDs(foe_lane):
+                    v = speed.get(f, 0.0)
+                    front = api.vehicle.getLanePosition(f)
+                    if v > MOVING and front - api.vehicle.getLength(f) < cross:
+                        t = min(t, max(cross - front, 0.0) / v)
+                src = self._approach[foe_lane][0]
+                end = api.lane.getLength(src)
+                for f in api.lane.getLastStepVehicleIDs(src):
+                    d, v = end - api.vehicle.getLanePosition(f) + cross, speed.get(f, 0.0)
+                    if d < GIVE_WAY_RANGE and v > MOVING:
+                        t = min(t, d / v)
+                if t < best_t:
+                    best_d, best_t = ego_d, t
+            if np.isfinite(best_t):
+                out[j] = best_d, best_t
+
+    def _internal_foes(self, lane: str) -> tuple[str, ...]:
+        """The internal lanes of vehicle classes that may cross internal lane ``lane``
+        (SUMO's ``lane.getInternalFoes``, walking areas and crossings left out). Cached."""
+        out = self._foes.get(lane)
+        if out is None:
+            out = self._foes[lane] = tuple(
+                f for f in self._session.api.lane.getInternalFoes(lane)
+                if f in self._approach and self._graph.allows(f, "passenger"))
+        return out
+
+    def _link_state(self, internal: str) -> str:
+        """The live state (SUMO's link state letter) of the connection whose first internal
+        lane is ``internal``; "" when ``internal`` is none's first."""
+        if not self._approach:  # each normal lane's connections: first internal lane -> them
+            api = self._session.api
+            for lane in api.lane.getIDList():
+                if not lane.startswith(":"):
+                    for i, link in enumerate(api.lane.getLinks(lane)):
+                        if link[4]:
+                            self._approach[link[4]] = (lane, i)
+        src = self._approach.get(internal)
+        if src is None:
+            return ""
+        links = self._session.api.lane.getLinks(src[0])
+        return links[src[1]][5] if src[1] < len(links) else ""
 
     def _crossing_on(self, lane: str, foe_lane: str) -> float:
         """Lane position (m, SUMO's lane length) on internal lane ``foe_lane`` where it crosses
