@@ -545,9 +545,11 @@ class SumoCityEnv(FleetEnv):
                              speed: dict[str, float]) -> None:
         """Fill ``out`` (:meth:`_give_way`) for agents SUMO gave no foe that are inside a
         junction on a connection without the right of way (its live link state minor: ``m``,
-        ``g``, ``s``, ``=``, ``w``, ``o``), e.g. a car turning out of a side road that stopped
-        on the junction and is about to pull out (SUMO keeps no upcoming links for a vehicle
-        moved onto an internal lane, so it names no foe): the first vehicle that comes on a
+        ``g``, ``s``, ``=``, ``w``, ``o``) standing there, e.g. a car turning out of a side road
+        that stopped on the junction and is about to pull out (SUMO keeps no upcoming links for
+        a vehicle moved onto an internal lane, so it names no foe; one still moving entered
+        having given way, with SUMO's foes, and clears the junction): the first vehicle that
+        comes on a
         crossing connection with the right of way (``lane.getInternalFoes``; live state ``G``,
         ``M`` or ``O``), on its internal lane before the crossing or on its approach lane
         within the give-way range, gives the distance (m) to the crossing and its time (s) to
@@ -555,8 +557,9 @@ class SumoCityEnv(FleetEnv):
         api, names = self._session.api, self.fleet.names
         edge = dict(zip(self._sumo.ids, self._sumo.edge))
         for j, k in enumerate(agents.tolist()):
-            if np.isfinite(out[j, 1]) or not edge.get(names[k], "").startswith(":"):
-                continue
+            if np.isfinite(out[j, 1]) or not edge.get(names[k], "").startswith(":") or \
+                    speed.get(names[k], 0.0) > MOVING:
+                continue  # a moving agent entered having given way (SUMO's foes before)
             try:
                 lane = api.vehicle.getLaneID(names[k])
                 pos = api.vehicle.getLanePosition(names[k])
