@@ -140,6 +140,23 @@ def test_training_refuses_expert_data_of_another_observation_config(expert_dir, 
 
 
 @pytest.mark.sumo
+def test_expert_data_recorded_before_a_field_was_added_reads_it_as_its_default(expert_dir,
+                                                                              tmp_path):
+    """Data whose recorded observation config lacks a field added since (its hash was of the
+    fields of then) trains a config that leaves that field at its default, not one that sets
+    it."""
+    old = tmp_path / "before"
+    shutil.copytree(expert_dir, old)
+    meta = json.loads((old / "metadata.json").read_text())
+    del meta["observation"]["speed_limit"]
+    meta["observation_hash"] = "0" * 64  # the hash of the fields of then
+    (old / "metadata.json").write_text(json.dumps(meta))
+    assert len(ExpertDataset(old, observation=ObservationConfig())) > 0
+    with pytest.raises(ExpertDataError, match="speed_limit"):
+        ExpertDataset(old, observation=ObservationConfig(speed_limit=True))
+
+
+@pytest.mark.sumo
 def test_expert_data_without_the_hash_is_checked_by_names(expert_dir, tmp_path):
     old = tmp_path / "old"
     shutil.copytree(expert_dir, old)

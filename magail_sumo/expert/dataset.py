@@ -35,12 +35,18 @@ def check_observation(directory: Path, meta: dict, observation: ObservationConfi
     """Refuse (:class:`ExpertDataError`, one line naming ``directory`` and the differing
     fields) expert data whose recorded ``observation_hash`` is not that of ``observation``.
     Data recorded before the hash (no ``observation_hash``) passes: its layout is checked by
-    name only."""
+    name only. Data recorded before a field was added (its recorded ``observation`` lacks it)
+    is read with that field's default, so it passes when the training config leaves the new
+    field at its default."""
     recorded = meta.get("observation_hash")
     if recorded is None or recorded == observation_hash(observation):
         return
     theirs = _flat(meta.get("observation")) if isinstance(meta.get("observation"), dict) else {}
     ours = _flat(to_dict(observation))
+    if theirs:
+        theirs = _flat(to_dict(ObservationConfig())) | theirs  # fields added since: defaults
+        if theirs == ours:
+            return
     diff = [f"observation.{k}: expert {theirs.get(k, '<none>')!r}, training "
             f"{ours.get(k, '<none>')!r}" for k in sorted(set(theirs) | set(ours))
             if theirs and theirs.get(k) != ours.get(k)]
