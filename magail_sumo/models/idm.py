@@ -15,15 +15,16 @@ the observation has it (``speed_limit``, :mod:`magail_sumo.sensors.units.speed_l
 lower limit ``v_low`` ``d`` m ahead (it brakes comfortably down to it by its start). It is
 lowered before bends: the route look-ahead (``route_points``) gives each point's curvature
 ``κ = 2·|y| / (x² + y²)`` (the arc from the car through it), and ``v0`` is at most
-``sqrt(a_lat / κ)`` (lateral acceleration ``a_lat``). Before a red or yellow light (the ``light`` observation) whose stop line is
-``light_gap`` m ahead (:mod:`magail_sumo.sensors.units.light_gap`) it brakes to stop ``s0``
-before the line, ``v² / (2·d)`` (at most ``max_brake``), keeping the IDM acceleration when that
-is lower. With the give-way observation (``give_way``,
-:mod:`magail_sumo.sensors.units.give_way`) it accepts the gap before a road user it must give
-way to only when it clears the conflict (``clear`` m past its entry, accelerating at
-``a_clear`` from ``v``) ``margin`` s before that road user arrives; otherwise it stops ``s0`` before the
-conflict the same way. Pure array functions of the observation, no memory: the same rule drives
-the ``idm`` baseline (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
+``sqrt(a_lat / κ)`` (lateral acceleration ``a_lat``). Before a red or yellow light (the
+``light`` observation) whose stop line is ``light_gap`` m ahead
+(:mod:`magail_sumo.sensors.units.light_gap`) it brakes to stop ``s0`` before the line,
+``v² / (2·d)`` (at most ``max_brake``), keeping the IDM acceleration when that is lower. With
+the give-way observation (``give_way``, :mod:`magail_sumo.sensors.units.give_way`) it accepts
+the gap before a road user it must give way to only when it clears the conflict (``clear`` m
+past its entry, accelerating at ``a_clear`` from ``v``) ``margin`` s before that road user
+arrives; otherwise it stops ``s0`` before the conflict the same way. Pure array functions of
+the observation, no memory: the same rule drives the ``idm`` baseline
+(:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
 add a residual to (:mod:`magail_sumo.models.priors`).
 
 Units: m, s, m/s, m/s²; actions normalised by :func:`magail_sumo.sim.dynamics.normalise`.
