@@ -470,9 +470,10 @@ class SumoCityEnv(FleetEnv):
         agent is more than :data:`~magail_sumo.sensors.units.give_way.COMMITTED` m from it
         (an agent at or in the conflict is committed: it clears it). SUMO gives no foes for a
         vehicle moved onto an internal lane (it keeps no upcoming links for it), so for an
-        agent inside a junction before an internal junction it must wait at (a left turn
-        across oncoming traffic) the foes are read from the network instead
-        (:meth:`_internal_give_way`).
+        agent inside a junction the foes are read from the network instead: before an
+        internal junction it must wait at (a left turn across oncoming traffic,
+        :meth:`_internal_give_way`) and standing on a connection without the right of way
+        (:meth:`_minor_link_give_way`).
         """
         vehicle, names, v = self._session.api.vehicle, self.fleet.names, self._sumo
         out = np.full((agents.size, 2), np.inf)
@@ -549,11 +550,10 @@ class SumoCityEnv(FleetEnv):
         that stopped on the junction and is about to pull out (SUMO keeps no upcoming links for
         a vehicle moved onto an internal lane, so it names no foe; one still moving entered
         having given way, with SUMO's foes, and clears the junction): the first vehicle that
-        comes on a
-        crossing connection with the right of way (``lane.getInternalFoes``; live state ``G``,
-        ``M`` or ``O``), on its internal lane before the crossing or on its approach lane
-        within the give-way range, gives the distance (m) to the crossing and its time (s) to
-        it."""
+        comes on a crossing connection with the right of way (``lane.getInternalFoes``; live
+        state ``G``, ``M`` or ``O``), on its internal lane before the crossing or on its
+        approach lane within the give-way range, gives the distance (m) to the crossing and
+        its time (s) to it."""
         api, names = self._session.api, self.fleet.names
         edge = dict(zip(self._sumo.ids, self._sumo.edge))
         for j, k in enumerate(agents.tolist()):
