@@ -489,13 +489,20 @@ class SumoCityEnv(FleetEnv):
                 t = max(foe_d, 0.0) / max(speed.get(foe, 0.0), 0.1)
                 if t < out[j, 1]:
                     out[j] = ego_d, t
-        self._internal_give_way(agents, out, speed)
-        self._minor_link_give_way(agents, out, speed)
+        # agents SUMO named no foe for that are inside a junction (a few): the fallbacks
+        edge = dict(zip(v.ids, v.edge))
+        none = np.flatnonzero(~np.isfinite(out[:, 1]))
+        inside = [(j, names[k]) for j, k in zip(none.tolist(), agents[none].tolist())
+                  if edge.get(names[k], "").startswith(":")]
+        if inside:
+            self._internal_give_way(inside, out, speed)
+            self._minor_link_give_way(inside, out, speed)
         return out
 
-    def _internal_give_way(self, agents: np.ndarray, out: np.ndarray,
+    def _internal_give_way(self, inside: list[tuple[int, str]], out: np.ndarray,
                            speed: dict[str, float]) -> None:
-        """Fill ``out`` (:meth:`_give_way`) for agents SUMO gave no foe that stand on an
+        """Fill rows ``j`` of ``out`` (:meth:`_give_way`) for agents ``(j, name)`` of
+        ``inside`` (SUMO gave them no foe; on an internal lane) that stand on an
         internal lane whose link reaches an internal junction without priority: the distance
         (m) to the end of that lane (where the internal junction waits) and the time (s) of the
         first foe: a vehicle moving on one of the junction's foe internal lanes that has not
@@ -504,14 +511,11 @@ class SumoCityEnv(FleetEnv):
         one moving on a foe approach lane within the give-way range (its distance to the
         junction over its speed). The lanes are the network's (``<junction type="internal">``).
         """
-        api, names = self._session.api, self.fleet.names
-        edge = dict(zip(self._sumo.ids, self._sumo.edge))
-        for j, k in enumerate(agents.tolist()):
-            if np.isfinite(out[j, 1]) or not edge.get(names[k], "").startswith(":"):
-                continue
+        api = self._session.api
+        for j, name in inside:
             try:
-                lane = api.vehicle.getLaneID(names[k])
-                ego_d = api.lane.getLength(lane) - api.vehicle.getLanePosition(names[k])
+                lane = api.vehicle.getLaneID(name)
+                ego_d = api.lane.getLength(lane) - api.vehicle.getLanePosition(name)
             except Exception:  # vehicle not (yet) in SUMO
                 continue
             link = self._link.get(lane)
@@ -542,10 +546,11 @@ class SumoCityEnv(FleetEnv):
             if np.isfinite(t):
                 out[j] = ego_d, t
 
-    def _minor_link_give_way(self, agents: np.ndarray, out: np.ndarray,
+    def _minor_link_give_way(self, inside: list[tuple[int, str]], out: np.ndarray,
                              speed: dict[str, float]) -> None:
-        """Fill ``out`` (:meth:`_give_way`) for agents SUMO gave no foe that are inside a
-        junction on a connection without the right of way (its live link state minor: ``m``,
+        """Fill rows ``j`` of ``out`` (:meth:`_give_way`) still without a foe for agents
+        ``(j, name)`` of ``inside`` (SUMO gave them no foe) that are inside a junction on a
+        connection without the right of way (its live link state minor: ``m``,
         ``g``, ``s``, ``=``, ``w``, ``o``) standing there, e.g. a car turning out of a side road
         that stopped on the junction and is about to pull out (SUMO keeps no upcoming links for
         a vehicle moved onto an internal lane, so it names no foe; one still moving entered
@@ -554,15 +559,13 @@ class SumoCityEnv(FleetEnv):
         state ``G``, ``M`` or ``O``), on its internal lane before the crossing or on its
         approach lane within the give-way range, gives the distance (m) to the crossing and
         its time (s) to it."""
-        api, names = self._session.api, self.fleet.names
-        edge = dict(zip(self._sumo.ids, self._sumo.edge))
-        for j, k in enumerate(agents.tolist()):
-            if np.isfinite(out[j, 1]) or not edge.get(names[k], "").startswith(":") or \
-                    speed.get(names[k], 0.0) > MOVING:
-                continue  # a moving agent entered having given way (SUMO's foes before)
+        api = self._session.api
+        for j, name in inside:
+            if np.isfinite(out[j, 1]) or speed.get(name, 0.0) > MOVING:
+                continue  # a foe found, or moving: it entered having given way (SUMO's foes)
             try:
-                lane = api.vehicle.getLaneID(names[k])
-                pos = api.vehicle.getLanePosition(names[k])
+                lane = api.vehicle.getLaneID(name)
+                pos = api.vehicle.getLanePosition(name)
             except Exception:  # vehicle not (yet) in SUMO
                 continue
             if self._link_state(lane) not in MINOR:
