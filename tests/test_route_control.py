@@ -328,6 +328,34 @@ def test_idm_acceleration_and_its_bend_and_light_rules():
     assert pol.act({"a": obs})["a"][0] == free[0]
 
 
+def test_idm_agents_are_a_population_of_desired_speeds():
+    """Each agent's desired speed is the rule's times its own factor (mean 1, deviation 0.1,
+    cut at 0.8 and 1.2, as SUMO's speedFactor): fixed per agent and seed, another population
+    after a reseed; on a free road a faster driver accelerates harder; deviation 0: the rule."""
+    from magail_sumo.agents.idm import IdmPolicy
+    from magail_sumo.sensors.observation import observation_names
+
+    pol = IdmPolicy(0)
+    f = np.array([pol.speed_factor(f"car{i}") for i in range(3000)])
+    assert abs(f.mean() - 1.0) < 0.01 and 0.09 < f.std() < 0.11
+    assert f.min() >= 0.8 and f.max() <= 1.2
+    assert pol.speed_factor("car7") == IdmPolicy(0).speed_factor("car7")
+    pol.reseed(1)
+    assert pol.speed_factor("car7") != f[7]
+    names = observation_names(pol.observation)
+    obs = np.zeros(len(names), np.float32)
+    obs[names.index("speed")] = 12.0
+    obs[[names.index("leader_gap"), names.index("path_leader_gap")]] = 50.0  # none
+    obs[names.index("light_gap")] = 50.0
+    obs[[names.index("give_way_gap"), names.index("give_way_time")]] = (50.0, 10.0)
+    obs[[names.index(f"route_x_{d:g}") for d in (5, 10, 20)]] = (5.0, 10.0, 20.0)
+    slow, fast = sorted(((pol.speed_factor(n), n) for n in ("a", "b", "c", "d")))[::3]
+    act = pol.act({slow[1]: obs, fast[1]: obs})
+    assert act[fast[1]][0] > act[slow[1]][0]
+    same = IdmPolicy(0, speed_dev=0.0).act({"a": obs, "b": obs})
+    assert same["a"][0] == same["b"][0] == pytest.approx(float(pol.rule(obs[None])[0, 0]))
+
+
 @pytest.mark.sumo
 @pytest.mark.parametrize("speed_limits", [False, True])
 def test_idm_route_follower_completes_trips_in_a_real_city(speed_limits):

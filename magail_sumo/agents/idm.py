@@ -17,6 +17,8 @@ converging on their path with no notion of who has the way (``docs/results/city.
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
 from magail_sumo.models.idm import IdmParams, IdmRule
@@ -25,23 +27,39 @@ from magail_sumo.sim.dynamics import BicycleLimits
 
 #: route look-ahead distances the policy observes (m)
 ROUTE_POINTS = (5.0, 10.0, 20.0)
+#: deviation of the agents' desired-speed factors (SUMO's default ``speedDev``)
+SPEED_DEV = 0.1
 
 
 class IdmPolicy:
-    """IDM along the route (module doc); ``seed`` is unused (the policy is deterministic).
-    With ``speed_limits`` it also reads the road's speed limits and drives at them
-    (:mod:`magail_sumo.sensors.units.speed_limit`): off by default, as on cologne8 it then
+    """IDM along the route (module doc). Its agents are a population of drivers: each one's
+    desired speed is the rule's times its own factor, drawn once per agent (by name and
+    ``seed``) from a normal distribution of mean 1 and deviation ``speed_dev`` cut at two
+    deviations, as SUMO draws its drivers' ``speedFactor`` (deviation 0.1 by default); 0: every
+    agent the same. With ``speed_limits`` it also reads the road's speed limits and drives at
+    them (:mod:`magail_sumo.sensors.units.speed_limit`): off by default, as on cologne8 it then
     completed 57 fewer of 383 trips in 10 min (``docs/results/city.md``)."""
 
     action_layout = IdmRule.action_layout
 
     def __init__(self, seed: int = 0, params: IdmParams | None = None,
-                 speed_limits: bool = False) -> None:
+                 speed_limits: bool = False, speed_dev: float = SPEED_DEV) -> None:
         self.observation = ObservationConfig(leader=True, light_gap=True, give_way=True,
                                              path_leader=True, route_points=ROUTE_POINTS,
                                              speed_limit=speed_limits)
         self.limits = BicycleLimits()
         self.rule = IdmRule(self.observation, self.limits, params)
+        self.speed_dev = float(speed_dev)
+        self._seed = int(seed)
+        self._factor: dict[str, float] = {}
+
+    def speed_factor(self, name: str) -> float:
+        """Agent ``name``'s desired-speed factor (class doc)."""
+        f = self._factor.get(name)
+        if f is None:
+            z = np.random.default_rng([self._seed, zlib.crc32(name.encode())]).standard_normal()
+            f = self._factor[name] = 1.0 + self.speed_dev * float(np.clip(z, -2.0, 2.0))
+        return f
 
     @property
     def params(self) -> IdmParams:
@@ -49,11 +67,14 @@ class IdmPolicy:
         return self.rule.params
 
     def reseed(self, seed: int) -> None:
-        """A fresh rollout (nothing to forget: the rule keeps no memory)."""
+        """A fresh rollout: a fresh population of desired speeds (the rule keeps no memory)."""
+        self._seed = int(seed)
+        self._factor.clear()
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if not observations:
             return {}
         names = list(observations)
-        act = self.rule(np.stack([observations[n] for n in names]))
+        scale = np.array([self.speed_factor(n) for n in names]) if self.speed_dev else None
+        act = self.rule(np.stack([observations[n] for n in names]), scale)
         return dict(zip(names, act.astype(np.float32)))

@@ -185,8 +185,9 @@ class IdmRule:
                                                  "speed_limit_gap")] \
             if observation.speed_limit else []
 
-    def accel(self, obs: np.ndarray) -> np.ndarray:
-        """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D)."""
+    def accel(self, obs: np.ndarray, v0_scale: np.ndarray | None = None) -> np.ndarray:
+        """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D); ``v0_scale``:
+        (A,) each row's desired speed as a multiple of the rule's (a driver population)."""
         obs = np.asarray(obs, np.float64)
         v, gap, closing, light, to_line = (obs[:, c] for c in self._col)
         p = self.params
@@ -195,6 +196,8 @@ class IdmRule:
         closing = np.where(none, 0.0, closing)
         v0 = desired_speed(*(obs[:, c] for c in self._limit), p) if self._limit \
             else np.full(len(obs), p.v0)
+        if v0_scale is not None:
+            v0 = v0 * np.asarray(v0_scale, np.float64)
         if self._route:
             v0 = np.minimum(v0, bend_speed(obs[:, self._route], p.a_lat))
         accel = idm_accel(v, gap, closing, p, v0)
@@ -204,7 +207,8 @@ class IdmRule:
             accel = np.minimum(accel, give_way_brake(v, conflict, foe_time, p, GIVE_WAY_RANGE))
         return accel
 
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """(A, 2) normalised ``accel_offset`` actions of observation rows ``obs`` (A, D)."""
-        accel = self.accel(obs)
+    def __call__(self, obs: np.ndarray, v0_scale: np.ndarray | None = None) -> np.ndarray:
+        """(A, 2) normalised ``accel_offset`` actions of observation rows ``obs`` (A, D)
+        (``v0_scale``: :meth:`accel`)."""
+        accel = self.accel(obs, v0_scale)
         return normalise(accel, np.zeros_like(accel), self.limits, self.action_layout)
