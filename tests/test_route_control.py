@@ -361,8 +361,8 @@ def test_idm_agents_are_a_population_of_desired_speeds():
 def test_idm_route_follower_completes_trips_in_a_real_city(speed_limits):
     """The IDM route follower (``--policy idm``) on the real cologne8 city for 60 s: agents
     arrive at their routes' ends; collisions and red-light runs are rare; they read SUMO's
-    lane speed limits (cologne8 has 30 and 50 km/h roads) and keep to them with
-    ``speed_limits``."""
+    lane speed limits (cologne8 has 30 and 50 km/h roads) and keep to them, each agent
+    times its own desired-speed factor, with ``speed_limits``."""
     from magail_sumo.agents import env_settings
     from magail_sumo.sensors.observation import observation_names
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
@@ -394,7 +394,7 @@ def test_idm_route_follower_completes_trips_in_a_real_city(speed_limits):
                     if lane and not lane.startswith(":"):
                         lane_speeds.append(api.lane.getMaxSpeed(lane))
                         read += abs(o[limit] - lane_speeds[-1]) < 0.01
-                        fast += o[0] > lane_speeds[-1] + 0.5
+                        fast += o[0] > lane_speeds[-1] * pol.speed_factor(name) + 0.5
     finally:
         env.close()
     if speed_limits:
