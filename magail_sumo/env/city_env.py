@@ -237,8 +237,9 @@ class SumoCityEnv(FleetEnv):
         self._fcd = EpisodeFcd(STEP_LENGTH, self._fcd_frame, self._fcd_replay, cfg.fcd_dir,
                                cfg.fcd_every)
         self.network: NetworkMap = network_map(net_file)
-        #: each internal junction's lanes to let pass (the give-way fallback, :meth:`_give_way`)
-        self._internal = internal_junctions(net_file)
+        self._net_file = net_file
+        #: each internal junction's lanes to let pass (the give-way fallback, read on first use)
+        self._internal: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] | None = None
         self._link: dict[str, tuple] = {}  # internal lane -> its link (reached, prio, ..., via)
         self._crossings: dict[tuple[str, str], float] = {}  # (lane, foe lane) -> position
         self._approach: dict[str, tuple[str, int]] = {}  # first internal lane -> (lane, link)
@@ -524,25 +525,13 @@ class SumoCityEnv(FleetEnv):
                 link = self._link[lane] = links[0] if links else ()
             if not link or link[1] or not link[4] or ego_d <= COMMITTED:
                 continue  # no internal junction ahead, priority there, or committed
+            if self._internal is None:
+                self._internal = internal_junctions(self._net_file)
             incoming, internal = self._internal.get(link[4], ((), ()))
-            t = np.inf
-            for foe_lane in internal:
-                cross = self._crossing_on(link[4], foe_lane)
-                for f in api.lane.getLastStepVehicleIDs(foe_lane):
-                    v = speed.get(f, 0.0)
-                    if v <= MOVING:
-                        continue
-                    front = api.vehicle.getLanePosition(f)
-                    if front - api.vehicle.getLength(f) < cross:  # not past the crossing
-                        t = min(t, max(cross - front, 0.0) / v)
-            for src in incoming:
-                if src == lane or src.startswith(":"):
-                    continue
-                end = api.lane.getLength(src)
-                for foe in api.lane.getLastStepVehicleIDs(src):
-                    d, v = end - api.vehicle.getLanePosition(foe), speed.get(foe, 0.0)
-                    if d < GIVE_WAY_RANGE and v > MOVING:
-                        t = min(t, d / v)
+            t = min((self._before_crossing(f, self._crossing_on(link[4], f), speed)
+                     for f in internal), default=np.inf)
+            t = min([t] + [self._approaching(src, 0.0, speed) for src in incoming
+                           if src != lane and not src.startswith(":")])
             if np.isfinite(t):
                 out[j] = ego_d, t
 
@@ -578,22 +567,36 @@ class SumoCityEnv(FleetEnv):
                 if ego_d <= COMMITTED:
                     continue  # at or past the crossing: it clears it
                 cross = self._crossing_on(lane, foe_lane)
-                t = np.inf
-                for f in api.lane.getLastStepVehicleIDs(foe_lane):
-                    v = speed.get(f, 0.0)
-                    front = api.vehicle.getLanePosition(f)
-                    if v > MOVING and front - api.vehicle.getLength(f) < cross:
-                        t = min(t, max(cross - front, 0.0) / v)
-                src = self._approach[foe_lane][0]
-                end = api.lane.getLength(src)
-                for f in api.lane.getLastStepVehicleIDs(src):
-                    d, v = end - api.vehicle.getLanePosition(f) + cross, speed.get(f, 0.0)
-                    if d < GIVE_WAY_RANGE and v > MOVING:
-                        t = min(t, d / v)
+                t = min(self._before_crossing(foe_lane, cross, speed),
+                        self._approaching(self._approaches()[foe_lane][0], cross, speed))
                 if t < best_t:
                     best_d, best_t = ego_d, t
             if np.isfinite(best_t):
                 out[j] = best_d, best_t
+
+    def _before_crossing(self, lane: str, cross: float, speed: dict[str, float]) -> float:
+        """Time (s) the first vehicle moving on internal lane ``lane`` whose rear has not
+        passed lane position ``cross`` (m) needs to reach it (0 when it is there; inf: none)."""
+        vehicle, t = self._session.api.vehicle, np.inf
+        for f in self._session.api.lane.getLastStepVehicleIDs(lane):
+            v = speed.get(f, 0.0)
+            if v <= MOVING:
+                continue
+            front = vehicle.getLanePosition(f)
+            if front - vehicle.getLength(f) < cross:
+                t = min(t, max(cross - front, 0.0) / v)
+        return t
+
+    def _approaching(self, lane: str, beyond: float, speed: dict[str, float]) -> float:
+        """Time (s) the first vehicle moving on approach lane ``lane`` within the give-way
+        range of a point ``beyond`` m past the lane's end needs to reach it (inf: none)."""
+        api, t = self._session.api, np.inf
+        end = api.lane.getLength(lane) + beyond
+        for f in api.lane.getLastStepVehicleIDs(lane):
+            d, v = end - api.vehicle.getLanePosition(f), speed.get(f, 0.0)
+            if d < GIVE_WAY_RANGE and v > MOVING:
+                t = min(t, d / v)
+        return t
 
     def _internal_foes(self, lane: str) -> tuple[str, ...]:
         """The internal lanes of vehicle classes that may cross internal lane ``lane``
@@ -602,24 +605,29 @@ class SumoCityEnv(FleetEnv):
         if out is None:
             out = self._foes[lane] = tuple(
                 f for f in self._session.api.lane.getInternalFoes(lane)
-                if f in self._approach and self._graph.allows(f, "passenger"))
+                if f in self._approaches() and self._graph.allows(f, "passenger"))
         return out
 
     def _link_state(self, internal: str) -> str:
         """The live state (SUMO's link state letter) of the connection whose first internal
         lane is ``internal``; "" when ``internal`` is none's first."""
-        if not self._approach:  # each normal lane's connections: first internal lane -> them
+        src = self._approaches().get(internal)
+        if src is None:
+            return ""
+        links = self._session.api.lane.getLinks(src[0])
+        return links[src[1]][5] if src[1] < len(links) else ""
+
+    def _approaches(self) -> dict[str, tuple[str, int]]:
+        """Each connection's first internal lane -> (the normal lane it leaves, its index in
+        that lane's links); read from every lane's links on first use."""
+        if not self._approach:
             api = self._session.api
             for lane in api.lane.getIDList():
                 if not lane.startswith(":"):
                     for i, link in enumerate(api.lane.getLinks(lane)):
                         if link[4]:
                             self._approach[link[4]] = (lane, i)
-        src = self._approach.get(internal)
-        if src is None:
-            return ""
-        links = self._session.api.lane.getLinks(src[0])
-        return links[src[1]][5] if src[1] < len(links) else ""
+        return self._approach
 
     def _crossing_on(self, lane: str, foe_lane: str) -> float:
         """Lane position (m, SUMO's lane length) on internal lane ``foe_lane`` where it crosses

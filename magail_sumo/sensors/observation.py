@@ -66,8 +66,9 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
 ``leader: true``, ``light_gap`` with ``light_gap: true``, ``give_way`` with ``give_way: true``,
-``path_leader`` with ``path_leader: true`` and ``speed_limit`` with ``speed_limit: true``. The suite is built from a road map and a light
-source (:meth:`SensorSuite.from_map`; ``SensorSuite(scene, config)`` for a recorded scene).
+``path_leader`` with ``path_leader: true`` and ``speed_limit`` with ``speed_limit: true``. The
+suite is built from a road map and a light source (:meth:`SensorSuite.from_map`;
+``SensorSuite(scene, config)`` for a recorded scene).
 """
 
 from __future__ import annotations

@@ -21,9 +21,8 @@ its nose in that road user's lane: their boxes reach into each other's corridor)
 wait for the other for ever: of such a pair the one that can move :data:`TRIAL_MOVE` m along
 its heading without its box reaching deeper into the other's (where two lanes merge inside a
 junction, the one angled in ahead: the other would drive into its side), else the one with the
-larger gap
-(more room; the higher box row on a tie) does not see the other, so it moves on, and the other
-once it has gone.
+larger gap (more room; the higher box row on a tie) does not see the other, so it moves on, and
+the other once it has gone.
 ``path_leader_gap`` (m) is ``s_o − s − l_agent/2 − (|cos Δ|·l_o/2 + |sin Δ|·w_o/2)``
 (bumper to bumper along the path; negative when they overlap), ``path_leader_closing`` (m/s)
 the agent's speed less the other's speed along the path there (> 0: the gap shrinks); of those
