@@ -9,7 +9,8 @@ and the shapes of the lanes entering and leaving it): a spike netconvert draws t
 end far from the junction -- and the *isolated fragments*: normal edges that no connection
 enters or leaves (a piece of road SUMO's drivers can neither reach nor leave), and the lane
 ends more than 1 m outside their junction's polygon (a gap sumo-gui shows as a hole between
-road and junction). Per source folder and in total; several folders (several converters)
+road and junction) and the junction polygons that cross themselves (drawn as a ragged star
+with holes). Per source folder and in total; several folders (several converters)
 compare in one run.
 """
 
@@ -26,6 +27,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from converters.sumo.junction_shapes import (GAP_M, outside_distance,  # noqa: E402
+                                             self_intersecting)
+
 
 def _dense(shape: np.ndarray, step: float = 0.5) -> np.ndarray:
     parts = [shape[:1]]
@@ -35,21 +39,11 @@ def _dense(shape: np.ndarray, step: float = 0.5) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def _to_polygon(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance (m) of each point to polygon ``poly`` (0 inside)."""
-    from matplotlib.path import Path as MplPath
-
-    a, b = poly, np.roll(poly, -1, axis=0)
-    ab = b - a
-    t = np.clip(((points[:, None] - a[None]) * ab[None]).sum(-1)
-                / np.maximum((ab * ab).sum(-1), 1e-12)[None], 0, 1)
-    d = np.sqrt(((points[:, None] - (a[None] + t[..., None] * ab[None])) ** 2).sum(-1)).min(1)
-    return np.where(MplPath(poly).contains_points(points), 0.0, d)
-
-
-def measure(net_file: Path, wedge: float, gap: float = 1.0) -> tuple[int, int, int, float, int]:
+def measure(net_file: Path, wedge: float, gap: float = GAP_M) -> tuple[int, int, int, float, int,
+                                                                       int]:
     """(junctions, wedges, isolated fragments, largest corner distance m, lane ends more than
-    ``gap`` m from their junction's polygon) of one network."""
+    ``gap`` m from their junction's polygon, junction polygons that cross themselves) of one
+    network."""
     import sumolib
 
     net = sumolib.net.readNet(str(net_file), withInternal=True)
@@ -57,7 +51,7 @@ def measure(net_file: Path, wedge: float, gap: float = 1.0) -> tuple[int, int, i
     for e in net.getEdges(withInternal=True):
         if e.getFunction() == "internal":
             internal[e.getToNode().getID()].extend(e.getLanes())
-    junctions = wedges = holes = 0
+    junctions = wedges = holes = crossed = 0
     worst = 0.0
     for node in net.getNodes():
         shape = node.getShape()
@@ -65,6 +59,7 @@ def measure(net_file: Path, wedge: float, gap: float = 1.0) -> tuple[int, int, i
         if not lanes or not shape or len(shape) < 3:
             continue
         junctions += 1
+        crossed += self_intersecting(np.asarray(shape)[:, :2])
         pts = [_dense(np.asarray(l.getShape())[:, :2]) for l in lanes]
         pts += [np.asarray(l.getShape())[:, :2] for e in node.getIncoming() + node.getOutgoing()
                 if e.getFunction() != "internal" for l in e.getLanes()]
@@ -78,11 +73,11 @@ def measure(net_file: Path, wedge: float, gap: float = 1.0) -> tuple[int, int, i
         ends += [np.asarray(l.getShape())[0, :2] for e in node.getOutgoing()
                  if e.getFunction() != "internal" for l in e.getLanes()]
         if ends:
-            holes += int((_to_polygon(np.array(ends), corners) > gap).sum())
+            holes += int((outside_distance(np.array(ends), corners) > gap).sum())
     isolated = sum(1 for e in net.getEdges(withInternal=False)
                    if e.getFunction() != "walkingarea" and not e.getIncoming()
                    and not e.getOutgoing())
-    return junctions, wedges, isolated, worst, holes
+    return junctions, wedges, isolated, worst, holes, crossed
 
 
 def main() -> int:
@@ -91,16 +86,17 @@ def main() -> int:
     ap.add_argument("--wedge", type=float, default=15.0, help="m (default 15)")
     args = ap.parse_args()
     print("folder | source | scenes | junctions | wedges | isolated fragments | "
-          "largest corner distance (m) | lane ends apart from their junction")
+          "largest corner distance (m) | lane ends apart from their junction | "
+          "polygons crossing themselves")
     for d in args.dirs:
-        per = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0, 0])
+        per = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0, 0, 0])
         for rep_file in sorted(d.glob("*/conversion.json")):
             rep = json.loads(rep_file.read_text())
             nets = list(rep_file.parent.glob("*.net.xml"))
             if rep.get("status") != "ok" or not nets:
                 continue
             src = Path((rep.get("source") or {}).get("file", "?")).parent.name
-            j, w, i, far, h = measure(nets[0], args.wedge)
+            j, w, i, far, h, x = measure(nets[0], args.wedge)
             row = per[src]
             row[0] += 1
             row[1] += j
@@ -108,14 +104,16 @@ def main() -> int:
             row[3] += i
             row[4] = max(row[4], far)
             row[5] += h
-        total = [0, 0, 0, 0, 0.0, 0]
+            row[6] += x
+        total = [0, 0, 0, 0, 0.0, 0, 0]
         for src, row in sorted(per.items()):
             print(f"{d} | {src} | {row[0]} | {row[1]} | {row[2]} | {row[3]} | {row[4]:.0f} | "
-                  f"{row[5]}")
+                  f"{row[5]} | {row[6]}")
             total = [a + b for a, b in zip(total[:4], row[:4])] + [max(total[4], row[4]),
-                                                                   total[5] + row[5]]
+                                                                   total[5] + row[5],
+                                                                   total[6] + row[6]]
         print(f"{d} | all | {total[0]} | {total[1]} | {total[2]} | {total[3]} | "
-              f"{total[4]:.0f} | {total[5]}")
+              f"{total[4]:.0f} | {total[5]} | {total[6]}")
     return 0
 
 

@@ -263,7 +263,8 @@ def test_junction_polygons_have_no_wedge(tmp_path):
     37 m along the outgoing road (netconvert's corner detail); 7b24d74b506c94ce records two
     links between lanes 18 and 22 m apart, which would pull a junction node between them.
     Junction shapes now come without corner detail, and such links are dropped and listed: no
-    junction corner lies more than 15 m from the junction's lanes."""
+    junction corner lies more than 15 m from the junction's lanes. The polygons the converter
+    fills (:mod:`converters.sumo.junction_shapes`) reach every lane end without a new wedge."""
     from benchmarks.junction_shapes import measure
     from converters.sumo.scenario import ConvertOptions, convert_scene
 
@@ -271,8 +272,10 @@ def test_junction_polygons_have_no_wedge(tmp_path):
         scene = load_scene(ROOT / "data" / "scenarionet" / f"{name}.pkl")
         rep = convert_scene(scene, tmp_path, ConvertOptions(baseline=False))
         assert rep.status == "ok", rep.reason
-        junctions, wedges, _, far, _ = measure(tmp_path / name / f"{name}.net.xml", 15.0)
+        junctions, wedges, _, far, apart, crossed = measure(tmp_path / name / f"{name}.net.xml",
+                                                            15.0)
         assert junctions > 50 and wedges == 0 and far < 15, (name, far)
+        assert apart == 0 and crossed == 0 and rep.quality["junction_shapes_filled"] > 0
     dropped = [u for u in rep.unconverted if u["kind"] == "lane link"]
     assert {u["id"] for u in dropped} == {720, 732}
     assert all("m from its end: link dropped" in u["reason"] for u in dropped)

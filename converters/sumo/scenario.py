@@ -41,6 +41,7 @@ from .baseline import UNMAPPED, run_baseline
 from .bundle import (LOCKS, REPORT_FILE, BundleError, BundleLayout, bundle_folder,
                      complete_bundle)
 from .bundle import claim_networks_dir  # re-exported: callers import it from here
+from .junction_shapes import fill_junction_shapes
 from .matching import build_index
 from .network import build_network
 from .parking import write_parking
@@ -300,6 +301,9 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             check_built(peds, built.net_file, built.warnings)
             rep.pedestrians = peds.to_dict()
         lap("netconvert")
+        stage = "junction shapes"
+        filled = fill_junction_shapes(built.net_file)
+        lap("junction_shapes")
         stage = "load network"
         net = sumolib.net.readNet(str(built.net_file), withInternal=True)
         lap("load_network")
@@ -351,6 +355,8 @@ def convert_scene(scene: Scene, out_root: Path, options: ConvertOptions | None =
             "route_misses": misses[:MISSES_KEPT],
             "signal_fidelity": None,
             "netconvert_warnings": len(built.warnings),
+            # junctions whose polygon now reaches every lane end (:mod:`.junction_shapes`)
+            "junction_shapes_filled": filled,
             "sumo_baseline": None,
         }
 
