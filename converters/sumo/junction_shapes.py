@@ -112,25 +112,23 @@ def filled_shapes(net_file: Path, gap: float = GAP_M) -> dict[str, np.ndarray]:
     others are not listed."""
     junctions: dict[str, np.ndarray] = {}
     ends: dict[str, list[np.ndarray]] = {}
-    corners: dict[str, list[np.ndarray]] = {}
-    edge: tuple[str, str] | None = None  # (from, to) of the normal edge being read
-    for event, el in ET.iterparse(str(net_file), events=("start", "end")):
+    # (shape, width, at its end) of each lane meeting a node: corners only where one is filled
+    lanes: dict[str, list[tuple[np.ndarray, float, bool]]] = {}
+    for _, el in ET.iterparse(str(net_file)):  # an element's end: its children are read
         tag = el.tag
-        if event == "start":
-            if tag == "edge":
-                edge = None if el.get("function", "normal") != "normal" else \
-                    (el.get("from", ""), el.get("to", ""))
-            continue
-        if tag == "lane" and edge is not None:
-            shape = _shape(el.get("shape"))
-            if len(shape) >= 2:
-                width = float(el.get("width", 3.2))
-                for node, at_end in ((edge[1], True), (edge[0], False)):
+        if tag == "edge" and el.get("function", "normal") == "normal":
+            head, tail = el.get("to", ""), el.get("from", "")
+            for lane in el.iter("lane"):
+                shape = _shape(lane.get("shape"))
+                if len(shape) < 2:
+                    continue
+                width = float(lane.get("width", 3.2))
+                for node, at_end in ((head, True), (tail, False)):
                     ends.setdefault(node, []).append(shape[-1] if at_end else shape[0])
-                    corners.setdefault(node, []).append(_end_corners(shape, width, at_end))
+                    lanes.setdefault(node, []).append((shape, width, at_end))
         elif tag == "junction" and el.get("type") != "internal":
             junctions[el.get("id", "")] = _shape(el.get("shape"))
-        if tag in ("edge", "junction", "connection", "tlLogic", "request"):
+        if tag in ("edge", "junction", "connection", "tlLogic"):
             el.clear()
     out: dict[str, np.ndarray] = {}
     for jid, poly in junctions.items():
@@ -140,7 +138,8 @@ def filled_shapes(net_file: Path, gap: float = GAP_M) -> dict[str, np.ndarray]:
         if len(poly) >= 3 and not self_intersecting(poly) \
                 and (outside_distance(lane_ends, poly) <= gap).all():
             continue
-        hull = convex_hull(np.vstack([poly.reshape(-1, 2), *corners[jid]]))
+        hull = convex_hull(np.vstack([poly.reshape(-1, 2),
+                                      *(_end_corners(*lane) for lane in lanes[jid])]))
         if len(hull) >= 3:
             out[jid] = hull
     return out
