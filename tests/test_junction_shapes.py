@@ -13,29 +13,11 @@ import pytest
 
 from conftest import ROOT
 from converters import load_scene
-from converters.sumo.junction_shapes import (convex_hull, fill_junction_shapes, filled_shapes,
-                                             outside_distance, self_intersecting)
+from converters.sumo.junction_shapes import (fill_junction_shapes, filled_shapes, outside_distance,
+                                             self_intersecting)
 
 PKL = ROOT / "data" / "scenarionet"
 SHARED = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data"))
-
-
-def test_convex_hull_of_random_points():
-    """Every point lies inside or on the hull, every hull corner is one of the points, and the
-    corners turn left all the way round (counter-clockwise, strictly convex)."""
-    rng = np.random.default_rng(0)
-    for n in (3, 5, 40, 400):
-        p = rng.normal(size=(n, 2)) * [30.0, 5.0]
-        h = convex_hull(p)
-        assert len(h) >= 3
-        assert all(np.isclose(p, c, atol=1e-6).all(1).any() for c in h)
-        d = outside_distance(p, h)
-        assert (d < 1e-6).all()
-        e = np.roll(h, -1, 0) - h
-        turn = e[:, 0] * np.roll(e, -1, 0)[:, 1] - e[:, 1] * np.roll(e, -1, 0)[:, 0]
-        assert (turn > 0).all()
-    # collinear and repeated points: the two ends only
-    assert len(convex_hull(np.array([[0, 0], [1, 0], [2, 0], [2, 0]]))) == 2
 
 
 def test_outside_distance_agrees_with_matplotlib():
