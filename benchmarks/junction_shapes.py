@@ -27,8 +27,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from converters.sumo.junction_shapes import (GAP_M, outside_distance,  # noqa: E402
-                                             self_intersecting)
+from converters.sumo.geometry import point_segment, segments_cross  # noqa: E402
+from converters.sumo.junction_shapes import GAP_M  # noqa: E402
 
 
 def _dense(shape: np.ndarray, step: float = 0.5) -> np.ndarray:
@@ -37,6 +37,38 @@ def _dense(shape: np.ndarray, step: float = 0.5) -> np.ndarray:
         n = max(2, int(np.hypot(*(b - a)) / step))
         parts.append(a + (b - a) * np.linspace(0, 1, n)[1:, None])
     return np.concatenate(parts)
+
+
+def outside_distance(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(P,) distance (m) of each point to the closed ``polygon`` (Q, 2); 0 inside it (even-odd
+    rule; a degenerate polygon, e.g. a line, has no inside)."""
+    pts = np.asarray(points, np.float64)[:, :2]
+    a = np.asarray(polygon, np.float64)[:, :2]
+    b = np.roll(a, -1, axis=0)
+    ab = b - a
+    d = point_segment(pts, a, b)[0].min(1)
+    # even-odd ray cast towards +x
+    y, x = pts[:, 1:2], pts[:, 0:1]
+    crosses = (a[None, :, 1] > y) != (b[None, :, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xc = a[None, :, 0] + (y - a[None, :, 1]) * ab[None, :, 0] / ab[None, :, 1]
+    inside = ((crosses & (x < xc)).sum(1) % 2) == 1
+    return np.where(inside, 0.0, d)
+
+
+def self_intersecting(polygon: np.ndarray) -> bool:
+    """Whether two non-neighbouring sides of the closed ``polygon`` (Q, 2) cross (a proper
+    crossing; touching corners do not count)."""
+    p = np.asarray(polygon, np.float64)[:, :2]
+    if len(p) > 1 and abs(p[0, 0] - p[-1, 0]) + abs(p[0, 1] - p[-1, 1]) < 1e-6:
+        p = p[:-1]
+    n = len(p)
+    if n < 4:
+        return False
+    k = np.arange(n)
+    apart = np.abs(k[:, None] - k[None])
+    cross = segments_cross(p, np.roll(p, -1, axis=0), p, np.roll(p, -1, axis=0))
+    return bool((cross & (apart > 1) & (apart < n - 1)).any())
 
 
 def measure(net_file: Path, wedge: float, gap: float = GAP_M) -> tuple[int, int, int, float, int,

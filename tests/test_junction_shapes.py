@@ -13,8 +13,8 @@ import pytest
 
 from conftest import ROOT
 from converters import load_scene
-from converters.sumo.junction_shapes import (fill_junction_shapes, filled_shapes, outside_distance,
-                                             self_intersecting)
+from benchmarks.junction_shapes import outside_distance, self_intersecting
+from converters.sumo.junction_shapes import fill_junction_shapes, filled_shapes
 
 PKL = ROOT / "data" / "scenarionet"
 SHARED = Path(os.environ.get("MAGAIL_SUMO_SHARED_DATA", ROOT.parent / "shared" / "data"))

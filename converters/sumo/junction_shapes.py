@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import fmt_shape, segments_cross
+from .geometry import fmt_shape
 
 #: a lane end this far (m) outside its junction's polygon is a hole (the benchmark's definition)
 GAP_M = 1.0
@@ -51,40 +51,6 @@ SIMPLIFY_M = 0.05
 #: a part of a junction's ground farther (m) than this from its largest part is left out
 #: (a lane end joined by a long internal lane: the lane is drawn over the gap)
 BRIDGE_M = 10.0
-
-
-def outside_distance(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """(P,) distance (m) of each point to the closed ``polygon`` (Q, 2); 0 inside it (even-odd
-    rule; a degenerate polygon, e.g. a line, has no inside)."""
-    pts = np.asarray(points, np.float64)[:, :2]
-    a = np.asarray(polygon, np.float64)[:, :2]
-    b = np.roll(a, -1, axis=0)
-    ab = b - a
-    rel = pts[:, None] - a[None]
-    t = np.clip((rel * ab[None]).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12)[None], 0, 1)
-    d = np.linalg.norm(rel - t[..., None] * ab[None], axis=-1).min(1)
-    # even-odd ray cast towards +x
-    y, x = pts[:, 1:2], pts[:, 0:1]
-    crosses = (a[None, :, 1] > y) != (b[None, :, 1] > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xc = a[None, :, 0] + (y - a[None, :, 1]) * ab[None, :, 0] / ab[None, :, 1]
-    inside = ((crosses & (x < xc)).sum(1) % 2) == 1
-    return np.where(inside, 0.0, d)
-
-
-def self_intersecting(polygon: np.ndarray) -> bool:
-    """Whether two non-neighbouring sides of the closed ``polygon`` (Q, 2) cross (a proper
-    crossing; touching corners do not count)."""
-    p = np.asarray(polygon, np.float64)[:, :2]
-    if len(p) > 1 and abs(p[0, 0] - p[-1, 0]) + abs(p[0, 1] - p[-1, 1]) < 1e-6:
-        p = p[:-1]
-    n = len(p)
-    if n < 4:
-        return False
-    k = np.arange(n)
-    apart = np.abs(k[:, None] - k[None])
-    cross = segments_cross(p, np.roll(p, -1, axis=0), p, np.roll(p, -1, axis=0))
-    return bool((cross & (apart > 1) & (apart < n - 1)).any())
 
 
 def _shape(text: str | None) -> np.ndarray:
@@ -175,12 +141,13 @@ def filled_shapes(net_file: Path, gap: float = GAP_M,
     ids = [jid for jid, poly in junctions.items() if jid in ends and len(poly)]
     polys = np.array([Polygon(junctions[j]) if len(junctions[j]) >= 3 else None for j in ids],
                      dtype=object)
-    bad = np.array([p is None for p in polys]) | ~shapely.is_valid(polys)
+    bad = ~shapely.is_valid(polys)  # None (under 3 points) is not valid either
     end_owner = np.repeat(np.arange(len(ids)), [len(ends[j]) for j in ids])
     end_xy = np.concatenate([np.asarray(ends[j]) for j in ids]) if ids else np.zeros((0, 2))
     far = shapely.distance(polys[end_owner], shapely.points(end_xy)) > gap  # NaN: no polygon
     bad |= np.bincount(end_owner[far], minlength=len(ids)) > 0
-    todo = [j for j, b in zip(ids, bad.tolist()) if b]
+    picked = np.flatnonzero(bad)
+    todo = [ids[k] for k in picked]
     if not todo:
         return {}
     # every piece of every junction to fill, built in one vectorised call per kind
@@ -197,16 +164,12 @@ def filled_shapes(net_file: Path, gap: float = GAP_M,
     strings = shapely.linestrings(np.concatenate(lines),
                                   indices=np.repeat(np.arange(len(lines)), [len(x) for x in lines]))
     pieces = shapely.buffer(strings, np.asarray(widths) / 2, cap_style="flat")
-    groups: list[list] = [[] for _ in todo]
+    # netconvert's polygons, their polygonal parts only (make_valid keeps a zero-width spike
+    # as a line); None where it drew under 3 points
+    groups: list[list] = [[poly] for poly in
+                          shapely.buffer(shapely.make_valid(polys[picked]), 0)]
     for k, piece in zip(owner, pieces):
         groups[k].append(piece)
-    have = [k for k, jid in enumerate(todo) if len(junctions[jid]) >= 3]
-    # netconvert's polygons, their polygonal parts only (make_valid keeps a zero-width spike
-    # as a line)
-    valid = shapely.buffer(shapely.make_valid(
-        np.array([Polygon(junctions[todo[k]]) for k in have], dtype=object)), 0)
-    for k, poly in zip(have, valid):
-        groups[k].append(poly)
     table = np.full((len(groups), max(len(g) for g in groups)), None, dtype=object)
     for k, g in enumerate(groups):  # one row per junction, padded with None (ignored)
         table[k, :len(g)] = g
