@@ -28,6 +28,11 @@ same vehicles moved each step; the share of env step time spent in sensors and o
   ``BatchedSceneEnv`` with W worlds (the array API), alternating, for each W of
   ``--worlds`` (by default 61, about 1,000 and 10,000 agents at once); medians of
   ``--repeats``.
+* ``worker`` (only by name): the scene worker's step as training runs it (``SlotWorker``:
+  slots, packets; the womd14 recipe's episodes: random 80-step windows, collision and
+  off-road end an agent, no SUMO mirror) on the window scenes, on the recorded env's array
+  API against its dict API (the worker before it used the arrays), alternating; ``--steps``
+  worker steps of seeded random actions each, medians of ``--repeats``.
 
     python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
         [--repeats R] [--worlds W ...]
@@ -62,6 +67,8 @@ WINDOWS = "windows"
 GUARD_EDGE = "guard_edge"
 #: the batched core against one env per rollout (only by name)
 BATCHED = "batched"
+#: the scene worker's array API against its dict API (only by name)
+WORKER = "worker"
 #: scenes of the ``windows`` measurement: the bundled TFRecord and two 20 s ScenarioNet scenes
 WINDOW_SCENES = (ROOT / "data" / "womd" / f"{SCENE}.tfrecord",
                  ROOT / "data" / "scenarionet" / "b36a6d0bc9e525bc.pkl",
@@ -182,13 +189,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object per scenario")
     ap.add_argument("--episodes", type=int, default=3)
     ap.add_argument("--scenario", default="all",
-                    choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, BATCHED, "all"],
+                    choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, BATCHED, WORKER, "all"],
                     help=f"{WINDOWS}: with vs without the SUMO mirror; {GUARD_EDGE}: with vs "
                          "without the gap guard and the road-edge off-road rule (all: every "
                          f"one but {GUARD_EDGE})")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the windows measurement")
     ap.add_argument("--warmup", type=float, default=1200.0, help="city warm-up (s of SUMO time)")
     ap.add_argument("--city-steps", type=int, default=100, help="0.1-s steps per city episode")
+    ap.add_argument("--steps", type=int, default=400, help=f"{WORKER}: worker steps per run")
     ap.add_argument("--worlds", type=int, nargs="+", default=[1, 16, 164],
                     help=f"{BATCHED}: world counts (the bundled scene has 61 agents per world)")
     args = ap.parse_args(argv)
@@ -203,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         results.extend(run_windows(args, GUARD_EDGE))
     if args.scenario == BATCHED:
         results.extend(run_batched(args))
+    if args.scenario == WORKER:
+        results.extend(run_worker(args))
     for out in results:
         if args.json:
             print(json.dumps(out))
@@ -300,6 +310,56 @@ def run_windows(args, measure: str = WINDOWS) -> list[dict]:
                          f"agent_steps_per_s_{lb}": round(b, 1),
                          f"runs_{la}": [round(r, 1) for r in rates[la]],
                          f"runs_{lb}": [round(r, 1) for r in rates[lb]],
+                         "speedup": round(b / a, 2)})
+    return rows
+
+
+def _worker_steps(worker, steps: int) -> tuple[float, int]:
+    """(seconds, agent-steps) of ``steps`` steps of a scene worker from its reset, under
+    seeded random actions (the same in every run)."""
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-0.3, 0.3, (steps, worker.slots, 2)).astype(np.float32)
+    t0, agent_steps = time.perf_counter(), 0
+    worker.reset()
+    for a in acts:
+        agent_steps += worker.step(a)["agent_steps"]
+    return time.perf_counter() - t0, agent_steps
+
+
+def run_worker(args) -> list[dict]:
+    """The scene worker on the array API against the dict API (module doc)."""
+    from converters import find_scene
+    from magail_sumo.env.slot_worker import SceneSpec, SlotWorker
+
+    cfg = EnvConfig(start_window="random", max_steps=80, min_history=10, sumo_mirror=False,
+                    terminate_on=("collision", "off_road"))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in WINDOW_SCENES:
+            scene = find_scene(f, None)
+            rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
+            if rep.status != "ok":
+                raise SystemExit(f"{f}: conversion failed: {rep.reason}")
+            spec = SceneSpec(str(f), str(Path(tmp) / scene.scenario_id), scene.scenario_id)
+            workers = {lab: SlotWorker(spec, cfg, seed=0, slots=None)
+                       for lab in ("dicts", "arrays")}
+            workers["dicts"]._uses_arrays = lambda: False  # the worker's former path
+            rates: dict[str, list[float]] = {lab: [] for lab in workers}
+            for w in workers.values():
+                _worker_steps(w, 40)  # warm-up: numba kernels
+            for _ in range(args.repeats):
+                for lab, w in workers.items():
+                    secs, steps = _worker_steps(w, args.steps)
+                    rates[lab].append(steps / secs)
+            for w in workers.values():
+                w.close()
+            a, b = (float(np.median(rates[lab])) for lab in ("dicts", "arrays"))
+            rows.append({"scene": scene.scenario_id, "measure": WORKER,
+                         "worker_steps": args.steps, "agent_steps": steps,
+                         "agent_steps_per_s_dicts": round(a, 1),
+                         "agent_steps_per_s_arrays": round(b, 1),
+                         "runs_dicts": [round(r, 1) for r in rates["dicts"]],
+                         "runs_arrays": [round(r, 1) for r in rates["arrays"]],
                          "speedup": round(b / a, 2)})
     return rows
 

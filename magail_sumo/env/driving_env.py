@@ -569,6 +569,35 @@ class SumoDrivingEnv(FleetEnv):
         return ArrayStep(self._obs_rows, seen, f.active[:n].copy(), rewards, terminated,
                          truncated, events)
 
+    def run_on_arrays(self) -> np.ndarray:
+        """The dict API's skip ahead, for the array API: after a step that left nobody live
+        with agents still to come, run the log on until someone joins, exactly as
+        :meth:`step` does before it returns (the same steps, joins and observations); the fleet
+        rows that joined (sorted; live, their observations in the rows of the last
+        :class:`~magail_sumo.env.outcomes.ArrayStep`'s buffer), empty when none joined. A
+        single-world caller that wants the dict API's episodes (the scene worker) calls it;
+        lockstep callers (batched worlds) step on instead."""
+        late = self._run_on()
+        if late.size:
+            self._obs_rows[late] = self._observe_rows(late)[0]
+            self.agents = self.fleet.names_of(self.fleet.live())
+        return late
+
+    def array_reasons(self, step: ArrayStep, rows: np.ndarray) -> list[str | None]:
+        """``infos[agent]["reason"]`` of fleet rows ``rows`` in the array step ``step``, as
+        the dict API words it: the first event of :attr:`events` in ``terminate_on`` or
+        :attr:`always_reasons` that the row had, else :data:`~magail_sumo.env.step.
+        END_OF_EPISODE` when it was truncated (a recorded scene truncates for no other
+        reason, :meth:`_time_up`), else None."""
+        reasons = set(self.config.terminate_on) | set(self.always_reasons)
+        cols = [(e, step.events[e][rows].tolist()) for e in self.events if e in reasons]
+        trunc = step.truncated[rows].tolist()
+        out: list[str | None] = []
+        for i in range(len(trunc)):
+            why = next((e for e, col in cols if col[i]), None)
+            out.append(why if why is not None else (END_OF_EPISODE if trunc[i] else None))
+        return out
+
     # ------------------------------------------------------------------ step hooks
     def step(self, actions: dict[str, Any]):
         """One log step (module doc; the stages: :class:`~magail_sumo.env.step.FleetEnv`)."""
@@ -610,19 +639,28 @@ class SumoDrivingEnv(FleetEnv):
     def _after_step(self, obs: dict, out: StepDicts) -> None:
         """Nobody left but agents to come: run the log on until someone joins (they join the
         step's dicts as live agents)."""
+        late = self._run_on()
+        if late.size:
+            f = self.fleet
+            rewards, terms, truncs, infos = out.astuple()
+            more, _ = self._observe(late)
+            info = self._infos_of(late)
+            for i, k in enumerate(late):
+                name = f.names[k]
+                obs[name] = more[name]
+                rewards[name], terms[name], truncs[name] = 0.0, False, False
+                infos[name] = info(i, {}, None)
+
+    def _run_on(self) -> np.ndarray:
+        """While nobody is live, agents are to come and the episode has steps left: run the
+        log on one step and let them join; the fleet rows that joined (empty: none)."""
         f = self.fleet
-        rewards, terms, truncs, infos = out.astuple()
         while not f.active.any() and self.t < self._end and (~f.joined).any():
             self._advance()
             late = self._join()
             if late.size:
-                more, _ = self._observe(late)
-                info = self._infos_of(late)
-                for i, k in enumerate(late):
-                    name = f.names[k]
-                    obs[name] = more[name]
-                    rewards[name], terms[name], truncs[name] = 0.0, False, False
-                    infos[name] = info(i, {}, None)
+                return late
+        return np.zeros(0, np.int64)
 
     def _agent_rows(self, k: np.ndarray) -> np.ndarray:
         """Track rows of fleet rows ``k``."""

@@ -109,6 +109,12 @@ class _FixedScene:
 class SlotWorker:
     """The env of a worker's scene(s) with its slot bookkeeping (runs in the worker).
 
+    A recorded-scene episode runs on the env's array API (``reset_arrays`` / ``step_arrays``
+    with :meth:`~magail_sumo.env.driving_env.SumoDrivingEnv.run_on_arrays`, slots kept as
+    fleet rows: no dict or info per agent); a city episode, or one recording FCD, on the
+    PettingZoo dicts. Both give the same packets (``tests/test_slot_worker.py`` checks every
+    real scene in ``data/``).
+
     :param source: a :class:`SceneSpec` (one scene) or a :class:`PoolSpec` (a shard).
     :param slots: slot count (None: from the scene(s), see the module docs).
     """
@@ -134,6 +140,11 @@ class SlotWorker:
         self.env = self.cursor.env_for(0)[1]
         self.names: list[str | None] = [None] * self.slots
         self.slot_of: dict[str, int] = {}  #: agent name -> its slot (the agents in slots)
+        #: the episode runs on the env's array API (a recorded scene, no FCD): the slots are
+        #: kept as fleet rows (:attr:`slot_row`, :attr:`row_slot`) instead of names
+        self.arrays = False
+        self.slot_row = np.full(self.slots, -1, np.int64)  #: fleet row of each slot (-1: free)
+        self.row_slot = np.zeros(0, np.int64)  #: slot of each fleet row (-1: none)
 
     def hello(self) -> dict:
         import socket
@@ -183,9 +194,73 @@ class SlotWorker:
                 "agent_steps": 0, "guarded": 0, "skipped": []}
 
     def _active(self) -> np.ndarray:
+        if self.arrays:
+            return self.slot_row >= 0
         active = np.zeros(self.slots, bool)
         active[list(self.slot_of.values())] = True
         return active
+
+    def _uses_arrays(self) -> bool:
+        """Whether this episode runs on the env's array API: a recorded-scene env (a city
+        env has none) recording no FCD (the dict API records its frames)."""
+        return isinstance(self.env, SumoDrivingEnv) and self.config.fcd_dir is None
+
+    def _assign_rows(self, obs: np.ndarray, live: np.ndarray, packet: dict) -> None:
+        """:meth:`_assign` over fleet rows: each live row without a slot takes the lowest
+        free one, in row order (the dict API's agent order); every slot's observation and
+        pose from ``obs`` (the array step's buffer) and the fleet."""
+        row_slot, slot_row = self.row_slot, self.slot_row
+        new = np.flatnonzero(live & (row_slot < 0))
+        if new.size:
+            free = np.flatnonzero(slot_row < 0)
+            if free.size < new.size:
+                raise VecEnvWorkerError(f"{_scenario_id(self.env)}: more than {self.slots} "
+                                        "agents alive at once")
+            ks = free[:new.size]
+            slot_row[ks] = new
+            row_slot[new] = ks
+            packet["dones"][ks] = True  # slot re-assignment = episode start of the slot
+        ks = np.flatnonzero(slot_row >= 0)
+        if ks.size:
+            rows = slot_row[ks]
+            f = self.env.fleet
+            packet["obs"][ks] = obs[rows]
+            packet["pos"][ks] = np.stack([f.x[rows], f.y[rows], f.yaw[rows]], axis=1)
+
+    def _step_arrays(self, actions: np.ndarray, packet: dict) -> None:
+        """:meth:`step` on the env's array API: the same packet, no dict per agent."""
+        env, slot_row = self.env, self.slot_row
+        ks = np.flatnonzero(slot_row >= 0)
+        rows = slot_row[ks]
+        full = np.zeros((self.row_slot.size, 2), np.float32)
+        full[rows] = actions[ks]
+        packet["agent_steps"] = int(ks.size)
+        guarded = env.guarded
+        out = env.step_arrays(full)
+        packet["guarded"] = env.guarded - guarded
+        gone = (out.terminated | out.truncated)[rows]
+        if gone.any():
+            ks_gone, rows_gone = ks[gone], rows[gone]
+            names, events = env.fleet.names, env.events
+            reasons = env.array_reasons(out, rows_gone)
+            cut = (out.truncated & ~out.terminated)[rows_gone].tolist()
+            flags = [(e, out.events[e][rows_gone].tolist()) for e in events]
+            for i, (k, r) in enumerate(zip(ks_gone.tolist(), rows_gone.tolist())):
+                packet["dones"][k] = True
+                packet["infos"][k] = {
+                    "terminal_observation": np.array(out.observations[r], np.float32),
+                    "TimeLimit.truncated": cut[i], "reason": reasons[i], "agent": names[r],
+                    "events": {e: col[i] for e, col in flags}}
+            slot_row[ks_gone] = -1
+            self.row_slot[rows_gone] = -1
+        live = out.live
+        if not live.any() and env.run_on_arrays().size:
+            live = env.fleet.active[:live.size].copy()
+        if not live.any():
+            self._reset(packet)
+            packet["episodes"] = 1
+        else:
+            self._assign_rows(out.observations, live, packet)
 
     def _reset(self, packet: dict) -> None:
         self.episode += 1
@@ -200,6 +275,13 @@ class SlotWorker:
         if cfg.start_window == "random" and hasattr(self.env, "scene"):  # not a city
             options = {"start_step": draw_start(cfg, self.env.scene.num_steps,
                                                 episode_rng(self.base_seed, self.episode))}
+        self.arrays = self._uses_arrays()
+        self.slot_row[:] = -1
+        if self.arrays:
+            out = self.env.reset_arrays(seed=self.base_seed + self.episode, options=options)
+            self.row_slot = np.full(out.live.size, -1, np.int64)
+            self._assign_rows(out.observations, out.live, packet)
+            return
         obs, _ = self.env.reset(seed=self.base_seed + self.episode, options=options)
         self._assign(obs, packet)
 
@@ -221,6 +303,9 @@ class SlotWorker:
     def step(self, actions: np.ndarray) -> dict:
         actions = np.asarray(actions, np.float32).reshape(self.slots, 2)
         packet = self._packet()
+        if self.arrays:
+            self._step_arrays(actions, packet)
+            return self._finish(packet)
         acts = {n: actions[k] for n, k in self.slot_of.items()}
         packet["agent_steps"] = len(acts)
         guarded = self.env.guarded
