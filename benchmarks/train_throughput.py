@@ -11,7 +11,7 @@
 
 CPU always, GPU too when ``torch.cuda.is_available()``. ``--config`` may be repeated;
 ``--workers 1,2`` measures each number of scene workers (``workers.count``; default: the
-config's), ``--backend process,ray`` each worker backend — Ray on a local cluster of
+config's), ``--backend process,hosted,ray`` each worker backend — Ray on a local cluster of
 ``--ray-nodes`` nodes started by the script (``ray.cluster_utils.Cluster``, the machine's cores
 shared out over the nodes; actors spread over them) — and ``--repeats R`` repeats every
 measurement and reports the median (``agent_steps_per_s_runs`` lists the runs). Every row has
@@ -26,7 +26,7 @@ the trainer and torch's update threads all need the cores (two update threads on
 2-core machine wait on each other: see the README's Benchmarks section).
 
     python benchmarks/train_throughput.py [--json] [--updates N] [--config YAML ...]
-        [--workers 1,2] [--backend process,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
+        [--workers 1,2] [--backend process,hosted,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
         [--scenes ENTRY ...] [--torch-threads-update N]
 
 ``--scenes`` trains on other pool entries than the config's, e.g. a city scenario alone
@@ -125,7 +125,7 @@ def main() -> int:
                          "configs/experiments/womd3/magail.yaml)")
     ap.add_argument("--workers", default=None,
                     help="comma-separated scene-worker counts (default: the config's)")
-    ap.add_argument("--backend", default="process", help="comma-separated: process, ray")
+    ap.add_argument("--backend", default="process", help="comma-separated: process, hosted, ray")
     ap.add_argument("--ray-nodes", default="1",
                     help="comma-separated node counts of the local Ray cluster")
     ap.add_argument("--repeats", type=int, default=1, help="runs per row (median reported)")

@@ -8,6 +8,8 @@ interface (start, send, receive with a timeout, kill). Backends are registered i
 
 * ``process`` (:class:`ProcessWorker`): a local process per worker (``spawn`` or
   ``forkserver``) over a pipe; nothing to install or start;
+* ``hosted`` (:class:`magail_sumo.env.hosted_workers.HostedWorker`): several workers per
+  local process (one process per core), a step's requests to a process in one message;
 * ``ray`` (:class:`magail_sumo.env.ray_workers.RayWorker`): a Ray actor per worker, on any
   node of a Ray cluster (the ``ray`` extra).
 
@@ -32,6 +34,7 @@ _PIPE_SAFE_BYTES = 16 * 1024
 #: backend name -> "module:class" of its :class:`WorkerHandle`
 BACKENDS = {
     "process": "magail_sumo.env.transport:ProcessWorker",
+    "hosted": "magail_sumo.env.hosted_workers:HostedWorker",
     "ray": "magail_sumo.env.ray_workers:RayWorker",
 }
 
@@ -137,6 +140,33 @@ def batch_scheduling() -> None:
         pass
 
 
+def write_bounded(conn, buf: bytes, timeout_s: float) -> bool:
+    """Write the pickled message ``buf`` to pipe ``conn``: a small one at once (requests and
+    answers alternate, so the pipe is empty and it never blocks), a large one (a ``restore``
+    replay) from a thread waited for at most ``timeout_s`` (a stopped reader reads nothing);
+    False when it was not written in time (the caller kills the reader, which ends the thread).
+    A failed write raises its error."""
+    if len(buf) <= _PIPE_SAFE_BYTES:
+        conn.send_bytes(buf)
+        return True
+    failed: list[BaseException] = []
+
+    def write() -> None:
+        try:
+            conn.send_bytes(buf)
+        except BaseException as exc:  # noqa: BLE001 - re-raised below
+            failed.append(exc)
+
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    writer.join(timeout_s)
+    if writer.is_alive():
+        return False
+    if failed:
+        raise failed[0]
+    return True
+
+
 def _process_main(conn, factory, args: tuple) -> None:
     batch_scheduling()
     state: dict = {}
@@ -182,31 +212,13 @@ class ProcessWorker(WorkerHandle):
         self.send("hello", None, 60.0)
 
     def send(self, cmd: str, arg: Any, timeout_s: float) -> None:
-        """Requests and answers alternate, so the pipe is empty here and a small message never
-        blocks; a large one (a ``restore`` replay) is written from a thread and waited for at
-        most ``timeout_s`` (a stopped worker reads nothing)."""
+        """The request, written by :func:`write_bounded` (a large one waited for at most
+        ``timeout_s``)."""
         try:
-            buf = ForkingPickler.dumps((cmd, arg))
-            if len(buf) <= _PIPE_SAFE_BYTES:
-                self.conn.send_bytes(buf)
-                return
-            failed: list[BaseException] = []
-
-            def write() -> None:
-                try:
-                    self.conn.send_bytes(buf)
-                except BaseException as exc:  # noqa: BLE001 - re-raised below
-                    failed.append(exc)
-
-            writer = threading.Thread(target=write, daemon=True)
-            writer.start()
-            writer.join(timeout_s)
-            if writer.is_alive():
+            if not write_bounded(self.conn, ForkingPickler.dumps((cmd, arg)), timeout_s):
                 self.kill()  # closes the pipe: the writer thread ends
                 raise WorkerLost(f"{self.name}: worker did not read its request within "
                                  f"{timeout_s:g} s (killed)")
-            if failed:
-                raise failed[0]
         except (BrokenPipeError, OSError, ConnectionError):
             code = self.proc.exitcode
             self.kill()

@@ -200,7 +200,10 @@ class WorkersConfig:
         at most one per scene unless the pool holds a city scenario). More workers than scenes
         run replicas: each worker one scene, with its own seed (:func:`~magail_sumo.env.
         scene_pool.shard_pool`). The resolved number is what the run records and resumes with.
-    :param backend: ``process`` (local processes, the default) or ``ray`` (Ray actors on a
+    :param backend: ``hosted`` (the default: the workers shared out over one local process
+        per core, a step's requests to a process in one message,
+        :mod:`magail_sumo.env.hosted_workers`), ``process`` (a local process per worker; the
+        same rollouts, and what ``scenes.pin_workers`` pins) or ``ray`` (Ray actors on a
         cluster; ``pip install -e ".[ray]"``).
     :param ray: Ray options.
     :param max_restarts: times in a row a worker that dies or hangs is replaced (its episode
@@ -210,7 +213,7 @@ class WorkersConfig:
     """
 
     count: int | None = None
-    backend: Literal["process", "ray"] = "process"
+    backend: Literal["process", "hosted", "ray"] = "hosted"
     ray: RayConfig = field(default_factory=RayConfig)
     max_restarts: int = 3
     scene_cache: int = SCENE_CACHE
@@ -218,8 +221,8 @@ class WorkersConfig:
     def __post_init__(self) -> None:
         check(self.count is None or self.count >= 1, "count",
               f"must be >= 1 or null, got {self.count}")
-        check(self.backend in ("process", "ray"), "backend",
-              f"must be 'process' or 'ray', got {show(self.backend)}")
+        check(self.backend in ("process", "hosted", "ray"), "backend",
+              f"must be 'process', 'hosted' or 'ray', got {show(self.backend)}")
         check(self.max_restarts >= 0, "max_restarts", f"must be >= 0, got {self.max_restarts}")
         check(self.scene_cache >= 1, "scene_cache", f"must be >= 1, got {self.scene_cache}")
 
