@@ -54,7 +54,8 @@ class ScenesConfig:
         skipped); at most 3/4 of ``worker_timeout_s`` is used.
     :param pin_workers: pin each scene worker to one core, balancing the workers' per-step cost
         (:func:`~magail_sumo.env.vec_env.place_workers`); for a machine dedicated to one run —
-        concurrent pinned runs would stack their workers on the same cores.
+        concurrent pinned runs would stack their workers on the same cores. Process backend
+        only (``workers.backend: process``); ignored by the others.
     """
 
     files: tuple[str, ...] = ("data/womd/637f20cafde22ff8.tfrecord",)
