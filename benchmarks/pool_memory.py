@@ -3,7 +3,8 @@
 A pool of ``--scenes`` distinct scene files (default 1,000) is built in a temporary folder as
 symlinks ``s0000_<name>.pkl``, ``s0001_<name>.pkl``, … cycling over the real WOMD ScenarioNet
 pickles of ``data/scenarionet/`` (the nuScenes one left out), listed with ``resolve_pool`` and
-played by ``pool_vec_env`` over ``--workers`` process workers (seed 0; ``--cache`` scene envs
+played by ``pool_vec_env`` over ``--workers`` workers of ``--backend`` (``process``: one
+process each, the default; ``hosted``: shared out over one process per core) (seed 0; ``--cache`` scene envs
 kept per worker, default ``SCENE_CACHE`` as in training; bundles converted on demand into the
 temporary folder: one per scenario id, so the 11 real scenes are converted once and every other
 file reuses its bundle, but each file is its own pool record, read and given its own env when
@@ -16,13 +17,14 @@ A row is printed right after the first reset and when 10 %, 25 %, 50 % and 100 %
 ``scenes`` episodes are done: ``episodes`` (finished), ``positions`` (distinct pool records whose
 episode finished, from each worker's seeded order), ``trainer_rss_mib`` / ``trainer_peak_mib``
 (``VmRSS`` / ``VmHWM`` of this process, from ``/proc/<pid>/status``), ``worker_rss_mib`` /
-``worker_peak_mib`` (the same, one per worker process; libsumo runs inside the worker),
+``worker_peak_mib`` (the same, one per worker process — a hosted process once; libsumo runs
+inside the worker),
 ``worker_rss_sum_mib`` and ``seconds`` since the env was made (start-up excluded:
 ``startup_s`` in the first row). A last line (``summary`` row with ``--json``) gives the growth
 of the summed worker RSS from the 10 % row to the end, in MiB and %.
 
     python benchmarks/pool_memory.py [--json] [--scenes N] [--workers W] [--max-steps S]
-        [--cache C]
+        [--cache C] [--backend process|hosted]
 """
 
 from __future__ import annotations
@@ -106,8 +108,8 @@ def _stride() -> int:
 def snapshot(venv, label: str, n_refs: int, t0: float) -> dict:
     t_rss, t_hwm = proc_mem(os.getpid())
     w_rss, w_hwm = [], []
-    for h in venv._handles:
-        r, p = proc_mem(h.pid)
+    for pid in dict.fromkeys(h.pid for h in venv._handles):  # a process once (hosted backend)
+        r, p = proc_mem(pid)
         w_rss.append(None if r is None else round(r, 1))
         w_hwm.append(None if p is None else round(p, 1))
     return {"checkpoint": label, "scenes": n_refs, "workers": len(venv.specs),
@@ -138,6 +140,9 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=8, help="env steps per episode")
     ap.add_argument("--controlled", type=int, default=4, help="controlled agents per scene")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--backend", default="process",
+                    help="worker backend: process (one process per worker) or hosted (the "
+                         "workers shared out over one process per core)")
     ap.add_argument("--cache", type=int, default=None,
                     help="scene envs each worker keeps (default: workers.scene_cache's default)")
     args = ap.parse_args()
@@ -157,7 +162,7 @@ def main() -> None:
         ts = time.perf_counter()
         venv = pool_vec_env(refs, tmp / "networks", args.workers, cfg, seed=args.seed,
                             cache=SCENE_CACHE if args.cache is None else args.cache,
-                            convert_budget_s=90, log=logs.append)
+                            convert_budget_s=90, log=logs.append, backend=args.backend)
         rows = []
         try:
             rng = np.random.default_rng(args.seed)

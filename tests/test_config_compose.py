@@ -117,10 +117,6 @@ ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "env.observation.give_way": False, "policy.action_prior": "none",
                "city.agent_tight_turns": False, "env.observation.path_leader": False,
                "city.unblock_s": 10.0, "env.observation.speed_limit": False}
-#: settings whose default changed after the flat files were frozen, without changing what a
-#: run trains: the worker backend (``hosted``: the same workers and rollouts, several per process;
-#: tests/test_hosted_workers.py)
-CHANGED_SINCE = {"workers.backend": "hosted"}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}
@@ -132,7 +128,6 @@ def test_published_config_resolves_to_its_flat_file(old):
     got = resolved(CONFIGS / MOVED[old])
     if old == "demo":
         want |= DEMO_MOVED
-    want |= CHANGED_SINCE
     for key, value in ADDED_SINCE.items():
         assert got.pop(key) == value, f"{MOVED[old]}: {key} is not {value!r}"
     assert sorted(got) == sorted(want), f"{MOVED[old]}: settings differ from configs/{old}.yaml"
@@ -167,8 +162,7 @@ def test_experiment_file_holds_only_its_change(path, tmp_path):
 def test_pretrained_cards_record_the_settings_of_their_experiment():
     """The checkpoint cards record the config each published checkpoint trained with; it is its
     experiment file's, but for the settings the card's description names (seed, worker count)
-    and the settings added to TrainConfig since (absent from the card: their defaults) or whose
-    default changed since without changing results (:data:`CHANGED_SINCE`)."""
+    and the settings added to TrainConfig since (absent from the card: their defaults)."""
     cards = {"magail_womd14": ("womd14/magail", set()),
              "decomposed_social_womd14": ("womd14/decomposed_social", set()),
              "leader_edge_guard_womd14": ("womd14/decomposed_social_leader_edge_guard",
@@ -182,9 +176,6 @@ def test_pretrained_cards_record_the_settings_of_their_experiment():
         assert f"configs/experiments/{name}.yaml" in text["description"]
         got = resolved(CONFIGS / "experiments" / f"{name}.yaml")
         for key, value in flat(text["config"]).items():
-            if key in CHANGED_SINCE and value in ("process", None):  # trained before the change
-                assert got[key] == CHANGED_SINCE[key], f"{card}: {key}"
-                continue
             if key not in named:
                 assert got[key] == value, f"{card}: {key} {value!r}, {name}.yaml {got[key]!r}"
         stems = [Path(f).name for f in text["config"]["scenes"]["files"]]
@@ -362,7 +353,7 @@ def test_train_set_changes_settings_and_records_them(capsys):
     changed = {"updates", "seed", "env.observation.leader", "scenes.files",
                "discriminator.transformer.embed_dim"}
     assert {k: v for k, v in flat(cfg).items() if k not in changed} == \
-        {k: v for k, v in {**want, **ADDED_SINCE, **CHANGED_SINCE}.items() if k not in changed}
+        {k: v for k, v in {**want, **ADDED_SINCE}.items() if k not in changed}
     # later --set win; --set scenes.split / part take the scenes from a split
     code, cfg, _ = train_cli(capsys, "--config", demo, "--set", "updates=2", "--set", "updates=4",
                              "--set", f"scenes.split={SPLIT}", "--set", "scenes.part=test")
@@ -453,7 +444,7 @@ def test_run_record_holds_the_resolved_config(tmp_path):
     assert flat(recorded) == resolved(path, ["updates=3"])
     want = flat(json.loads((RESOLVED / "womd14_decomposed_social_leader_edge_guard_eol.json")
                            .read_text()))
-    assert flat(recorded) == {**want, **ADDED_SINCE, **CHANGED_SINCE, "updates": 3}
+    assert flat(recorded) == {**want, **ADDED_SINCE, "updates": 3}
     assert load_config(run / "config.yaml", TrainConfig) == cfg  # a plain config: loads as is
 
 

@@ -1,5 +1,6 @@
-"""The ``hosted`` worker backend: several scene workers per local process, the same rollouts as
-one process per worker, and a lost process's workers replaced with their episodes replayed."""
+"""The ``hosted`` worker backend: several scene workers per local process (those that run no
+SUMO), the same rollouts as one process per worker, and a lost process's workers replaced with
+their episodes replayed."""
 
 from __future__ import annotations
 
@@ -90,6 +91,26 @@ def test_a_lost_host_process_is_replaced_exactly(specs, how):
             venv.step(np.zeros((venv.num_envs, 2), np.float32))
     finally:
         venv.close()
+
+
+def test_workers_that_run_sumo_get_a_process_each(specs):
+    """libsumo runs one simulation per process: with the SUMO mirror every worker is alone in
+    its process, and the rollouts are the process backend's."""
+    cfg = EnvConfig(controlled=3, max_steps=12)  # the SUMO mirror on (the default)
+    want_venv = MultiSceneVecEnv(specs[:3], cfg, seed=2, backend="process")
+    try:
+        want = roll_random(want_venv, 20)
+    finally:
+        want_venv.close()
+    venv = MultiSceneVecEnv(specs[:3], cfg, seed=2, backend="hosted",
+                            backend_options={"processes": 2})
+    try:
+        assert len({h.pid for h in venv._handles}) == 3
+        got = roll_random(venv, 20)
+    finally:
+        venv.close()
+    for a, b in zip(want, got):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_training_config_takes_the_hosted_backend():

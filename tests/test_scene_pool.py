@@ -293,7 +293,7 @@ def test_train_on_a_pool_folder_lists_skipped_scenes_and_resumes(pool_dir, tmp_p
     run = train(from_dict(TrainConfig, raw), tmp_path / "run", log=logs.append)
     want = min(4, usable_cores())
     # (a worker left with only the broken file is dropped at start: one fewer on > 3 cores)
-    assert any(m.startswith("scene pool: 4 scene(s) over ") and " hosted worker(s)" in m
+    assert any(m.startswith("scene pool: 4 scene(s) over ") and " process worker(s)" in m
                for m in logs), logs
     assert yaml.safe_load((run / "config.yaml").read_text())["workers"]["count"] == want
     lines = (run / "skipped_scenes.tsv").read_text().splitlines()

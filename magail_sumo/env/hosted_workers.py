@@ -6,10 +6,13 @@ recipe has 10 workers on a 2-core machine, so each vector step costs the trainer
 writes (each one wakes a process that competes with the trainer for the cores) and 10 reads.
 This backend keeps one :class:`~magail_sumo.env.slot_worker.SlotWorker` per scene source, as
 the process backend does (the same seeds, requests and answers, so the same rollouts), but
-places them round-robin in one process per usable core (at most one per worker; option
-``processes``): a step's requests to a process's workers go in one message once each of them
-has one (or when the trainer waits for one of them), the process answers them in order in one
-message. A worker started to replace a lost one runs in a process of its own.
+places the workers that run no SUMO (recorded scenes with log background and no SUMO mirror,
+the training recipe's setting) round-robin in one process per usable core (at most one per
+worker; option ``processes``): a step's requests to a process's workers go in one message once
+each of them has one (or when the trainer waits for one of them), the process answers them in
+order in one message. A worker that may run SUMO (:func:`~magail_sumo.env.slot_worker.
+runs_sumo`: libsumo runs one simulation per process) and a worker started to replace a lost one
+run in a process of their own.
 
 Faults are the process backend's: a process that dies or does not answer in time loses every
 worker it holds; each raises :class:`~magail_sumo.env.transport.WorkerLost` and the vector env
@@ -24,6 +27,7 @@ import os
 from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
+from .slot_worker import runs_sumo
 from .transport import (WorkerFailed, WorkerHandle, WorkerLost, batch_scheduling, serve,
                         write_bounded)
 
@@ -174,15 +178,20 @@ class _HostPool:
 
     def __init__(self, workers: int, processes: int, start_method: str) -> None:
         self.ctx = mp.get_context(start_method)
-        self.hosts = [_Host(self.ctx, f"scene workers {p}") for p in range(processes)]
+        self.shared = [_Host(self.ctx, f"scene workers {p}") for p in range(processes)]
+        self.hosts = list(self.shared)
         self.workers = workers
-        self.placed = 0
+        self.placed = 0  #: workers placed so far
+        self.sharing = 0  #: of them, placed in a shared host
 
-    def place(self) -> _Host:
+    def place(self, alone: bool) -> _Host:
+        """The host of the next worker: a shared one in turn, or (``alone``: it may run SUMO;
+        or a replacement) a new one of its own."""
         k, self.placed = self.placed, self.placed + 1
-        if k < self.workers:
-            return self.hosts[k % len(self.hosts)]
-        host = _Host(self.ctx, f"scene worker replacement {k - self.workers}")
+        if k < self.workers and not alone:
+            self.sharing += 1
+            return self.shared[(self.sharing - 1) % len(self.shared)]
+        host = _Host(self.ctx, f"scene worker {k}")
         self.hosts.append(host)
         return host
 
@@ -200,7 +209,9 @@ class HostedWorker(WorkerHandle):
         options["hosts"] = _HostPool(workers, processes, options.get("start_method", "spawn"))
 
     def start(self) -> None:
-        self.host = self.options["hosts"].place()
+        # the scene workers' arguments: (source, config, seed, slots), see make_worker
+        alone = len(self.args) >= 2 and runs_sumo(self.args[0], self.args[1])
+        self.host = self.options["hosts"].place(alone)
         self.i = self.host.add()
         self.proc = self.host.proc
         self.pid = self.proc.pid

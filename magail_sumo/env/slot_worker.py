@@ -29,10 +29,10 @@ from magail_sumo.sensors.observation import observation_bounds
 
 from .config import SCENE_CACHE, EnvConfig, draw_start
 from .driving_env import SumoDrivingEnv
-from .scene_pool import PoolCursor, max_concurrent_agents
+from .scene_pool import PoolCursor, is_city, max_concurrent_agents
 
 __all__ = ["PoolSpec", "SceneSpec", "SlotWorker", "VecEnvWorkerError", "episode_rng",
-           "load_spec_scene", "make_worker", "max_concurrent_agents"]
+           "load_spec_scene", "make_worker", "max_concurrent_agents", "runs_sumo"]
 
 
 class VecEnvWorkerError(MagailSumoError):
@@ -344,6 +344,15 @@ class SlotWorker:
     def close(self) -> None:
         self.env.close()
         self.cursor.close()
+
+
+def runs_sumo(source, config: EnvConfig) -> bool:
+    """Whether a worker of ``source`` may run a SUMO simulation (libsumo runs one per process,
+    so such a worker needs a process of its own): recorded scenes with SUMO background or the
+    SUMO mirror, or a pool shard holding a city scenario."""
+    if config.sumo_mirror or config.background != "log":
+        return True
+    return isinstance(source, PoolSpec) and any(is_city(r) for r in source.refs)
 
 
 def make_worker(source, config: EnvConfig, seed: int, slots: int | None) -> SlotWorker:

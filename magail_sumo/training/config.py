@@ -201,11 +201,12 @@ class WorkersConfig:
         at most one per scene unless the pool holds a city scenario). More workers than scenes
         run replicas: each worker one scene, with its own seed (:func:`~magail_sumo.env.
         scene_pool.shard_pool`). The resolved number is what the run records and resumes with.
-    :param backend: ``hosted`` (the default: the workers shared out over one local process
-        per core, a step's requests to a process in one message,
-        :mod:`magail_sumo.env.hosted_workers`), ``process`` (a local process per worker; the
-        same rollouts, and what ``scenes.pin_workers`` pins) or ``ray`` (Ray actors on a
-        cluster; ``pip install -e ".[ray]"``).
+    :param backend: ``process`` (a local process per worker, the default; what
+        ``scenes.pin_workers`` pins), ``hosted`` (the workers that run no SUMO — recorded scenes
+        with log background and no SUMO mirror — shared out over one local process per core, a
+        step's requests to a process in one message; the same rollouts,
+        :mod:`magail_sumo.env.hosted_workers`) or ``ray`` (Ray actors on a cluster;
+        ``pip install -e ".[ray]"``).
     :param ray: Ray options.
     :param max_restarts: times in a row a worker that dies or hangs is replaced (its episode
         replayed) before the run stops with its last checkpoint.
@@ -214,7 +215,7 @@ class WorkersConfig:
     """
 
     count: int | None = None
-    backend: Literal["process", "hosted", "ray"] = "hosted"
+    backend: Literal["process", "hosted", "ray"] = "process"
     ray: RayConfig = field(default_factory=RayConfig)
     max_restarts: int = 3
     scene_cache: int = SCENE_CACHE
