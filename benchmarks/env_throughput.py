@@ -275,21 +275,27 @@ WINDOW_VARIANTS = {
 }
 
 
+def _window_bundles(tmp: Path):
+    """(file, scene, bundle folder) of each window scene, converted into ``tmp``."""
+    from converters import find_scene
+
+    for f in WINDOW_SCENES:
+        scene = find_scene(f, None)
+        rep = convert_scene(scene, tmp, ConvertOptions(baseline=False))
+        if rep.status != "ok":
+            raise SystemExit(f"{f}: conversion failed: {rep.reason}")
+        yield f, scene, tmp / scene.scenario_id
+
+
 def run_windows(args, measure: str = WINDOWS) -> list[dict]:
     """Training's random 80-step windows (reset included, expert actions) of the window scenes
     under the two env variants of ``measure`` (:data:`WINDOW_VARIANTS`); medians of the
     repeats."""
-    from converters import find_scene
-
     rows = []
     (la, ca), (lb, cb) = WINDOW_VARIANTS[measure]
     with tempfile.TemporaryDirectory() as tmp:
-        for f in WINDOW_SCENES:
-            scene = find_scene(f, None)
-            rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
-            if rep.status != "ok":
-                raise SystemExit(f"{f}: conversion failed: {rep.reason}")
-            envs = {lab: SumoDrivingEnv(scene, Path(tmp) / scene.scenario_id, EnvConfig(
+        for f, scene, bundle in _window_bundles(Path(tmp)):
+            envs = {lab: SumoDrivingEnv(scene, bundle, EnvConfig(
                 controlled="all", terminate_on=(), limits=REPLAY_LIMITS, start_window="random",
                 max_steps=80, min_history=10, **over)) for lab, over in ((la, ca), (lb, cb))}
             rates: dict[str, list[float]] = {la: [], lb: []}
@@ -328,19 +334,14 @@ def _worker_steps(worker, steps: int) -> tuple[float, int]:
 
 def run_worker(args) -> list[dict]:
     """The scene worker on the array API against the dict API (module doc)."""
-    from converters import find_scene
     from magail_sumo.env.slot_worker import SceneSpec, SlotWorker
 
     cfg = EnvConfig(start_window="random", max_steps=80, min_history=10, sumo_mirror=False,
                     terminate_on=("collision", "off_road"))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for f in WINDOW_SCENES:
-            scene = find_scene(f, None)
-            rep = convert_scene(scene, Path(tmp), ConvertOptions(baseline=False))
-            if rep.status != "ok":
-                raise SystemExit(f"{f}: conversion failed: {rep.reason}")
-            spec = SceneSpec(str(f), str(Path(tmp) / scene.scenario_id), scene.scenario_id)
+        for f, scene, bundle in _window_bundles(Path(tmp)):
+            spec = SceneSpec(str(f), str(bundle), scene.scenario_id)
             workers = {lab: SlotWorker(spec, cfg, seed=0, slots=None)
                        for lab in ("dicts", "arrays")}
             workers["dicts"]._uses_arrays = lambda: False  # the worker's former path

@@ -164,6 +164,26 @@ def real_scene(real_scene_file):
     return load_scene(real_scene_file)
 
 
+def killed_worker_ends_the_env(venv) -> None:
+    """With no replacement allowed (``max_restarts=0``): killing worker 0's process makes the
+    next step raise ``VecEnvWorkerError`` saying it died; the env is closed after."""
+    import os
+    import signal
+
+    import numpy as np
+    import pytest
+
+    from magail_sumo.env.vec_env import VecEnvWorkerError
+
+    try:
+        venv.reset()
+        os.kill(venv._handles[0].pid, signal.SIGKILL)
+        with pytest.raises(VecEnvWorkerError, match="died"):
+            venv.step(np.zeros((venv.num_envs, 2), np.float32))
+    finally:
+        venv.close()
+
+
 def roll_random(venv, steps: int, seed: int = 0, hook=None) -> list:
     """Observations of a vector env over a reset and ``steps`` steps of uniform random actions
     (seeded); ``hook(t, venv)`` runs before step ``t`` (to inject a fault, grab the state)."""

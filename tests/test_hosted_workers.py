@@ -10,10 +10,10 @@ import signal
 import numpy as np
 import pytest
 
-from conftest import WOMD_DIR, roll_random
+from conftest import WOMD_DIR, killed_worker_ends_the_env, roll_random
 from magail_sumo.env import EnvConfig
 from magail_sumo.env.scene_specs import scene_specs
-from magail_sumo.env.vec_env import MultiSceneVecEnv, VecEnvWorkerError
+from magail_sumo.env.vec_env import MultiSceneVecEnv
 from magail_sumo.training.config import WorkersConfig
 
 CFG = EnvConfig(start_window="random", max_steps=30, sumo_mirror=False,
@@ -83,14 +83,8 @@ def test_a_lost_host_process_is_replaced_exactly(specs, how):
         np.testing.assert_array_equal(a, b)
     assert len([m for m in logs if "replaced" in m and "replayed" in m]) == 2
     # no replacement allowed: one line naming the cause
-    venv = MultiSceneVecEnv(specs, CFG, seed=6, backend="hosted", max_restarts=0)
-    try:
-        venv.reset()
-        os.kill(venv._handles[0].pid, signal.SIGKILL)
-        with pytest.raises(VecEnvWorkerError, match="died"):
-            venv.step(np.zeros((venv.num_envs, 2), np.float32))
-    finally:
-        venv.close()
+    killed_worker_ends_the_env(MultiSceneVecEnv(specs, CFG, seed=6, backend="hosted",
+                                                max_restarts=0))
 
 
 def test_workers_that_run_sumo_get_a_process_each(specs):

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import WOMD_DIR, roll_random
+from conftest import WOMD_DIR, killed_worker_ends_the_env, roll_random
 from converters.scene_files import RecordRef, list_records, read_record
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.env.scene_pool import (PoolCursor, agent_bound, resolve_pool, shard_pool,
                                         write_skipped)
-from magail_sumo.env.vec_env import VecEnvWorkerError, pool_vec_env
+from magail_sumo.env.vec_env import pool_vec_env
 
 ROOT = Path(__file__).resolve().parents[1]
 SN = ROOT / "data" / "scenarionet"
@@ -260,14 +260,7 @@ def test_lost_worker_is_replaced_and_the_rollout_goes_on_unchanged(how, bundled_
     assert ("died" if how == "kill" else "did not answer within 4 s") in line
     assert "replaced" in line and "replayed" in line
     # no replacement allowed: the env gives up with one line
-    venv = pool_vec_env(refs, nets, 2, CFG, seed=9, max_restarts=0)
-    try:
-        venv.reset()
-        os.kill(venv._handles[0].pid, signal.SIGKILL)
-        with pytest.raises(VecEnvWorkerError, match="died"):
-            venv.step(np.zeros((venv.num_envs, 2), np.float32))
-    finally:
-        venv.close()
+    killed_worker_ends_the_env(pool_vec_env(refs, nets, 2, CFG, seed=9, max_restarts=0))
 
 
 @pytest.mark.sumo

@@ -29,7 +29,7 @@ from typing import Any
 
 from .slot_worker import runs_sumo
 from .transport import (WorkerFailed, WorkerHandle, WorkerLost, batch_scheduling, serve,
-                        write_bounded)
+                        stop_process, write_bounded)
 
 
 def _host_main(conn) -> None:
@@ -159,27 +159,21 @@ class _Host:
         self.pending.pop(i, None)
 
     def kill(self) -> None:
-        proc = self.proc
-        if proc is None:
+        if self.proc is None:
             return
-        if proc.is_alive():
-            proc.terminate()
-            proc.join(2.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(1.0)
+        stop_process(self.proc)
         self.conn.close()
         self.lost = self.lost or f"{self.name}: worker process killed"
 
 
 class _HostPool:
-    """The host processes of one vector env: the first ``workers`` members placed
-    round-robin over ``processes`` hosts, every later one (a replacement) in a new host."""
+    """The host processes of one vector env: of the first ``workers`` members, those that
+    may share placed round-robin over ``processes`` hosts; the others and every later one (a
+    replacement) each in a new host."""
 
     def __init__(self, workers: int, processes: int, start_method: str) -> None:
         self.ctx = mp.get_context(start_method)
         self.shared = [_Host(self.ctx, f"scene workers {p}") for p in range(processes)]
-        self.hosts = list(self.shared)
         self.workers = workers
         self.placed = 0  #: workers placed so far
         self.sharing = 0  #: of them, placed in a shared host
@@ -191,9 +185,7 @@ class _HostPool:
         if k < self.workers and not alone:
             self.sharing += 1
             return self.shared[(self.sharing - 1) % len(self.shared)]
-        host = _Host(self.ctx, f"scene worker {k}")
-        self.hosts.append(host)
-        return host
+        return _Host(self.ctx, f"scene worker {k}")
 
 
 class HostedWorker(WorkerHandle):

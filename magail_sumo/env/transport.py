@@ -167,6 +167,16 @@ def write_bounded(conn, buf: bytes, timeout_s: float) -> bool:
     return True
 
 
+def stop_process(proc) -> None:
+    """Stop a worker process now: ``terminate``, then ``kill`` if it is still alive 2 s later."""
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(2.0)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(1.0)
+
+
 def _process_main(conn, factory, args: tuple) -> None:
     batch_scheduling()
     state: dict = {}
@@ -248,12 +258,7 @@ class ProcessWorker(WorkerHandle):
         proc = getattr(self, "proc", None)
         if proc is None:
             return
-        if proc.is_alive():
-            proc.terminate()
-            proc.join(2.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(1.0)
+        stop_process(proc)
         self.conn.close()
 
     def close(self, timeout_s: float = 5.0) -> None:
