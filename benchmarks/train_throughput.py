@@ -11,11 +11,12 @@
 
 CPU always, GPU too when ``torch.cuda.is_available()``. ``--config`` may be repeated;
 ``--workers 1,2`` measures each number of scene workers (``workers.count``; default: the
-config's), ``--backend process,hosted,ray`` each worker backend — Ray on a local cluster of
+config's), ``--scenes-per-env 1,5`` each number of recorded scenes a worker steps as one tiled
+env (``workers.scenes_per_env``), ``--backend process,hosted,ray`` each worker backend — Ray on a local cluster of
 ``--ray-nodes`` nodes started by the script (``ray.cluster_utils.Cluster``, the machine's cores
 shared out over the nodes; actors spread over them) — and ``--repeats R`` repeats every
 measurement and reports the median (``agent_steps_per_s_runs`` lists the runs). Every row has
-``device``, ``config``, ``backend``, ``workers``, ``nodes``, ``agent_steps_per_s``,
+``device``, ``config``, ``backend``, ``workers``, ``scenes_per_env``, ``nodes``, ``agent_steps_per_s``,
 ``disc_tokens_per_s`` and, when the same config/backend/device was measured with one worker,
 ``efficiency`` = rate / (workers × one-worker rate). ``--pin-workers`` pins process workers to
 cores (``scenes.pin_workers``). ``--torch-threads-update N`` overrides the config's
@@ -26,7 +27,7 @@ the trainer and torch's update threads all need the cores (two update threads on
 2-core machine wait on each other: see the README's Benchmarks section).
 
     python benchmarks/train_throughput.py [--json] [--updates N] [--config YAML ...]
-        [--workers 1,2] [--backend process,hosted,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
+        [--workers 1,2] [--scenes-per-env 1,5] [--backend process,hosted,ray] [--ray-nodes 1,2] [--repeats R] [--pin-workers]
         [--scenes ENTRY ...] [--torch-threads-update N]
 
 ``--scenes`` trains on other pool entries than the config's, e.g. a city scenario alone
@@ -126,6 +127,9 @@ def main() -> int:
     ap.add_argument("--workers", default=None,
                     help="comma-separated scene-worker counts (default: the config's)")
     ap.add_argument("--backend", default="process", help="comma-separated: process, hosted, ray")
+    ap.add_argument("--scenes-per-env", default=None,
+                    help="comma-separated workers.scenes_per_env values (recorded scenes a "
+                         "worker steps as one tiled env; default: the config's)")
     ap.add_argument("--ray-nodes", default="1",
                     help="comma-separated node counts of the local Ray cluster")
     ap.add_argument("--repeats", type=int, default=1, help="runs per row (median reported)")
@@ -142,6 +146,8 @@ def main() -> int:
     configs = args.config or [ROOT / "configs" / "experiments" / "womd3" / "magail.yaml"]
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     workers = [None] if args.workers is None else [int(w) for w in args.workers.split(",")]
+    per_env = [None] if args.scenes_per_env is None else \
+        [int(k) for k in args.scenes_per_env.split(",")]
     setups = []
     for backend in args.backend.split(","):
         nodes = [int(n) for n in args.ray_nodes.split(",")] if backend == "ray" else [1]
@@ -153,10 +159,11 @@ def main() -> int:
             for backend, nodes in setups:
                 cluster = _start_cluster(nodes) if backend == "ray" else None
                 try:
-                    for w in workers:
+                    for w, k in [(w, k) for w in workers for k in per_env]:
                         for row in _measure(path, base, devices, args, Path(tmp), backend,
-                                            nodes, w, cluster):
-                            key = (row["config"], row["backend"], row["nodes"], row["device"])
+                                            nodes, w, cluster, k):
+                            key = (row["config"], row["backend"], row["nodes"], row["device"],
+                                   row["scenes_per_env"])
                             if row["workers"] == 1:
                                 one[key] = row["agent_steps_per_s"]
                             if key in one:
@@ -196,13 +203,14 @@ def _print(row: dict, args) -> None:
         return
     eff = f", efficiency {row['efficiency']:.2f}" if "efficiency" in row else ""
     print(f"{row['config']} {row['device']} {row['backend']} x{row['workers']} workers "
-          f"({row['nodes']} node(s)): whole loop {row['agent_steps_per_s']:.0f} agent-steps/s "
+          f"({row['nodes']} node(s), {row['scenes_per_env']} scene(s) per env): whole loop {row['agent_steps_per_s']:.0f} agent-steps/s "
           f"(runs {row['agent_steps_per_s_runs']}){eff}; discriminator fwd+bwd "
           f"{row['disc_tokens_per_s']:.0f} tokens/s", flush=True)
 
 
 def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
-             backend: str, nodes: int, workers: int | None, cluster) -> list[dict]:
+             backend: str, nodes: int, workers: int | None, cluster,
+             per_env: int | None = None) -> list[dict]:
     """The rows of one config and worker setup (expert data recorded once per layout)."""
     nets = tmp / "networks"
     files = [str(ROOT / f) if not Path(f).is_absolute() else f for f in base.scenes.files]
@@ -221,6 +229,7 @@ def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
                       scenes=replace(base.scenes, files=tuple(files), networks=str(nets),
                                      pin_workers=args.pin_workers or base.scenes.pin_workers),
                       workers=replace(w, backend=backend, count=workers or w.count,
+                                      scenes_per_env=per_env or w.scenes_per_env,
                                       ray=replace(w.ray, address=None if cluster is None
                                                   else cluster.address)))
         if args.torch_threads_update is not None:
@@ -235,6 +244,7 @@ def _measure(path: Path, base: TrainConfig, devices: list[str], args, tmp: Path,
             f"{path.name}[{','.join(Path(f).name for f in args.scenes)}]"
         rows.append({"device": device, "config": name, "backend": backend,
                      "workers": loop["workers"], "nodes": nodes,
+                     "scenes_per_env": cfg.workers.scenes_per_env,
                      "torch_threads_update": cfg.torch_threads_update or cfg.torch_threads,
                      "agent_steps_per_s": float(np.median(runs)),
                      "agent_steps_per_s_runs": runs, "disc_tokens_per_s": round(tok, 1)})

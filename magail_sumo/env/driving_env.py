@@ -97,21 +97,22 @@ class SumoDrivingEnv(FleetEnv):
     """Multi-agent driving in a recorded scene co-simulated with SUMO (module doc).
 
     :param scene: the recorded scene, or a scene file path (WOMD / ScenarioNet).
-    :param bundle: folder with the scene's SUMO files (``convert_scene``'s ``DIR/<id>``).
+    :param bundle: folder with the scene's SUMO files (``convert_scene``'s ``DIR/<id>``), or that
+        bundle already read (a :class:`~converters.sumo.bundle.SceneBundle`).
     """
 
     metadata = {"name": "magail_sumo_v0", "render_modes": ["rgb_array"], "render_fps": 10}
     events = EVENTS
     always_reasons = ("end_of_life",)
 
-    def __init__(self, scene: Scene | str | Path, bundle: str | Path,
+    def __init__(self, scene: Scene | str | Path, bundle: str | Path | SceneBundle,
                  config: EnvConfig | None = None, render_mode: str | None = None) -> None:
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.scene = scene
-        self.bundle = SceneBundle.load(scene, bundle)
+        self.bundle = bundle if isinstance(bundle, SceneBundle) else SceneBundle.load(scene, bundle)
         self.config = cfg = config or EnvConfig()
         self.action_counts = dict.fromkeys(ACTION_COUNTS, 0)
         self.guarded = 0  # agent-steps whose acceleration the gap guard lowered
@@ -135,7 +136,7 @@ class SumoDrivingEnv(FleetEnv):
         #: (scenery SUMO holds where it was recorded) unless the scene names them (the SDC, the
         #: tracks to predict); a vehicle standing on a lane the whole log (waiting in traffic)
         #: may be one
-        named = {scene.sdc_track_index, *(p.track_index for p in scene.tracks_to_predict)}
+        named = {*self._sdc_rows(), *(p.track_index for p in scene.tracks_to_predict)}
         self._drivers = np.array([r for r, v in zip(self.bundle.sumo_rows.tolist(),
                                                      self.bundle.sumo_ids)
                                   if v not in self.bundle.spaces or r in named], np.int64)
@@ -156,8 +157,7 @@ class SumoDrivingEnv(FleetEnv):
             if cfg.observation.command or cfg.observation.route_points else None
         self.stop_lines = StopLines.build(scene)
         #: WOSAC's off-road test (``off_road_rule: road_edge`` in a scene with road edges)
-        self._edges = RoadEdgeRule.build(scene, cfg.off_road_edge_margin, self._length,
-                                         self._width) if cfg.off_road_rule == "road_edge" else None
+        self._edges = self._edge_rule() if cfg.off_road_rule == "road_edge" else None
         low, high = observation_bounds(cfg.observation)
         # one space per agent (each seeded on its own at reset), copied from one built space:
         # building a Box checks its bounds (~80 µs), a batched env has thousands of agents
@@ -183,6 +183,15 @@ class SumoDrivingEnv(FleetEnv):
 
     def action_space(self, agent: str) -> spaces.Box:
         return self._act_spaces[agent]
+
+    def _sdc_rows(self) -> tuple[int, ...]:
+        """Track rows of the scene's self-driving vehicle (a tiled scene has one per tile)."""
+        return (self.scene.sdc_track_index,)
+
+    def _edge_rule(self) -> RoadEdgeRule | None:
+        """The road-edge off-road rule of the scene (None: no road edge; the lane rule)."""
+        return RoadEdgeRule.build(self.scene, self.config.off_road_edge_margin, self._length,
+                                  self._width)
 
     def _ctrl_depends_on_start(self) -> bool:
         return not isinstance(self.config.controlled, str)

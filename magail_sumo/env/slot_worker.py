@@ -30,6 +30,7 @@ from magail_sumo.sensors.observation import observation_bounds
 from .config import SCENE_CACHE, EnvConfig, draw_start
 from .driving_env import SumoDrivingEnv
 from .scene_pool import PoolCursor, is_city, max_concurrent_agents
+from .tile_pool import TileCursor
 
 __all__ = ["PoolSpec", "SceneSpec", "SlotWorker", "VecEnvWorkerError", "episode_rng",
            "load_spec_scene", "make_worker", "max_concurrent_agents", "runs_sumo"]
@@ -75,6 +76,8 @@ class PoolSpec:
     convert_budget_s: float | None = 600.0
     #: :class:`~magail_sumo.env.city_env.CityEnvConfig` of the pool's city scenarios
     city: Any = None
+    #: recorded scenes stepped as one tiled env (:mod:`magail_sumo.env.tile_pool`; 1: one)
+    scenes_per_env: int = 1
 
     @property
     def name(self) -> str:
@@ -127,6 +130,8 @@ class SlotWorker:
         if isinstance(source, PoolSpec):
             self.cursor = PoolCursor(source.refs, source.networks, seed, make_env, config,
                                      source.cache, source.convert_budget_s, source.city)
+            if source.scenes_per_env > 1:  # several recorded scenes as one tiled env
+                self.cursor = TileCursor(self.cursor, source.scenes_per_env, config)
         else:
             self.cursor = _FixedScene(source, make_env)
         self.config = config

@@ -272,13 +272,15 @@ class MultiSceneVecEnv(WorkerSupervisor, VecEnv):
 
 def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
                  config: EnvConfig | None = None, seed: int = 0, *, cache: int = SCENE_CACHE,
-                 convert_budget_s: float | None = 90.0, city=None, log=None, **kwargs
-                 ) -> MultiSceneVecEnv:
+                 convert_budget_s: float | None = 90.0, city=None, log=None,
+                 scenes_per_env: int = 1, **kwargs) -> MultiSceneVecEnv:
     """A :class:`MultiSceneVecEnv` over a scene pool: ``refs``
     (:func:`~magail_sumo.env.scene_pool.resolve_pool`) sharded over ``workers`` workers
     (:func:`~magail_sumo.env.scene_pool.shard_pool`), bundles converted on demand into
     ``networks``; ``city`` configures the pool's city scenarios
-    (:class:`~magail_sumo.env.city_env.CityEnvConfig`). A worker none of whose scenes can be used at start-up has its scenes
+    (:class:`~magail_sumo.env.city_env.CityEnvConfig`); ``scenes_per_env`` > 1: each worker
+    steps that many recorded scenes as one tiled env (:mod:`~magail_sumo.env.tile_pool`). A
+    worker none of whose scenes can be used at start-up has its scenes
     reported as skipped (``venv.skipped``) and the pool is sharded again without them.
     ``kwargs`` go to :class:`MultiSceneVecEnv` (timeout, backend, restarts, ...)."""
     refs = list(refs)
@@ -289,8 +291,8 @@ def pool_vec_env(refs: Sequence, networks: str | Path, workers: int,
             raise ScenePoolError("no scene of the pool can be used" + (
                 f"; first: {skipped[0][0]}: {skipped[0][1]}" if skipped else ""))
         shards = shard_pool(refs, workers)
-        specs = [PoolSpec(tuple(sh), str(networks), cache, convert_budget_s, city)
-                 for sh in shards]
+        specs = [PoolSpec(tuple(sh), str(networks), cache, convert_budget_s, city,
+                          scenes_per_env) for sh in shards]
         try:
             venv = MultiSceneVecEnv(specs, config, seed, log=log, **kwargs)
         except WorkerStartError as exc:

@@ -205,9 +205,12 @@ class Sensor(ABC):
     """One block of the observation vector (module doc).
 
     :cvar name: registry name (:func:`register`).
+    :cvar scene_frame: the block reads scene-frame coordinates (a translation of the map
+        changes it: such a sensor cannot observe a tiled scene, :mod:`magail_sumo.scene.tiling`).
     """
 
     name: ClassVar[str]
+    scene_frame: ClassVar[bool] = False
 
     def __init__(self, config: "ObservationConfig", maps: SensorMaps) -> None:
         self.config = config

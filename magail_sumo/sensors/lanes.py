@@ -21,7 +21,8 @@ class LaneQuery:
     """Per-point result of :meth:`LaneIndex.query` (A = number of points).
 
     :param lane: (A,) index of the nearest lane whose direction is within 90° of the query
-        heading (-1 when none lies within the grid cell).
+        heading (-1 when none lies within the grid cell size: the same answer wherever the
+        grid's cells fall).
     :param lateral: (A,) signed distance to that lane's centre line (m, positive = the point
         lies left of the lane direction); 0 when ``lane`` is -1.
     :param heading_error: (A,) query heading minus lane direction, wrapped to [-pi, pi) (rad).
@@ -33,6 +34,10 @@ class LaneQuery:
     lateral: np.ndarray
     heading_error: np.ndarray
     distance: np.ndarray
+
+
+#: squared distances (m²) this close count as a tie between two lane segments
+_TIE = 1e-9
 
 
 @numba.njit(cache=True)
@@ -49,6 +54,7 @@ def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, it
         cy = int(np.floor((oy - y0) / cell))
         best_any = cell * cell
         best_al = np.inf
+        best_k = -1
         for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
             for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
                 c = gx * ny + gy
@@ -63,11 +69,17 @@ def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, it
                     d2 = qx * qx + qy * qy
                     if d2 < best_any:
                         best_any = d2
-                    if ll < 1e-12 or d2 >= best_al:
+                    # within the cell size only: a segment is listed in every cell its bounding
+                    # box overlaps, so one farther away may or may not be among the 3 x 3 cells
+                    # visited, depending on where the grid's cells fall; of (near) ties (the
+                    # two segments at a vertex) the lower segment wins, whatever the visit order
+                    if ll < 1e-12 or d2 >= cell * cell or d2 > best_al + _TIE or \
+                            (d2 >= best_al - _TIE and k > best_k):
                         continue
                     if ex * ch + ey * sh <= 0.0:  # lane runs against the heading
                         continue
                     best_al = d2
+                    best_k = k
                     n = np.sqrt(ll)
                     lane[i] = owner[k]
                     lateral[i] = (ex * wy - ey * wx) / n

@@ -19,6 +19,7 @@ import torch
 from magail_sumo.config import ConfigError, FieldError, check, check_positive, check_sizes, show
 from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig
 from magail_sumo.env.config import SCENE_CACHE, EnvConfig
+from magail_sumo.env.tiled import config_problem as tiled_config_problem
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import SetEncoderConfig, TransformerConfig
@@ -212,6 +213,10 @@ class WorkersConfig:
         replayed) before the run stops with its last checkpoint.
     :param scene_cache: scene envs each worker keeps built (the most recent; default
         :data:`~magail_sumo.env.config.SCENE_CACHE`).
+    :param scenes_per_env: recorded scenes a worker steps at once as one fleet (a tiled env,
+        :mod:`magail_sumo.env.tile_pool`: the step's fixed cost paid once for them all; its
+        scenes share the episode's start step and clock); 1: one scene per episode. Needs log
+        background without the SUMO mirror, no city in the pool, and ego-frame observations.
     """
 
     count: int | None = None
@@ -219,6 +224,7 @@ class WorkersConfig:
     ray: RayConfig = field(default_factory=RayConfig)
     max_restarts: int = 3
     scene_cache: int = SCENE_CACHE
+    scenes_per_env: int = 1
 
     def __post_init__(self) -> None:
         check(self.count is None or self.count >= 1, "count",
@@ -227,6 +233,8 @@ class WorkersConfig:
               f"must be 'process', 'hosted' or 'ray', got {show(self.backend)}")
         check(self.max_restarts >= 0, "max_restarts", f"must be >= 0, got {self.max_restarts}")
         check(self.scene_cache >= 1, "scene_cache", f"must be >= 1, got {self.scene_cache}")
+        check(self.scenes_per_env >= 1, "scenes_per_env",
+              f"must be >= 1, got {self.scenes_per_env}")
 
 
 def usable_cores() -> int:
@@ -428,6 +436,10 @@ class TrainConfig:
         check(self.torch_threads_update is None or self.torch_threads_update >= 1,
               "torch_threads_update", f"must be >= 1, got {self.torch_threads_update}")
         _check_device_name(self.device)
+        if self.workers.scenes_per_env > 1:
+            check((problem := tiled_config_problem(self.env)) is None,
+                  "workers.scenes_per_env", f"{self.workers.scenes_per_env} scenes per env: "
+                  f"{problem}")
         if self.discriminator.ignore_features:
             names = observation_names(self.env.observation)
             unknown = [f for f in self.discriminator.ignore_features if f not in names]

@@ -6,7 +6,7 @@ from dataclasses import replace
 from typing import Callable
 
 from converters.sumo.scenario import claim_networks_dir
-from magail_sumo.env.scene_pool import is_city, resolve_pool
+from magail_sumo.env.scene_pool import ScenePoolError, is_city, resolve_pool
 from magail_sumo.env.vec_env import pool_vec_env
 
 from .config import TrainConfig, usable_cores
@@ -20,6 +20,10 @@ def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
     refs = resolve_pool(cfg.scenes.files, skipped)
     for s in skipped:
         log(f"scene skipped: {s.what}: {s.reason}")
+    if cfg.workers.scenes_per_env > 1 and (city := next((r for r in refs if is_city(r)), None)):
+        raise ScenePoolError(f"{city}: a city scenario plays alone, not tiled with other "
+                             f"scenes (workers.scenes_per_env: {cfg.workers.scenes_per_env}): "
+                             "train cities with scenes_per_env: 1")
     cores = usable_cores()
     count = cfg.workers.count or (cores if any(is_city(r) for r in refs)
                                   else min(len(refs), cores))
@@ -33,7 +37,7 @@ def make_pool_env(cfg: TrainConfig, log: Callable[[str], None]):
         timeout_s=cfg.scenes.worker_timeout_s, pin_workers=cfg.scenes.pin_workers,
         backend=w.backend, backend_options={"address": w.ray.address,
                                             "num_cpus": w.ray.num_cpus, "node_ip": w.ray.node_ip},
-        max_restarts=w.max_restarts)
+        max_restarts=w.max_restarts, scenes_per_env=w.scenes_per_env)
     venv.skipped[:0] = [(s.what, s.reason) for s in skipped]
     venv.new_skipped[:0] = [(s.what, s.reason) for s in skipped]
     log(f"scene pool: {len(refs)} scene(s) over {len(venv.specs)} "

@@ -13,6 +13,7 @@ class ScenePose(Sensor):
     """``x``, ``y`` (m), ``vx``, ``vy`` (m/s) and ``heading`` (rad, [-pi, pi]), scene frame."""
 
     name = "scene_pose"
+    scene_frame = True
 
     @classmethod
     def names(cls, config) -> list[str]:
@@ -34,6 +35,7 @@ class SceneDestination(Sensor):
     """``dest_x``, ``dest_y``: the destination in the scene frame (m)."""
 
     name = "scene_destination"
+    scene_frame = True
 
     @classmethod
     def names(cls, config) -> list[str]:
