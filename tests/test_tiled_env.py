@@ -5,6 +5,7 @@ WOMD and ScenarioNet scene in data/ at once, in two training configs."""
 from __future__ import annotations
 
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,21 +52,24 @@ def action(key: tuple[int, str], t: int) -> np.ndarray:
     return a
 
 
-def play(env, key_of) -> dict:
-    """(agent key, step, "obs" | "out") -> what the env gave, over one episode."""
+def play(env, key_of, options=None, shift=lambda key: 0) -> dict:
+    """(agent key, its scene's log step, "obs" | "out") -> what the env gave, over one
+    episode (``shift(key)``: how far the env's clock runs ahead of that scene's log)."""
     rec = {}
-    obs, _ = env.reset(seed=1)
+    obs, _ = env.reset(seed=1, options=options)
+    step = lambda a: env.t - shift(key_of(a))  # noqa: E731
     for a, o in obs.items():
-        rec[(key_of(a), env.t, "obs")] = np.array(o)
+        rec[(key_of(a), step(a), "obs")] = np.array(o)
     while env.agents:
-        obs, rew, term, trunc, info = env.step({a: action(key_of(a), env.t) for a in env.agents})
+        obs, rew, term, trunc, info = env.step({a: action(key_of(a), step(a))
+                                                for a in env.agents})
         for a, o in obs.items():
-            rec[(key_of(a), env.t, "obs")] = np.array(o)
+            rec[(key_of(a), step(a), "obs")] = np.array(o)
         for a in rew:
             i = info[a]
-            rec[(key_of(a), env.t, "out")] = (rew[a], term[a], trunc[a], i["reason"],
-                                              i["collided_with"], tuple(sorted(i["events"].items())),
-                                              i["state"])
+            rec[(key_of(a), step(a), "out")] = (rew[a], term[a], trunc[a], i["reason"],
+                                                i["collided_with"],
+                                                tuple(sorted(i["events"].items())), i["state"])
     return rec
 
 
@@ -107,20 +111,30 @@ def test_tiled_scene_is_a_valid_scene_with_every_scene_in_its_own_tile(real):
 
 
 @pytest.mark.sumo
+@pytest.mark.parametrize("windows", ["fixed", "random"])
 @pytest.mark.parametrize("config", sorted(CONFIGS))
-def test_each_scene_plays_in_the_tiled_env_as_in_its_own(real, config):
+def test_each_scene_plays_in_the_tiled_env_as_in_its_own(real, config, windows):
+    """Fixed windows: every scene from step 0. Random windows: each scene from a start of its
+    own (the tiles delayed in time to start together)."""
     scenes, bundles = real
     cfg = CONFIGS[config]
-    alone: dict = {}
-    for k, (s, b) in enumerate(zip(scenes, bundles)):
-        alone.update(play(SumoDrivingEnv(s, b, cfg), lambda a, k=k: (k, a)))
+    if windows == "random":
+        cfg = replace(cfg, start_window="random")
     env = TiledScenesEnv(scenes, bundles, cfg)
     tiling = env.tiling
+    opts = env.window_options(np.random.default_rng(5)) if windows == "random" else None
+    starts = opts["start_steps"] if opts else [0] * len(scenes)
+    assert windows == "fixed" or len(set(starts)) > 5
+    alone: dict = {}
+    for k, (s, b) in enumerate(zip(scenes, bundles)):
+        alone.update(play(SumoDrivingEnv(s, b, cfg), lambda a, k=k: (k, a),
+                          {"start_step": int(starts[k])}))
 
     def key(a: str) -> tuple[int, str]:
         k, tid = tiling.scene_of_id(int(a))
         return k, str(tid)
-    tiled = play(env, key)
+    tiled = play(env, key, opts, lambda key: int(env.shift[key[0]]))
+    assert (env.shift == max(starts) - np.array(starts)).all()
     assert sorted(tiled) == sorted(alone)  # the same agents at the same steps
     assert {k[0][0] for k in tiled} == set(range(len(scenes)))
     exact, worst, outs = 0, 0.0, 0

@@ -120,10 +120,7 @@ class SumoDrivingEnv(FleetEnv):
         self.dt = STEP_LENGTH
         tr = scene.tracks
         n, t_steps = tr.valid.shape
-        self._T = t_steps
-        has = tr.valid.any(axis=1)
-        self._first = np.where(has, np.argmax(tr.valid, axis=1), t_steps)
-        self._last = np.where(has, t_steps - 1 - np.argmax(tr.valid[:, ::-1], axis=1), -1)
+        self._track_span()
         rows = np.arange(n)
         last = np.maximum(self._last, 0)
         self._dest = np.stack([tr.x[rows, last], tr.y[rows, last]], axis=1)
@@ -183,6 +180,24 @@ class SumoDrivingEnv(FleetEnv):
 
     def action_space(self, agent: str) -> spaces.Box:
         return self._act_spaces[agent]
+
+    def _track_span(self) -> None:
+        """The log's length ``_T`` and each track's first and last recorded step (``_first``:
+        ``_T`` when never recorded; ``_last``: -1) from :attr:`scene`'s tracks."""
+        valid = self.scene.tracks.valid
+        self._T = t_steps = valid.shape[1]
+        has = valid.any(axis=1)
+        self._first = np.where(has, np.argmax(valid, axis=1), t_steps)
+        self._last = np.where(has, t_steps - 1 - np.argmax(valid[:, ::-1], axis=1), -1)
+
+    def window_options(self, rng: np.random.Generator) -> dict:
+        """``reset`` options of an episode whose start window is drawn from ``rng``
+        (:func:`~magail_sumo.env.config.draw_start`; the scene worker's seeded draw)."""
+        return {"start_step": draw_start(self.config, self.scene.num_steps, rng)}
+
+    def _may_join(self) -> np.ndarray | bool:
+        """Which controlled vehicles may join at the current step (here: all of them)."""
+        return True
 
     def _sdc_rows(self) -> tuple[int, ...]:
         """Track rows of the scene's self-driving vehicle (a tiled scene has one per tile)."""
@@ -438,7 +453,7 @@ class SumoDrivingEnv(FleetEnv):
         gets the log's previous action (:func:`~magail_sumo.env.log_actions.log_prev_actions`),
         the others 0."""
         tr, t, f = self.scene.tracks, self.t, self.fleet
-        new = np.flatnonzero(~f.joined & tr.valid[self._ctrl, t])
+        new = np.flatnonzero(~f.joined & tr.valid[self._ctrl, t] & self._may_join())
         if new.size:
             r = self._ctrl[new]
             f.set_state(new, self.log_state(r, t))

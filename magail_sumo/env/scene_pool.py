@@ -85,16 +85,19 @@ def max_concurrent_agents(env) -> int:
     tr = env.scene.tracks
     row_of = {int(t): k for k, t in enumerate(tr.id.tolist())}
     rows = np.array([row_of[int(a)] for a in env.possible_agents], np.int64)
-    if rows.size == 0:
+    return most_alive(tr.valid[rows], env.config)
+
+
+def most_alive(valid: np.ndarray, cfg: EnvConfig) -> int:
+    """:func:`max_concurrent_agents` of tracks recorded at (A, T) ``valid`` steps (>= 1)."""
+    if valid.shape[0] == 0:
         return 1
-    cfg = env.config
-    t_steps = tr.valid.shape[1]
+    t_steps = valid.shape[1]
     if cfg.start_window == "random":  # every window lies in the log; tracks join no earlier
         start, end = 0, t_steps - 1
     else:
         start = min(cfg.start_step, t_steps - 1)
         end = t_steps - 1 if cfg.max_steps is None else min(t_steps - 1, start + cfg.max_steps)
-    valid = tr.valid[rows]
     steps = np.arange(t_steps)
     join = np.where(valid & (steps[None] >= start), steps[None], t_steps).min(axis=1)
     last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)

@@ -27,7 +27,7 @@ from converters import find_scene
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.sensors.observation import observation_bounds
 
-from .config import SCENE_CACHE, EnvConfig, draw_start
+from .config import SCENE_CACHE, EnvConfig
 from .driving_env import SumoDrivingEnv
 from .scene_pool import PoolCursor, is_city, max_concurrent_agents
 from .tile_pool import TileCursor
@@ -278,8 +278,7 @@ class SlotWorker:
         cfg = self.config
         options = None
         if cfg.start_window == "random" and hasattr(self.env, "scene"):  # not a city
-            options = {"start_step": draw_start(cfg, self.env.scene.num_steps,
-                                                episode_rng(self.base_seed, self.episode))}
+            options = self.env.window_options(episode_rng(self.base_seed, self.episode))
         self.arrays = self._uses_arrays()
         self.slot_row[:] = -1
         if self.arrays:

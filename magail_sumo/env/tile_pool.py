@@ -14,7 +14,8 @@ the :class:`~magail_sumo.env.scene_pool.PoolCursor` interface the
   once), and the schedule stays a pure function of (seed, episode): exact resume holds.
 - **Failures.** A record that cannot be read, converted or started is failed once and
   reported, as in a one-scene pool; its group plays without it (a group left empty: the next).
-- **Slots.** A single group: exactly its most concurrent agents. Several: the sum of the K
+- **Slots.** A single group: the sum of its scenes' most concurrent agents (each scene starts
+  its episode at a step of its own, so their busiest steps may meet). Several: the sum of the K
   largest :func:`~magail_sumo.env.scene_pool.agent_bound` of the first
   :data:`~magail_sumo.env.scene_pool.SCAN_RECORDS` records of the order; a later group that
   needs more plays the longest prefix of its scenes that fits (the others play in other
@@ -31,8 +32,7 @@ from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
 
 from .config import EnvConfig
-from .scene_pool import (SCAN_RECORDS, PoolCursor, ScenePoolError, agent_bound,
-                         max_concurrent_agents, start_problem)
+from .scene_pool import SCAN_RECORDS, PoolCursor, ScenePoolError, agent_bound, start_problem
 from .tiled import TiledScenesEnv
 
 
@@ -118,7 +118,7 @@ class TileCursor:
         """The worker's slot count (module doc)."""
         if len(self.refs) <= self.per_env:
             _, env = self.env_for(0)
-            return max_concurrent_agents(env)
+            return env.max_concurrent_agents()
         bounds = []
         for k in sorted(self.pool.order(0)[:SCAN_RECORDS].tolist()):
             try:

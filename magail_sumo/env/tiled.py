@@ -18,9 +18,12 @@ same config and actions; observations are equal up to float rounding (a translat
 rounds differently in its last bits), events and outcomes equal
 (``tests/test_tiled_env.py``, the real scenes of ``data/``).
 
-The scenes share one clock: an episode starts every scene at the same log step and ends when
-every scene's agents have ended (or at ``max_steps``); a scene whose agents all ended waits,
-its tile idle, for the others. Same restrictions as the one-scene batched core: log background
+Each scene starts its episode at a log step of its own (a random window per scene, drawn from
+its own log, as its own env would: :meth:`TiledScenesEnv.window_options`); the tiles are
+delayed in time (:func:`~magail_sumo.scene.tiling.shift_tiles`) so that they all start at the
+env's first step and run on one clock. A scene's episode ends after ``max_steps`` steps of its
+own or with its log; the env's, when every scene's has (a scene whose agents all ended waits,
+its tile idle, for the others). ``infos[agent]["step"]`` is the env's clock. Same restrictions as the one-scene batched core: log background
 without SUMO (``background: log``, ``sumo_mirror: false``), no FCD recording or rendering, and
 ego-frame observations (the ``scene_frame`` layout reads the translated map coordinates); the
 controlled vehicles ``all``, ``tracks_to_predict`` or ``scored`` (``sdc`` and a nearest-K count
@@ -37,12 +40,15 @@ import numpy as np
 from converters import load_scene
 from converters.sumo.bundle import SceneBundle
 from magail_sumo.scene import Scene
-from magail_sumo.scene.tiling import GAP_M, Tiling, tile_scenes
+from magail_sumo.scene.tiling import GAP_M, Tiling, shift_tiles, tile_scenes
+from magail_sumo.sensors.command import RouteCommands
+from magail_sumo.sensors.traffic_lights import LightTable
 from magail_sumo.sensors.base import sensor_class, sensor_order
 
-from .config import EnvConfig
+from .config import EnvConfig, draw_start, window_starts
 from .driving_env import SumoDrivingEnv
-from .events import RoadEdgeRule
+from .events import RoadEdgeRule, StopLines
+from .scene_pool import most_alive
 from .step import FleetEnv
 
 #: the controlled-vehicle choices a tiled env runs (per scene, they mean what they mean alone)
@@ -111,6 +117,92 @@ class TiledScenesEnv(SumoDrivingEnv):
         tiled, self.tiling = tile_scenes(scenes, gap)
         self._tile_scenes = scenes
         super().__init__(tiled, tiled_bundle(tiled, self.tiling, read), cfg)
+        self._base = tiled
+        self._base_maps = (self.suite.lights, self.stop_lines, self._commands)
+        k = self.tiling.num_scenes
+        #: tile k's log step u is this episode's step u + shift[k] (:meth:`reset`)
+        self.shift = np.zeros(k, np.int64)
+        self._tile_of_row = self.tiling.scene_of_rows(np.arange(tiled.tracks.num_tracks))
+        self._tile_end = np.zeros(k, np.int64)
+
+    # ------------------------------------------------------------------ episodes
+    def window_options(self, rng: np.random.Generator) -> dict:
+        """Each tile's start window drawn from ``rng`` over its own log, in tile order."""
+        return {"start_steps": [draw_start(self.config, int(n), rng)
+                                for n in self.tiling.num_steps]}
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        """Start an episode of every tile. ``options={"start_steps": [s_0, ...]}`` starts tile
+        ``k`` at its own log step ``s_k`` (:meth:`window_options` draws them); with
+        ``{"start_step": s}``, or a fixed window, every tile starts at ``s``; with random
+        windows and neither, each tile's start is drawn from its own log (seeded by ``seed``).
+        The tiles are delayed in time (:func:`~magail_sumo.scene.tiling.shift_tiles`) so that
+        they all start at the env's step ``max(s_k)``; each tile's episode ends after
+        ``max_steps`` steps of its own or with its log, the env's when the last one does."""
+        opts = dict(options or {})
+        starts = opts.pop("start_steps", None)
+        lengths = self.tiling.num_steps
+        k = self.tiling.num_scenes
+        if starts is None and "start_step" in opts:  # one start for all (within each log)
+            starts = np.minimum(int(opts["start_step"]), np.maximum(lengths - 2, 0))
+        elif starts is None and self.config.start_window == "random":
+            rng = np.random.default_rng(None if seed is None else seed % (1 << 64))
+            starts = self.window_options(rng)["start_steps"]
+        elif starts is None:
+            starts = [window_starts(self.config, int(n))[0] for n in lengths]
+        starts = np.asarray(starts, np.int64)
+        if starts.shape != (k,):
+            raise ValueError(f"reset options start_steps: one start per tile ({k}), got "
+                             f"{starts.shape[0] if starts.ndim else starts}")
+        self._delay(int(starts.max()) - starts)
+        opts["start_step"] = int(starts.max())
+        own_end = np.minimum(self.tiling.num_steps - 1, starts + self.config.max_steps) \
+            if self.config.max_steps is not None else self.tiling.num_steps - 1
+        self._tile_end = own_end + self.shift
+        return super().reset(seed, opts)
+
+    def _delay(self, shift: np.ndarray) -> None:
+        """Tile ``k`` delayed by ``shift[k]`` steps: the log, lights, stop lines and route
+        commands this episode reads (rebuilt only when the delays change)."""
+        if np.array_equal(shift, self.shift):
+            return
+        self.shift = shift
+        if not shift.any():
+            self.scene = self._base
+            lights, self.stop_lines, self._commands = self._base_maps
+        else:
+            self.scene = shift_tiles(self._base, self.tiling, shift)
+            lights = LightTable.build(self.scene)
+            self.stop_lines = StopLines.build(self.scene)
+            if self._commands is not None:
+                self._commands = RouteCommands.build(self.scene.tracks,
+                                                     self.config.observation.command_lookahead)
+        self.suite.lights = self.suite.maps.lights = lights
+        self._track_span()
+        self._prev_table = None
+
+    def max_concurrent_agents(self) -> int:
+        """Most agents alive at once over every episode the config allows: each tile's own
+        most (:func:`~magail_sumo.env.scene_pool.most_alive`), summed (tiles start at steps
+        of their own, so their busiest steps may meet)."""
+        tr, t = self._base.tracks, self.tiling
+        rows = self._ctrl
+        tile = self._tile_of_row[rows]
+        return max(1, sum(most_alive(tr.valid[rows[tile == k], :int(t.num_steps[k])],
+                                     self.config) for k in range(t.num_scenes)
+                          if (tile == k).any()))
+
+    def _may_join(self) -> np.ndarray:
+        """Agents join while their tile's episode runs, up to its last step (where a scene's
+        own env truncates them at once, as the env's last step does here; at an earlier tile's
+        last step they are truncated one step later)."""
+        return self.t <= self._tile_end[self._tile_of_row[self._ctrl]]
+
+    def _time_up(self, act: np.ndarray, flags: dict[str, np.ndarray], end: bool,
+                 arrived: list[str]):
+        """Out of time also at the end of the agent's tile's episode."""
+        time_up, why = super()._time_up(act, flags, end, arrived)
+        return time_up | (self.t >= self._tile_end[self._tile_of_row[self._ctrl[act]]]), why
 
     def _sdc_rows(self) -> tuple[int, ...]:
         return tuple(int(r) for r in self.tiling.sdc_rows if r >= 0)
@@ -146,8 +238,8 @@ class TiledScenesEnv(SumoDrivingEnv):
             m = tile == k
             a = act[m]
             dx, dy = t.offsets[k]
-            out[m] = rule.off_road(rows[m] - t.row_start[k], self.t, f.x[a] - dx, f.y[a] - dy,
-                                   f.yaw[a], f.length[a], f.width[a])
+            out[m] = rule.off_road(rows[m] - t.row_start[k], self.t - int(self.shift[k]),
+                                   f.x[a] - dx, f.y[a] - dy, f.yaw[a], f.length[a], f.width[a])
         return out
 
     # ------------------------------------------------------------------ scenes

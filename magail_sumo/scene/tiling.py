@@ -24,7 +24,8 @@ stay unique and readable (:meth:`Tiling.scene_of_id`):
   ``sdc_track_index`` of scene 0 (one SDC per scene: :attr:`Tiling.sdc_rows`).
 
 Time is shared: log step ``t`` of the tiled scene is log step ``t`` of every scene (timestamps:
-the longest scene's), so an env over it runs all scenes from one start step, in lockstep.
+the longest scene's), so an env over it runs all scenes on one clock; :func:`shift_tiles`
+delays tiles in time, so that each starts its episode at a log step of its own.
 Offsets are whole metres: positions recorded in float32 (WOMD) move exactly in float64.
 """
 
@@ -249,3 +250,44 @@ def tile_scenes(scenes: Sequence[Scene], gap: float = GAP_M) -> tuple[Scene, Til
     tiling = Tiling(tuple(ids), offsets, np.array(row_start), np.array([s.num_steps for s in scenes]),
                     np.array(sdc_rows), tstride, fstride)
     return tiled, tiling
+
+
+def shift_tiles(tiled: Scene, tiling: Tiling, shifts) -> Scene:
+    """``tiled`` with tile ``k`` delayed by ``shifts[k]`` >= 0 steps: its log step ``u`` is
+    step ``u + shifts[k]`` of the result (steps before it invalid), its signal records moved
+    with it. So tiles can start their episodes at different log steps of their own and still
+    run on one clock (:class:`~magail_sumo.env.tiled.TiledScenesEnv`). The result has
+    ``max(num_steps[k] + shifts[k])`` steps; timestamps continue at the first step spacing."""
+    e = np.asarray(shifts, np.int64)
+    if e.shape != (tiling.num_scenes,) or (e < 0).any():
+        raise ValueError(f"shift_tiles: one shift >= 0 per tile ({tiling.num_scenes}), got {e}")
+    steps = int(max(tiling.num_steps + e))
+    tr = tiled.tracks
+    cols = {}
+    for f in dataclasses.fields(Tracks):
+        a = getattr(tr, f.name)
+        if a.ndim == 1:
+            cols[f.name] = a
+            continue
+        out = np.zeros((a.shape[0], steps), a.dtype)
+        for k in range(tiling.num_scenes):
+            r0, r1 = tiling.row_start[k], tiling.row_start[k + 1]
+            n, d = int(tiling.num_steps[k]), int(e[k])
+            if r1 == r0 or n == 0:
+                continue
+            block = a[r0:r1, :n]
+            out[r0:r1, d:d + n] = block
+            if f.name != "valid":  # invalid steps repeat the nearest recorded value
+                out[r0:r1, :d] = block[:, :1]
+                out[r0:r1, d + n:] = block[:, -1:]
+        cols[f.name] = out
+    sg = tiled.signals
+    tile = sg.lane // tiling.feature_stride - 1
+    step = sg.step.astype(np.int64) + e[np.clip(tile, 0, tiling.num_scenes - 1)]
+    order = np.argsort(step, kind="stable")
+    signals = SignalStates(step[order], sg.lane[order], sg.state[order], sg.stop_point[order])
+    ts = tiled.timestamps
+    dt = float(ts[1] - ts[0]) if len(ts) > 1 else 0.1
+    timestamps = (ts[0] if len(ts) else 0.0) + dt * np.arange(steps)
+    return dataclasses.replace(tiled, timestamps=timestamps, tracks=Tracks(**cols),
+                               signals=signals)

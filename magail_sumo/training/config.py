@@ -214,8 +214,8 @@ class WorkersConfig:
     :param scene_cache: scene envs each worker keeps built (the most recent; default
         :data:`~magail_sumo.env.config.SCENE_CACHE`).
     :param scenes_per_env: recorded scenes a worker steps at once as one fleet (a tiled env,
-        :mod:`magail_sumo.env.tile_pool`: the step's fixed cost paid once for them all; its
-        scenes share the episode's start step and clock); 1: one scene per episode. Needs log
+        :mod:`magail_sumo.env.tile_pool`: the step's fixed cost paid once for them all; each
+        scene keeps its own start window); 1: one scene per episode. Needs log
         background without the SUMO mirror, no city in the pool, and ego-frame observations.
     """
 
