@@ -34,8 +34,14 @@ same vehicles moved each step; the share of env step time spent in sensors and o
   API against its dict API (the worker before it used the arrays), alternating; ``--steps``
   worker steps of seeded random actions each, medians of ``--repeats``.
 
+* ``tiled`` (only by name): a scene worker playing the 10 train scenes of
+  ``configs/splits/womd14.yaml`` (the recipe's episodes, as ``worker``) one scene per episode
+  against all of them at once as one tiled env (``workers.scenes_per_env: 10``,
+  ``magail_sumo.env.tile_pool``), alternating; ``--steps`` worker steps each, medians of
+  ``--repeats``. Bundles from ``--networks`` (converted there on demand).
+
     python benchmarks/env_throughput.py [--json] [--episodes N] [--scenario NAME|all]
-        [--repeats R] [--worlds W ...]
+        [--repeats R] [--worlds W ...] [--networks DIR]
 """
 
 from __future__ import annotations
@@ -69,6 +75,8 @@ GUARD_EDGE = "guard_edge"
 BATCHED = "batched"
 #: the scene worker's array API against its dict API (only by name)
 WORKER = "worker"
+#: the tiled worker against the one-scene worker (only by name)
+TILED = "tiled"
 #: scenes of the ``windows`` measurement: the bundled TFRecord and two 20 s ScenarioNet scenes
 WINDOW_SCENES = (ROOT / "data" / "womd" / f"{SCENE}.tfrecord",
                  ROOT / "data" / "scenarionet" / "b36a6d0bc9e525bc.pkl",
@@ -189,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object per scenario")
     ap.add_argument("--episodes", type=int, default=3)
     ap.add_argument("--scenario", default="all",
-                    choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, BATCHED, WORKER, "all"],
+                    choices=[SCENE, CITY, WINDOWS, GUARD_EDGE, BATCHED, WORKER, TILED, "all"],
                     help=f"{WINDOWS}: with vs without the SUMO mirror; {GUARD_EDGE}: with vs "
                          "without the gap guard and the road-edge off-road rule (all: every "
                          f"one but {GUARD_EDGE})")
@@ -199,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=400, help=f"{WORKER}: worker steps per run")
     ap.add_argument("--worlds", type=int, nargs="+", default=[1, 16, 164],
                     help=f"{BATCHED}: world counts (the bundled scene has 61 agents per world)")
+    ap.add_argument("--networks", type=Path, default=None,
+                    help=f"{TILED}: bundles folder (default: a temporary one, converted there)")
     args = ap.parse_args(argv)
     results = []
     if args.scenario in (SCENE, "all"):
@@ -213,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
         results.extend(run_batched(args))
     if args.scenario == WORKER:
         results.extend(run_worker(args))
+    if args.scenario == TILED:
+        results.append(run_tiled(args))
     for out in results:
         if args.json:
             print(json.dumps(out))
@@ -332,6 +344,23 @@ def _worker_steps(worker, steps: int) -> tuple[float, int]:
     return time.perf_counter() - t0, agent_steps
 
 
+def _alternate_workers(workers: dict, args) -> tuple[dict, int]:
+    """Agent-steps/s of each worker over ``args.repeats`` rounds of ``args.steps`` steps,
+    alternating (after a warm-up: numba kernels, every scene's env built); the workers are
+    closed after. ``(label -> rates, agent-steps of the last run)``."""
+    rates: dict = {lab: [] for lab in workers}
+    for w in workers.values():
+        _worker_steps(w, 40)
+    steps = 0
+    for _ in range(args.repeats):
+        for lab, w in workers.items():
+            secs, steps = _worker_steps(w, args.steps)
+            rates[lab].append(steps / secs)
+    for w in workers.values():
+        w.close()
+    return rates, steps
+
+
 def run_worker(args) -> list[dict]:
     """The scene worker on the array API against the dict API (module doc)."""
     from magail_sumo.env.slot_worker import SceneSpec, SlotWorker
@@ -345,15 +374,7 @@ def run_worker(args) -> list[dict]:
             workers = {lab: SlotWorker(spec, cfg, seed=0, slots=None)
                        for lab in ("dicts", "arrays")}
             workers["dicts"]._uses_arrays = lambda: False  # the worker's former path
-            rates: dict[str, list[float]] = {lab: [] for lab in workers}
-            for w in workers.values():
-                _worker_steps(w, 40)  # warm-up: numba kernels
-            for _ in range(args.repeats):
-                for lab, w in workers.items():
-                    secs, steps = _worker_steps(w, args.steps)
-                    rates[lab].append(steps / secs)
-            for w in workers.values():
-                w.close()
+            rates, steps = _alternate_workers(workers, args)
             a, b = (float(np.median(rates[lab])) for lab in ("dicts", "arrays"))
             rows.append({"scene": scene.scenario_id, "measure": WORKER,
                          "worker_steps": args.steps, "agent_steps": steps,
@@ -430,3 +451,29 @@ def run_batched(args) -> list[dict]:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def run_tiled(args) -> dict:
+    """A worker of the 10 womd14 train scenes, one per episode against one tiled env of all
+    (module doc)."""
+    import yaml
+
+    from converters.scene_files import RecordRef
+    from magail_sumo.env.slot_worker import PoolSpec, SlotWorker
+
+    cfg = EnvConfig(start_window="random", max_steps=80, min_history=10, sumo_mirror=False,
+                    terminate_on=("collision", "off_road"))
+    split = yaml.safe_load((ROOT / "configs" / "splits" / "womd14.yaml").read_text())
+    refs = tuple(RecordRef(str(ROOT / f)) for f in split["train"])
+    with tempfile.TemporaryDirectory() as tmp:
+        nets = str(args.networks or Path(tmp) / "networks")
+        workers = {k: SlotWorker(PoolSpec(refs, nets, scenes_per_env=k), cfg, seed=0, slots=None)
+                   for k in (1, len(refs))}
+        rates, _ = _alternate_workers(workers, args)
+    a, b = (float(np.median(rates[k])) for k in (1, len(refs)))
+    return {"measure": TILED, "scenes": len(refs), "worker_steps": args.steps,
+            "agent_steps_per_s_one_scene": round(a, 1),
+            "agent_steps_per_s_tiled": round(b, 1),
+            "runs_one_scene": [round(r, 1) for r in rates[1]],
+            "runs_tiled": [round(r, 1) for r in rates[len(refs)]],
+            "speedup": round(b / a, 2)}

@@ -17,7 +17,7 @@ from converters.scene_files import RecordRef
 from magail_sumo.env import EnvConfig
 from magail_sumo.env.driving_env import SumoDrivingEnv
 from magail_sumo.env.guard import GuardConfig
-from magail_sumo.env.scene_pool import PoolCursor
+from magail_sumo.env.scene_pool import PoolCursor, max_concurrent_agents
 from magail_sumo.env.tile_pool import TileCursor
 from magail_sumo.env.tiled import TiledScenesEnv
 from magail_sumo.env.vec_env import pool_vec_env
@@ -225,3 +225,31 @@ def test_pool_workers_with_tiled_envs_play_every_scene_and_resume_exactly(bundle
         {f.stem for f in files}
     for a, b in zip(obs, again):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.sumo
+def test_slots_hold_every_agent_when_agents_drive_past_their_logs_end(real):
+    """With ``end_of_life: false`` an agent lives to its window's end, not its log's: the
+    slot bound (each tile's most concurrent agents, summed) still holds every live agent."""
+    scenes, bundles = real
+    cfg = EnvConfig(start_window="random", max_steps=80, sumo_mirror=False, end_of_life=False,
+                    terminate_on=("collision", "off_road"))
+    def most_alive(env, starts) -> int:
+        most = 0
+        for episode, opts in enumerate(starts):
+            env.reset(seed=episode, options=opts)
+            while env.agents:
+                most = max(most, len(env.agents))
+                env.step({a: np.array([0.2, 0.0], np.float32) for a in env.agents})
+        return most
+
+    k = next(i for i, f in enumerate(SCENES) if f.stem == "7b24d74b506c94ce")
+    alone = SumoDrivingEnv(scenes[k], bundles[k], cfg)
+    by_log = max_concurrent_agents(SumoDrivingEnv(scenes[k], bundles[k],
+                                                  replace(cfg, end_of_life=True)))
+    most = most_alive(alone, [{"start_step": s} for s in (94, 106, 118)])
+    assert by_log < most <= max_concurrent_agents(alone)  # more than the log alone keeps
+    env = TiledScenesEnv(scenes[:6], bundles[:6], cfg)
+    rng = np.random.default_rng(0)
+    most = most_alive(env, [env.window_options(rng) for _ in range(3)])
+    assert 0 < most <= env.max_concurrent_agents()

@@ -80,8 +80,9 @@ SKIPPED_LIMIT = 256 * MiB
 
 def max_concurrent_agents(env) -> int:
     """Upper bound of the number of agents of ``env`` alive at one step (>= 1), over every
-    episode window its config allows (``start_window: random``: over the whole log; never
-    more than K with ``controlled: K``)."""
+    episode window its config allows (``start_window: random``: over the whole log; with
+    ``end_of_life: false`` an agent counts to its window's end; never more than K with
+    ``controlled: K``)."""
     tr = env.scene.tracks
     row_of = {int(t): k for k, t in enumerate(tr.id.tolist())}
     rows = np.array([row_of[int(a)] for a in env.possible_agents], np.int64)
@@ -103,6 +104,16 @@ def most_alive(valid: np.ndarray, cfg: EnvConfig) -> int:
     last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
     alive = (steps[None] >= join[:, None]) & (steps[None] <= last[:, None]) & \
         (steps[None] <= end)
+    if not cfg.end_of_life and cfg.start_window == "random":
+        # an agent drives on past its log's end to its window's end: at step u every track
+        # recorded at some step of [u - max_steps, u] may be alive (a window started there)
+        span = t_steps if cfg.max_steps is None else cfg.max_steps
+        seen = np.concatenate([np.zeros((valid.shape[0], 1), np.int64),
+                               np.cumsum(valid, axis=1)], axis=1)
+        since = np.maximum(steps - span, 0)
+        alive |= (seen[:, steps + 1] - seen[:, since]) > 0
+    elif not cfg.end_of_life:  # one window: alive from its join to the window's end
+        alive |= (steps[None] >= join[:, None]) & (steps[None] <= end)
     most = int(alive.sum(axis=0).max())
     if not isinstance(cfg.controlled, str):
         most = min(most, int(cfg.controlled))
