@@ -448,11 +448,6 @@ def run_batched(args) -> list[dict]:
         single.close()
     return rows
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
-
-
 def run_tiled(args) -> dict:
     """A worker of the 10 womd14 train scenes, one per episode against one tiled env of all
     (module doc)."""
@@ -477,3 +472,8 @@ def run_tiled(args) -> dict:
             "runs_one_scene": [round(r, 1) for r in rates[1]],
             "runs_tiled": [round(r, 1) for r in rates[len(refs)]],
             "speedup": round(b / a, 2)}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
