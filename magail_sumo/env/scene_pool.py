@@ -281,6 +281,15 @@ def start_problem(scene, config: EnvConfig) -> str | None:
     return None
 
 
+def playable_scene(ref: RecordRef, config: EnvConfig):
+    """The scene of record ``ref``, read; :class:`MagailSumoError` when no episode of
+    ``config`` can start in it (:func:`start_problem`); the reader's errors otherwise."""
+    scene = read_record(ref)
+    if (problem := start_problem(scene, config)) is not None:
+        raise MagailSumoError(f"env start: {problem}")
+    return scene
+
+
 class PoolCursor:
     """A worker's view of its shard: which record each episode plays (module doc), the env of
     each (built on demand, ``cache`` most recent kept) and the records that failed.
@@ -337,9 +346,7 @@ class PoolCursor:
         if is_city(ref):
             env = SumoCityEnv(ref.path, self.city or CityEnvConfig())
         else:
-            scene = read_record(ref)
-            if (problem := start_problem(scene, self.config)) is not None:
-                raise MagailSumoError(f"env start: {problem}")
+            scene = playable_scene(ref, self.config)
             if self.slots is not None and (need := agent_bound(scene, self.config)) > self.slots:
                 raise MagailSumoError(
                     f"env start: up to {need} agents alive at once, more than the worker's "
@@ -368,8 +375,13 @@ class PoolCursor:
                 self._fail(k, exc)
             except (OSError, ValueError) as exc:
                 self._fail(k, exc)
-        raise ScenePoolError(f"every scene of this worker failed; first: "
-                             f"{self.refs[min(self.failed)]}: {self.failed[min(self.failed)]}")
+        raise self.all_failed()
+
+    def all_failed(self) -> ScenePoolError:
+        """The error of a worker none of whose scenes could be used (the first failure)."""
+        first = min(self.failed)
+        return ScenePoolError(f"every scene of this worker failed; first: {self.refs[first]}: "
+                              f"{self.failed[first]}")
 
     def scan(self) -> int:
         """The worker's slot count: exact for one record, else (:attr:`slots`) the largest
@@ -387,10 +399,7 @@ class PoolCursor:
                 seen[ref] = city_slots(self.city, ref)
             if ref not in seen:
                 try:
-                    scene = read_record(ref)
-                    if (problem := start_problem(scene, self.config)) is not None:
-                        raise MagailSumoError(f"env start: {problem}")
-                    seen[ref] = agent_bound(scene, self.config)
+                    seen[ref] = agent_bound(playable_scene(ref, self.config), self.config)
                 except (MagailSumoError, OSError, ValueError) as exc:
                     seen[ref] = exc
             got = seen[ref]
@@ -412,9 +421,7 @@ class PoolCursor:
                 except (MagailSumoError, OSError, ValueError) as exc:
                     self._fail(k, exc)
             else:
-                raise ScenePoolError(f"every scene of this worker failed; first: "
-                                     f"{self.refs[min(self.failed)]}: "
-                                     f"{self.failed[min(self.failed)]}")
+                raise self.all_failed()
         self.slots = max(1, most)
         return self.slots
 

@@ -27,12 +27,11 @@ from __future__ import annotations
 
 from collections import OrderedDict
 
-from converters.scene_files import read_record
 from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
 
 from .config import EnvConfig
-from .scene_pool import SCAN_RECORDS, PoolCursor, ScenePoolError, agent_bound, start_problem
+from .scene_pool import SCAN_RECORDS, PoolCursor, ScenePoolError, agent_bound, playable_scene
 from .tiled import TiledScenesEnv
 
 
@@ -63,9 +62,7 @@ class TileCursor:
     def _scene(self, k: int):
         """Record ``k``'s scene and bundle folder (converted on first use); raises."""
         ref = self.refs[k]
-        scene = read_record(ref)
-        if (problem := start_problem(scene, self.config)) is not None:
-            raise MagailSumoError(f"env start: {problem}")
+        scene = playable_scene(ref, self.config)
         self._bounds[k] = agent_bound(scene, self.config)
         return scene, ensure_bundle(scene, self.pool.networks, ref, self.pool.convert_budget_s)
 
@@ -111,8 +108,7 @@ class TileCursor:
             env = self._env(groups[(j + i) % count])
             if env is not None:
                 return groups[(j + i) % count][0], env
-        raise ScenePoolError(f"every scene of this worker failed; first: "
-                             f"{self.refs[min(self.failed)]}: {self.failed[min(self.failed)]}")
+        raise self.pool.all_failed()
 
     def scan(self) -> int:
         """The worker's slot count (module doc)."""
@@ -122,10 +118,8 @@ class TileCursor:
         bounds = []
         for k in sorted(self.pool.order(0)[:SCAN_RECORDS].tolist()):
             try:
-                scene = read_record(self.refs[k])
-                if (problem := start_problem(scene, self.config)) is not None:
-                    raise MagailSumoError(f"env start: {problem}")
-                bounds.append(agent_bound(scene, self.config))
+                bounds.append(agent_bound(playable_scene(self.refs[k], self.config),
+                                          self.config))
             except (MagailSumoError, OSError, ValueError) as exc:
                 self.pool._fail(k, exc)
         if not bounds:

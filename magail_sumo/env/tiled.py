@@ -82,8 +82,8 @@ def tiled_bundle(tiled: Scene, tiling: Tiling, bundles: Sequence[SceneBundle]) -
         tid = {v: str((k + 1) * tiling.track_stride + int(v)) for v in b.sumo_ids}
         rows.append(np.asarray(b.sumo_rows, np.int64) + tiling.row_start[k])
         ids += [tid[v] for v in b.sumo_ids]
-        parked |= {tid.get(v, v) for v in b.parked}
-        spaces |= {tid.get(v, v) for v in b.spaces}
+        parked |= {tid[v] for v in b.parked}  # both are route vehicles (SceneBundle.load)
+        spaces |= {tid[v] for v in b.spaces}
         unconverted += list(b.unconverted)
     first = bundles[0]
     return SceneBundle(tiled, first.folder, first.sumocfg,

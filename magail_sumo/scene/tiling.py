@@ -107,7 +107,7 @@ def _extent(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     for kind in FEATURE_KINDS:
         for f in scene.roadmap.features(kind):
             geom = f.position[None] if kind == "stop_sign" else \
-                getattr(f, "polyline", None) if hasattr(f, "polyline") else f.polygon
+                f.polyline if hasattr(f, "polyline") else f.polygon
             if geom.size:
                 pts.append(geom[:, :2])
     if len(scene.signals):
