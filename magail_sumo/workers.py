@@ -75,10 +75,30 @@ def _one_line(text: str, limit: int = 400) -> str:
     return one_line(text, limit)
 
 
-def _child(conn, fn: Callable[[Any], Any], jobs) -> None:
+def share_cores() -> None:
+    """Run numba's parallel kernels of this thread on one thread (call it in a worker process
+    that is one of several sharing the cores).
+
+    A parallel kernel (``prange``: the road-edge distance, the interaction metrics) starts a
+    thread per core in every process and waits for all of them at its end; with several
+    worker processes on the cores the threads spin against each other and a region waits for
+    a thread that is not scheduled: the road-edge rule of a training worker took about 11 ms
+    a step on 2 cores instead of well under 1 ms (``docs/results/throughput.md``). The kernels
+    compute each item independently, so the results are the same on any number of threads.
+    """
+    import numba
+
+    if numba.get_num_threads() != 1:
+        numba.set_num_threads(1)
+
+
+def _child(conn, fn: Callable[[Any], Any], jobs, shared: bool = False) -> None:
     """Worker entry point: receive the job on ``jobs``, run ``fn(job)`` and send ``("ok",
-    value)`` or a failure on ``conn``."""
+    value)`` or a failure on ``conn``. ``shared``: other workers run beside it
+    (:func:`share_cores`)."""
     try:
+        if shared:
+            share_cores()
         arg = pickle.loads(jobs.recv_bytes())
         jobs.close()
         value = fn(arg)
@@ -156,8 +176,8 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
                 # the job (a prepared scene: ~1 MB) goes over its own pipe after the start, from
                 # a thread: a worker stopped before it reads blocks that thread, not this loop,
                 # and is killed at its timeout like any other (which ends the thread's send)
-                proc = ctx.Process(target=_child, args=(child, fn, job_in), daemon=True,
-                                   name=f"job-{k}")
+                proc = ctx.Process(target=_child, args=(child, fn, job_in, workers > 1),
+                                   daemon=True, name=f"job-{k}")
                 proc.start()
                 child.close()
                 job_in.close()

@@ -135,3 +135,37 @@ def test_a_worker_error_is_one_line_its_traceback_kept_for_debug(capsys):
             raise RuntimeError("every scene of this worker failed")
     _worker_tracebacks(info.value)
     assert "in the worker:\nTraceback" in capsys.readouterr().err
+
+
+def _kernel_threads(_job) -> int:
+    import numba
+
+    return numba.get_num_threads()
+
+
+class _ThreadsWorker:
+    def hello(self) -> int:
+        return _kernel_threads(None)
+
+    def handle(self, cmd, arg) -> int:
+        return _kernel_threads(None)
+
+
+def test_workers_side_by_side_run_numba_kernels_on_one_thread():
+    """Several job processes, and every scene worker, run numba's parallel kernels on one
+    thread (share_cores); a job alone keeps numba's default."""
+    import numba
+
+    from magail_sumo.env.transport import serve
+
+    side_by_side = [r.value for r in run_jobs(_kernel_threads, [0, 1], workers=2)]
+    alone = next(run_jobs(_kernel_threads, [0], workers=1)).value
+    assert side_by_side == [1, 1]
+    assert alone == numba.config.NUMBA_NUM_THREADS
+    default = numba.get_num_threads()
+    try:
+        state: dict = {}
+        assert serve(_ThreadsWorker, (), "hello", None, state) == ("ok", 1)
+        assert serve(_ThreadsWorker, (), "step", None, state) == ("ok", 1)
+    finally:
+        numba.set_num_threads(default)

@@ -27,6 +27,7 @@ from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 from magail_sumo.errors import MagailSumoError
+from magail_sumo.workers import share_cores
 
 #: messages up to this size go into an empty pipe without blocking (Linux pipes hold 64 KiB)
 _PIPE_SAFE_BYTES = 16 * 1024
@@ -72,8 +73,12 @@ def backend_class(name: str) -> type["WorkerHandle"]:
 
 def serve(worker_factory, args: tuple, cmd: str, arg: Any, state: dict) -> tuple[str, Any]:
     """Answer one request with the worker ``state["worker"]`` (built from
-    ``worker_factory(*args)`` by the ``hello`` request); never raises."""
+    ``worker_factory(*args)`` by the ``hello`` request); never raises. A scene worker is
+    one of several processes on the cores: its numba kernels run on one thread
+    (:func:`~magail_sumo.workers.share_cores`; per request, as the thread-local setting
+    follows the thread a backend answers on)."""
     try:
+        share_cores()
         if cmd == "hello":
             state["worker"] = worker_factory(*args)
             return "ok", state["worker"].hello()

@@ -291,11 +291,6 @@ def _score_job(job: ScoreJob) -> list[tuple[list[tuple], SceneView | None]]:
 
     :returns: per scene, (per method ``("ok", PairScore, rollouts, valid)`` or ``("error",
         message)``; its :class:`SceneView` or None)."""
-    import numba
-
-    # the workers share the cores: one numba thread each (numba's parallel kernels would
-    # otherwise start a thread per core in every worker and spin against each other)
-    numba.set_num_threads(1)
     folder, units = job
     out: list[tuple[list[tuple], SceneView | None]] = []
     for scene_file, sid, methods, draw in units:
