@@ -3,7 +3,7 @@ earlier commit, runs alternated (median over repeats).
 
     python benchmarks/evaluate_speed.py SCENE... --against COMMIT [--rollouts 32]
         [--policy pretrained] [--baselines logreplay,constvel,sumo] [--workers 2] [--repeats 3]
-        [--batch N]
+        [--batch N] [--report]
 
 The earlier commit is checked out with ``git worktree add`` into a temporary folder (removed at
 the end) and run with ``PYTHONPATH`` and the working folder set to it. Both versions first run
@@ -17,6 +17,10 @@ the same rollouts (the SHA-256 of every ``rollouts/**/*.parquet``).
 first scene, in one process per version and repeat (after an untimed one-rollout warm-up: the
 imports, the policy's first load and numba's kernels), which is what evaluation's per-batch
 preparation changes, without the process starts, the baselines and the files around it.
+
+``--report`` also times ``magail-sumo report`` of every timed run's folder (same checkout) and
+prints evaluate, report and their sum per run; the medians and the speed-up are then of the
+sum (the issue's "evaluate + report").
 """
 
 from __future__ import annotations
@@ -77,6 +81,18 @@ def _batch(tree: Path, scene: str, networks: Path, policy: str, n: int) -> float
     return float(res.stdout.split()[-1])
 
 
+def _report(tree: Path, out: Path) -> float:
+    """Seconds of one ``magail-sumo report`` run of checkout ``tree`` on ``out``."""
+    cmd = [sys.executable, "-m", "magail_sumo", "report", str(out)]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, cwd=tree, env=dict(os.environ, PYTHONPATH=str(tree)),
+                         capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if res.returncode != 0:
+        raise SystemExit(f"{tree}: report failed ({res.returncode}):\n{res.stderr[-2000:]}")
+    return wall
+
+
 def _digest(out: Path) -> str:
     """One SHA-256 over every rollouts Parquet file of ``out`` (path and bytes)."""
     h = hashlib.sha256()
@@ -99,6 +115,8 @@ def main() -> int:
     ap.add_argument("--batch", type=int, default=0, metavar="N",
                     help="time one worker batch of N rollouts of --policy on the first scene "
                          "in-process instead of whole evaluate runs")
+    ap.add_argument("--report", action="store_true",
+                    help="also time magail-sumo report of each run (medians of the sum)")
     args = ap.parse_args()
     scenes = [str(Path(s).resolve()) for s in args.scenes]
     with tempfile.TemporaryDirectory(prefix="evaluate_speed_") as tmp_s:
@@ -127,10 +145,16 @@ def main() -> int:
                               flush=True)
                         continue
                     out = tmp / f"run-{rep}-{k}"
-                    walls[name].append(_evaluate(trees[name], scenes, out, args,
-                                                 args.rollouts, nets))
+                    ev = _evaluate(trees[name], scenes, out, args, args.rollouts, nets)
                     digests[name].add(_digest(out))
-                    print(f"repeat {rep + 1}: {name}: {walls[name][-1]:.1f} s", flush=True)
+                    if not args.report:
+                        walls[name].append(ev)
+                        print(f"repeat {rep + 1}: {name}: {ev:.1f} s", flush=True)
+                        continue
+                    rp = _report(trees[name], out)
+                    walls[name].append(ev + rp)
+                    print(f"repeat {rep + 1}: {name}: evaluate {ev:.1f} s + report {rp:.1f} s "
+                          f"= {ev + rp:.1f} s", flush=True)
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)],
                            capture_output=True)
@@ -143,7 +167,8 @@ def main() -> int:
         return 0
     n_methods = 1 + len([b for b in args.baselines.split(",") if b.strip() and b != "none"])
     print(f"{len(scenes)} scene(s) x {n_methods} method(s) x {args.rollouts} rollouts, "
-          f"{args.workers} workers, {args.repeats} repeats: {order[0]} median {base:.1f} s, "
+          f"{args.workers} workers, {args.repeats} repeats"
+          f"{' (evaluate + report)' if args.report else ''}: {order[0]} median {base:.1f} s, "
           f"this checkout median {new:.1f} s ({base / new:.2f}x, {100 * (1 - new / base):.0f}% "
           "less wall time)")
     same = len(digests[order[0]] | digests[order[1]]) == 1

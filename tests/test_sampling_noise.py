@@ -116,3 +116,51 @@ def test_a_card_gives_the_shape_and_a_checkpoint_policy_samples_with_it(tmp_path
         pol.act_batch(x, np.zeros(4, np.int64))
     with pytest.raises(PolicyError, match="RandomPolicy has no sampling noise to shape"):
         policies.registry._shaped("random", policies.make_policy("random", 0), shape)
+
+
+@pytest.mark.parametrize("prior", ["none", "idm"])
+def test_the_actor_gaussian_is_the_distributions_mean_and_std_bit_for_bit(prior):
+    """``actor_gaussian`` (evaluation's fast path) gives what SB3's distribution object gives,
+    with and without an action prior."""
+    from magail_sumo.config import from_dict
+    from magail_sumo.training.config import TrainConfig
+    from magail_sumo.training.trainer import make_policy
+
+    env = {"action_layout": "accel_offset", "observation": {"leader": True, "light_gap": True}} \
+        if prior == "idm" else {}
+    cfg = from_dict(TrainConfig, {"seed": 1, "env": env, "policy": {
+        "actor_hidden": [16, 16], "critic_hidden": [8], "action_prior": prior}})
+    torch.manual_seed(1)
+    policy = make_policy(cfg)
+    with torch.no_grad():
+        policy.log_std.add_(torch.tensor([0.3, -0.2]))
+        obs = torch.as_tensor(np.random.default_rng(0).uniform(
+            -1, 1, (23, policy.observation_space.shape[0])).astype(np.float32))
+        mean, std = policy.actor_gaussian(obs)
+        dist = policy.get_distribution(obs).distribution
+    assert torch.equal(mean, dist.mean) and torch.equal(std, dist.stddev)
+
+
+def test_a_batch_of_worlds_acts_as_each_world_alone_with_correlated_noise(tmp_path, monkeypatch):
+    """``act_batch`` over three worlds of uneven sizes, correlated noise, several steps: world
+    ``w``'s actions are bit for bit those of a policy reseeded with its seed acting on its
+    rows alone."""
+    ckpt = tiny_checkpoint(tmp_path / "agent.pt", {})
+    reg = tmp_path / "registry"
+    pretrained.export(ckpt, "smooth", reg, noise_scale=0.7, noise_note="test",
+                      noise_shape=NoiseShape(weights=(1.0, 0.5), correlation=(0.6, 0.3)))
+    monkeypatch.setenv(pretrained.ENV_VAR, str(reg))
+    batch = policies.make_policy("pretrained:smooth", seed=0)
+    seeds, sizes = [5, 9, 2], [3, 1, 4]
+    batch.reseed_worlds(seeds)
+    alone = [policies.make_policy("pretrained:smooth", seed=s) for s in seeds]
+    worlds = np.repeat(np.arange(3), sizes)
+    rows = np.arange(worlds.size) + 100
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        x = rng.normal(size=(worlds.size, batch.obs_dim)).astype(np.float32)
+        got = batch.act_batch(x, worlds, rows)
+        for w, pol in enumerate(alone):
+            names = [f"v{r}" for r in rows[worlds == w]]  # sorted as act sorts them
+            want = pol.act(dict(zip(names, x[worlds == w])))
+            assert np.array_equal(got[worlds == w], np.stack([want[n] for n in names]))

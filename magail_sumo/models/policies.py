@@ -40,7 +40,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
-from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
@@ -168,6 +168,18 @@ class TanhGaussianPolicy(ActorCriticPolicy):
     def get_distribution(self, obs: torch.Tensor):
         self._set_prior(obs)
         return super().get_distribution(obs)
+
+    def actor_gaussian(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pre-tanh mean and standard deviation (each (n, 2)) of the actor's Gaussian for
+        ``obs`` (n, D): ``get_distribution(obs).distribution.mean`` and ``.stddev`` bit for
+        bit, without building distribution objects (a batched evaluation step builds one per
+        world)."""
+        self._set_prior(obs)
+        features = BaseModel.extract_features(self, obs, self.pi_features_extractor)
+        mean = self.action_net(self.mlp_extractor.forward_actor(features))
+        if self.action_prior is not None:
+            mean = mean + self._prior_mean
+        return mean, torch.ones_like(mean) * self.log_std.exp()
 
     @property
     def obs_normalizer(self) -> RunningNormalizer:

@@ -106,6 +106,15 @@ class CheckpointPolicy:
                                   f"policy expects {self.obs_dim}")
         return torch.as_tensor(x, device=self.policy.device)
 
+    def _means(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The actor Gaussian's pre-tanh mean and std for ``obs`` (n, D) (the policy's
+        ``actor_gaussian`` where it has one: the same values without distribution objects)."""
+        fast = getattr(self.policy, "actor_gaussian", None)
+        if fast is not None:
+            return fast(obs)
+        gauss = self.policy.get_distribution(obs)
+        return gauss.distribution.mean, gauss.distribution.stddev
+
     def _actions(self, obs: torch.Tensor, generator: torch.Generator | None,
                  keys: np.ndarray | None) -> np.ndarray:
         """(n, 2) actions of one world's agents (module doc): sampled with ``generator``'s
@@ -113,15 +122,22 @@ class CheckpointPolicy:
         of the mean when deterministic."""
         if self.deterministic:
             a = self.policy._predict(obs, deterministic=True)
-        else:
-            gauss = self.policy.get_distribution(obs)
-            mean, std = gauss.distribution.mean, gauss.distribution.stddev
-            eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype,
-                              device=mean.device)
-            if not self.noise.shape.plain:  # the policy's own noise keeps the draws' bits
-                eps = torch.as_tensor(self.noise(eps.cpu().numpy(), keys), dtype=mean.dtype,
-                                      device=mean.device)
-            a = torch.tanh(mean + self.noise_scale * std * eps)
+            return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
+        mean, std = self._means(obs)
+        eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+        return self._squash(mean, std, self._shaped(eps, keys))
+
+    def _shaped(self, eps: torch.Tensor, keys: np.ndarray | None) -> torch.Tensor:
+        """The draws ``eps`` (n, 2) shaped by :attr:`noise_shape` for the agents ``keys``
+        (element-wise: one call may cover several worlds' rows)."""
+        if self.noise.shape.plain:  # the policy's own noise keeps the draws' bits
+            return eps
+        return torch.as_tensor(self.noise(eps.cpu().numpy(), keys), dtype=eps.dtype,
+                               device=eps.device)
+
+    def _squash(self, mean: torch.Tensor, std: torch.Tensor, eps: torch.Tensor) -> np.ndarray:
+        """``tanh(mean + k * std * eps)`` as float32 actions in [-1, 1]."""
+        a = torch.tanh(mean + self.noise_scale * std * eps)
         return np.clip(a.cpu().numpy().astype(np.float32), -1.0, 1.0)
 
     @torch.no_grad()
@@ -158,10 +174,17 @@ class CheckpointPolicy:
         bounds = np.flatnonzero(np.diff(worlds)) + 1
         if agents is None and not (self.deterministic or self.noise.shape.white):
             raise ValueError(f"{self.name}: correlated sampling noise needs act_batch's agents")
-        return np.concatenate([
-            self._actions(obs[lo:hi], None if gens is None else gens[int(worlds[lo])],
-                          None if agents is None else np.asarray(agents)[lo:hi])
-            for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, worlds.size])])
+        spans = list(zip(np.r_[0, bounds].tolist(), np.r_[bounds, worlds.size].tolist()))
+        if self.deterministic:
+            return np.concatenate([self._actions(obs[lo:hi], None, None) for lo, hi in spans])
+        # per world: its forward pass, its generator's draws and the tanh (its rows alone, as
+        # act gives them); the noise's shaping is element-wise and runs once over all rows
+        parts = [self._means(obs[lo:hi]) for lo, hi in spans]
+        eps = torch.cat([torch.randn(m.shape, generator=gens[int(worlds[lo])], dtype=m.dtype,
+                                     device=m.device) for (m, _), (lo, _) in zip(parts, spans)])
+        eps = self._shaped(eps, None if agents is None else np.asarray(agents))
+        return np.concatenate([self._squash(m, s, eps[lo:hi])
+                               for (m, s), (lo, hi) in zip(parts, spans)])
 
 
 def check_env_compatible(path: str | Path, trained: EnvConfig, target: EnvConfig) -> None:
