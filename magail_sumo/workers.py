@@ -23,11 +23,14 @@ The job function and its argument must be picklable (a module-level function).
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import pickle
+import sys
 import threading
 import time
 import traceback
 from dataclasses import dataclass
+from multiprocessing import reduction
 from multiprocessing.connection import wait
 from multiprocessing.reduction import ForkingPickler
 from typing import Any, Callable, Iterable, Iterator
@@ -92,13 +95,19 @@ def share_cores() -> None:
         numba.set_num_threads(1)
 
 
-def _child(conn, fn: Callable[[Any], Any], jobs, shared: bool = False) -> None:
+def _child(conn, fn: Callable[[Any], Any], jobs, shared: bool = False,
+           forked: bool = False) -> None:
     """Worker entry point: receive the job on ``jobs``, run ``fn(job)`` and send ``("ok",
     value)`` or a failure on ``conn``. ``shared``: other workers run beside it
-    (:func:`share_cores`)."""
+    (:func:`share_cores`). ``forked``: forked from the preload server (:func:`run_jobs`),
+    which started earlier: the parent's standard output and error, environment, working folder
+    and module path come first on ``jobs`` and replace the server's (as a spawned process
+    starts with the parent's)."""
     try:
         if shared:
             share_cores()
+        if forked:
+            _take_parent_context(jobs)
         arg = pickle.loads(jobs.recv_bytes())
         jobs.close()
         value = fn(arg)
@@ -116,10 +125,35 @@ def _child(conn, fn: Callable[[Any], Any], jobs, shared: bool = False) -> None:
     conn.close()
 
 
-def _send_job(conn, data: bytes) -> None:
-    """Send a pickled job to a worker (:func:`run_jobs`); a worker that is gone or killed
-    meanwhile ends the send."""
+def _parent_context() -> bytes:
+    """This process's environment, working folder and module path, pickled
+    (:func:`_take_parent_context`)."""
+    return pickle.dumps((dict(os.environ), os.getcwd(), list(sys.path)))
+
+
+def _take_parent_context(jobs) -> None:
+    """In a forked worker: the parent's standard output and error (two descriptors), then its
+    environment, working folder and module path (:func:`_send_job`)."""
+    for target in (1, 2):
+        fd = reduction.recv_handle(jobs)
+        os.dup2(fd, target)
+        os.close(fd)
+    env, cwd, path = pickle.loads(jobs.recv_bytes())
+    os.environ.clear()
+    os.environ.update(env)
+    os.chdir(cwd)
+    sys.path[:] = path
+
+
+def _send_job(conn, data: bytes, context: bytes | None = None, pid: int = 0) -> None:
+    """Send a pickled job to a worker (:func:`run_jobs`), after the parent's context for a
+    forked one (``context``: :func:`_parent_context`; ``pid``: the worker's); a worker that is
+    gone or killed meanwhile ends the send."""
     try:
+        if context is not None:
+            for fd in (1, 2):
+                reduction.send_handle(conn, fd, pid)
+            conn.send_bytes(context)
         conn.send_bytes(data)
     except (OSError, EOFError, ValueError):
         pass  # the worker died or was killed: its result says so
@@ -135,8 +169,15 @@ def _kill(proc) -> None:
 
 def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
              timeout_s: float | None = None, ordered: bool = False,
-             start_method: str = "spawn") -> Iterator[JobResult]:
+             start_method: str = "spawn", preload: tuple[str, ...] = ()
+             ) -> Iterator[JobResult]:
     """Run ``fn(job)`` for every job, each in a fresh process, ``workers`` at a time.
+
+    :param preload: modules the jobs import (e.g. libsumo and the code around it): the jobs'
+        processes are then forked from a server process that imported them once
+        (multiprocessing's ``forkserver`` with its preload list; a fresh process all the same,
+        one job each, without paying the imports per job). Only the first ``run_jobs`` with a
+        preload in a process sets the list (the server is started once). Empty: ``start_method``.
 
     :param timeout_s: seconds a job may run (from its process's start) before its process is
         killed and the job reported as timed out; None: no limit; a callable: each job's own
@@ -156,7 +197,14 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
 
     if not callable(timeout_s):
         limit(None)  # a bad limit fails before any job starts
-    ctx = mp.get_context(start_method)
+    forked = bool(preload)
+    if forked:
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(list(preload))
+        context = _parent_context()
+    else:
+        ctx = mp.get_context(start_method)
+        context = None
     source = enumerate(jobs)
     running: dict[int, tuple] = {}  # index -> (proc, conn, job, start, limit)
     done: dict[int, JobResult] = {}
@@ -172,19 +220,20 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
                     break
                 job_limit = limit(job)
                 parent, child = ctx.Pipe(duplex=False)
-                job_in, job_out = ctx.Pipe(duplex=False)
+                # (a socket pair when descriptors go over it: a forked worker's stdio)
+                job_in, job_out = ctx.Pipe(duplex=forked)
                 # the job (a prepared scene: ~1 MB) goes over its own pipe after the start, from
                 # a thread: a worker stopped before it reads blocks that thread, not this loop,
                 # and is killed at its timeout like any other (which ends the thread's send)
-                proc = ctx.Process(target=_child, args=(child, fn, job_in, workers > 1),
+                proc = ctx.Process(target=_child, args=(child, fn, job_in, workers > 1, forked),
                                    daemon=True, name=f"job-{k}")
                 proc.start()
                 child.close()
                 job_in.close()
                 # pickled here: a job that cannot be pickled fails in this process, as before
                 data = bytes(ForkingPickler.dumps(job))
-                threading.Thread(target=_send_job, args=(job_out, data), daemon=True,
-                                 name=f"job-{k}-send").start()
+                threading.Thread(target=_send_job, args=(job_out, data, context, proc.pid),
+                                 daemon=True, name=f"job-{k}-send").start()
                 running[k] = (proc, parent, job, time.monotonic(), job_limit)
             if not running:
                 break

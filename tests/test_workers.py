@@ -169,3 +169,34 @@ def test_workers_side_by_side_run_numba_kernels_on_one_thread():
         assert serve(_ThreadsWorker, (), "step", None, state) == ("ok", 1)
     finally:
         numba.set_num_threads(default)
+
+
+def _context_job(tag: str) -> tuple:
+    """A job telling what its process sees: an env variable, its folder, whether a preloaded
+    module is imported already, and a line on its standard error."""
+    import sys
+
+    print(f"worker line {tag}", file=sys.stderr, flush=True)
+    return os.environ.get("MAGAIL_SUMO_TEST_TAG"), os.getcwd(), "colorsys" in sys.modules
+
+
+def test_preloaded_workers_run_with_the_parents_current_context(tmp_path, monkeypatch, capfd):
+    """Workers forked from the preload server (started by the first call) see the parent's
+    environment, folder and standard error as they are at each call, not as they were when
+    the server started; the faults are reported as with spawned workers."""
+    monkeypatch.setenv("MAGAIL_SUMO_TEST_TAG", "first")
+    res = list(run_jobs(_context_job, ["a"], preload=("colorsys",)))
+    assert res[0].ok and res[0].value[0] == "first" and res[0].value[2]
+    (tmp_path / "later").mkdir()
+    monkeypatch.chdir(tmp_path / "later")
+    monkeypatch.setenv("MAGAIL_SUMO_TEST_TAG", "second")
+    capfd.readouterr()
+    res = list(run_jobs(_context_job, ["b", "c"], workers=2, preload=("colorsys",),
+                        ordered=True))
+    assert [r.value[:2] for r in res] == [("second", str(tmp_path / "later"))] * 2
+    err = capfd.readouterr().err
+    assert "worker line b" in err and "worker line c" in err
+    faults = list(run_jobs(fault_job, [("exit", 0), ("raise", 1), ("sleep", 0), ("ok", 4)],
+                           workers=2, timeout_s=10.0, ordered=True, preload=("colorsys",)))
+    assert [r.kind for r in faults] == ["died", "error", "timeout", "ok"]
+    assert faults[-1].value == 8

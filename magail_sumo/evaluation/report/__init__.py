@@ -78,14 +78,17 @@ def _action_mode(man: dict) -> str:
     """How the checkpoint policy under test acted (``evaluate --deterministic`` or sampled,
     with its noise scale when not 1), as the manifest records it; empty for other policies and
     older manifests."""
-    # lazy: the report's scoring workers import this package and run without torch
-    from magail_sumo.policies import POLICY_LOADERS
-
     spec = man.get("policy_spec")
     spec = unguarded(spec) if isinstance(spec, str) else spec
-    if "deterministic" not in man or not isinstance(spec, str) \
-            or not (is_pretrained_spec(spec) or Path(spec).suffix in POLICY_LOADERS):
+    if "deterministic" not in man or not isinstance(spec, str):
         return ""
+    if not is_pretrained_spec(spec):
+        # lazy, and only for a file: the policies import torch (seconds), which neither the
+        # report's scoring workers nor a report of a pretrained policy need
+        from magail_sumo.policies import POLICY_LOADERS
+
+        if Path(spec).suffix not in POLICY_LOADERS:
+            return ""
     if man["deterministic"]:
         return " (deterministic actions)"
     scale = man.get("noise_scale")
