@@ -121,40 +121,64 @@ def read_rollouts(path: str | Path, scene: Scene) -> ScenarioRollouts:
     :raises EvaluationError: unreadable file, missing columns, another scene, or a ragged
         table (agents without every rollout and step), naming the file / scene / agent.
     """
-    import pandas as pd
+    return read_rollouts_valid(path, scene)[0]
+
+
+def read_rollouts_valid(path: str | Path, scene: Scene
+                        ) -> tuple[ScenarioRollouts, np.ndarray | None]:
+    """:func:`read_rollouts` and the file's (R, A, T) ``valid`` column over the simulated
+    steps in the same order (None when every state is valid or the column cannot be read as
+    booleans; a missing value is not valid), from one read of the file (pyarrow's columns as arrays; rows sorted by
+    rollout, object and step)."""
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
 
     path = Path(path)
     try:
         regular_file(path, "a rollouts Parquet file")  # a FIFO would block the reader
-        df = pd.read_parquet(path)
+        table = pq.read_table(path)
     except InputFileError as exc:
         raise EvaluationError(str(exc)) from None
     except Exception as exc:
         raise EvaluationError(f"{path}: unreadable Parquet ({type(exc).__name__})") from None
-    missing = [c for c in COLUMNS if c not in df.columns]
+    missing = [c for c in COLUMNS if c not in table.column_names]
     if missing:
         raise EvaluationError(f"{path}: missing column(s) {', '.join(missing)}")
-    sids = df["scenario_id"].astype(str).unique()
+    try:
+        sids = pc.unique(table.column("scenario_id").cast("string")).to_pylist()
+    except Exception as exc:
+        raise EvaluationError(f"{path}: unreadable column scenario_id ({type(exc).__name__})"
+                              ) from None
     sid = scene.scenario_id
     if len(sids) != 1 or sids[0] != sid:
         raise EvaluationError(f"{path}: holds scenario(s) {', '.join(map(str, sids[:3]))}, "
                               f"expected {sid}")
-    fut = df[df["step"] > scene.current_time_index].sort_values(["rollout", "object_id", "step"])
-    ids = np.sort(fut["object_id"].unique())
-    R, A = fut["rollout"].nunique(), len(ids)
+    col = lambda name: table.column(name).to_numpy()  # noqa: E731
+    step = col("step")
+    fut = np.flatnonzero(step > scene.current_time_index)
+    rollout, object_id = col("rollout")[fut], col("object_id")[fut]
+    order = fut[np.lexsort((step[fut], object_id, rollout))]
+    ids, counts = np.unique(object_id, return_counts=True)
+    R, A = len(np.unique(rollout)), len(ids)
     if A == 0:
         raise EvaluationError(f"scenario {sid}: {path.name} has no simulated steps")
-    counts = fut.groupby("object_id").size()
     T, rem = divmod(len(fut), R * A)
-    bad = counts[counts != counts.max()]
+    bad = np.flatnonzero(counts != counts.max())
     if rem or len(bad):
-        oid = int(bad.index[0]) if len(bad) else int(ids[0])
-        raise EvaluationError(f"scenario {sid}: agent {oid} has {int(counts.get(oid, 0))} "
+        k = int(bad[0]) if len(bad) else 0
+        raise EvaluationError(f"scenario {sid}: agent {int(ids[k])} has {int(counts[k])} "
                               f"rows in {path.name}, others {int(counts.max())} "
                               "(every agent needs every rollout and step)")
-    arr = {c: fut[c].to_numpy(np.float32).reshape(R, A, T) for c in ("x", "y", "z", "heading")}
-    return ScenarioRollouts(sid, ids.astype(np.int64), arr["x"], arr["y"], arr["z"],
-                            arr["heading"])
+    arr = {c: np.asarray(col(c)[order], np.float32).reshape(R, A, T)
+           for c in ("x", "y", "z", "heading")}
+    ro = ScenarioRollouts(sid, ids.astype(np.int64), arr["x"], arr["y"], arr["z"],
+                          arr["heading"])
+    try:  # a missing value: not valid
+        v = np.asarray(pc.fill_null(table.column("valid"), False).to_numpy(), bool)[order]
+        valid = None if v.all() else v.reshape(ro.shape)
+    except Exception:  # noqa: BLE001 - the states themselves are read: every one is drawn
+        valid = None
+    return ro, valid
 
 
 # --------------------------------------------------------------------------------- manifest

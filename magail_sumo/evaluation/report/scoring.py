@@ -32,7 +32,7 @@ from magail_sumo.evaluation.realism.metrics import (
 )
 from magail_sumo.evaluation.realism.trajectories import JointTrajectories, joint_trajectories
 from magail_sumo.evaluation.protocol import N_STEPS
-from magail_sumo.evaluation.storage import read_manifest, read_rollouts, rollouts_path
+from magail_sumo.evaluation.storage import read_manifest, read_rollouts_valid, rollouts_path
 from magail_sumo.evaluation.submission import (
     ScenarioRollouts, SubmissionError, iter_submission, validate_rollouts,
 )
@@ -87,23 +87,6 @@ def agent_metrics(feat: Features, config=CHALLENGE_2025) -> dict[str, np.ndarray
     out["offroad_rate"] = flags["offroad_indication"][1:].mean(0) \
         if "offroad_indication" in flags else np.full(len(feat.object_id), np.nan)
     return out
-
-
-def read_valid(path: Path, scene: Scene, ro: ScenarioRollouts) -> np.ndarray | None:
-    """(R, A, T) ``valid`` column of a rollouts file over the simulated steps, in
-    :func:`~magail_sumo.evaluation.storage.read_rollouts`' order; None when all are valid."""
-    import pandas as pd
-
-    try:
-        regular_file(path)  # a FIFO would block the reader
-        df = pd.read_parquet(path, columns=["rollout", "object_id", "step", "valid"])
-        fut = df[df["step"] > scene.current_time_index]
-        if bool(fut["valid"].all()):
-            return None
-        fut = fut.sort_values(["rollout", "object_id", "step"])
-        return fut["valid"].to_numpy(bool).reshape(ro.shape)
-    except Exception:  # noqa: BLE001 - read_rollouts accepted the file: draw every state
-        return None
 
 
 def load_scenes(manifest: dict, errors: list[str]) -> dict[str, Scene]:
@@ -267,10 +250,9 @@ def _read_pair(folder: Path, method: str, scene: Scene
     if not path.is_file():
         return f"method {printable(method)}: scenario {printable(sid)}: no rollouts ({path})"
     try:
-        ro = read_rollouts(path, scene)
+        return read_rollouts_valid(path, scene)
     except MagailSumoError as exc:
         return f"method {method}: {' '.join(str(exc).split())}"
-    return ro, read_valid(path, scene, ro)
 
 
 def scene_view(scores: Scores, sid: str) -> SceneView:
