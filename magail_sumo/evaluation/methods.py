@@ -33,7 +33,7 @@ their recorded track in the env) follow the constant-velocity model from their l
 from +x; z is the recorded z at the current step (SUMO is 2-D).
 
 SUMO methods run one simulation after another in the calling process; the runner gives every
-batch of them a fresh ``spawn`` worker process (libsumo allows one simulation per process and
+batch of them a fresh worker process (libsumo allows one simulation per process and
 has crashed when a second one starts after vehicle removals).
 """
 

@@ -4,7 +4,8 @@ over fresh worker processes, written as Parquet with the run's manifest.
 :func:`evaluate` takes its steps in order: check the settings (:func:`method_names`), read and
 prepare the scenes once (:mod:`magail_sumo.evaluation.scenes`), run the methods
 (:func:`run_methods`: the in-process ones here, the others as :class:`Batch` es in fresh
-``spawn`` processes: up to 32 rollouts of SUMO's car-following per process
+processes, forked from a server that imported SUMO and the methods' code once
+(:data:`WORKER_IMPORTS`): up to 32 rollouts of SUMO's car-following per process
 (:func:`run_batches`), a policy's rollouts of a scene in as few batches as keep the workers
 busy (:func:`batch_size`), one process per worker running its share of them in turn
 (:func:`run_groups`)), write each (scene,
@@ -44,7 +45,7 @@ WORKER_IMPORTS = ("libsumo", "magail_sumo.evaluation.methods", "converters.sumo.
 
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
                 ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
-    """Run batches, each in a fresh ``spawn`` process; yields (batch, rollouts, error line,
+    """Run batches, each in a fresh process; yields (batch, rollouts, error line,
     fixed-up action counts) (:func:`run_groups` of one batch each)."""
     yield from run_groups([(b,) for b in batches], workers, timeout_s)
 
@@ -52,7 +53,7 @@ def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DE
 def run_groups(groups: list[tuple[Batch, ...]], workers: int,
                timeout_s: float | None = DEFAULT_TIMEOUT_S
                ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
-    """Run groups of batches, each group in one fresh ``spawn`` process running its batches
+    """Run groups of batches, each group in one fresh process running its batches
     in turn (:func:`~magail_sumo.evaluation.methods.run_batches_in_turn`: a policy's batches
     of several scenes pay the process start and the policy's imports once); yields (batch,
     rollouts, error line, fixed-up action counts) per batch.
