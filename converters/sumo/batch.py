@@ -96,6 +96,10 @@ def _failed(job: tuple, reason: str, seconds: float = 0.0) -> BatchRow:
 
 #: seconds a worker gets beyond the conversion's own time budget before it is killed
 KILL_GRACE_S = 60.0
+#: what every scene's conversion process imports (SUMO and the converter): imported once by
+#: the process they are forked from (:func:`magail_sumo.workers.run_jobs`' ``preload``), not
+#: once per scene (about 0.75 s each)
+WORKER_IMPORTS = ("libsumo", "converters.sumo.batch")
 
 
 def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
@@ -170,7 +174,7 @@ def convert_files(inputs: Iterable[str | Path], out: Path, workers: int = 1,
                 yield job
 
     for res in run_jobs(_convert, scene_jobs(), workers=workers, timeout_s=timeout_s,
-                        ordered=True):
+                        ordered=True, preload=WORKER_IMPORTS):
         yield from unreadable
         unreadable.clear()
         yield res.value if res.ok else _failed(res.job, res.reason, res.seconds)
