@@ -192,7 +192,9 @@ def test_shipped_default_policy_loads_and_acts(monkeypatch):
         assert a1[k].shape == (2,) and np.all(np.abs(a1[k]) <= 1.0)
         np.testing.assert_array_equal(a1[k], a2[k])
     d = policies.make_policy("pretrained", 7, deterministic=True).act(obs)
-    assert all(np.array_equal(d["0"], d[k]) for k in obs)  # same observation, same mean action
+    # same observation, same mean action (to the last bits: torch's tanh rounds the rows of a
+    # vector block and the scalar tail after it differently)
+    assert all(np.allclose(d["0"], d[k], rtol=0, atol=1e-6) for k in obs)
 
 
 # --------------------------------------------------------------- with a trained checkpoint

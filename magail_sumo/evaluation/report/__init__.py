@@ -83,8 +83,9 @@ def _action_mode(man: dict) -> str:
     if "deterministic" not in man or not isinstance(spec, str):
         return ""
     if not is_pretrained_spec(spec):
-        # lazy, and only for a file: the policies import torch (seconds), which neither the
-        # report's scoring workers nor a report of a pretrained policy need
+        # the policies import torch (seconds), which neither the report's scoring workers nor
+        # a report of a pretrained policy need
+        # lazy: only for a file policy (torch)
         from magail_sumo.policies import POLICY_LOADERS
 
         if Path(spec).suffix not in POLICY_LOADERS:
