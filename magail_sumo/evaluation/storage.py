@@ -128,8 +128,8 @@ def read_rollouts_valid(path: str | Path, scene: Scene
                         ) -> tuple[ScenarioRollouts, np.ndarray | None]:
     """:func:`read_rollouts` and the file's (R, A, T) ``valid`` column over the simulated
     steps in the same order (None when every state is valid or the column cannot be read as
-    booleans; a missing value is not valid), from one read of the file (pyarrow's columns as arrays; rows sorted by
-    rollout, object and step)."""
+    booleans; a missing value is not valid), from one read of the file (pyarrow's columns as
+    arrays; rows sorted by rollout, object and step)."""
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
 

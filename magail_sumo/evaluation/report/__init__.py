@@ -83,9 +83,7 @@ def _action_mode(man: dict) -> str:
     if "deterministic" not in man or not isinstance(spec, str):
         return ""
     if not is_pretrained_spec(spec):
-        # the policies import torch (seconds), which neither the report's scoring workers nor
-        # a report of a pretrained policy need
-        # lazy: only for a file policy (torch)
+        # lazy: only for a policy file (the policies import torch, seconds)
         from magail_sumo.policies import POLICY_LOADERS
 
         if Path(spec).suffix not in POLICY_LOADERS:

@@ -39,7 +39,6 @@ from magail_sumo.evaluation.submission import (
 from magail_sumo.evaluation.traffic import MetricInput, compute_metrics
 from magail_sumo.evaluation.traffic.events import log_offroad
 from magail_sumo.evaluation.traffic.distributions import BINS
-from magail_sumo.inputs import regular_file
 from magail_sumo.outputs import OutputError, printable
 from magail_sumo.scene import ObjectType, Scene
 from magail_sumo.workers import Progress, no_progress, run_jobs
