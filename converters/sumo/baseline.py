@@ -393,6 +393,31 @@ def _drop(api, ids, routed: set[str]) -> None:
                 pass
 
 
+@dataclass(frozen=True)
+class DriveSetup:
+    """What :func:`drive` needs of a scene, its bundle and its agents whatever the seed (read
+    once for all the rollouts of a batch; :func:`prepare_drive`)."""
+
+    scene: Scene
+    bundle: SceneBundle
+    ids: np.ndarray  # (A,) track ids of the agents
+    n_steps: int
+    start: tuple[np.ndarray, ...]  # (rows, x, y, z, heading, vx, vy) at the current step
+    future: tuple[np.ndarray, np.ndarray, np.ndarray]  # (x, y, yaw) of agents SUMO does not drive
+    departs: dict[str, int]  # departure step of every route vehicle
+    points: np.ndarray  # (P, 2) the map's points (:func:`map_points`)
+
+
+def prepare_drive(scene: Scene, bundle_dir: Path, ids: np.ndarray, n_steps: int,
+                  start: tuple[np.ndarray, ...],
+                  future: tuple[np.ndarray, np.ndarray, np.ndarray]) -> DriveSetup:
+    """The :class:`DriveSetup` of :func:`drive_from_current`'s arguments but the seed (the
+    bundle read and checked, its departures, the map's points)."""
+    bundle = SceneBundle.load(scene, bundle_dir)
+    return DriveSetup(scene, bundle, ids, n_steps, start, future,
+                      _departures(bundle.files.routes), map_points(scene))
+
+
 def drive_from_current(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarray, n_steps: int,
                        start: tuple[np.ndarray, ...],
                        future: tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -408,10 +433,17 @@ def drive_from_current(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarra
         from its last state in SUMO.
     :returns: ``(x, y, yaw, speed)``, each (A, ``n_steps``): the states SUMO drove (the
         recorded lateral offset carried in x, y), NaN where SUMO did not drive the agent.
+        Several seeds of one scene: :func:`prepare_drive` once, then :func:`drive` per seed
+        (the same result).
     """
-    bundle = SceneBundle.load(scene, bundle_dir)
+    return drive(prepare_drive(scene, bundle_dir, ids, n_steps, start, future), seed)
+
+
+def drive(setup: DriveSetup, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`drive_from_current` of a prepared scene, seeded with ``seed``."""
+    scene, bundle, ids, n_steps = setup.scene, setup.bundle, setup.ids, setup.n_steps
     col = {str(int(i)): k for k, i in enumerate(ids)}
-    rows, x0, y0, _, h0, vx0, vy0 = start
+    rows, x0, y0, _, h0, vx0, vy0 = setup.start
     length = scene.tracks.length[rows, scene.current_time_index].astype(np.float64)
     width = scene.tracks.width[rows, scene.current_time_index].astype(np.float64)
     cur = scene.current_time_index
@@ -419,16 +451,16 @@ def drive_from_current(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarra
     tx, ty, tyaw, tspeed = (np.full((len(ids), n_steps), np.nan) for _ in range(4))
     held: list[str] = []
     routed = set(bundle.sumo_ids)
-    departs = _departures(bundle.files.routes)
+    departs = setup.departs
     due: set[str] = set()
     later: set[str] = set()
     gone: dict[int, int] = {}  # agent -> column of its last state before it left SUMO
     ends: dict[str, str] = {}  # driven vehicle -> last edge of its (continued) route
-    points = map_points(scene)
+    points = setup.points
     obstacles: Obstacles | None = None
     obs = np.zeros(0, np.int64)
     offsets = np.zeros(len(ids))  # each agent's recorded lateral offset from its lane's centre
-    ox, oy, oyaw = future  # the future of every agent SUMO does not drive
+    ox, oy, oyaw = setup.future  # the future of every agent SUMO does not drive
     with bundle_session(bundle.sumocfg, seed, bundle.inputs) as sess:
         api = sess.api  # the running simulation's TraCI-style domains
         for k in range(cur + 1 + n_steps):  # after k + 1 steps SUMO shows log step k
@@ -476,7 +508,8 @@ def drive_from_current(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarra
                     obstacles.place(x0[obs], y0[obs], h0[obs])
                 else:
                     px, py, pyaw = ox[obs, t], oy[obs, t], oyaw[obs, t]
-                    for j in np.flatnonzero(np.isin(obs, list(gone))).tolist():
+                    for j in (np.flatnonzero(np.isin(obs, list(gone))).tolist() if gone
+                              else ()):
                         a, t0 = int(obs[j]), gone[int(obs[j])]  # on from its last SUMO state
                         d = tspeed[a, t0] * (t - t0) * DT
                         px[j] = tx[a, t0] + d * np.cos(tyaw[a, t0])

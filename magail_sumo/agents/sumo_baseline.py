@@ -15,10 +15,11 @@ process.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
-from converters.sumo.baseline import drive_from_current
+from converters.sumo.baseline import drive, prepare_drive
 from magail_sumo.scene import Scene
 
 from .constant_velocity import Track, constant_velocity, current_state, fill_constant_velocity
@@ -28,6 +29,13 @@ def sumo_rollout(scene: Scene, bundle_dir: Path, seed: int, ids: np.ndarray, n_s
                  ) -> tuple[np.ndarray, ...]:
     """One rollout of SUMO's own car-following (module doc) of the agents ``ids`` (track ids)
     over ``n_steps`` steps after the scene's current step; (x, y, yaw), each (A, n_steps)."""
-    driven = drive_from_current(scene, bundle_dir, seed, ids, n_steps, current_state(scene, ids),
-                                constant_velocity(scene, ids, n_steps))
-    return fill_constant_velocity(scene, ids, Track(*driven))
+    return sumo_rollouts(scene, bundle_dir, [seed], ids, n_steps)[0]
+
+
+def sumo_rollouts(scene: Scene, bundle_dir: Path, seeds: Iterable[int], ids: np.ndarray,
+                  n_steps: int) -> list[tuple[np.ndarray, ...]]:
+    """:func:`sumo_rollout` of each seed, one SUMO run after another; the bundle, the agents'
+    current state and their constant-velocity future are read once for all of them."""
+    setup = prepare_drive(scene, bundle_dir, ids, n_steps, current_state(scene, ids),
+                          constant_velocity(scene, ids, n_steps))
+    return [fill_constant_velocity(scene, ids, Track(*drive(setup, s))) for s in seeds]

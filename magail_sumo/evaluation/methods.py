@@ -49,7 +49,7 @@ from converters.scene_files import find_scene
 from magail_sumo.agents import Policy, batched, env_settings, rollout, rollout_worlds
 from magail_sumo.agents import constant_velocity as _cv
 from magail_sumo.agents.constant_velocity import Track, current_state, fill_constant_velocity
-from magail_sumo.agents.sumo_baseline import sumo_rollout
+from magail_sumo.agents.sumo_baseline import sumo_rollouts
 from magail_sumo.env import EnvConfig, SumoDrivingEnv
 from magail_sumo.env.batched import BatchedSceneEnv
 from magail_sumo.env.actions import action_summary
@@ -260,7 +260,7 @@ def simulate(scene: Scene, method: str, rollouts: Iterable[int], seed: int = 0,
         raise EvaluationError(f"scenario {printable(scene.scenario_id)}: method {method} "
                               "needs a converted SUMO bundle")
     elif method == "sumo":
-        runs = [sumo_rollout(scene, Path(bundle_dir), s, ids, N_STEPS) for s in seeds]
+        runs = sumo_rollouts(scene, Path(bundle_dir), seeds, ids, N_STEPS)
     else:
         # lazy: baseline batches run in worker processes that import no torch
         from magail_sumo.policies import make_policy

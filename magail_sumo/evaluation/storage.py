@@ -50,14 +50,14 @@ def to_frame(scene: Scene, ro: ScenarioRollouts, method: str):
                  else np.ones((A, T), bool))
     valid = np.broadcast_to(np.concatenate([tr.valid[rows, hist], fut_valid], 1)[None],
                             x.shape)
-    r_i, a_i, t_i = np.meshgrid(np.arange(R), np.arange(A), np.arange(cur + 1 + T),
-                                indexing="ij")
+    n, S = x.size, cur + 1 + T
+    one = np.zeros(n, np.int8)  # the codes of a one-category column
     return pd.DataFrame({
-        "scenario_id": pd.Categorical([ro.scenario_id] * x.size),
-        "method": pd.Categorical([method] * x.size),
-        "rollout": r_i.ravel().astype(np.int32),
-        "object_id": ro.object_id[a_i.ravel()].astype(np.int64),
-        "step": t_i.ravel().astype(np.int32),
+        "scenario_id": pd.Categorical.from_codes(one, [ro.scenario_id]),
+        "method": pd.Categorical.from_codes(one, [method]),
+        "rollout": np.repeat(np.arange(R, dtype=np.int32), A * S),
+        "object_id": np.tile(np.repeat(np.asarray(ro.object_id, np.int64), S), R),
+        "step": np.tile(np.arange(S, dtype=np.int32), R * A),
         "x": x.ravel(), "y": y.ravel(), "z": z.ravel(), "heading": hd.ravel(),
         "valid": valid.ravel(),
     })
