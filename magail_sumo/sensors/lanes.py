@@ -40,23 +40,38 @@ class LaneQuery:
 _TIE = 1e-9
 
 
+#: grid cells per search radius of a :class:`LaneIndex`: a query visits only the cells that
+#: come within the radius of its point (fewer segments than the 3 x 3 radius-sized cells
+#: around it: 0.39 s against 0.46 s for 390k real points; 3, 4 and 6 per radius were no faster);
+#: which segments count, and so every answer, does not depend on it
+GRID_SPLIT = 2
+
+
 @numba.njit(cache=True)
-def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, items):
+def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, items, radius):
     a = px.shape[0]
     lane = np.full(a, -1, np.int64)
     lateral = np.zeros(a)
     herr = np.zeros(a)
-    dist = np.full(a, cell)
+    dist = np.full(a, radius)
+    r2 = radius * radius
+    reach = int(np.ceil(radius / cell))
     for i in range(a):
         ox, oy = px[i], py[i]
         ch, sh = np.cos(yaw[i]), np.sin(yaw[i])
-        cx = int(np.floor((ox - x0) / cell))
-        cy = int(np.floor((oy - y0) / cell))
-        best_any = cell * cell
+        fx = (ox - x0) / cell
+        fy = (oy - y0) / cell
+        cx = int(np.floor(fx))
+        cy = int(np.floor(fy))
+        best_any = r2
         best_al = np.inf
         best_k = -1
-        for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
-            for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
+        for gx in range(max(cx - reach, 0), min(cx + reach + 1, nx)):
+            dx = 0.0 if gx == cx else ((gx - fx) if gx > cx else (fx - gx - 1.0)) * cell
+            for gy in range(max(cy - reach, 0), min(cy + reach + 1, ny)):
+                dy = 0.0 if gy == cy else ((gy - fy) if gy > cy else (fy - gy - 1.0)) * cell
+                if dx * dx + dy * dy >= r2:  # no point of the cell within the radius
+                    continue
                 c = gx * ny + gy
                 for m in range(offsets[c], offsets[c + 1]):
                     k = items[m]
@@ -69,11 +84,11 @@ def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, it
                     d2 = qx * qx + qy * qy
                     if d2 < best_any:
                         best_any = d2
-                    # within the cell size only: a segment is listed in every cell its bounding
-                    # box overlaps, so one farther away may or may not be among the 3 x 3 cells
-                    # visited, depending on where the grid's cells fall; of (near) ties (the
-                    # two segments at a vertex) the lower segment wins, whatever the visit order
-                    if ll < 1e-12 or d2 >= cell * cell or d2 > best_al + _TIE or \
+                    # within the radius only (every segment that close lies in a visited
+                    # cell: a segment is listed in every cell its bounding box overlaps); of
+                    # (near) ties (the two segments at a vertex) the lower segment wins,
+                    # whatever the visit order (a segment in several cells may come again)
+                    if ll < 1e-12 or d2 >= r2 or d2 > best_al + _TIE or \
                             (d2 >= best_al - _TIE and k > best_k):
                         continue
                     if ex * ch + ey * sh <= 0.0:  # lane runs against the heading
@@ -92,23 +107,26 @@ def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, it
 class LaneIndex:
     """Lane centre-line segments of a scene indexed in a grid, built once per scene.
 
-    :param cell: grid cell (m); distances beyond it are reported as ``cell``.
+    :param cell: the search radius (m) of :meth:`build`: distances beyond it are reported as
+        ``cell``; the grid's cells are :data:`GRID_SPLIT` times smaller.
     """
 
     grid: SegmentGrid
     owner: np.ndarray  # (S,) lane index of each grid segment
     ids: np.ndarray  # (L,) WOMD lane id of each lane index
+    radius: float  # m, the search radius (``cell`` of :meth:`build`)
 
     @classmethod
     def build(cls, lanes: tuple[Lane, ...], cell: float = 10.0) -> "LaneIndex":
         starts, ends, owner = indexed_polyline_segments([l.polyline for l in lanes])
-        return cls(SegmentGrid.build(starts, ends, cell), owner,
-                   np.array([l.id for l in lanes], np.int64))
+        return cls(SegmentGrid.build(starts, ends, cell / GRID_SPLIT), owner,
+                   np.array([l.id for l in lanes], np.int64), float(cell))
 
     def query(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> LaneQuery:
         """Nearest lanes of A points with headings (all arrays (A,))."""
         g = self.grid
         f64 = lambda v: np.ascontiguousarray(v, np.float64)  # noqa: E731
         lane, lat, herr, dist = _nearest(f64(x), f64(y), f64(yaw), g.starts, g.ends, self.owner,
-                                         g.x0, g.y0, g.cell, g.nx, g.ny, g.offsets, g.items)
+                                         g.x0, g.y0, g.cell, g.nx, g.ny, g.offsets, g.items,
+                                         self.radius)
         return LaneQuery(lane, lat, herr, dist)
