@@ -290,6 +290,34 @@ def playable_scene(ref: RecordRef, config: EnvConfig):
     return scene
 
 
+class EnvCache:
+    """The ``size`` most recently used envs of a worker by key (a record, a group of records):
+    :meth:`get` marks one used, :meth:`put` closes the least recently used beyond ``size``,
+    :meth:`close` closes them all."""
+
+    def __init__(self, size: int) -> None:
+        self.size = max(1, size)
+        self._envs: OrderedDict = OrderedDict()
+
+    def get(self, key):
+        """The env kept under ``key`` (now the most recently used), or None."""
+        env = self._envs.get(key)
+        if env is not None:
+            self._envs.move_to_end(key)
+        return env
+
+    def put(self, key, env) -> None:
+        self._envs[key] = env
+        while len(self._envs) > self.size:
+            _, old = self._envs.popitem(last=False)
+            old.close()
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()
+
+
 class PoolCursor:
     """A worker's view of its shard: which record each episode plays (module doc), the env of
     each (built on demand, ``cache`` most recent kept) and the records that failed.
@@ -319,7 +347,7 @@ class PoolCursor:
         self.slots: int | None = None
         self.failed: dict[int, str] = {}  #: record position -> reason (skipped from then on)
         self.new_failures: list[PoolSkip] = []  #: failures not yet reported to the trainer
-        self._envs: OrderedDict[int, object] = OrderedDict()
+        self._envs = EnvCache(self.cache)
 
     def order(self, epoch: int) -> np.ndarray:
         n = len(self.refs)
@@ -339,9 +367,8 @@ class PoolCursor:
 
     def env(self, k: int):
         """The env of record ``k`` (built, and its bundle converted, on first use); raises."""
-        if k in self._envs:
-            self._envs.move_to_end(k)
-            return self._envs[k]
+        if (env := self._envs.get(k)) is not None:
+            return env
         ref = self.refs[k]
         if is_city(ref):
             env = SumoCityEnv(ref.path, self.city or CityEnvConfig())
@@ -354,10 +381,7 @@ class PoolCursor:
                     "env.controlled: K caps the agents of every scene)")
             bundle = ensure_bundle(scene, self.networks, ref, self.convert_budget_s)
             env = self.make_env(scene, bundle)
-        self._envs[k] = env
-        while len(self._envs) > self.cache:
-            _, old = self._envs.popitem(last=False)
-            old.close()
+        self._envs.put(k, env)
         return env
 
     def env_for(self, episode: int):
@@ -426,9 +450,7 @@ class PoolCursor:
         return self.slots
 
     def close(self) -> None:
-        for env in self._envs.values():
-            env.close()
-        self._envs.clear()
+        self._envs.close()
 
 
 def write_skipped(path: str | Path, skips: Iterable[PoolSkip]) -> None:

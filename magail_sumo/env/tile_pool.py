@@ -25,13 +25,12 @@ the :class:`~magail_sumo.env.scene_pool.PoolCursor` interface the
 
 from __future__ import annotations
 
-from collections import OrderedDict
-
 from converters.sumo.scenario import ensure_bundle
 from magail_sumo.errors import MagailSumoError
 
 from .config import EnvConfig
-from .scene_pool import SCAN_RECORDS, PoolCursor, ScenePoolError, agent_bound, playable_scene
+from .scene_pool import (SCAN_RECORDS, EnvCache, PoolCursor, ScenePoolError, agent_bound,
+                         playable_scene)
 from .tiled import TiledScenesEnv
 
 
@@ -49,7 +48,7 @@ class TileCursor:
         self.new_failures = pool.new_failures
         self.slots: int | None = None
         self.cache = max(1, pool.cache // per_env)
-        self._envs: OrderedDict[tuple[int, ...], TiledScenesEnv] = OrderedDict()
+        self._envs = EnvCache(self.cache)  # by group
         self._bounds: dict[int, int] = {}
 
     # ------------------------------------------------------------------ schedule
@@ -69,9 +68,8 @@ class TileCursor:
     def _env(self, group: tuple[int, ...]) -> TiledScenesEnv | None:
         """The tiled env of the usable records of ``group`` (None: none is usable); kept by
         group (which of its records are usable is a property of the data)."""
-        if group in self._envs:
-            self._envs.move_to_end(group)
-            return self._envs[group]
+        if (env := self._envs.get(group)) is not None:
+            return env
         got = [(k, *self._scene_or_fail(k)) for k in group if k not in self.failed]
         got = [g for g in got if g[1] is not None]
         if self.slots is not None:  # the longest prefix that fits the worker's slots
@@ -85,10 +83,7 @@ class TileCursor:
         if not got:
             return None
         env = TiledScenesEnv([g[1] for g in got], [g[2] for g in got], self.config)
-        self._envs[group] = env
-        while len(self._envs) > self.cache:
-            _, old = self._envs.popitem(last=False)
-            old.close()
+        self._envs.put(group, env)
         return env
 
     def _scene_or_fail(self, k: int):
@@ -129,7 +124,5 @@ class TileCursor:
         return self.slots
 
     def close(self) -> None:
-        for env in self._envs.values():
-            env.close()
-        self._envs.clear()
+        self._envs.close()
         self.pool.close()
