@@ -75,12 +75,14 @@ def wrap_angle(a: np.ndarray) -> np.ndarray:
 def clip_action(accel: np.ndarray, steer: np.ndarray, limits: BicycleLimits
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Clip to the limits; NaN becomes 0. Returns (accel, steer, clipped mask)."""
-    bad = ~np.isfinite(accel) | ~np.isfinite(steer)
-    a = np.nan_to_num(np.asarray(accel, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    d = np.nan_to_num(np.asarray(steer, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    a_c = np.clip(a, -limits.max_brake, limits.max_accel)
-    d_c = np.clip(d, -limits.max_steer, limits.max_steer)
-    return a_c, d_c, bad | (a_c != a) | (d_c != d)
+    # (np.where / np.minimum / np.maximum: the values of np.nan_to_num and np.clip, without
+    # their per-call overhead, most of this function's time for a few agents)
+    ok_a, ok_d = np.isfinite(accel), np.isfinite(steer)
+    a = np.where(ok_a, np.asarray(accel, np.float64), 0.0)
+    d = np.where(ok_d, np.asarray(steer, np.float64), 0.0)
+    a_c = np.minimum(np.maximum(a, -limits.max_brake), limits.max_accel)
+    d_c = np.minimum(np.maximum(d, -limits.max_steer), limits.max_steer)
+    return a_c, d_c, ~ok_a | ~ok_d | (a_c != a) | (d_c != d)
 
 
 def limit_steer_rate(steer: np.ndarray, prev: np.ndarray, limits: BicycleLimits, dt: float

@@ -57,11 +57,18 @@ def follow(paths: Paths, rows: np.ndarray, hint: np.ndarray, state: VehicleState
     :param hint: (A,) progress indices from the last call (the projection's window).
     """
     at, s = paths.project(rows, state.x, state.y, hint)
+    return steer_from(paths, rows, s, state, wheelbase, offset, limits), at
+
+
+def steer_from(paths: Paths, rows: np.ndarray, s: np.ndarray, state: VehicleState,
+               wheelbase: np.ndarray, offset: np.ndarray, limits: BicycleLimits) -> np.ndarray:
+    """:func:`follow`'s steering of vehicles whose progress on their paths is ``s`` ((A,) arc
+    length, m, as :meth:`~magail_sumo.sim.paths.Paths.project` gives it)."""
     look = np.maximum(MIN_LOOKAHEAD, LOOKAHEAD_TIME * np.abs(state.speed))
     px, py, heading = paths.at(rows, s + look, extend=True)
     gx = px - np.sin(heading) * offset
     gy = py + np.cos(heading) * offset
-    return pursuit_steer(state, wheelbase, gx, gy, limits.max_steer), at
+    return pursuit_steer(state, wheelbase, gx, gy, limits.max_steer)
 
 
 def no_reverse(accel: np.ndarray, speed: np.ndarray, dt: float) -> np.ndarray:
@@ -83,11 +90,16 @@ def trial(points: np.ndarray, s0: float, s1: float, length: float, limits: Bicyc
     wheelbase = np.array([WHEELBASE_RATIO * float(length)])
     hint = np.array([int(round(max(s0, 0.0) / paths.spacing))])  # not a later pass nearby
     out = [state]
+    at, s = paths.project(rows, state.x, state.y, hint)
+    zero = np.zeros(1)
     for _ in range(int(np.ceil(2.0 * max(s1 - s0, 0.0) / (speed * dt))) + 1):
-        steer, hint = follow(paths, rows, hint, state, wheelbase, np.zeros(1), limits)
-        state = step(state, np.zeros(1), steer, wheelbase, dt, limits)
+        # the progress of each state is projected once: the stop test's projection is the
+        # next step's (the same state and hint as follow would project)
+        steer, hint = steer_from(paths, rows, s, state, wheelbase, zero, limits), at
+        state = step(state, zero, steer, wheelbase, dt, limits)
         out.append(state)
-        if paths.project(rows, state.x, state.y, hint)[1][0] >= s1:
+        at, s = paths.project(rows, state.x, state.y, hint)
+        if s[0] >= s1:
             break
     return VehicleState(*(np.concatenate([getattr(o, f) for o in out])
                           for f in ("x", "y", "yaw", "speed")))
