@@ -9,8 +9,9 @@ processes, forked from a server that imported SUMO and the methods' code once
 (:func:`run_batches`), a policy's rollouts of a scene in as few batches as keep the workers
 busy (:func:`batch_size`), one process per worker running its share of them in turn
 (:func:`run_groups`)), write each (scene,
-method)'s rollouts (:func:`write_rollouts`), then the manifest (:func:`manifest_of`) and the
-optional submission.
+method)'s rollouts as soon as they are all in (:func:`write_pair`: while the workers run on,
+the in-process methods' once the first worker's results are in), then the manifest
+(:func:`manifest_of`) and the optional submission.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -181,12 +182,24 @@ def method_names(specs: list[str], policy: str, name: str | None) -> dict[str, s
 def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: int, seed: int,
                 workers: int, timeout_s: float | None, deterministic: bool,
                 noise_scale: float | None, error: Problems,
-                progress: Progress = no_progress) -> MethodRuns:
+                progress: Progress = no_progress,
+                complete: Callable[[MethodRuns, str, str], None] | None = None) -> MethodRuns:
     """Every method's rollouts of every scene: the in-process methods here, the SUMO ones in
     :class:`Batch` es of :func:`batch_size` rollouts (each worker gets the prepared scene);
     failures are reported (``error``) and their pairs marked failed. ``progress("rollouts",
-    done, total)`` after each method of a scene or batch."""
+    done, total)`` after each method of a scene or batch.
+
+    :param complete: told ``(runs so far, scenario id, spec)`` of each pair whose rollouts are
+        all in (not failed), while the workers run on: the in-process methods' pairs once the first
+        worker result is in (or at the end), the workers' as their last batch comes back."""
     runs = MethodRuns()
+    ready: list[tuple[str, str]] = []  # in-process pairs done before any worker result
+
+    def done_pair(key: tuple[str, str]) -> None:
+        if complete is not None and key not in runs.failed and \
+                sum(ro.x.shape[0] for _, ro in runs.parts.get(key, ())) == n_rollouts:
+            complete(runs, *key)
+
     total = len(scenes) * len(specs) * n_rollouts
     done = 0
     batches, policy_batches = [], []
@@ -200,6 +213,7 @@ def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: 
             else:
                 try:
                     runs.parts[(sid, s)] = [(0, simulate(ps.scene, s, range(n_rollouts), seed))]
+                    ready.append((sid, s))
                 except Exception as exc:  # noqa: BLE001 - one scene's failure
                     error(f"scenario {sid}: method {s}: {type(exc).__name__}: {one_line(exc)}")
                 done += n_rollouts
@@ -210,42 +224,65 @@ def run_methods(scenes: dict[str, PreparedScene], specs: list[str], n_rollouts: 
     for b, ro, err, counts in run_groups(shares + [(b,) for b in batches], workers, timeout_s):
         done += len(b.rollouts)
         progress("rollouts", done, total)
+        key = (b.scenario_id, b.spec)
         if err is not None:
             error(err)
-            runs.failed.add((b.scenario_id, b.spec))
+            runs.failed.add(key)
         else:
-            runs.parts.setdefault((b.scenario_id, b.spec), []).append((b.rollouts[0], ro))
-            tally = runs.fixes.setdefault((b.scenario_id, b.spec), {})
+            runs.parts.setdefault(key, []).append((b.rollouts[0], ro))
+            tally = runs.fixes.setdefault(key, {})
             for k, v in counts.items():
                 tally[k] = tally.get(k, 0) + v
+        while ready:  # the workers are busy now: write what was computed here meanwhile
+            done_pair(ready.pop(0))
+        if err is None:
+            done_pair(key)
+    for key in ready:
+        done_pair(key)
     return runs
+
+
+def write_pair(out: Path, ps: PreparedScene, spec: str, name: str, runs: MethodRuns,
+               n_rollouts: int, fcd_rollouts: int, error: Problems) -> ScenarioRollouts | None:
+    """Merge, validate and write the rollouts of (scene ``ps``, method ``spec``) (Parquet, plus
+    FCD of the first ``fcd_rollouts``); the rollouts written, or None (failed, or refused:
+    reported)."""
+    sid = ps.scene.scenario_id
+    if (sid, spec) in runs.failed or (sid, spec) not in runs.parts:
+        return None
+    try:
+        ro = merge([r for _, r in sorted(runs.parts[(sid, spec)], key=lambda p: p[0])])
+        validate_rollouts(ro, ps.scene, n_rollouts, N_STEPS)
+    except MagailSumoError as exc:
+        error(f"method {name}: {' '.join(str(exc).split())}")
+        return None
+    except Exception as exc:  # noqa: BLE001 - one scene's failure
+        error(f"scenario {printable(sid)}: method {name}: {type(exc).__name__}: "
+              f"{one_line(exc)}")
+        return None
+    write_parquet(rollouts_path(out, name, sid), to_frame(ps.scene, ro, name))
+    if fcd_rollouts and ps.bundle is not None:
+        write_rollout_fcd(out, ps.scene, ro, name, Path(ps.bundle), fcd_rollouts)
+    return ro
 
 
 def write_rollouts(out: Path, scenes: dict[str, PreparedScene], specs: list[str],
                    names: dict[str, str], runs: MethodRuns, n_rollouts: int, fcd_rollouts: int,
-                   error: Problems) -> dict[tuple[str, str], ScenarioRollouts]:
-    """Merge, validate and write every (scene, method) that did not fail (Parquet, plus FCD of
-    the first ``fcd_rollouts``); the rollouts written, by (scenario id, spec)."""
-    written: dict[tuple[str, str], ScenarioRollouts] = {}
+                   error: Problems, written: dict[tuple[str, str], ScenarioRollouts | None]
+                   | None = None) -> dict[tuple[str, str], ScenarioRollouts]:
+    """:func:`write_pair` of every (scene, method) not in ``written`` (those written, or
+    refused, already); every pair's rollouts written, by (scenario id, spec), in scene then
+    method order."""
+    written = dict(written or {})
+    out_pairs: dict[tuple[str, str], ScenarioRollouts] = {}
     for sid, ps in scenes.items():
         for s in specs:
-            if (sid, s) in runs.failed or (sid, s) not in runs.parts:
-                continue
-            try:
-                ro = merge([r for _, r in sorted(runs.parts[(sid, s)], key=lambda p: p[0])])
-                validate_rollouts(ro, ps.scene, n_rollouts, N_STEPS)
-            except MagailSumoError as exc:
-                error(f"method {names[s]}: {' '.join(str(exc).split())}")
-                continue
-            except Exception as exc:  # noqa: BLE001 - one scene's failure
-                error(f"scenario {printable(sid)}: method {names[s]}: {type(exc).__name__}: "
-                      f"{one_line(exc)}")
-                continue
-            write_parquet(rollouts_path(out, names[s], sid), to_frame(ps.scene, ro, names[s]))
-            if fcd_rollouts and ps.bundle is not None:
-                write_rollout_fcd(out, ps.scene, ro, names[s], Path(ps.bundle), fcd_rollouts)
-            written[(sid, s)] = ro
-    return written
+            if (sid, s) not in written:
+                written[(sid, s)] = write_pair(out, ps, s, names[s], runs, n_rollouts,
+                                               fcd_rollouts, error)
+            if written[(sid, s)] is not None:
+                out_pairs[(sid, s)] = written[(sid, s)]  # type: ignore[assignment]
+    return out_pairs
 
 
 def manifest_of(scenes: dict[str, PreparedScene], specs: list[str], names: dict[str, str],
@@ -323,9 +360,16 @@ def evaluate(scene_files: list[str], policy: str, out: str | Path, *, n_rollouts
     if any(needs_worker(s) for s in specs) or fcd_rollouts > 0:  # FCD: the network
         scenes = with_bundles(scenes, Path(networks) if networks else None, out, timeout_s,
                               error)
+    early: dict[tuple[str, str], ScenarioRollouts | None] = {}  # written while the workers ran
+
+    def write_now(runs: MethodRuns, sid: str, spec: str) -> None:
+        early[(sid, spec)] = write_pair(out, scenes[sid], spec, names[spec], runs, n_rollouts,
+                                        fcd_rollouts, error)
+
     runs = run_methods(scenes, specs, n_rollouts, seed, workers, timeout_s, deterministic,
-                       noise_scale, error, progress)
-    written = write_rollouts(out, scenes, specs, names, runs, n_rollouts, fcd_rollouts, error)
+                       noise_scale, error, progress, complete=write_now)
+    written = write_rollouts(out, scenes, specs, names, runs, n_rollouts, fcd_rollouts, error,
+                             early)
     done = [(sid, names[s]) for sid, s in written]
     out.mkdir(parents=True, exist_ok=True)
     write_manifest(out, manifest_of(scenes, specs, names, policy, baselines, runs, done,

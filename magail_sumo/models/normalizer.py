@@ -34,7 +34,8 @@ class RunningNormalizer(nn.Module):
         if n == 0:
             return
         b_mean = x.mean(0)
-        b_m2 = ((x - b_mean) ** 2).sum(0)
+        d = x - b_mean
+        b_m2 = d.mul_(d).sum(0)  # squared in place: the same sum, one (n, dim) buffer fewer
         total = self.count + n
         delta = b_mean - self.mean
         self.mean += delta * (n / total)
