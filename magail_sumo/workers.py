@@ -167,6 +167,17 @@ def _kill(proc) -> None:
     proc.join(_EXIT_GRACE_S)
 
 
+def start_job_server(preload: tuple[str, ...]) -> None:
+    """Start the server :func:`run_jobs` forks its job processes from (``preload``: the modules
+    it imports, as :func:`run_jobs`' own), now: it imports them in its own process while the
+    caller goes on with its work (reading inputs, loading a policy), instead of when the
+    first job starts. Does nothing when a server runs already (its list stays)."""
+    from multiprocessing import forkserver  # lazy: only callers that fork from a server
+
+    mp.get_context("forkserver").set_forkserver_preload(list(preload))
+    forkserver.ensure_running()
+
+
 def run_jobs(fn: Callable[[Any], Any], jobs: Iterable[Any], *, workers: int = 1,
              timeout_s: float | None = None, ordered: bool = False,
              start_method: str = "spawn", preload: tuple[str, ...] = ()

@@ -200,3 +200,31 @@ def test_preloaded_workers_run_with_the_parents_current_context(tmp_path, monkey
                            workers=2, timeout_s=10.0, ordered=True, preload=("colorsys",)))
     assert [r.kind for r in faults] == ["died", "error", "timeout", "ok"]
     assert faults[-1].value == 8
+
+
+#: a fresh interpreter: start the job server with one module list, then run a job asking for
+#: another (argv: the folder of the probe module)
+_EARLY_SERVER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import probe_mod
+from magail_sumo.workers import run_jobs, start_job_server
+start_job_server(("colorsys",))
+res = list(run_jobs(probe_mod.loaded, ["colorsys", "wave"], preload=("wave",), workers=2,
+                    ordered=True))
+print(" ".join(str(r.ok and r.value) for r in res), "colorsys" in sys.modules)
+"""
+
+
+def test_a_job_server_started_early_keeps_its_modules_and_serves_the_jobs(tmp_path):
+    """start_job_server: the server imports its list in its own process (the caller never
+    does) and later jobs fork from it, whatever preload they name."""
+    import subprocess
+    import sys
+
+    (tmp_path / "probe_mod.py").write_text(
+        "import sys\n\ndef loaded(name):\n    return name in sys.modules\n")
+    out = subprocess.run([sys.executable, "-c", _EARLY_SERVER, str(tmp_path)],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["True", "False", "False"]

@@ -148,6 +148,11 @@ def run(args: argparse.Namespace) -> int:
 def _scenes(args: argparse.Namespace) -> tuple[int, int]:
     """Rollouts of the recorded scenes: (scene/method pairs done, problems)."""
     # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
+    from magail_sumo.evaluation.protocol import WORKER_IMPORTS
+    from magail_sumo.workers import start_job_server
+
+    start_job_server(WORKER_IMPORTS)  # its imports beside this process's own (below)
+    # lazy: a command's stack loads only when it runs (fast --help, no torch for inspect)
     from magail_sumo.evaluation.runner import evaluate
 
     base = [] if args.baselines.strip().lower() == "none" else \

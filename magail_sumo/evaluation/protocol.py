@@ -22,6 +22,15 @@ DT = STEP_LENGTH  #: s per step
 #: seconds one worker job (a batch of rollouts of one method on one scene, a scene's conversion)
 #: may run by default
 DEFAULT_TIMEOUT_S = 1800.0
+#: what every batch's process imports: SUMO, the methods' code, the learned policies' (torch;
+#: a policy's processes would import it each, about 2 s of a core) and the converter's (scenes
+#: without a bundle are converted in the same kind of process), imported once by the
+#: process they are forked from (:func:`magail_sumo.workers.run_jobs`' ``preload``), not once
+#: per batch; ``evaluate`` starts that server first
+#: (:func:`magail_sumo.workers.start_job_server`), so it imports them while the command reads
+#: its scenes and loads the policy
+WORKER_IMPORTS = ("libsumo", "torch", "magail_sumo.evaluation.methods",
+                  "converters.sumo.baseline", "converters.sumo.batch", "magail_sumo.policies")
 
 
 class EvaluationError(MagailSumoError):

@@ -25,8 +25,8 @@ import numpy as np
 
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.methods import Batch, needs_worker, run_batches_in_turn, simulate
-from magail_sumo.evaluation.protocol import (DEFAULT_TIMEOUT_S, N_STEPS, EvaluationError, Problems,
-                                             span)
+from magail_sumo.evaluation.protocol import (DEFAULT_TIMEOUT_S, N_STEPS, WORKER_IMPORTS,
+                                             EvaluationError, Problems, span)
 from magail_sumo.evaluation.scenes import PreparedScene, read_scenes, with_bundles
 from magail_sumo.evaluation.storage import (rollouts_path, to_frame, versions, write_manifest,
                                             write_parquet, write_rollout_fcd)
@@ -38,10 +38,6 @@ from magail_sumo.policies import make_policy, method_name
 from magail_sumo.workers import Progress, no_progress, run_jobs
 
 
-#: what every batch's process imports (SUMO and the methods' code; not torch, which only a
-#: learned policy's few processes need): imported once by the process they are forked from
-#: (:func:`magail_sumo.workers.run_jobs`' ``preload``), not once per batch (about 0.9 s each)
-WORKER_IMPORTS = ("libsumo", "magail_sumo.evaluation.methods", "converters.sumo.baseline")
 
 
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
