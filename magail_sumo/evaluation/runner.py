@@ -38,8 +38,6 @@ from magail_sumo.policies import make_policy, method_name
 from magail_sumo.workers import Progress, no_progress, run_jobs
 
 
-
-
 def run_batches(batches: list[Batch], workers: int, timeout_s: float | None = DEFAULT_TIMEOUT_S
                 ) -> Iterator[tuple[Batch, ScenarioRollouts | None, str | None, dict[str, int]]]:
     """Run batches, each in a fresh process; yields (batch, rollouts, error line,
