@@ -192,6 +192,33 @@ def test_trial_drive_swings_wide_of_a_turn_tighter_than_the_car():
     assert np.abs(straight.y).max() < 1e-6 and straight.x[-1] == pytest.approx(25.0, abs=0.5)
 
 
+def test_trials_of_several_vehicles_are_each_ones_trial_bit_for_bit():
+    """The crawls of several vehicles stepped together (the city's tight-turn test of the
+    vehicles joining in one step) give each one's own trial, pose for pose."""
+    rng = np.random.default_rng(3)
+    cases = []
+    for k in range(12):
+        r = rng.uniform(1.2, 6.0)
+        t = np.linspace(0.0, np.pi, int(rng.integers(8, 40)))
+        turn = np.concatenate([np.stack([np.linspace(-25, 0, 21), np.full(21, r)], axis=1),
+                               np.stack([r * np.sin(t), r * np.cos(t)], axis=1),
+                               np.stack([np.linspace(0, -25, 21), np.full(21, -r)], axis=1)])
+        c, s = np.cos(k), np.sin(k)
+        turn = turn @ np.array([[c, s], [-s, c]]) + rng.normal(0, 100, 2)
+        # a trial from before the path's start, one that ends at once, the others at the turn
+        s0 = -3.0 if k == 0 else rng.uniform(5.0, 15.0)
+        cases.append((turn, s0, s0 - 1.0 if k == 1 else s0 + 20.0, rng.uniform(3.5, 12.0)))
+    cases.append((np.array([[0.0, 0.0], [60.0, 0.0]]), 5.0, 25.0, 5.0))
+    limits = dynamics.BicycleLimits()
+    together = tracking.trials(*zip(*cases), limits)
+    assert len({len(p.x) for p in together}) > 2  # they end at different steps
+    for (pts, s0, s1, length), got in zip(cases, together):
+        alone = tracking.trial(pts, s0, s1, length, limits)
+        for f in ("x", "y", "yaw", "speed"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(alone, f))
+    assert tracking.trials([], [], [], [], limits) == []
+
+
 def _idm_city(sumocfg, steps: int, max_agents: int = 100, **city):
     from magail_sumo.agents import env_settings
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv

@@ -61,7 +61,7 @@ from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.lane_graph import LaneGraph, crossing
 from magail_sumo.sim.paths import TURN_ARC, Paths, tightest_turn
-from magail_sumo.sim.tracking import trial
+from magail_sumo.sim.tracking import trials
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import (SumoConfigError, SumoInputs, check_demand, read_config,
                                          scenario_name)
@@ -368,12 +368,13 @@ class SumoCityEnv(FleetEnv):
         """Vehicles seen for the first time become agents when chosen; their indices. With
         ``max_agents`` reached, a chosen vehicle is driven by SUMO and waits: it becomes an
         agent, mid-trip, when an agent place frees (first come, first served). Step stage 5."""
-        v, f, api = self._sumo, self.fleet, self._session.api
+        v, f = self._sumo, self.fleet
         pos = {vid: i for i, vid in enumerate(v.ids)}
         cap = self.config.max_agents
         n_active = int(f.active.sum())
         new = []
         waiting = self._waiting
+        chosen = []  # the chosen vehicles, in the order they are taken
         # vehicles that waited for a free agent place come first, in the order they appeared
         for vid in list(waiting) + [c for c in candidates if c not in waiting]:
             if vid not in pos:  # left SUMO
@@ -384,33 +385,53 @@ class SumoCityEnv(FleetEnv):
             if not self._controlled(vid):
                 self._decided.add(vid)
                 continue
-            if cap is not None and n_active >= cap:  # SUMO drives it until a place frees
-                waiting[vid] = None
-                continue
-            waiting.pop(vid, None)
-            self._decided.add(vid)
-            i = pos[vid]
-            path = self._graph.route_path(vid)
-            if not self.config.agent_tight_turns and self._too_tight(path.points, v.length[i]):
-                self.tight_turns += 1  # SUMO drives it: the bicycle cannot make that turn
-                continue
-            n_active += 1
-            k = f.add(vid, v.x[i], v.y[i], v.yaw[i], v.speed[i], v.length[i], v.width[i])
-            if f.capacity > self._lc.shape[0]:
-                self._lc, self._ld = resized(self._lc, f.capacity), resized(self._ld, f.capacity)
-                self._stood = resized(self._stood, f.capacity)
-            self._stood[k] = 0.0
-            self.cut_paths += not path.complete
-            f.path[k] = self.paths.add(path.points, path.limits)
-            f.hint[k] = self.paths.project(f.path[k:k + 1], f.x[k:k + 1], f.y[k:k + 1])[0][0]
-            end = self.paths.length(f.path[k:k + 1])
-            px, py, heading = self.paths.at(f.path[k:k + 1], end)
-            f.dest[k] = px[0], py[0]
-            f.dest_yaw[k] = heading[0]
-            f.join(k)
-            f.in_sumo[k] = True
-            new.append(k)
+            chosen.append(vid)
+        # in turn, as many as there are free places: each of those finds one (a vehicle with a
+        # turn it cannot make takes none, so the next round offers its place to the next one);
+        # a round's tight-turn tests run together (_too_tight_many)
+        start = 0
+        while start < len(chosen):
+            room = len(chosen) - start if cap is None else min(cap - n_active,
+                                                                len(chosen) - start)
+            if room <= 0:
+                for vid in chosen[start:]:  # SUMO drives it until a place frees
+                    waiting[vid] = None
+                break
+            batch = chosen[start:start + room]
+            start += room
+            paths = [self._graph.route_path(vid) for vid in batch]
+            tight = [False] * len(batch) if self.config.agent_tight_turns else \
+                self._too_tight_many([p.points for p in paths],
+                                     [v.length[pos[vid]] for vid in batch])
+            for vid, path, too_tight in zip(batch, paths, tight):
+                waiting.pop(vid, None)
+                self._decided.add(vid)
+                if too_tight:
+                    self.tight_turns += 1  # SUMO drives it: the bicycle cannot make that turn
+                    continue
+                n_active += 1
+                new.append(self._admit(vid, pos[vid], path))
         return np.array(new, np.int64)
+
+    def _admit(self, vid: str, i: int, path) -> int:
+        """Make SUMO vehicle ``vid`` (row ``i`` of the SUMO vehicles) an agent on reference
+        path ``path``; its fleet row."""
+        v, f = self._sumo, self.fleet
+        k = f.add(vid, v.x[i], v.y[i], v.yaw[i], v.speed[i], v.length[i], v.width[i])
+        if f.capacity > self._lc.shape[0]:
+            self._lc, self._ld = resized(self._lc, f.capacity), resized(self._ld, f.capacity)
+            self._stood = resized(self._stood, f.capacity)
+        self._stood[k] = 0.0
+        self.cut_paths += not path.complete
+        f.path[k] = self.paths.add(path.points, path.limits)
+        f.hint[k] = self.paths.project(f.path[k:k + 1], f.x[k:k + 1], f.y[k:k + 1])[0][0]
+        end = self.paths.length(f.path[k:k + 1])
+        px, py, heading = self.paths.at(f.path[k:k + 1], end)
+        f.dest[k] = px[0], py[0]
+        f.dest_yaw[k] = heading[0]
+        f.join(k)
+        f.in_sumo[k] = True
+        return k
 
     def _too_tight(self, points: np.ndarray, length: float) -> bool:
         """The path ``points`` has a turn tighter than a vehicle of box ``length`` can make
@@ -419,13 +440,30 @@ class SumoCityEnv(FleetEnv):
         (:func:`~magail_sumo.sim.tracking.trial`, from 8 m before to 12 m after the turn)
         takes it off the road (the env's off-road rule): a turnaround inside a wide junction,
         where the wider circle stays on its lanes, can be driven."""
+        return self._too_tight_many([points], [length])[0]
+
+    def _too_tight_many(self, points: list, lengths: list) -> list[bool]:
+        """:meth:`_too_tight` of several paths, their crawls stepped together
+        (:func:`~magail_sumo.sim.tracking.trials`: each one's poses as its own)."""
         cfg = self.config
-        radius, s = tightest_turn(points)
-        if radius >= dynamics.turning_radius(length, cfg.limits):
-            return False
-        poses = trial(points, s - 8.0, s + TURN_ARC + 12.0, length, cfg.limits)
-        lanes = self.suite.lane_query(poses.x, poses.y, poses.yaw)
-        return bool(off_road(lanes.distance, cfg.lane_width, cfg.off_road_margin).any())
+        out = [False] * len(points)
+        tests = []  # (which, points, start, end, length) of the paths with a turn that tight
+        for j, (pts, length) in enumerate(zip(points, lengths)):
+            radius, s = tightest_turn(pts)
+            if radius < dynamics.turning_radius(length, cfg.limits):
+                tests.append((j, pts, s - 8.0, s + TURN_ARC + 12.0, length))
+        if not tests:
+            return out
+        which, pts, s0, s1, length = zip(*tests)
+        runs = trials(pts, s0, s1, length, cfg.limits)
+        lanes = self.suite.lane_query(np.concatenate([r.x for r in runs]),
+                                      np.concatenate([r.y for r in runs]),
+                                      np.concatenate([r.yaw for r in runs]))
+        off = off_road(lanes.distance, cfg.lane_width, cfg.off_road_margin)
+        ends = np.cumsum([len(r.x) for r in runs])
+        for j, a, b in zip(which, np.r_[0, ends[:-1]], ends):
+            out[j] = bool(off[a:b].any())
+        return out
 
     def _world(self, agents: np.ndarray) -> tuple[Boxes, list[str]]:
         """Boxes of the agents (first rows) then every other SUMO vehicle, with their ids."""

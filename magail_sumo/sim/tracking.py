@@ -83,23 +83,44 @@ def trial(points: np.ndarray, s0: float, s1: float, length: float, limits: Bicyc
     along it) until its progress reaches ``s1`` (m) or it has driven twice that far: the
     (T,) states of every ``dt``-s step, what route-relative control would make of that
     stretch (e.g. whether a turn tighter than the vehicle can make keeps it on the road)."""
-    paths = Paths.of([points])
-    rows = np.zeros(1, np.int64)
-    x, y, yaw = paths.at(rows, np.array([max(s0, 0.0)]))
-    state = VehicleState(x, y, yaw, np.array([float(speed)]))
-    wheelbase = np.array([WHEELBASE_RATIO * float(length)])
-    hint = np.array([int(round(max(s0, 0.0) / paths.spacing))])  # not a later pass nearby
-    out = [state]
+    return trials([points], [s0], [s1], [length], limits, speed, dt)[0]
+
+
+def trials(points, s0, s1, length, limits: BicycleLimits, speed: float = 2.5, dt: float = 0.1
+           ) -> list[VehicleState]:
+    """:func:`trial` of several vehicles at once (``points``: a polyline each; ``s0``, ``s1``,
+    ``length``: one value each), stepped together: each one's poses are those of its own
+    :func:`trial` (every operation is per vehicle), for one loop over the steps."""
+    n = len(points)
+    if n == 0:
+        return []
+    paths = Paths.of(list(points))
+    rows = np.arange(n, dtype=np.int64)
+    s0 = np.asarray(s0, np.float64)
+    s1 = np.asarray(s1, np.float64)
+    first = np.maximum(s0, 0.0)
+    x, y, yaw = paths.at(rows, first)
+    state = VehicleState(x, y, yaw, np.full(n, float(speed)))
+    wheelbase = WHEELBASE_RATIO * np.asarray(length, np.float64)
+    hint = np.round(first / paths.spacing).astype(np.int64)  # not a later pass nearby
+    steps = np.ceil(2.0 * np.maximum(s1 - s0, 0.0) / (speed * dt)).astype(np.int64) + 1
+    out = [[(state.x[k], state.y[k], state.yaw[k], state.speed[k])] for k in range(n)]
+    # the progress of each state is projected once: the stop test's projection is the next
+    # step's (the same state and hint as follow would project)
     at, s = paths.project(rows, state.x, state.y, hint)
-    zero = np.zeros(1)
-    for _ in range(int(np.ceil(2.0 * max(s1 - s0, 0.0) / (speed * dt))) + 1):
-        # the progress of each state is projected once: the stop test's projection is the
-        # next step's (the same state and hint as follow would project)
-        steer, hint = steer_from(paths, rows, s, state, wheelbase, zero, limits), at
-        state = step(state, zero, steer, wheelbase, dt, limits)
-        out.append(state)
-        at, s = paths.project(rows, state.x, state.y, hint)
-        if s[0] >= s1:
+    live = np.ones(n, bool)
+    for i in range(int(steps.max())):
+        live &= i < steps
+        r = np.flatnonzero(live)
+        if r.size == 0:
             break
-    return VehicleState(*(np.concatenate([getattr(o, f) for o in out])
-                          for f in ("x", "y", "yaw", "speed")))
+        cur = VehicleState(state.x[r], state.y[r], state.yaw[r], state.speed[r])
+        zero = np.zeros(r.size)
+        steer = steer_from(paths, rows[r], s[r], cur, wheelbase[r], zero, limits)
+        new = step(cur, zero, steer, wheelbase[r], dt, limits)
+        for j, k in enumerate(r.tolist()):
+            out[k].append((new.x[j], new.y[j], new.yaw[j], new.speed[j]))
+        state.x[r], state.y[r], state.yaw[r], state.speed[r] = new.x, new.y, new.yaw, new.speed
+        at[r], s[r] = paths.project(rows[r], new.x, new.y, at[r])
+        live[r[s[r] >= s1[r]]] = False
+    return [VehicleState(*(np.array(c, np.float64) for c in zip(*o))) for o in out]
