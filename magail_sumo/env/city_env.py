@@ -388,7 +388,7 @@ class SumoCityEnv(FleetEnv):
             chosen.append(vid)
         # in turn, as many as there are free places: each of those finds one (a vehicle with a
         # turn it cannot make takes none, so the next round offers its place to the next one);
-        # a round's tight-turn tests run together (_too_tight_many)
+        # a round's tight-turn tests run together (_too_tight)
         start = 0
         while start < len(chosen):
             room = len(chosen) - start if cap is None else min(cap - n_active,
@@ -401,7 +401,7 @@ class SumoCityEnv(FleetEnv):
             start += room
             paths = [self._graph.route_path(vid) for vid in batch]
             tight = [False] * len(batch) if self.config.agent_tight_turns else \
-                self._too_tight_many([p.points for p in paths],
+                self._too_tight([p.points for p in paths],
                                      [v.length[pos[vid]] for vid in batch])
             for vid, path, too_tight in zip(batch, paths, tight):
                 waiting.pop(vid, None)
@@ -433,18 +433,14 @@ class SumoCityEnv(FleetEnv):
         f.in_sumo[k] = True
         return k
 
-    def _too_tight(self, points: np.ndarray, length: float) -> bool:
-        """The path ``points`` has a turn tighter than a vehicle of box ``length`` can make
-        (:func:`~magail_sumo.sim.paths.tightest_turn` below its
+    def _too_tight(self, points: list, lengths: list) -> list[bool]:
+        """Per path ``points[j]``: it has a turn tighter than a vehicle of box ``lengths[j]``
+        can make (:func:`~magail_sumo.sim.paths.tightest_turn` below its
         :func:`~magail_sumo.sim.dynamics.turning_radius`) where following it at a crawl
         (:func:`~magail_sumo.sim.tracking.trial`, from 8 m before to 12 m after the turn)
         takes it off the road (the env's off-road rule): a turnaround inside a wide junction,
-        where the wider circle stays on its lanes, can be driven."""
-        return self._too_tight_many([points], [length])[0]
-
-    def _too_tight_many(self, points: list, lengths: list) -> list[bool]:
-        """:meth:`_too_tight` of several paths, their crawls stepped together
-        (:func:`~magail_sumo.sim.tracking.trials`: each one's poses as its own)."""
+        where the wider circle stays on its lanes, can be driven. The crawls are stepped
+        together (:func:`~magail_sumo.sim.tracking.trials`: each one's poses as its own)."""
         cfg = self.config
         out = [False] * len(points)
         tests = []  # (which, points, start, end, length) of the paths with a turn that tight

@@ -13,7 +13,7 @@ import numpy as np
 
 from magail_sumo.scene import Lane
 
-from .raycast import SegmentGrid, indexed_polyline_segments
+from .raycast import SegmentGrid, cell_gap, indexed_polyline_segments
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,9 @@ def _nearest(px, py, yaw, starts, ends, owner, x0, y0, cell, nx, ny, offsets, it
         best_al = np.inf
         best_k = -1
         for gx in range(max(cx - reach, 0), min(cx + reach + 1, nx)):
-            dx = 0.0 if gx == cx else ((gx - fx) if gx > cx else (fx - gx - 1.0)) * cell
+            dx = cell_gap(gx, cx, fx, cell)
             for gy in range(max(cy - reach, 0), min(cy + reach + 1, ny)):
-                dy = 0.0 if gy == cy else ((gy - fy) if gy > cy else (fy - gy - 1.0)) * cell
+                dy = cell_gap(gy, cy, fy, cell)
                 if dx * dx + dy * dy >= r2:  # no point of the cell within the radius
                     continue
                 c = gx * ny + gy

@@ -85,6 +85,13 @@ def _hit(ox, oy, dx, dy, ax, ay, bx, by):
 
 
 @numba.njit(cache=True, inline="always")
+def cell_gap(g, c, f, cell):
+    """Distance (m) along one axis from a point at grid coordinate ``f`` (in cell ``c``) to
+    grid cell ``g``: 0 in its own cell, else to the cell's near side."""
+    return 0.0 if g == c else ((g - f) if g > c else (f - g - 1.0)) * cell
+
+
+@numba.njit(cache=True, inline="always")
 def _seg_dist2(x, y, ax, ay, bx, by):
     ex, ey = bx - ax, by - ay
     wx, wy = x - ax, y - ay
@@ -177,9 +184,9 @@ def _cast_grid(origins, angles, uniform, step, full, max_range, starts, ends, se
         cx = int(np.floor(fx))
         cy = int(np.floor(fy))
         for gx in range(max(cx - reach, 0), min(cx + reach + 1, nx)):
-            dx = 0.0 if gx == cx else ((gx - fx) if gx > cx else (fx - gx - 1.0)) * cell
+            dx = cell_gap(gx, cx, fx, cell)
             for gy in range(max(cy - reach, 0), min(cy + reach + 1, ny)):
-                dy = 0.0 if gy == cy else ((gy - fy) if gy > cy else (fy - gy - 1.0)) * cell
+                dy = cell_gap(gy, cy, fy, cell)
                 if dx * dx + dy * dy > r2:
                     continue
                 c = gx * ny + gy
