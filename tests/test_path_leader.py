@@ -219,6 +219,38 @@ def test_trials_of_several_vehicles_are_each_ones_trial_bit_for_bit():
     assert tracking.trials([], [], [], [], limits) == []
 
 
+def test_trial_poses_are_route_following_by_the_array_functions():
+    """The compiled crawl is what the env's route-relative control makes of the stretch: step
+    for step the poses of :func:`tracking.follow` at zero offset and :func:`dynamics.step`
+    (the functions the agents drive by), to float rounding, and it stops at the same step."""
+    from magail_sumo.sim.paths import Paths
+
+    rng = np.random.default_rng(7)
+    limits = dynamics.BicycleLimits()
+    for k in range(8):
+        r = rng.uniform(1.2, 8.0)
+        t = np.linspace(0.0, rng.uniform(0.5, 1.0) * np.pi, int(rng.integers(8, 40)))
+        pts = np.concatenate([np.stack([np.linspace(-25, 0, 21), np.full(21, r)], axis=1),
+                              np.stack([r * np.sin(t), r * np.cos(t)], axis=1)])
+        s0, s1, length = rng.uniform(-2.0, 15.0), rng.uniform(20.0, 40.0), rng.uniform(3.5, 12.0)
+        got = tracking.trial(pts, s0, s1, length, limits)
+        paths, rows = Paths.of([pts]), np.zeros(1, np.int64)
+        x, y, yaw = paths.at(rows, np.array([max(s0, 0.0)]))
+        state = dynamics.VehicleState(x, y, yaw, np.full(1, 2.5))
+        hint = np.round(np.array([max(s0, 0.0)]) / paths.spacing).astype(np.int64)
+        wheelbase = np.array([dynamics.WHEELBASE_RATIO * length])
+        poses = [(state.x[0], state.y[0], state.yaw[0])]
+        for _ in range(int(np.ceil(2.0 * (s1 - s0) / 0.25)) + 1):
+            steer, hint = tracking.follow(paths, rows, hint, state, wheelbase, np.zeros(1), limits)
+            state = dynamics.step(state, np.zeros(1), steer, wheelbase, 0.1, limits)
+            poses.append((state.x[0], state.y[0], state.yaw[0]))
+            if paths.project(rows, state.x, state.y, hint)[1][0] >= s1:
+                break
+        want = np.array(poses)
+        assert len(got.x) == len(want)
+        np.testing.assert_allclose(np.stack([got.x, got.y, got.yaw], axis=1), want, atol=1e-9)
+
+
 def _idm_city(sumocfg, steps: int, max_agents: int = 100, **city):
     from magail_sumo.agents import env_settings
     from magail_sumo.env.city_env import CityEnvConfig, SumoCityEnv
