@@ -7,7 +7,8 @@ for a collision or leaving the road and red-light runs as shares of the learned 
 that drove in the window), mean travel time against SUMO's, the most agents alive at once,
 the vehicles left SUMO-driven for a turn tighter than a car can make (``tight``,
 ``CityEnvConfig.agent_tight_turns``), the SUMO-driven vehicles released from giving way to
-standing agents (``unblk``, ``CityEnvConfig.unblock_s``), and with ``--humans EXPERT_DIR``
+standing agents (``unblk``, ``CityEnvConfig.unblock_s``) and those moved on past a junction
+where they and an agent stood in each other's path (``jump``), and with ``--humans EXPERT_DIR``
 the Jensen-Shannon divergence of the agents' and of SUMO's drivers' speed and 1-s
 acceleration distributions from the recorded humans'
 (:mod:`magail_sumo.evaluation.city_kinematics`).
@@ -39,7 +40,7 @@ def table(folders: list[Path]) -> list[str]:
     """The goal figures of every policy row of ``folders``' ``city.json``, as lines."""
     lines = [f"{'city':<14} {'policy':<34} {'trips':>6} {'sumo':>6} {'ratio':>6} "
              f"{'removed':>8} {'red':>6} {'tt_ratio':>8} {'peak':>5} {'agents':>6} {'tight':>5} "
-             f"{'unblk':>5} "
+             f"{'unblk':>5} {'jump':>4} "
              f"{'speedJS':>7} {'accJS':>6} {'sumo_speedJS':>12} {'sumo_accJS':>10}"]
     for folder in folders:
         rows, _ = read_rows(folder)
@@ -58,6 +59,7 @@ def table(folders: list[Path]) -> list[str]:
                 f"{r.get('peak_agents', math.nan):>5.0f} {r['agents']:>6} "
                 f"{r.get('tight_turns', math.nan):>5.0f} "
                 f"{r.get('unblocked', math.nan):>5.0f} "
+                f"{r.get('jumped', math.nan):>4.0f} "
                 f"{r.get('speed_js_humans', math.nan):>7.3f} "
                 f"{r.get('accel_js_humans', math.nan):>6.3f} "
                 f"{s.get('speed_js_humans', math.nan):>12.3f} "

@@ -73,7 +73,7 @@ from .fleet import Fleet, resized
 from .events import off_road
 from .fcd import EpisodeFcd
 from .step import END_OF_EPISODE, FleetEnv
-from .unblock import STAND_SPEED, release
+from .unblock import FREE, HELD, MUTUAL, STAND_SPEED, release
 
 #: m/s above which a foe at an internal junction counts as coming (a standing one is waiting)
 MOVING = 0.5
@@ -126,8 +126,10 @@ class CityEnvConfig:
         counted in ``SumoCityEnv.tight_turns``) or becomes an agent all the same (True).
     :param unblock_s: a SUMO-driven vehicle that has waited this long (s) next to an agent
         standing as long on a junction stops giving way to the standing agents among its
-        junction foes, so the two cannot wait for each other for ever
-        (:mod:`magail_sumo.env.unblock`; counted in ``SumoCityEnv.unblocked``; 0: never).
+        junction foes, so the two cannot wait for each other for ever; where the agent stands
+        in that vehicle's path too, after three times as long the vehicle jumps on to the lane
+        after the junction (:mod:`magail_sumo.env.unblock`; counted in
+        ``SumoCityEnv.unblocked`` and ``SumoCityEnv.jumped``; 0: neither).
     :param fcd_dir: folder for SUMO FCD recordings of episodes, each with a ``.sumocfg`` that
         replays it in ``sumo-gui`` on the city's network (None: none; as ``EnvConfig.fcd_dir``).
     :param fcd_every: with ``fcd_dir``, record episode 0, N, 2N, ... of each env instance
@@ -312,6 +314,9 @@ class SumoCityEnv(FleetEnv):
         self.tight_turns = 0
         #: SUMO-driven vehicles released from giving way to standing agents (``unblock_s``)
         self.unblocked = 0
+        #: SUMO-driven vehicles moved on past a junction where they and an agent stood in
+        #: each other's path (:func:`magail_sumo.env.unblock.jump`)
+        self.jumped = 0
         self._stood = np.zeros(n_max)  # seconds each agent has stood
         self._lc = np.zeros(n_max)  # next-signal light code seen at the last observation
         self._ld = np.full(n_max, np.inf)  # and the distance to it (m)
@@ -736,7 +741,8 @@ class SumoCityEnv(FleetEnv):
 
     def _unblock(self) -> None:
         """The agents' standing times; once a second, SUMO-driven vehicles waiting next to an
-        agent standing on a junction stop giving way to standing agents
+        agent standing on a junction stop giving way to standing agents, or jump on past the
+        junction when the two stand in each other's path
         (:func:`magail_sumo.env.unblock.release`, ``unblock_s``)."""
         f, after = self.fleet, self.config.unblock_s
         live = f.live()
@@ -748,23 +754,27 @@ class SumoCityEnv(FleetEnv):
         stood = self._stood[live]
         rng = self.config.observation.leader_range
 
-        def blocks(i: int, j: int) -> bool:
-            """SUMO vehicle j stands in agent live[i]'s path, and the agent not in j's (its
-            SUMO route's lanes): SUMO's junction model, not the agent's box, holds j."""
+        def blocks(i: int, j: int) -> int:
+            """Whether SUMO vehicle j stands in agent live[i]'s path (FREE: no), and the agent
+            in j's (along its SUMO route's lanes): HELD (no: SUMO's junction model, not the
+            agent's box, holds j) or MUTUAL (yes)."""
             k = live[i:i + 1]
             pair = Boxes(*(np.array([getattr(f, a)[k[0]], getattr(v, a)[j]])
                            for a in ("x", "y", "yaw", "length", "width", "speed")))
             ahead = PathAhead(self.paths, f.path[k], f.hint[k], self._route_progress(k))
             if not along_path(pair, np.zeros(1, np.int64), ahead, rng)[2][0]:
-                return False
+                return FREE
             theirs = Paths.of([self._graph.route_path(v.ids[j]).points])
             row = np.zeros(1, np.int64)
             at, s = theirs.project(row, v.x[j:j + 1], v.y[j:j + 1])
-            return not along_path(pair, np.ones(1, np.int64), PathAhead(theirs, row, at, s),
-                                  rng)[2][0]
+            mutual = along_path(pair, np.ones(1, np.int64), PathAhead(theirs, row, at, s),
+                                rng)[2][0]
+            return MUTUAL if mutual else HELD
 
-        self.unblocked += release(self._session.api, v.ids, v.x, v.y, v.speed, v.edge,
-                                  f.names_of(live), f.x[live], f.y[live], stood, after, blocks)
+        released, jumped = release(self._session.api, v.ids, v.x, v.y, v.speed, v.edge,
+                                   f.names_of(live), f.x[live], f.y[live], stood, after, blocks)
+        self.unblocked += released
+        self.jumped += jumped
 
     def _before_move(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each stepped agent's next signal as last observed: red, and its distance (m)."""

@@ -81,10 +81,10 @@ SUMMARY_FIELDS = tuple(f.name for f in fields(SumoRunSummary))
 #: :class:`SumoRunSummary` field, then the policy's own counts (0 / {} for ``sumo``)
 ROW_FIELDS = ("scenario", "method", "begin_s", "end_s", "seed", *SUMMARY_FIELDS, "agents",
               "agent_steps", "terminations", "removed", "peak_agents", "speed_js_humans",
-              "accel_js_humans", "tight_turns", "unblocked")
+              "accel_js_humans", "tight_turns", "unblocked", "jumped")
 #: row fields that rows written before them lack (read as NaN)
 LATER_FIELDS = ("peak_agents", "speed_js_humans", "accel_js_humans", "tight_turns",
-                "unblocked")
+                "unblocked", "jumped")
 #: in a scenario's city folder: the speed / acceleration counts of agents, SUMO's drivers and
 #: the recorded humans (:mod:`~magail_sumo.evaluation.city_kinematics`)
 KINEMATICS_FILE = "kinematics.json"
@@ -185,6 +185,8 @@ class PolicyRun:
         than they can (``SumoCityEnv.tight_turns``).
     :param unblocked: SUMO-driven vehicles released from giving way to standing agents
         (``SumoCityEnv.unblocked``).
+    :param jumped: SUMO-driven vehicles moved on past a junction where they and an agent stood
+        in each other's path (``SumoCityEnv.jumped``).
     """
 
     begin_s: float
@@ -200,6 +202,7 @@ class PolicyRun:
     kinematics: dict = field(default_factory=dict)
     tight_turns: int = 0
     unblocked: int = 0
+    jumped: int = 0
 
 
 #: in a method's city folder: the ids of the agents that ended at their destination
@@ -307,7 +310,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         begin = began[0]
         end = round(float(env.sumo_time), 3)
         counts = dict(env.action_counts)
-        tight, unblocked = env.tight_turns, env.unblocked
+        tight, unblocked, jumped = env.tight_turns, env.unblocked, env.jumped
     finally:
         env.close()  # SUMO writes its outputs here
     fcd = None
@@ -317,7 +320,7 @@ def run_policy(job: PolicyJob) -> PolicyRun:
         fcd = (str(files.fcd), str(files.sumocfg))
     return PolicyRun(begin, end, len(seen), agent_steps, ends, completed, counts,
                      job.state_copy if state is not None else None, fcd, peak,
-                     agents.as_json(), tight, unblocked)
+                     agents.as_json(), tight, unblocked, jumped)
 
 
 def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
@@ -358,7 +361,8 @@ def _row(scenario: str, method: str, run: PolicyRun, st: CitySettings, s: SumoRu
             "peak_agents": run.peak_agents if policy else 0,
             "speed_js_humans": dist["speed"], "accel_js_humans": dist["accel"],
             "tight_turns": run.tight_turns if policy else 0,
-            "unblocked": run.unblocked if policy else 0}
+            "unblocked": run.unblocked if policy else 0,
+            "jumped": run.jumped if policy else 0}
 
 
 @dataclass
