@@ -89,12 +89,15 @@ def release(api, ids, x, y, speed, edges, agents: Sequence[str], agent_x: np.nda
         near = standing & (np.hypot(sx - agent_x[i], sy - agent_y[i]) < RANGE)
         for j in np.flatnonzero(near):
             vid = ids[j]
-            if vid in stood or api.vehicle.getWaitingTime(vid) < after_s:
+            if vid in stood:
+                continue
+            waited = api.vehicle.getWaitingTime(vid)
+            if waited < after_s:
                 continue
             how = blocks(int(i), int(j))
             if how == MUTUAL:
                 late = JUMP_AFTER * after_s
-                if agent_stood[i] >= late and api.vehicle.getWaitingTime(vid) >= late \
+                if agent_stood[i] >= late and waited >= late \
                         and edge.get(vid, "").startswith(":"):
                     jumped += jump(api, vid)
                 continue

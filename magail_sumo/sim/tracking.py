@@ -58,18 +58,11 @@ def follow(paths: Paths, rows: np.ndarray, hint: np.ndarray, state: VehicleState
     :param hint: (A,) progress indices from the last call (the projection's window).
     """
     at, s = paths.project(rows, state.x, state.y, hint)
-    return steer_from(paths, rows, s, state, wheelbase, offset, limits), at
-
-
-def steer_from(paths: Paths, rows: np.ndarray, s: np.ndarray, state: VehicleState,
-               wheelbase: np.ndarray, offset: np.ndarray, limits: BicycleLimits) -> np.ndarray:
-    """:func:`follow`'s steering of vehicles whose progress on their paths is ``s`` ((A,) arc
-    length, m, as :meth:`~magail_sumo.sim.paths.Paths.project` gives it)."""
     look = np.maximum(MIN_LOOKAHEAD, LOOKAHEAD_TIME * np.abs(state.speed))
     px, py, heading = paths.at(rows, s + look, extend=True)
     gx = px - np.sin(heading) * offset
     gy = py + np.cos(heading) * offset
-    return pursuit_steer(state, wheelbase, gx, gy, limits.max_steer)
+    return pursuit_steer(state, wheelbase, gx, gy, limits.max_steer), at
 
 
 def no_reverse(accel: np.ndarray, speed: np.ndarray, dt: float) -> np.ndarray:
