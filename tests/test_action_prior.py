@@ -208,3 +208,102 @@ def test_bad_prior_settings_are_one_line(settings, problem):
     with pytest.raises(ConfigError, match=problem) as err:
         from_dict(TrainConfig, settings)
     assert "policy.action_prior" in str(err.value) or "action_prior" in str(err.value)
+
+
+BRISK = {"a_lat": 4.0, "a_clear": 2.0, "margin": 0.5}
+BRISK_CONFIG = ROOT / "configs" / "experiments" / "city" / "route_idm_path_leader_brisk.yaml"
+
+
+def _bend_rows(names: list[str]) -> np.ndarray:
+    """:func:`_rows` plus a car at 8 m/s before a bend of about 13 m radius (the default bend
+    speed, ``sqrt(2 / κ)``, is under 8 m/s; at 4 m/s² it is over) and one 15 m from a junction
+    conflict whose foe is 2.2 s away (a gap refused with the defaults, clearing at 1.5 m/s²
+    with a 1-s margin; accepted at 2.0 m/s² with 0.5 s)."""
+    obs = np.zeros((6, len(names)), np.float32)
+    obs[:4] = _rows(names)
+    obs[4:, names.index("speed")] = 8.0
+    obs[4:, names.index("leader_gap")] = 50.0
+    obs[4:, names.index("light_gap")] = 50.0
+    for d in (10, 20, 40):
+        obs[4:, names.index(f"route_x_{d}")] = d
+    obs[4, names.index("route_y_20")] = 15.0
+    if "give_way_gap" in names:
+        obs[:, names.index("give_way_gap")] = 50.0
+        obs[:, names.index("give_way_time")] = 10.0
+        obs[5, names.index("give_way_gap")] = 5.0
+        obs[5, names.index("give_way_time")] = 2.2
+    return obs
+
+
+def test_prior_params_reach_the_rule_and_survive_a_checkpoint(tmp_path):
+    """``policy.prior_params`` (here the brisk variant config's) sets the IDM prior's
+    parameters: an untrained actor drives like the rule with them, not like the default rule;
+    a checkpoint carries them into evaluation; a checkpoint from before the key loads with
+    the defaults."""
+    from dataclasses import replace
+
+    from magail_sumo.config import load_config, to_dict
+    from magail_sumo.models.idm import IdmParams
+    from magail_sumo.policies import load_checkpoint_policy
+    from magail_sumo.training.policies import load_policy
+    from magail_sumo.training.trainer import CHECKPOINT_FORMAT
+
+    variant = load_config(BRISK_CONFIG, TrainConfig)
+    assert variant.policy.action_prior == "idm" and variant.policy.prior_params == BRISK
+    obs_cfg = ObservationConfig(**OBS, give_way=True)
+    cfg = from_dict(TrainConfig, {"seed": 1, "env": {**PRIOR_ENV, "observation": {
+        **OBS, "give_way": True}}, "policy": {**to_dict(variant.policy), "actor_hidden": [8],
+                                               "critic_hidden": [8]}})
+    rows = _bend_rows(observation_names(obs_cfg))
+    brisk = IdmRule(obs_cfg, cfg.env.limits, replace(IdmParams(), **BRISK))(rows)
+    default = IdmRule(obs_cfg, cfg.env.limits)(rows)
+    assert brisk[4, 0] > default[4, 0] + 0.1 and brisk[5, 0] > default[5, 0] + 0.1
+    assert np.abs(brisk[:4] - default[:4]).max() < 1e-6  # straight, no conflict: the same
+
+    def acts(policy) -> np.ndarray:
+        with torch.no_grad():
+            return policy._predict(torch.as_tensor(rows), deterministic=True).numpy()
+
+    torch.manual_seed(1)
+    policy = make_policy(cfg)
+    assert policy.action_prior.params == replace(IdmParams(), **BRISK)
+    assert np.abs(acts(policy) - np.clip(brisk, -PRIOR_CLIP, PRIOR_CLIP)).max() < 0.05
+
+    path = tmp_path / "brisk.pt"
+    torch.save({"format": CHECKPOINT_FORMAT, "update": 0, "config": to_dict(cfg),
+                "policy": policy.state_dict()}, path)
+    loaded, loaded_cfg = load_policy(path)
+    assert loaded_cfg.policy.prior_params == BRISK
+    assert np.abs(acts(loaded) - acts(policy)).max() < 1e-6
+    pol = load_checkpoint_policy(path, seed=0, deterministic=True)  # what evaluate loads
+    act = pol.act({str(i): r for i, r in enumerate(rows)})
+    got = np.stack([act[str(i)] for i in range(len(rows))])
+    assert np.abs(got - acts(policy)).max() < 1e-5
+
+    state = torch.load(path, weights_only=True)  # a checkpoint from before the key
+    del state["config"]["policy"]["prior_params"]
+    torch.save(state, path)
+    old, old_cfg = load_policy(path)
+    assert old_cfg.policy.prior_params == {} and old.action_prior.params == IdmParams()
+    assert np.abs(acts(old) - np.clip(default, -PRIOR_CLIP, PRIOR_CLIP)).max() < 0.05
+
+
+@pytest.mark.parametrize("policy, problem", [
+    ({"action_prior": "idm", "prior_params": {"a_lta": 4.0}},
+     "unknown idm prior parameter 'a_lta' \\(known: v0, .*a_lat, .*margin\\)"),
+    ({"action_prior": "idm", "prior_params": {"margin": -0.5}}, "finite number >= 0"),
+    ({"prior_params": {"a_lat": 4.0}}, "needs policy.action_prior"),
+])
+def test_bad_prior_params_are_one_line(policy, problem):
+    with pytest.raises(ConfigError, match=problem) as err:
+        from_dict(TrainConfig, {"env": PRIOR_ENV, "policy": policy})
+    assert "policy.prior_params" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_make_prior_refuses_an_unknown_parameter():
+    from magail_sumo.models.priors import make_prior
+    from magail_sumo.sim.dynamics import BicycleLimits
+
+    with pytest.raises(ValueError, match="unknown idm prior parameter 'speed' \\(known: v0"):
+        make_prior("idm", ObservationConfig(**OBS), BicycleLimits(), "accel_offset",
+                   {"speed": 1.0})

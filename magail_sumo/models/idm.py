@@ -159,10 +159,13 @@ class IdmRule:
         ``path_leader``) and ``light_gap`` features (route look-ahead points are used for
         bends when present).
     :param limits: the vehicle limits actions are normalised by.
+    :param params: the IDM settings (default :class:`IdmParams`).
     :raises ValueError: an observation without the leader or the stop-line distance.
     """
 
     action_layout = "accel_offset"
+    #: the dataclass of the rule's settings (``policy.prior_params`` overrides its fields)
+    params_type = IdmParams
 
     def __init__(self, observation: ObservationConfig, limits: BicycleLimits | None = None,
                  params: IdmParams | None = None) -> None:

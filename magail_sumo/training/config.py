@@ -23,7 +23,7 @@ from magail_sumo.env.tiled import config_problem as tiled_config_problem
 from magail_sumo.models.critic import CriticTransformerConfig
 from magail_sumo.models.decomposed import DecomposedConfig
 from magail_sumo.models.discriminator import SetEncoderConfig, TransformerConfig
-from magail_sumo.models.priors import ACTION_PRIORS, make_prior
+from magail_sumo.models.priors import ACTION_PRIORS, make_prior, prior_params
 from magail_sumo.sensors.observation import observation_names
 from magail_sumo.splits import PARTS, load_split
 
@@ -265,6 +265,11 @@ class PolicyConfig:
         (:mod:`magail_sumo.models.priors`): ``"idm"``, the IDM route follower (needs
         ``env.action_layout: accel_offset`` and ``env.observation`` ``leader`` and
         ``light_gap``).
+    :param prior_params: the prior rule's settings changed from their defaults: a mapping of
+        the fields of its parameter dataclass to numbers (``idm``:
+        :class:`~magail_sumo.models.idm.IdmParams`, e.g. ``{a_lat: 4.0, a_clear: 2.0, margin:
+        0.5}``); empty: the defaults. Recorded with the run's config in every checkpoint, so
+        evaluation rebuilds the same prior (a checkpoint from before the key: the defaults).
     """
 
     actor_hidden: tuple[int, ...] = (64, 64)
@@ -273,6 +278,7 @@ class PolicyConfig:
     critic: Literal["mlp", "transformer"] = "mlp"
     critic_transformer: CriticTransformerConfig = field(default_factory=CriticTransformerConfig)
     action_prior: str = "none"
+    prior_params: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check(self.critic in ("mlp", "transformer"), "critic",
@@ -280,6 +286,13 @@ class PolicyConfig:
         check(self.action_prior == "none" or self.action_prior in ACTION_PRIORS,
               "action_prior", f"must be one of none, {', '.join(ACTION_PRIORS)}, got "
               f"{show(self.action_prior)}")
+        check(self.action_prior != "none" or not self.prior_params, "prior_params",
+              "needs policy.action_prior (no prior to set)")
+        if self.action_prior != "none":
+            try:
+                prior_params(self.action_prior, self.prior_params)
+            except ValueError as exc:
+                check(False, "prior_params", str(exc))
         check_sizes(self, "actor_hidden", "critic_hidden")
 
 
@@ -425,7 +438,7 @@ class TrainConfig:
                   f"only the PPO-family policies take one, not algorithm {self.algorithm}")
             try:
                 make_prior(self.policy.action_prior, self.env.observation, self.env.limits,
-                           self.env.action_layout)
+                           self.env.action_layout, self.policy.prior_params)
             except ValueError as exc:
                 check(False, "policy.action_prior", str(exc))
         check(self.updates >= 0, "updates", f"must be >= 0, got {self.updates}")

@@ -35,7 +35,7 @@ def policy_kwargs(cfg: TrainConfig) -> dict[str, Any]:
         kwargs.update(net_arch={"pi": list(p.actor_hidden), "vf": []}, critic="transformer",
                       critic_transformer=p.critic_transformer)
     prior = make_prior(p.action_prior, cfg.env.observation, cfg.env.limits,
-                       cfg.env.action_layout)
+                       cfg.env.action_layout, p.prior_params)
     if prior is not None:
         kwargs["action_prior"] = prior
     return kwargs
