@@ -80,6 +80,10 @@ def main() -> None:
     ap.add_argument("--humans", help="expert data of recorded humans (the JS columns)")
     ap.add_argument("--unblock-s", type=float, default=CitySettings.unblock_s,
                     help="CityEnvConfig.unblock_s (0: no release of blocked junctions)")
+    ap.add_argument("--deterministic", action="store_true",
+                    help="a checkpoint policy acts with its mean action (default: it samples)")
+    ap.add_argument("--noise-scale", type=float, default=None,
+                    help="a sampling policy's noise scale (default: the policy's own)")
     ap.add_argument("--out", default="out/bench_city")
     ap.add_argument("--table-only", action="store_true", help="print the table of OUT only")
     args = ap.parse_args()
@@ -88,13 +92,16 @@ def main() -> None:
     if not args.table_only:
         st = CitySettings(steps=args.steps, warmup_s=args.warmup_s, max_agents=args.max_agents,
                           seed=args.seed, timeout_s=None, humans=args.humans,
-                          unblock_s=args.unblock_s)
+                          unblock_s=args.unblock_s, deterministic=args.deterministic,
+                          noise_scale=args.noise_scale)
         for spec, folder in zip(args.policy, folders):
             res = evaluate_city(spec, args.city, folder, st)
             for e in res.errors:
                 print("error:", e)
     print(f"window {args.steps / 10:g} s after a {args.warmup_s:g} s warm-up, at most "
-          f"{args.max_agents} agents, seed {args.seed}; trips: completed in the window; removed:"
+          f"{args.max_agents} agents, seed {args.seed}"
+          f"{', mean actions' if args.deterministic else ''}"
+          f"{'' if args.noise_scale is None else f', noise scale {args.noise_scale:g}'}; trips: completed in the window; removed:"
           " collision + off-road per learned trip; red: red-light runs per learned trip; "
           "tt_ratio: mean travel time / SUMO's; JS: bits from the recorded humans "
           "(sumo_*: SUMO's drivers in SUMO's own run of the window)")
