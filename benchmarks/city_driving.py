@@ -98,10 +98,11 @@ def main() -> None:
             res = evaluate_city(spec, args.city, folder, st)
             for e in res.errors:
                 print("error:", e)
+    acting = (", mean actions" if args.deterministic else "") + \
+        ("" if args.noise_scale is None else f", noise scale {args.noise_scale:g}")
     print(f"window {args.steps / 10:g} s after a {args.warmup_s:g} s warm-up, at most "
-          f"{args.max_agents} agents, seed {args.seed}"
-          f"{', mean actions' if args.deterministic else ''}"
-          f"{'' if args.noise_scale is None else f', noise scale {args.noise_scale:g}'}; trips: completed in the window; removed:"
+          f"{args.max_agents} agents, seed {args.seed}{acting}; trips: completed in the window; "
+          "removed:"
           " collision + off-road per learned trip; red: red-light runs per learned trip; "
           "tt_ratio: mean travel time / SUMO's; JS: bits from the recorded humans "
           "(sumo_*: SUMO's drivers in SUMO's own run of the window)")
