@@ -117,7 +117,7 @@ ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "env.observation.give_way": False, "policy.action_prior": "none",
                "city.agent_tight_turns": False, "env.observation.path_leader": False,
                "city.unblock_s": 10.0, "env.observation.speed_limit": False,
-               "workers.scenes_per_env": 1}
+               "workers.scenes_per_env": 1, "ppo.prior_coef": 0.0}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}
@@ -372,6 +372,8 @@ def test_train_set_changes_settings_and_records_them(capsys):
     ("env.observation.leader=maybe", r"env\.observation\.leader: expected true or false"),
     ("ppo.learning_rate=3e-4",
      r"ppo\.learning_rate: expected a number, got '3e-4' \(YAML reads it as text: write 0\.0003\)"),
+    ("ppo.learning_rate=1e-12",  # the hint itself must be a float to YAML 1.1
+     r"got '1e-12' \(YAML reads it as text: write 1\.0e-12\)"),
     ("updates.x=1", r"updates: expected an integer, got \{'x': 1\} \(from --set 'updates\.x=1'\)"),
     ("scenes.part=test", r"scenes\.part: needs split next to it"),
     ("scenes.split=nope.yaml", r"--set 'scenes\.split=nope\.yaml': scenes\.split: nope\.yaml: "

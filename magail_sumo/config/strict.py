@@ -193,8 +193,18 @@ def _number_hint(value: Any) -> str:
         except ValueError:
             return ""
         if math.isfinite(number):
-            return f" (YAML reads it as text: write {number!r})"
+            return f" (YAML reads it as text: write {yaml_float(number)})"
     return ""
+
+
+def yaml_float(number: float) -> str:
+    """``number`` as YAML 1.1 reads a float: Python's shortest form, with a dot in the mantissa
+    of an exponent form (``1e-12`` is text to YAML 1.1, ``1.0e-12`` a float)."""
+    text = repr(float(number))
+    mantissa, e, exponent = text.partition("e")
+    if e and "." not in mantissa:
+        text = f"{mantissa}.0e{exponent}"
+    return text
 
 
 def _expand_own(cls: Any, data: Any, path: str, base: Path) -> Any:
