@@ -181,6 +181,12 @@ class TanhGaussianPolicy(ActorCriticPolicy):
             mean = mean + self._prior_mean
         return mean, torch.ones_like(mean) * self.log_std.exp()
 
+    def actor_residual(self, obs: torch.Tensor) -> torch.Tensor:
+        """(n, 2) the actor network's part of its pre-tanh mean for ``obs`` (n, D): the mean
+        minus the action prior's (the mean itself without a prior)."""
+        features = BaseModel.extract_features(self, obs, self.pi_features_extractor)
+        return self.action_net(self.mlp_extractor.forward_actor(features))
+
     @property
     def obs_normalizer(self) -> RunningNormalizer:
         return self.features_extractor.normalizer

@@ -433,6 +433,8 @@ class TrainConfig:
                   f"algorithm {self.algorithm} branches on the route command: must be true")
             check(self.algorithm != "sac" or obs.layout == "ego", "env.observation.layout",
                   "algorithm sac needs the 'ego' layout (its task reward reads dest_distance)")
+        check(self.ppo.prior_coef == 0 or self.policy.action_prior != "none", "ppo.prior_coef",
+              f"{self.ppo.prior_coef:g} needs policy.action_prior (no prior to pull toward)")
         if self.policy.action_prior != "none":
             check(self.algorithm in ("gail", "bc"), "policy.action_prior",
                   f"only the PPO-family policies take one, not algorithm {self.algorithm}")

@@ -1,5 +1,5 @@
 """The ``ppo`` block of a ``gail`` run's config: PPO's hyperparameters, the adaptive learning
-rate and the behavioural-cloning regulariser."""
+rate, the behavioural-cloning regulariser and the pull toward the action prior."""
 
 from __future__ import annotations
 
@@ -21,6 +21,12 @@ class PPOConfig:
         (s, a) pairs (:class:`~magail_sumo.training.gail.ppo.MaskedPPO`); 0: off (plain PPO).
     :param bc_decay: d in (0, 1], the weight of PPO update u (0-based) is ``c_u = c · d**u``.
     :param bc_batch_size: expert pairs per minibatch.
+    :param prior_coef: weight k of the pull toward the action prior (``policy.action_prior``)
+        added to every PPO minibatch loss, ``k · mean ½‖μ_θ(s) − μ_prior(s)‖²`` over the
+        minibatch's agent-steps: the squared residual of the actor's pre-tanh mean, i.e. the KL
+        from the actor's Gaussian to one of the same spread centred on the prior, times σ²
+        (a reference-policy regulariser as in human-regularised PPO, with the rule as the
+        reference); 0: off.
     """
 
     n_steps: int = 128
@@ -40,12 +46,13 @@ class PPOConfig:
     bc_coef: float = 0.0
     bc_decay: float = 1.0
     bc_batch_size: int = 256
+    prior_coef: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("n_steps", "batch_size", "n_epochs", "bc_batch_size"):
             check(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
         check_positive(self, "learning_rate", "max_grad_norm", "desired_kl", "lr_min", "lr_max")
-        check_positive(self, "vf_coef", "bc_coef", allow_zero=True)
+        check_positive(self, "vf_coef", "bc_coef", "prior_coef", allow_zero=True)
         check(0.0 < self.bc_decay <= 1.0, "bc_decay",
               f"must be in (0, 1], got {show(self.bc_decay)}")
         for name in ("gamma", "gae_lambda"):

@@ -35,6 +35,7 @@ minibatches, with ratio ``rho = exp(log pi(a|s) − log pi_old(a|s))`` and advan
                                                               the tanh-Gaussian has no closed form)
         + c_vf · mean (R − V')²,  V' = V or V_old + clip(V − V_old, ±eps_vf)   (value)
         + c_bc,u · (−mean log pi(a_E | s_E))                  (behavioural cloning)
+        + k · mean ½‖μ_θ(s) − μ_prior(s)‖²                    (pull toward the action prior)
 
 then one optimiser (Adam) step on L with the gradient norm clipped to ``max_grad_norm``. A pass
 stops early (no step on that minibatch, no further pass) when the approximate KL
@@ -42,6 +43,9 @@ stops early (no step on that minibatch, no further pass) when the approximate KL
 behavioural-cloning term (``ppo.bc_coef`` c > 0) draws ``bc_batch_size`` expert (s, a) pairs per
 minibatch from the run's :class:`~magail_sumo.expert.ExpertDataset` with its own seeded numpy
 generator (saved in checkpoints), ``c_bc,u = c · bc_decay**u`` at PPO update u = 0, 1, ...
+The prior term (``ppo.prior_coef`` k > 0, a policy with an action prior) penalises the actor's
+residual, its pre-tanh mean's departure from the prior rule's, on the minibatch's own states:
+training moves away from the rule only where the rewards pay for it.
 """
 
 from __future__ import annotations
@@ -175,16 +179,21 @@ class MaskedPPO(PPO):
         needed when ``bc_coef`` > 0). :param bc_coef: weight c of the regulariser (0: off).
     :param bc_decay: its factor per PPO update. :param bc_batch_size: expert pairs per minibatch.
     :param bc_seed: seed of the generator drawing the expert pairs (:attr:`bc_rng`).
+    :param prior_coef: weight k of the pull toward the policy's action prior (0: off; > 0
+        needs a policy with one).
     """
 
     def __init__(self, *args: Any, bc_expert: Any = None, bc_coef: float = 0.0,
                  bc_decay: float = 1.0, bc_batch_size: int = 256, bc_seed: int = 0,
-                 **kwargs: Any) -> None:
+                 prior_coef: float = 0.0, **kwargs: Any) -> None:
         if bc_coef < 0 or not 0 < bc_decay <= 1 or bc_batch_size < 1:
             raise ValueError(f"bc_coef {bc_coef} must be >= 0, bc_decay {bc_decay} in (0, 1], "
                              f"bc_batch_size {bc_batch_size} >= 1")
         if bc_coef > 0 and bc_expert is None:
             raise ValueError("bc_coef > 0 needs expert data (bc_expert)")
+        if prior_coef < 0:
+            raise ValueError(f"prior_coef {prior_coef} must be >= 0")
+        self.prior_coef = float(prior_coef)
         self.bc_expert = bc_expert
         self.bc_coef, self.bc_decay = float(bc_coef), float(bc_decay)
         self.bc_batch_size = int(bc_batch_size)
@@ -194,6 +203,8 @@ class MaskedPPO(PPO):
         self.bc_updates = 0
         kwargs["rollout_buffer_class"] = MaskedRolloutBuffer
         super().__init__(*args, **kwargs)
+        if self.prior_coef > 0 and getattr(self.policy, "action_prior", None) is None:
+            raise ValueError("prior_coef > 0 needs a policy with an action prior")
 
     def _setup_model(self) -> None:
         super()._setup_model()
@@ -304,7 +315,7 @@ class MaskedPPO(PPO):
         surrogate + entropy + value (+ behavioural-cloning) minibatch steps, with approx-KL
         early stopping and gradient-norm clipping. Logs SB3's ``train/*`` keys (explained
         variance over the real slot-steps) plus ``train/bc_coef`` and, when on,
-        ``train/bc_loss``."""
+        ``train/bc_loss`` and ``train/prior_loss`` (the mean ½‖residual‖²)."""
         policy = self.policy
         policy.set_training_mode(True)
         self._update_learning_rate(policy.optimizer)
@@ -313,8 +324,9 @@ class MaskedPPO(PPO):
                   else self.clip_range_vf(self._current_progress_remaining))
         bc_on = self.bc_coef > 0
         bc_weight = self.bc_weight
+        prior_on = self.prior_coef > 0
         log: dict[str, list[float]] = {"pg": [], "value": [], "entropy": [], "clip": [],
-                                       "bc": []}
+                                       "bc": [], "prior": []}
         kls: list[np.ndarray] = []
         loss = torch.zeros(())
         stop = False
@@ -341,6 +353,11 @@ class MaskedPPO(PPO):
                     bc_loss = self._bc_loss()
                     loss = loss + bc_weight * bc_loss
                     log["bc"].append(bc_loss.item())
+                if prior_on:
+                    residual = policy.actor_residual(batch.observations)
+                    prior_loss = 0.5 * residual.square().sum(-1).mean()
+                    loss = loss + self.prior_coef * prior_loss
+                    log["prior"].append(prior_loss.item())
                 log["pg"].append(pg_loss.item())
                 log["value"].append(value_loss.item())
                 log["entropy"].append(ent_loss.item())
@@ -382,6 +399,8 @@ class MaskedPPO(PPO):
         rec("train/bc_coef", bc_weight)
         if bc_on:
             rec("train/bc_loss", float(np.mean(log["bc"])))
+        if prior_on:
+            rec("train/prior_loss", float(np.mean(log["prior"])))
 
 
 def adapt_learning_rate(lr: float, kl: float, desired_kl: float, lr_min: float, lr_max: float

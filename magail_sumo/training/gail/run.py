@@ -119,7 +119,7 @@ class GailRun:
                 vf_coef=p.vf_coef, max_grad_norm=p.max_grad_norm,
                 policy_kwargs=policy_kwargs(cfg), seed=cfg.seed, device=cfg.device, verbose=0,
                 bc_expert=expert if p.bc_coef > 0 else None, bc_coef=p.bc_coef,
-                bc_decay=p.bc_decay, bc_batch_size=p.bc_batch_size,
+                bc_decay=p.bc_decay, bc_batch_size=p.bc_batch_size, prior_coef=p.prior_coef,
                 bc_seed=np.random.SeedSequence([cfg.seed, BC_STREAM]))
             self.disc_callback = DiscriminatorCallback(self.wrapper, self.disc_trainer)
             cbs = [TorchThreads(cfg.torch_threads, cfg.torch_threads_update or cfg.torch_threads),
