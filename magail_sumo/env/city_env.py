@@ -246,6 +246,8 @@ class SumoCityEnv(FleetEnv):
         self._crossings: dict[tuple[str, str], float] = {}  # (lane, foe lane) -> position
         self._approach: dict[str, tuple[str, int]] = {}  # first internal lane -> (lane, link)
         self._foes: dict[str, tuple[str, ...]] = {}  # internal lane -> crossing internal lanes
+        self._conflicts: dict[tuple[str, str], bool] = {}  # (lane, foe lane) -> in the way
+        self._path_through: dict[str, tuple[tuple[str, ...], str]] = {}  # lane -> its connection
         self._lane_of = {lid: k for k, lid in enumerate(self.network.lane_ids)}
         # no recorded signals: _observe passes each agent's live SUMO light
         self.suite = SensorSuite.from_map(self.network.roadmap, None, cfg.observation)
@@ -513,7 +515,9 @@ class SumoCityEnv(FleetEnv):
         agent inside a junction the foes are read from the network instead: before an
         internal junction it must wait at (a left turn across oncoming traffic,
         :meth:`_internal_give_way`) and standing on a connection without the right of way
-        (:meth:`_minor_link_give_way`).
+        (:meth:`_minor_link_give_way`). With ``observation.give_way_conflicts`` both count only
+        the road users whose connection is in the agent's way (:meth:`_conflicting`; on an
+        approach lane, :meth:`_takes_one_of`).
         """
         vehicle, names, v = self._session.api.vehicle, self.fleet.names, self._sumo
         out = np.full((agents.size, 2), np.inf)
@@ -567,9 +571,11 @@ class SumoCityEnv(FleetEnv):
             if self._internal is None:
                 self._internal = internal_junctions(self._net_file)
             incoming, internal = self._internal.get(link[4], ((), ()))
+            if self.config.observation.give_way_conflicts:  # only foes in the agent's way
+                internal = tuple(f for f in internal if self._conflicting(link[4], f))
             t = min((self._before_crossing(f, self._crossing_on(link[4], f), speed)
                      for f in internal), default=np.inf)
-            t = min([t] + [self._approaching(src, 0.0, speed) for src in incoming
+            t = min([t] + [self._approaching(src, 0.0, speed, internal) for src in incoming
                            if src != lane and not src.startswith(":")])
             if np.isfinite(t):
                 out[j] = ego_d, t
@@ -599,15 +605,18 @@ class SumoCityEnv(FleetEnv):
             if self._link_state(lane) not in MINOR:
                 continue
             best_d, best_t = np.inf, np.inf
+            conflicts = self.config.observation.give_way_conflicts
             for foe_lane in self._internal_foes(lane):
-                if self._link_state(foe_lane) not in MAJOR:
+                if self._link_state(foe_lane) not in MAJOR or \
+                        (conflicts and not self._conflicting(lane, foe_lane)):
                     continue
                 ego_d = self._crossing_on(foe_lane, lane) - pos
                 if ego_d <= COMMITTED:
                     continue  # at or past the crossing: it clears it
                 cross = self._crossing_on(lane, foe_lane)
                 t = min(self._before_crossing(foe_lane, cross, speed),
-                        self._approaching(self._approaches()[foe_lane][0], cross, speed))
+                        self._approaching(self._approaches()[foe_lane][0], cross, speed,
+                                          (foe_lane,)))
                 if t < best_t:
                     best_d, best_t = ego_d, t
             if np.isfinite(best_t):
@@ -626,16 +635,65 @@ class SumoCityEnv(FleetEnv):
                 t = min(t, max(cross - front, 0.0) / v)
         return t
 
-    def _approaching(self, lane: str, beyond: float, speed: dict[str, float]) -> float:
+    def _approaching(self, lane: str, beyond: float, speed: dict[str, float],
+                     via: tuple[str, ...] = ()) -> float:
         """Time (s) the first vehicle moving on approach lane ``lane`` within the give-way
-        range of a point ``beyond`` m past the lane's end needs to reach it (inf: none)."""
+        range of a point ``beyond`` m past the lane's end needs to reach it (inf: none); with
+        ``observation.give_way_conflicts`` only a vehicle whose route leaves ``lane`` on a
+        connection whose first internal lane is in ``via`` (one whose route is unknown past
+        ``lane`` counts)."""
         api, t = self._session.api, np.inf
         end = api.lane.getLength(lane) + beyond
+        conflicts = self.config.observation.give_way_conflicts
         for f in api.lane.getLastStepVehicleIDs(lane):
             d, v = end - api.vehicle.getLanePosition(f), speed.get(f, 0.0)
-            if d < GIVE_WAY_RANGE and v > MOVING:
+            if d < GIVE_WAY_RANGE and v > MOVING and \
+                    (not conflicts or self._takes_one_of(f, lane, via)):
                 t = min(t, d / v)
         return t
+
+    def _takes_one_of(self, vehicle: str, lane: str, via: tuple[str, ...]) -> bool:
+        """Whether ``vehicle`` on normal lane ``lane`` leaves it on a connection whose first
+        internal lane is in ``via`` (the links of ``lane`` to the next edge of its route); True
+        when its route does not go on or cannot be read."""
+        api = self._session.api
+        try:
+            route, k = api.vehicle.getRoute(vehicle), api.vehicle.getRouteIndex(vehicle)
+        except Exception:  # vehicle not (yet) in SUMO
+            return True
+        if not 0 <= k < len(route) - 1:
+            return True
+        nxt = route[k + 1]
+        return any(link[4] in via for link in api.lane.getLinks(lane)
+                   if link[0].rsplit("_", 1)[0] == nxt)
+
+    def _through(self, lane: str) -> tuple[tuple[str, ...], str]:
+        """The internal lanes of the connection from internal lane ``lane`` on (``lane`` and
+        those its links lead through) and the normal lane after them ("": none). Cached."""
+        out = self._path_through.get(lane)
+        if out is None:
+            lanes, nxt = [lane], ""
+            while len(lanes) < 8:
+                links = self._session.api.lane.getLinks(lanes[-1])
+                nxt = links[0][0] if links else ""
+                if not nxt.startswith(":"):
+                    break
+                lanes.append(nxt)
+            out = self._path_through[lane] = (tuple(lanes), nxt)
+        return out
+
+    def _conflicting(self, lane: str, foe_lane: str) -> bool:
+        """Whether the connection through internal lane ``lane`` (:meth:`_through`) is in
+        the way of the one through ``foe_lane``: their centrelines cross or they lead onto the
+        same lane (``observation.give_way_conflicts``). Cached."""
+        key = (lane, foe_lane)
+        out = self._conflicts.get(key)
+        if out is None:
+            (mine, to), (theirs, foe_to) = self._through(lane), self._through(foe_lane)
+            g = self._graph
+            out = self._conflicts[key] = bool(to and to == foe_to) or any(
+                crossing(g.shape(a), g.shape(b)) is not None for a in mine for b in theirs)
+        return out
 
     def _internal_foes(self, lane: str) -> tuple[str, ...]:
         """The internal lanes of vehicle classes that may cross internal lane ``lane``

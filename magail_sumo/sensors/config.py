@@ -64,6 +64,14 @@ class ObservationConfig:
         conflict point of the next road user the agent must give way to at a junction ahead,
         and the time (s) that road user needs to reach it (SUMO's junction model, so a city
         feature; :mod:`magail_sumo.sensors.units.give_way`); off by default.
+    :param give_way_conflicts: inside a junction, where SUMO names no foe and the city env
+        reads the give-way conflict from the network, count only the road users whose
+        connection crosses the agent's (centrelines, its internal lanes up to the lane after
+        the junction) or leads onto the same lane, and of those on an approach lane only the
+        ones whose route takes such a connection (SUMO's junction model lets its drivers
+        go past the others: on cologne8 a left turn waiting inside signal ``26110729`` read
+        the oncoming right and left turners); off by default: every road user on the waiting
+        place's foe lanes counts. The layout is the same either way.
     :param path_leader: append ``path_leader_gap`` (m) and ``path_leader_closing`` (m/s): the
         nearest road user in the agent's lane corridor ahead along its reference path, within
         ``leader_range`` (:mod:`magail_sumo.sensors.units.path_leader`; straight ahead for an
@@ -86,6 +94,7 @@ class ObservationConfig:
     leader_range: float = 50.0
     light_gap: bool = False
     give_way: bool = False
+    give_way_conflicts: bool = False
     path_leader: bool = False
     speed_limit: bool = False
 
