@@ -149,9 +149,10 @@ class SumoDrivingEnv(FleetEnv):
         self._row_of_sumo = dict(zip(self.bundle.sumo_ids, self.bundle.sumo_rows.tolist()))
         self.suite = SensorSuite(scene, cfg.observation)
         #: recorded routes for the route-command and route look-ahead features
-        #: (``observation.command``, ``observation.route_points``)
-        self._commands = RouteCommands.build(tr, cfg.observation.command_lookahead) \
-            if cfg.observation.command or cfg.observation.route_points else None
+        #: (``observation.command``, ``observation.route_points``, ``observation.route_stop``)
+        ob = cfg.observation
+        self._commands = RouteCommands.build(tr, ob.command_lookahead) \
+            if ob.command or ob.route_points or ob.route_stop else None
         self.stop_lines = StopLines.build(scene)
         #: WOSAC's off-road test (``off_road_rule: road_edge`` in a scene with road edges)
         self._edges = self._edge_rule() if cfg.off_road_rule == "road_edge" else None
@@ -510,18 +511,20 @@ class SumoDrivingEnv(FleetEnv):
         world = self._world(agents)
         rows = self._ctrl[agents]
         ob = self.config.observation
-        cmd = route = None
+        cmd = route = stop = None
         if ob.command:
             cmd = self._commands.commands(rows, f.x[agents], f.y[agents])
         if ob.route_points:
             route = self._commands.ahead(rows, f.x[agents], f.y[agents], f.yaw[agents],
                                          ob.route_points)
+        if ob.route_stop:
+            stop = self._commands.stop_ahead(rows, f.x[agents], f.y[agents])
         ahead = None
         if (ob.path_leader or ob.speed_limit) and self.paths is not None:  # route-relative
             s = self._route_progress(agents)
             ahead = PathAhead(self.paths, f.path[agents], f.hint[agents], s)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
-                       f.dest[agents], f.dest_yaw[agents], cmd, route, ahead)
+                       f.dest[agents], f.dest_yaw[agents], cmd, route, ahead, stop)
         obs = self.suite.observe(world[0], ego, self.t, lanes)
         self.sensor_time += time.perf_counter() - clock
         return obs, world

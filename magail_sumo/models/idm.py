@@ -22,7 +22,10 @@ lowered before bends: the route look-ahead (``route_points``) gives each point's
 the give-way observation (``give_way``, :mod:`magail_sumo.sensors.units.give_way`) it accepts
 the gap before a road user it must give way to only when it clears the conflict (``clear`` m
 past its entry, accelerating at ``a_clear`` from ``v``) ``margin`` s before that road user
-arrives; otherwise it stops ``s0`` before the conflict the same way. Pure array functions of
+arrives; otherwise it stops ``s0`` before the conflict the same way. With the route's standing
+end observed (``route_stop``, :mod:`magail_sumo.sensors.units.route_stop`: a recorded driver
+who parks or halts where its route ends) it stops at that end the same way (a recorded scene;
+a city has none). Pure array functions of
 the observation, no memory: the same rule drives the ``idm`` baseline
 (:mod:`magail_sumo.agents.idm`) and is the action prior a learned policy can
 add a residual to (:mod:`magail_sumo.models.priors`).
@@ -39,6 +42,7 @@ import numpy as np
 from magail_sumo.sensors.observation import ObservationConfig, observation_names
 from magail_sumo.sensors.units.give_way import GIVE_WAY_RANGE
 from magail_sumo.sensors.units.light_gap import LIGHT_RANGE
+from magail_sumo.sensors.units.route_stop import ROUTE_STOP_RANGE
 from magail_sumo.sim.dynamics import BicycleLimits, normalise
 
 #: light codes of the ``light`` observation that stop an IDM driver (yellow, red)
@@ -187,6 +191,7 @@ class IdmRule:
         self._limit = [names.index(n) for n in ("speed_limit", "speed_limit_ahead",
                                                  "speed_limit_gap")] \
             if observation.speed_limit else []
+        self._stop = names.index("route_stop_gap") if observation.route_stop else None
 
     def accel(self, obs: np.ndarray, v0_scale: np.ndarray | None = None) -> np.ndarray:
         """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D); ``v0_scale``:
@@ -208,6 +213,10 @@ class IdmRule:
         if self._give_way:
             conflict, foe_time = obs[:, self._give_way[0]], obs[:, self._give_way[1]]
             accel = np.minimum(accel, give_way_brake(v, conflict, foe_time, p, GIVE_WAY_RANGE))
+        if self._stop is not None:
+            to_end = obs[:, self._stop]
+            accel = np.minimum(accel, np.where(to_end < ROUTE_STOP_RANGE - 1e-6,
+                                               stop_brake(v, to_end + p.s0, p), np.inf))
         return accel
 
     def __call__(self, obs: np.ndarray, v0_scale: np.ndarray | None = None) -> np.ndarray:

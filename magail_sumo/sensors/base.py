@@ -92,6 +92,9 @@ class EgoState:
     :param path: the agents' reference paths (:class:`PathAhead`), read by the path leader
         (``ObservationConfig.path_leader``) and the speed limits
         (``ObservationConfig.speed_limit``); None: none (free steering).
+    :param route_stop: (A,) distance (m) along the recorded route to its end where the
+        recorded driver stands there (``ObservationConfig.route_stop``); inf where it does not;
+        None: none for every agent (no recorded routes, e.g. a city).
     """
 
     index: np.ndarray
@@ -102,6 +105,7 @@ class EgoState:
     command: np.ndarray | None = None
     route: np.ndarray | None = None
     path: "PathAhead | None" = None
+    route_stop: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -308,7 +312,8 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     route command when ``config.command``, the route look-ahead when ``config.route_points``,
     the leader when ``config.leader``, the stop-line distance when ``config.light_gap``, the
     give-way conflict when ``config.give_way``, the path leader when ``config.path_leader``,
-    the speed limits when ``config.speed_limit``)."""
+    the speed limits when ``config.speed_limit``, the route's standing end when
+    ``config.route_stop``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
@@ -318,4 +323,5 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
         (("route",) if config.route_points else ()) + (("leader",) if config.leader else ()) + \
         (("light_gap",) if config.light_gap else ()) + (("give_way",) if config.give_way else ()) \
         + (("path_leader",) if config.path_leader else ()) \
-        + (("speed_limit",) if config.speed_limit else ())
+        + (("speed_limit",) if config.speed_limit else ()) \
+        + (("route_stop",) if config.route_stop else ())

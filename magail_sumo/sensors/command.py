@@ -14,7 +14,9 @@ junction is where the route turns). Vectorised over all agents of a step ((A, T)
 The route look-ahead (the optional ``route`` observation feature, ``ObservationConfig.
 route_points``) reads the same routes: :meth:`RouteCommands.ahead` gives the route's position
 ``d`` m along it past the progress point (linear between recorded states; the route's last
-valid state when the route ends sooner), in the agent's ego frame.
+valid state when the route ends sooner), in the agent's ego frame; :meth:`RouteCommands.
+stop_ahead` how far along it the route ends with its driver standing (the ``route_stop``
+feature).
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ COMMANDS = ("left", "straight", "right")
 COMMAND_NAMES = [f"command_{c}" for c in COMMANDS]
 #: heading change (rad) above which the route turns (30°)
 TURN = np.pi / 6
+#: a recorded speed (m/s) below which a driver stands still (WOMD's standing cars read up to
+#: a few tenths from position noise)
+STANDING = 0.5
 
 
 def command_index(delta: np.ndarray) -> np.ndarray:
@@ -56,6 +61,10 @@ class RouteCommands:
     :param fx, fy, farc: x, y and arc with each invalid entry replaced by the last valid one
         before it (the first valid one before any): non-decreasing ``farc``, for
         :meth:`ahead`.
+    :param end_arc: (N,) arc (m) of each track's last valid state where its recorded speed
+        there is below :data:`STANDING` (the route ends standing), NaN otherwise (no valid
+        state, the driver moving at its end, or tracks given without velocities ``vx``,
+        ``vy``), for :meth:`stop_ahead`.
     """
 
     x: np.ndarray
@@ -66,6 +75,7 @@ class RouteCommands:
     fx: np.ndarray
     fy: np.ndarray
     farc: np.ndarray
+    end_arc: np.ndarray | None = None
 
     @classmethod
     def build(cls, tracks, lookahead: float = 30.0) -> "RouteCommands":
@@ -79,8 +89,15 @@ class RouteCommands:
         arc = np.concatenate([np.zeros((x.shape[0], 1)), np.nancumsum(seg, axis=1)], axis=1)
         farc = arc.copy()
         arc = np.where(valid, arc, np.nan)
+        end_arc = np.full(valid.shape[0], np.nan)
+        if getattr(tracks, "vx", None) is not None:  # recorded velocities: standing ends
+            last = valid.shape[1] - 1 - np.argmax(valid[:, ::-1], axis=1)
+            n = np.arange(valid.shape[0])
+            speed = np.hypot(np.asarray(tracks.vx, np.float64)[n, last],
+                             np.asarray(tracks.vy, np.float64)[n, last])
+            end_arc = np.where(valid.any(axis=1) & (speed < STANDING), farc[n, last], np.nan)
         return cls(x, y, np.asarray(tracks.heading, np.float64), arc, float(lookahead),
-                   xf, yf, farc)
+                   xf, yf, farc, end_arc)
 
     def _progress(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(A,) index of the recorded state of track ``rows`` nearest to (x, y)."""
@@ -120,6 +137,18 @@ class RouteCommands:
         out[:, :, 0] = c * dx + sn * dy
         out[:, :, 1] = -sn * dx + c * dy
         return out.reshape(rows.size, 2 * dist.size)
+
+    def stop_ahead(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(A,) distance (m) along the recorded route of track ``rows`` from the progress point
+        of positions (x, y) to the route's end where its driver stands there (0 at or past
+        it), inf where the route does not end standing."""
+        rows = np.asarray(rows, np.int64)
+        if rows.size == 0:
+            return np.zeros(0, np.float64)
+        at = self._progress(rows, x, y)
+        end = self.end_arc[rows]
+        here = self.farc[rows, at]
+        return np.where(np.isnan(end), np.inf, np.maximum(end - here, 0.0))
 
     def commands(self, rows: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(A, 3) float32 one-hot commands of agents on track ``rows`` at positions (x, y)."""

@@ -72,6 +72,10 @@ class ObservationConfig:
         go past the others: on cologne8 a left turn waiting inside signal ``26110729`` read
         the oncoming right and left turners); off by default: every road user on the waiting
         place's foe lanes counts. The layout is the same either way.
+    :param route_stop: append ``route_stop_gap``: the distance (m) along the agent's recorded
+        route to its end where the recorded driver stands still at its end (its last valid
+        state), capped at 50 m, which also reads where the route does not end standing and in
+        a city (:mod:`magail_sumo.sensors.units.route_stop`); off by default.
     :param path_leader: append ``path_leader_gap`` (m) and ``path_leader_closing`` (m/s): the
         nearest road user in the agent's lane corridor ahead along its reference path, within
         ``leader_range`` (:mod:`magail_sumo.sensors.units.path_leader`; straight ahead for an
@@ -97,6 +101,7 @@ class ObservationConfig:
     give_way_conflicts: bool = False
     path_leader: bool = False
     speed_limit: bool = False
+    route_stop: bool = False
 
     def __post_init__(self) -> None:
         layout = layout_name(self.layout)

@@ -45,6 +45,9 @@ then 3                (``speed_limit: true`` only) ``speed_limit``, ``speed_limi
                       (m/s), ``speed_limit_gap`` (m): the speed limit on the agent's path
                       here and the lowest one ahead with its distance, 0 when unknown
                       (:mod:`magail_sumo.sensors.units.speed_limit`)
+then 1                (``route_stop: true`` only) ``route_stop_gap`` (m): along the recorded
+                      route to its end where the recorded driver stands still, 50 when none
+                      (:mod:`magail_sumo.sensors.units.route_stop`)
 ====================  ======================================================================
 
 Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
@@ -66,7 +69,8 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
 ``leader: true``, ``light_gap`` with ``light_gap: true``, ``give_way`` with ``give_way: true``,
-``path_leader`` with ``path_leader: true`` and ``speed_limit`` with ``speed_limit: true``. The
+``path_leader`` with ``path_leader: true``, ``speed_limit`` with ``speed_limit: true`` and
+``route_stop`` with ``route_stop: true``. The
 suite is built from a road map and a light source (:meth:`SensorSuite.from_map`;
 ``SensorSuite(scene, config)`` for a recorded scene).
 """
