@@ -265,6 +265,19 @@ def test_pursuit_past_the_paths_end_drives_on():
                                       np.zeros(1), lim)
         st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
     assert st.x[0] > 35.0 and abs(st.y[0]) < 0.05 and abs(st.yaw[0]) < 0.01
+    # slow (the least look-ahead) and beside the line: far past the end the progress point
+    # runs on too, so the goal stays ahead (a clamped one fell behind and turned the car round,
+    # as recorded creepers with 5-m routes did in the womd14 test windows)
+    st = dynamics.VehicleState(np.array([9.0]), np.array([0.3]), np.array([0.0]),
+                               np.array([3.0]))
+    hint = np.zeros(1, np.int64)
+    for _ in range(80):
+        steer, hint = tracking.follow(paths, np.array([0]), hint, st, np.array([2.9]),
+                                      np.zeros(1), lim)
+        st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
+    assert st.x[0] > 30.0 and abs(st.y[0]) < 0.3 and abs(st.yaw[0]) < 0.05
+    at, s = paths.project(np.array([0]), np.array([25.0]), np.array([0.5]))
+    assert at[0] == len(paths.points(0)) - 1 and s[0] == pytest.approx(25.0)
 
 
 def test_idm_acceleration_and_its_bend_and_light_rules():

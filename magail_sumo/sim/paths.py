@@ -12,8 +12,9 @@ m); path ``r`` holds points ``start[r] .. start[r] + count[r] - 1``. Adding a pa
 lies on (0: unknown), when the path was added with limits.
 
 Frames and units: scene frame (SUMO's network frame in cities), metres, radians (CCW from +x).
-Every query works on arrays over many vehicles at once; positions past either end of a path are
-clamped to it.
+Every query works on arrays over many vehicles at once; positions before a path's start are
+clamped to it, and a position past its end projects onto the line of its last segment (arc
+lengths beyond the path's length: how far the vehicle has overshot it).
 """
 
 from __future__ import annotations
@@ -163,7 +164,8 @@ class Paths:
 
     def _foot(self, rows, at, x, y) -> np.ndarray:
         """(A,) arc length of the feet of (x, y) on the segments before and after point
-        ``at`` (the nearer one; clamped to the path)."""
+        ``at`` (the nearer one; clamped to the path's start; past its end, the foot on the
+        last segment's line, so a vehicle that overshoots a path's end is that far past it)."""
         base, cnt = self.start[rows], self.count[rows]
         best_s = self.s[base + at]
         best_d = np.hypot(self.x[base + at] - x, self.y[base + at] - y)
@@ -174,8 +176,9 @@ class Paths:
             b = base + np.minimum(lo0 + 1, cnt - 1)
             ex, ey = self.x[b] - self.x[a], self.y[b] - self.y[a]
             ll = ex * ex + ey * ey
-            u = np.minimum(np.maximum(((x - self.x[a]) * ex + (y - self.y[a]) * ey)
-                                      / np.where(ll > 0, ll, 1.0), 0.0), 1.0)
+            u = np.maximum(((x - self.x[a]) * ex + (y - self.y[a]) * ey)
+                           / np.where(ll > 0, ll, 1.0), 0.0)
+            u = np.where(lo0 + 2 == cnt, u, np.minimum(u, 1.0))  # the last segment: on past
             px, py = self.x[a] + u * ex, self.y[a] + u * ey
             d = np.hypot(px - x, py - y)
             better = ok & (d < best_d)

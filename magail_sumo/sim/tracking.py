@@ -149,7 +149,9 @@ def _project(x, y, s, base, cnt, px, py, hint, back, ahead):
         a, b = base + lo, base + lo + 1
         ex, ey = x[b] - x[a], y[b] - y[a]
         ll = ex * ex + ey * ey
-        u = min(max(((px - x[a]) * ex + (py - y[a]) * ey) / (ll if ll > 0 else 1.0), 0.0), 1.0)
+        u = max(((px - x[a]) * ex + (py - y[a]) * ey) / (ll if ll > 0 else 1.0), 0.0)
+        if lo + 2 < cnt:  # the last segment: on past the path's end (Paths._foot)
+            u = min(u, 1.0)
         d = np.hypot(x[a] + u * ex - px, y[a] + u * ey - py)
         if d < foot_d:
             foot_d, foot_s = d, s[a] + u * np.sqrt(ll)
