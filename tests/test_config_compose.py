@@ -117,7 +117,8 @@ ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "env.observation.give_way": False, "policy.action_prior": "none",
                "city.agent_tight_turns": False, "env.observation.path_leader": False,
                "city.unblock_s": 10.0, "env.observation.speed_limit": False,
-               "workers.scenes_per_env": 1, "ppo.prior_coef": 0.0}
+               "workers.scenes_per_env": 1, "ppo.prior_coef": 0.0,
+               "env.observation.give_way_conflicts": False, "env.observation.route_stop": False}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}
