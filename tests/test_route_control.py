@@ -252,6 +252,16 @@ def test_city_progress_reward_is_the_distance_along_the_route():
         CityEnvConfig(progress_reward=-1.0)
 
 
+def _pursue(paths, st, lim, steps: int):
+    """``st`` after ``steps`` 0.1-s steps of pure pursuit along path 0 at no acceleration."""
+    hint = np.zeros(1, np.int64)
+    for _ in range(steps):
+        steer, hint = tracking.follow(paths, np.array([0]), hint, st, np.array([2.9]),
+                                      np.zeros(1), lim)
+        st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
+    return st
+
+
 def test_pursuit_past_the_paths_end_drives_on():
     """A car overshooting the end of its path keeps its heading: the goal runs on along the
     path's last direction instead of pulling it back round."""
@@ -259,22 +269,14 @@ def test_pursuit_past_the_paths_end_drives_on():
     lim = dynamics.BicycleLimits()
     st = dynamics.VehicleState(np.array([9.0]), np.array([0.0]), np.array([0.0]),
                                np.array([10.0]))
-    hint = np.zeros(1, np.int64)
-    for _ in range(30):
-        steer, hint = tracking.follow(paths, np.array([0]), hint, st, np.array([2.9]),
-                                      np.zeros(1), lim)
-        st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
+    st = _pursue(paths, st, lim, 30)
     assert st.x[0] > 35.0 and abs(st.y[0]) < 0.05 and abs(st.yaw[0]) < 0.01
     # slow (the least look-ahead) and beside the line: far past the end the progress point
     # runs on too, so the goal stays ahead (a clamped one fell behind and turned the car round,
     # as recorded creepers with 5-m routes did in the womd14 test windows)
     st = dynamics.VehicleState(np.array([9.0]), np.array([0.3]), np.array([0.0]),
                                np.array([3.0]))
-    hint = np.zeros(1, np.int64)
-    for _ in range(80):
-        steer, hint = tracking.follow(paths, np.array([0]), hint, st, np.array([2.9]),
-                                      np.zeros(1), lim)
-        st = dynamics.step(st, np.zeros(1), steer, np.array([2.9]), 0.1, lim)
+    st = _pursue(paths, st, lim, 80)
     assert st.x[0] > 30.0 and abs(st.y[0]) < 0.3 and abs(st.yaw[0]) < 0.05
     at, s = paths.project(np.array([0]), np.array([25.0]), np.array([0.5]))
     assert at[0] == len(paths.points(0)) - 1 and s[0] == pytest.approx(25.0)
