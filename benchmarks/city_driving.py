@@ -80,6 +80,8 @@ def main() -> None:
     ap.add_argument("--humans", help="expert data of recorded humans (the JS columns)")
     ap.add_argument("--unblock-s", type=float, default=CitySettings.unblock_s,
                     help="CityEnvConfig.unblock_s (0: no release of blocked junctions)")
+    ap.add_argument("--demand-scale", type=float, default=1.0,
+                    help="each city's demand times this in both runs (SUMO's --scale)")
     ap.add_argument("--deterministic", action="store_true",
                     help="a checkpoint policy acts with its mean action (default: it samples)")
     ap.add_argument("--noise-scale", type=float, default=None,
@@ -93,14 +95,15 @@ def main() -> None:
         st = CitySettings(steps=args.steps, warmup_s=args.warmup_s, max_agents=args.max_agents,
                           seed=args.seed, timeout_s=None, humans=args.humans,
                           unblock_s=args.unblock_s, deterministic=args.deterministic,
-                          noise_scale=args.noise_scale)
+                          noise_scale=args.noise_scale, demand_scale=args.demand_scale)
         for spec, folder in zip(args.policy, folders):
             res = evaluate_city(spec, args.city, folder, st)
             for e in res.errors:
                 print("error:", e)
     acting = (", mean actions" if args.deterministic else "") + \
         ("" if args.noise_scale is None else f", noise scale {args.noise_scale:g}")
-    print(f"window {args.steps / 10:g} s after a {args.warmup_s:g} s warm-up, at most "
+    dense = f", demand ×{args.demand_scale:g}" if args.demand_scale != 1.0 else ""
+    print(f"window {args.steps / 10:g} s after a {args.warmup_s:g} s warm-up{dense}, at most "
           f"{args.max_agents} agents, seed {args.seed}{acting}; trips: completed in the window; "
           "removed:"
           " collision + off-road per learned trip; red: red-light runs per learned trip; "

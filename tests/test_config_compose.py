@@ -118,7 +118,8 @@ ADDED_SINCE = {"workers.ray.node_ip": None, "city.agent_classes": ["passenger"],
                "city.agent_tight_turns": False, "env.observation.path_leader": False,
                "city.unblock_s": 10.0, "env.observation.speed_limit": False,
                "workers.scenes_per_env": 1, "ppo.prior_coef": 0.0,
-               "env.observation.give_way_conflicts": False, "env.observation.route_stop": False}
+               "env.observation.give_way_conflicts": False, "env.observation.route_stop": False,
+               "env.observation.speed_factor": False, "city.demand_scale": 1.0}
 #: the demo's folders, moved into out/quickstart/ (issue 35: every README section has its own)
 DEMO_MOVED = {"expert_dir": "out/quickstart/expert", "scenes.networks": "out/quickstart/networks",
               "out_dir": "out/quickstart/runs"}

@@ -57,6 +57,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--city-agent-tight-turns", action="store_true",
                    help="vehicles whose route turns tighter than a car can (SUMO's on-the-spot "
                         "turnarounds) become agents too (default: SUMO drives them)")
+    p.add_argument("--city-demand-scale", type=float, default=1.0, metavar="F",
+                   help="a city's demand times F in both runs (SUMO's --scale: vehicles "
+                        "duplicated or left out, seeded; default 1)")
     p.add_argument("--city-unblock-s", type=float, default=10.0, metavar="S",
                    help="SUMO-driven vehicles that have waited S seconds next to an agent "
                         "standing as long on a junction stop giving way to standing agents "
@@ -121,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
                                                 args.city_agent_classes.split(",") if c.strip()),
                             agent_tight_turns=args.city_agent_tight_turns,
                             unblock_s=args.city_unblock_s,
+                            demand_scale=args.city_demand_scale,
                             fcd=args.fcd_rollouts > 0, humans=args.city_humans,
                             deterministic=args.deterministic, noise_scale=args.noise_scale,
                             timeout_s=args.timeout_s)

@@ -61,6 +61,7 @@ from magail_sumo.sim import dynamics
 from magail_sumo.sim.fcd import FcdRecorder, ReplayFiles, write_replay
 from magail_sumo.sim.lane_graph import LaneGraph, crossing
 from magail_sumo.sim.paths import TURN_ARC, Paths, tightest_turn
+from magail_sumo.sim.saved_state import mend_routes
 from magail_sumo.sim.tracking import trials
 from magail_sumo.sim.session import STEP_LENGTH, SessionConfig, SumoSession
 from magail_sumo.sim.sumo_config import (SumoConfigError, SumoInputs, check_demand, read_config,
@@ -137,6 +138,9 @@ class CityEnvConfig:
     :param progress_reward: each agent's reward per metre it moves along its route in a
         step (its reference path, :mod:`magail_sumo.sim.paths`; 0: rewards are 0). The task
         reward of city training (with the trainer's penalties for the reason an agent left).
+    :param demand_scale: the scenario's demand times this (SUMO's ``--scale``: vehicles of
+        its routes and flows duplicated or left out, seeded), in the warm-up and the episodes
+        alike; 1: the scenario as it is. A denser city from the same counts.
     """
 
     control_fraction: float = 1.0
@@ -158,6 +162,7 @@ class CityEnvConfig:
     fcd_dir: str | None = None
     fcd_every: int = 0
     progress_reward: float = 0.0
+    demand_scale: float = 1.0
 
     @classmethod
     def from_env(cls, env, *, max_agents: int | None, control_fraction: float,
@@ -165,7 +170,7 @@ class CityEnvConfig:
                  agent_classes: tuple[str, ...] = ("passenger",),
                  progress_reward: float = 0.0,
                  agent_tight_turns: bool = False,
-                 unblock_s: float = 10.0) -> "CityEnvConfig":
+                 unblock_s: float = 10.0, demand_scale: float = 1.0) -> "CityEnvConfig":
         """A city's settings with the observation, limits, event rules (the city's events of
         ``env.terminate_on``), SUMO seed and action layout of a recorded-scene
         :class:`~magail_sumo.env.config.EnvConfig` ``env``, so one policy drives both."""
@@ -178,13 +183,16 @@ class CityEnvConfig:
                    agent_classes=tuple(agent_classes),
                    agent_tight_turns=bool(agent_tight_turns),
                    unblock_s=float(unblock_s), fcd_dir=env.fcd_dir,
-                   fcd_every=env.fcd_every, progress_reward=progress_reward)
+                   fcd_every=env.fcd_every, progress_reward=progress_reward,
+                   demand_scale=float(demand_scale))
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.progress_reward) and self.progress_reward >= 0):
             raise ValueError(f"progress_reward must be >= 0, got {self.progress_reward}")
         if not (np.isfinite(self.unblock_s) and self.unblock_s >= 0):
             raise ValueError(f"unblock_s must be >= 0, got {self.unblock_s}")
+        if not (np.isfinite(self.demand_scale) and self.demand_scale > 0):
+            raise ValueError(f"demand_scale must be > 0, got {self.demand_scale}")
         if self.max_agents is not None and self.max_agents < 1:
             raise ValueError(f"max_agents must be >= 1 or None, got {self.max_agents}")
         if self.action_layout not in dynamics.ACTION_LAYOUTS:
@@ -270,6 +278,11 @@ class SumoCityEnv(FleetEnv):
         return self._act_space
 
     # ------------------------------------------------------------------ lifecycle
+    def _scale_args(self) -> tuple[str, ...]:
+        """SUMO's ``--scale`` of ``demand_scale`` (none at 1)."""
+        s = self.config.demand_scale
+        return () if s == 1.0 else ("--scale", f"{s:g}")
+
     def warm_state(self) -> Path | None:
         """The saved warm-up state every episode loads (``--load-state``): SUMO run alone for
         ``warmup_s`` (1 s steps, seed ``sumo_seed``) on the first call; None when ``warmup_s``
@@ -279,7 +292,8 @@ class SumoCityEnv(FleetEnv):
             return None
         if self._state_file is None:
             sim = SumoSession(inputs=self.inputs,
-                             config=SessionConfig(step_length=1.0, seed=cfg.sumo_seed))
+                             config=SessionConfig(step_length=1.0, seed=cfg.sumo_seed,
+                                                  extra_args=self._scale_args()))
             with sim:
                 begin = sim.time
                 target = begin + cfg.warmup_s
@@ -287,6 +301,8 @@ class SumoCityEnv(FleetEnv):
                     sim.step()
                 path = Path(self._state_dir.name) / "warm.xml.gz"
                 sim.api.simulation.saveState(str(path))
+                if cfg.demand_scale > 1.0:  # copies whose original has left lose its route
+                    mend_routes(path, sim.api.vehicle.getRoute)
             self._state_file = path
         return self._state_file
 
@@ -296,7 +312,8 @@ class SumoCityEnv(FleetEnv):
         self.close()
         self._fcd.begin_episode(self.scenario_id)
         state = self.warm_state()
-        extra = (("--load-state", str(state)) if state is not None else ()) + self.sumo_args
+        extra = (("--load-state", str(state)) if state is not None else ()) \
+            + self._scale_args() + self.sumo_args
         self._seed = 0 if seed is None else int(seed)
         self._session = SumoSession(inputs=self.inputs, config=SessionConfig(
             seed=cfg.sumo_seed + self._seed, extra_args=extra)).start()
@@ -436,6 +453,8 @@ class SumoCityEnv(FleetEnv):
         px, py, heading = self.paths.at(f.path[k:k + 1], end)
         f.dest[k] = px[0], py[0]
         f.dest_yaw[k] = heading[0]
+        if self.config.observation.speed_factor:  # SUMO drew it as the vehicle entered
+            f.speed_factor[k] = float(self._session.api.vehicle.getSpeedFactor(vid))
         f.join(k)
         f.in_sumo[k] = True
         return k
@@ -764,7 +783,8 @@ class SumoCityEnv(FleetEnv):
             if ob.path_leader or ob.speed_limit:
                 ahead = PathAhead(self.paths, paths, f.hint[agents], s)
         ego = EgoState(np.arange(agents.size), f.speed[agents], f.prev_action[agents],
-                       f.dest[agents], f.dest_yaw[agents], cmd, route, ahead)
+                       f.dest[agents], f.dest_yaw[agents], cmd, route, ahead,
+                       speed_factor=f.speed_factor[agents] if ob.speed_factor else None)
         give_way = self._give_way(agents) if ob.give_way else None
         obs = self.suite.observe(world[0], ego, 0, lanes,
                                  light=np.where(dist < LIGHT_RANGE, light, 0), light_gap=dist,

@@ -15,7 +15,9 @@ episode. Per row:
 * running counts ``nan_actions`` / ``clipped_actions`` of non-finite / out-of-range actions;
 * ``path``: the row of the vehicle's reference path in the env's
   :class:`~magail_sumo.sim.paths.Paths` (-1: none) and ``hint``: its progress point's index on
-  it (route-relative control and the route look-ahead, :mod:`magail_sumo.sim.tracking`).
+  it (route-relative control and the route look-ahead, :mod:`magail_sumo.sim.tracking`);
+* ``speed_factor``: the driver's desired speed over the road's (1 unless the env knows it:
+  a city reads SUMO's, :mod:`magail_sumo.sensors.units.speed_factor`).
 
 Arrays may have spare rows beyond ``len(fleet)`` (zero, every flag False): a city fleet grows
 by doubling (:meth:`Fleet.add`) instead of reallocating per joiner. Methods are small and work
@@ -30,6 +32,10 @@ import numpy as np
 
 from magail_sumo.sim import dynamics, tracking
 from magail_sumo.sim.paths import Paths
+
+
+#: what a grown row holds where it is not 0
+GROW_FILL = {"path": -1, "speed_factor": 1.0}
 
 
 @dataclass(frozen=True)
@@ -67,6 +73,7 @@ class Fleet:
     clipped_actions: np.ndarray
     path: np.ndarray
     hint: np.ndarray
+    speed_factor: np.ndarray
     #: name -> row
     index: dict[str, int] = field(default_factory=dict)
 
@@ -77,7 +84,8 @@ class Fleet:
         z = lambda dtype=np.float64: np.zeros(capacity, dtype)  # noqa: E731
         return cls([], z(), z(), z(), z(), z(), z(), np.zeros((capacity, 2)), z(),
                    np.zeros((capacity, dynamics.ACTION_SIZE)), z(bool), z(bool), z(bool),
-                   z(np.int64), z(np.int64), np.full(capacity, -1, np.int64), z(np.int64))
+                   z(np.int64), z(np.int64), np.full(capacity, -1, np.int64), z(np.int64),
+                   np.ones(capacity))
 
     @classmethod
     def roster(cls, names: list[str], length: np.ndarray, width: np.ndarray, dest: np.ndarray,
@@ -108,7 +116,7 @@ class Fleet:
         for f in fields(self):
             old = getattr(self, f.name)
             if isinstance(old, np.ndarray):
-                setattr(self, f.name, resized(old, new, -1 if f.name == "path" else 0))
+                setattr(self, f.name, resized(old, new, GROW_FILL.get(f.name, 0)))
 
     def add(self, name: str, x: float, y: float, yaw: float, speed: float, length: float,
             width: float) -> int:

@@ -113,6 +113,8 @@ class CitySettings:
     :param unblock_s: SUMO-driven vehicles that have waited this long (s) next to an agent
         standing as long on a junction stop giving way to standing agents (0: never;
         ``CityEnvConfig.unblock_s``).
+    :param demand_scale: the scenario's demand times this in both runs (SUMO's ``--scale``;
+        ``CityEnvConfig.demand_scale``; 1: as it is).
     :param fcd: record the policy's run as SUMO FCD (``city/<scenario>/<method>/fcd/``) with a
         ``.sumocfg`` that replays it in ``sumo-gui`` on the city's network.
     :param humans: expert data of recorded humans (``magail-sumo expert``'s folder): the
@@ -132,6 +134,7 @@ class CitySettings:
     agent_classes: tuple[str, ...] = ("passenger",)
     agent_tight_turns: bool = False
     unblock_s: float = 10.0
+    demand_scale: float = 1.0
     fcd: bool = False
     humans: str | None = None
 
@@ -149,7 +152,9 @@ class CitySettings:
                           f"--city-control-fraction must be in (0, 1], got "
                           f"{self.control_fraction}"),
                          (math.isfinite(self.unblock_s) and self.unblock_s >= 0,
-                          f"--city-unblock-s must be >= 0, got {self.unblock_s}")):
+                          f"--city-unblock-s must be >= 0, got {self.unblock_s}"),
+                         (math.isfinite(self.demand_scale) and self.demand_scale > 0,
+                          f"--city-demand-scale must be > 0, got {self.demand_scale}")):
             if not ok:
                 raise EvaluationError(what)
 
@@ -274,7 +279,8 @@ def run_policy(job: PolicyJob) -> PolicyRun:
                                  control_fraction=st.control_fraction, warmup_s=st.warmup_s,
                                  agent_classes=st.agent_classes,
                                  agent_tight_turns=st.agent_tight_turns,
-                                 unblock_s=st.unblock_s, max_steps=st.steps)
+                                 unblock_s=st.unblock_s, max_steps=st.steps,
+                                 demand_scale=st.demand_scale)
     env = SumoCityEnv(job.sumocfg, cfg, sumo_args=tuple(output_args(job.out_dir)))
     state = env.warm_state()
     if state is not None:
@@ -335,6 +341,8 @@ def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
              str(sess.time_to_teleport), "--collision.action", sess.collision_action,
              "--fcd-output", str(fcd), "--device.fcd.period", f"{ACCEL_WINDOW_S:g}",
              "--fcd-output.attributes", "speed,type"]
+    if st.demand_scale != 1.0:  # the same demand as the policy's run
+        extra += ["--scale", f"{st.demand_scale:g}"]
     if run.state is not None:
         extra += ["--load-state", run.state]  # the begin time is the state's
     begin = None if run.state is not None else run.begin_s

@@ -11,7 +11,10 @@ route's lanes, :mod:`magail_sumo.sim.tracking`):
 
 (free road: no interaction term). The desired speed ``v0`` is the road's speed limit where
 the observation has it (``speed_limit``, :mod:`magail_sumo.sensors.units.speed_limit`; times
-``limit_factor``; ``v0`` where the limit is unknown), at most ``sqrt(v_low² + 2·b·d)`` before a
+``limit_factor``; ``v0`` where the limit is unknown), times the agent's own desired-speed
+factor where the observation has it (``speed_factor``, :mod:`magail_sumo.sensors.units.
+speed_factor`: in a city the factor SUMO drew for the vehicle, as SUMO's drivers drive the
+limit times theirs), at most ``sqrt(v_low² + 2·b·d)`` before a
 lower limit ``v_low`` ``d`` m ahead (it brakes comfortably down to it by its start). It is
 lowered before bends: the route look-ahead (``route_points``) gives each point's curvature
 ``κ = 2·|y| / (x² + y²)`` (the arc from the car through it), and ``v0`` is at most
@@ -192,10 +195,12 @@ class IdmRule:
                                                  "speed_limit_gap")] \
             if observation.speed_limit else []
         self._stop = names.index("route_stop_gap") if observation.route_stop else None
+        self._factor = names.index("speed_factor") if observation.speed_factor else None
 
     def accel(self, obs: np.ndarray, v0_scale: np.ndarray | None = None) -> np.ndarray:
         """(A,) IDM acceleration (m/s²) of observation rows ``obs`` (A, D); ``v0_scale``:
-        (A,) each row's desired speed as a multiple of the rule's (a driver population)."""
+        (A,) each row's desired speed as a multiple of the rule's (a driver population), on top
+        of the observed ``speed_factor`` where the rows have it."""
         obs = np.asarray(obs, np.float64)
         v, gap, closing, light, to_line = (obs[:, c] for c in self._col)
         p = self.params
@@ -204,6 +209,8 @@ class IdmRule:
         closing = np.where(none, 0.0, closing)
         v0 = desired_speed(*(obs[:, c] for c in self._limit), p) if self._limit \
             else np.full(len(obs), p.v0)
+        if self._factor is not None:
+            v0 = v0 * obs[:, self._factor]
         if v0_scale is not None:
             v0 = v0 * np.asarray(v0_scale, np.float64)
         if self._route:

@@ -208,14 +208,14 @@ def policy_observation(trained: EnvConfig) -> ObservationConfig:
     """Evaluation's observation for a policy trained in ``trained``: the default one with the
     policy's optional features (route command, route look-ahead, leader, stop-line
     distance, give-way conflict and how it is read, path leader, speed limits, the route's
-    standing end)."""
+    standing end, the desired-speed factor)."""
     ob = trained.observation
     return ObservationConfig(command=ob.command, command_lookahead=ob.command_lookahead,
                              route_points=ob.route_points, leader=ob.leader,
                              leader_range=ob.leader_range, light_gap=ob.light_gap,
                              give_way=ob.give_way, give_way_conflicts=ob.give_way_conflicts,
                              path_leader=ob.path_leader, speed_limit=ob.speed_limit,
-                             route_stop=ob.route_stop)
+                             route_stop=ob.route_stop, speed_factor=ob.speed_factor)
 
 
 def target_env(trained: EnvConfig, target: EnvConfig | None) -> EnvConfig:

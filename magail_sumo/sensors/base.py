@@ -95,6 +95,8 @@ class EgoState:
     :param route_stop: (A,) distance (m) along the recorded route to its end where the
         recorded driver stands there (``ObservationConfig.route_stop``); inf where it does not;
         None: none for every agent (no recorded routes, e.g. a city).
+    :param speed_factor: (A,) each agent's desired speed as a multiple of the road's
+        (``ObservationConfig.speed_factor``); None: 1 for every agent.
     """
 
     index: np.ndarray
@@ -106,6 +108,7 @@ class EgoState:
     route: np.ndarray | None = None
     path: "PathAhead | None" = None
     route_stop: np.ndarray | None = None
+    speed_factor: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -313,7 +316,7 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
     the leader when ``config.leader``, the stop-line distance when ``config.light_gap``, the
     give-way conflict when ``config.give_way``, the path leader when ``config.path_leader``,
     the speed limits when ``config.speed_limit``, the route's standing end when
-    ``config.route_stop``)."""
+    ``config.route_stop``, the desired-speed factor when ``config.speed_factor``)."""
     try:
         layout = LAYOUTS[config.layout]
     except KeyError:  # registered in another process (a worker imports what registers it)
@@ -324,4 +327,5 @@ def sensor_order(config: "ObservationConfig") -> tuple[str, ...]:
         (("light_gap",) if config.light_gap else ()) + (("give_way",) if config.give_way else ()) \
         + (("path_leader",) if config.path_leader else ()) \
         + (("speed_limit",) if config.speed_limit else ()) \
-        + (("route_stop",) if config.route_stop else ())
+        + (("route_stop",) if config.route_stop else ()) \
+        + (("speed_factor",) if config.speed_factor else ())

@@ -84,6 +84,10 @@ class ObservationConfig:
         ``speed_limit_gap`` (m): the road's speed limit at the agent's place on its reference
         path and the lowest one within ``leader_range`` ahead with its distance
         (:mod:`magail_sumo.sensors.units.speed_limit`; 0 where unknown); off by default.
+    :param speed_factor: append ``speed_factor``: the agent's own desired speed as a multiple
+        of the road's (a city: the factor SUMO drew for the vehicle from its type's
+        ``speedFactor`` distribution; a recorded scene: 1, as the recorded driver's wish is not
+        observed; :mod:`magail_sumo.sensors.units.speed_factor`); off by default.
     """
 
     lidar: BeamSpec = field(default_factory=lambda: BeamSpec(80, 30.0))
@@ -102,6 +106,7 @@ class ObservationConfig:
     path_leader: bool = False
     speed_limit: bool = False
     route_stop: bool = False
+    speed_factor: bool = False
 
     def __post_init__(self) -> None:
         layout = layout_name(self.layout)

@@ -48,6 +48,9 @@ then 3                (``speed_limit: true`` only) ``speed_limit``, ``speed_limi
 then 1                (``route_stop: true`` only) ``route_stop_gap`` (m): along the recorded
                       route to its end where the recorded driver stands still, 50 when none
                       (:mod:`magail_sumo.sensors.units.route_stop`)
+then 1                (``speed_factor: true`` only) ``speed_factor``: the agent's desired
+                      speed as a multiple of the road's, 1 in recorded scenes
+                      (:mod:`magail_sumo.sensors.units.speed_factor`)
 ====================  ======================================================================
 
 Layout ``"scene_frame"`` (108 values with the defaults, the MAGAIL4AutoDrive observation; its
@@ -69,8 +72,8 @@ Each block above is a sensor unit (:mod:`magail_sumo.sensors.base`, one module e
 ``scene_pose``, ``lidar``, ``side``, ``lane_line``, ``light``, ``scene_destination``; then
 ``command`` with ``command: true``, ``route`` with ``route_points``, ``leader`` with
 ``leader: true``, ``light_gap`` with ``light_gap: true``, ``give_way`` with ``give_way: true``,
-``path_leader`` with ``path_leader: true``, ``speed_limit`` with ``speed_limit: true`` and
-``route_stop`` with ``route_stop: true``. The
+``path_leader`` with ``path_leader: true``, ``speed_limit`` with ``speed_limit: true``,
+``route_stop`` with ``route_stop: true`` and ``speed_factor`` with ``speed_factor: true``. The
 suite is built from a road map and a light source (:meth:`SensorSuite.from_map`;
 ``SensorSuite(scene, config)`` for a recorded scene).
 """

@@ -125,6 +125,8 @@ class CityConfig:
     :param unblock_s: SUMO-driven vehicles that have waited this long (s) next to an agent
         standing as long on a junction stop giving way to standing agents (0: never;
         ``CityEnvConfig.unblock_s``).
+    :param demand_scale: each city's demand times this (SUMO's ``--scale``;
+        ``CityEnvConfig.demand_scale``; 1: as it is).
     """
 
     max_agents: int = 256
@@ -135,6 +137,7 @@ class CityConfig:
     progress_reward: float = 0.0
     agent_tight_turns: bool = False
     unblock_s: float = 10.0
+    demand_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check(self.max_agents >= 1, "max_agents", f"must be >= 1, got {self.max_agents}")
@@ -147,6 +150,7 @@ class CityConfig:
         check(self.max_steps >= 1, "max_steps", f"must be >= 1, got {self.max_steps}")
         check_positive(self, "progress_reward", allow_zero=True)
         check_positive(self, "unblock_s", allow_zero=True)
+        check_positive(self, "demand_scale")
 
     def env_config(self, env: EnvConfig):
         """The :class:`~magail_sumo.env.city_env.CityEnvConfig` of a training run."""
@@ -156,7 +160,8 @@ class CityConfig:
                                       agent_classes=self.agent_classes,
                                       progress_reward=self.progress_reward,
                                       agent_tight_turns=self.agent_tight_turns,
-                                      unblock_s=self.unblock_s)
+                                      unblock_s=self.unblock_s,
+                                      demand_scale=self.demand_scale)
 
 
 @dataclass(frozen=True)

@@ -354,6 +354,12 @@ def _count(v: float | int) -> int | float:
     return int(v) if math.isfinite(v) else float("nan")
 
 
+def _demand(city: dict) -> str:
+    """The window's demand scale in words (nothing when the scenario's own)."""
+    scale = city.get("demand_scale", 1.0)
+    return "" if scale in (1, 1.0, None) else f", its demand scaled by {scale:g} (SUMO's --scale)"
+
+
 def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path,
                   errors: list[str]) -> None:
     """The "City scenarios (SUMO outputs)" table: per scenario, each method's SUMO figures;
@@ -368,7 +374,7 @@ def _city_section(doc: Document, rows: list[dict], man: dict, folder: Path,
              "of a whole SUMO city at once (the rest is SUMO traffic); sumo: SUMO's default "
              "drivers only. Both runs start from the "
              f"same state after a {city.get('warmup_s', '?')} s warm-up and cover the same "
-             "window (SUMO time of day), with the same seed and SUMO settings (0.1 s steps, "
+             f"window (SUMO time of day){_demand(city)}, with the same seed and SUMO settings (0.1 s steps, "
              "teleporting off). Trip figures are means over the trips that ended in the "
              "window (from tripinfo; agents taken out by a collision, off-road or red-light "
              "event count as removed, not arrived); mean speed from edgeData; teleports and "
