@@ -678,7 +678,7 @@ class SumoCityEnv(FleetEnv):
         api = self._session.api
         try:
             route, k = api.vehicle.getRoute(vehicle), api.vehicle.getRouteIndex(vehicle)
-        except Exception:  # vehicle not (yet) in SUMO
+        except api.TraCIException:  # vehicle not (yet) in SUMO
             return True
         if not 0 <= k < len(route) - 1:
             return True
