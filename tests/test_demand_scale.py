@@ -65,3 +65,10 @@ def test_a_scale_that_is_not_positive_is_refused():
         CitySettings(demand_scale=0.0)
     with pytest.raises(ValueError, match="demand_scale must be > 0"):
         CityEnvConfig(demand_scale=-1.0)
+
+
+def test_the_report_says_when_the_demand_was_scaled():
+    from magail_sumo.evaluation.report import _demand
+
+    assert _demand({}) == "" and _demand({"demand_scale": 1.0}) == ""
+    assert "scaled by 1.2 (SUMO's --scale)" in _demand({"demand_scale": 1.2})
