@@ -33,7 +33,7 @@ from .strict import (MAX_MESSAGE, ConfigError, T, _cap, _check_keys, _dataclass_
                      _expand_own, _read_mapping, _StrictLoader, _yaml_problem, from_dict, show)
 
 #: longest chain of ``extends`` (a file extending a file extending ...), the first file included
-MAX_EXTENDS_DEPTH = 16
+MAX_EXTENDS_DEPTH = 32
 #: most distinct files one config may be composed of
 MAX_EXTENDS_FILES = 64
 #: longest ``--set KEY=VALUE`` token (characters)
