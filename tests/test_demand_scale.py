@@ -72,3 +72,22 @@ def test_the_report_says_when_the_demand_was_scaled():
 
     assert _demand({}) == "" and _demand({"demand_scale": 1.0}) == ""
     assert "scaled by 1.2 (SUMO's --scale)" in _demand({"demand_scale": 1.2})
+
+
+@pytest.mark.sumo
+def test_replay_watches_the_denser_city(tmp_path, capsys):
+    """``replay --city-demand-scale 2`` records a city with clearly more vehicles in it."""
+    import xml.etree.ElementTree as ET
+
+    from magail_sumo.cli.main import main as cli
+
+    seen = {}
+    for scale in ("1", "2"):
+        fcd = tmp_path / f"x{scale}" / "city.fcd.xml"
+        fcd.parent.mkdir()
+        assert cli(["replay", str(COLOGNE8.parent), "--policy", "idm", "--steps", "20",
+                    "--city-warmup-s", "300", "--city-demand-scale", scale,
+                    "--fcd", str(fcd)]) == 0
+        seen[scale] = {v.get("id") for v in ET.parse(fcd).getroot().iter("vehicle")}
+    capsys.readouterr()
+    assert len(seen["2"]) >= 1.5 * len(seen["1"]) >= 45

@@ -70,6 +70,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    metavar="S", help="a city: seconds SUMO drives alone first (default 0)")
     p.add_argument("--city-max-agents", type=bounded(int, 1, 10**5), default=64, metavar="K",
                    help="a city: policy-driven vehicles alive at once (default 64)")
+    p.add_argument("--city-demand-scale", type=bounded(float, 0.01, 100.0), default=1.0,
+                   metavar="F", help="a city: its demand times F (SUMO's --scale; default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fps", type=bounded(int, 1, MAX_FPS), default=10,
                    help=f"frames per second of the video (1..{MAX_FPS})")
@@ -244,7 +246,8 @@ def _replay_city(args: argparse.Namespace, cfg: Path) -> int:
     policy = make_policy(args.policy, rollout_seed(args.seed, 0), False, None)
     city = CityEnvConfig.from_env(EnvConfig(**env_settings(policy)),
                                   max_agents=args.city_max_agents, control_fraction=1.0,
-                                  warmup_s=args.city_warmup_s, max_steps=args.steps)
+                                  warmup_s=args.city_warmup_s, max_steps=args.steps,
+                                  demand_scale=args.city_demand_scale)
     env = SumoCityEnv(cfg, city)
     env.record_fcd()
     bar = progress(range(args.steps), desc="steps", unit="step")
