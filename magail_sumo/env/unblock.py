@@ -32,6 +32,11 @@ vehicle jumps to the start of the lane after the junction on its route, as SUMO'
 teleport moves a jammed vehicle on along its route (SUMO's teleport is off in the env:
 ``SessionConfig.time_to_teleport``), if that lane has room for it. Counted apart
 (``SumoCityEnv.jumped``). On cologne8 one such pair held a main road for 5 of 10 minutes.
+A driver the release cannot free jumps the same way: SUMO holds it behind the car it merges
+after onto the lane past the junction, and that car follows the agent that stands for the
+driver. No junction foe is part of that circle, so there is nothing to ignore. On cologne8 a
+car turning round inside a signal cluster held the straight approach for the rest of a 10-min
+window, until this jump took its trips from 0.83 to 0.94 of SUMO's drivers'.
 """
 
 from __future__ import annotations
@@ -96,9 +101,7 @@ def release(api, ids, x, y, speed, edges, agents: Sequence[str], agent_x: np.nda
                 continue
             how = blocks(int(i), int(j))
             if how == MUTUAL:
-                late = JUMP_AFTER * after_s
-                if agent_stood[i] >= late and waited >= late \
-                        and edge.get(vid, "").startswith(":"):
+                if _late(agent_stood[i], waited, after_s) and edge.get(vid, "").startswith(":"):
                     jumped += jump(api, vid)
                 continue
             if how != HELD:
@@ -110,7 +113,18 @@ def release(api, ids, x, y, speed, edges, agents: Sequence[str], agent_x: np.nda
             if new:
                 api.vehicle.setParameter(vid, IGNORE_PARAM, " ".join(have + new))
                 released += 1
+            elif _late(agent_stood[i], waited, after_s) and edge.get(vid, "").startswith(":"):
+                # nothing left to release: what holds it is not a foe but the vehicle it
+                # merges behind, itself behind the agent that waits for it
+                jumped += jump(api, vid)
     return released, jumped
+
+
+def _late(agent_stood: float, waited: float, after_s: float) -> bool:
+    """Whether an agent and a SUMO-driven vehicle have both stood :data:`JUMP_AFTER` times
+    the release's wait."""
+    late = JUMP_AFTER * after_s
+    return agent_stood >= late and waited >= late
 
 
 def jump(api, vid: str) -> bool:
