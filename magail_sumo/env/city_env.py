@@ -96,6 +96,12 @@ VEHICLE_CLASSES: tuple[str, ...] = (
 _LIGHT = {"G": 1, "g": 1, "y": 2, "Y": 2, "r": 3, "R": 3, "u": 3, "s": 3, "o": 0, "O": 0}
 
 
+def demand_args(demand_scale: float) -> tuple[str, ...]:
+    """SUMO's ``--scale`` option for ``CityEnvConfig.demand_scale`` (none at 1): what the env's
+    runs and a SUMO-only run of the same window both pass."""
+    return () if demand_scale == 1.0 else ("--scale", f"{demand_scale:g}")
+
+
 @dataclass(frozen=True)
 class CityEnvConfig:
     """Settings of :class:`SumoCityEnv`.
@@ -279,9 +285,7 @@ class SumoCityEnv(FleetEnv):
 
     # ------------------------------------------------------------------ lifecycle
     def _scale_args(self) -> tuple[str, ...]:
-        """SUMO's ``--scale`` of ``demand_scale`` (none at 1)."""
-        s = self.config.demand_scale
-        return () if s == 1.0 else ("--scale", f"{s:g}")
+        return demand_args(self.config.demand_scale)
 
     def warm_state(self) -> Path | None:
         """The saved warm-up state every episode loads (``--load-state``): SUMO run alone for

@@ -52,7 +52,8 @@ from magail_sumo.sim.sumo_config import (SumoConfigError, config_of, scenario_na
                                          vtype_classes)
 from magail_sumo.inputs import InputFileError, read_json
 from magail_sumo.agents import env_settings, rollout
-from magail_sumo.env.city_env import VEHICLE_CLASSES, CityEnvConfig, SumoCityEnv, scenario_inputs
+from magail_sumo.env.city_env import (VEHICLE_CLASSES, CityEnvConfig, SumoCityEnv, demand_args,
+                                      scenario_inputs)
 from magail_sumo.env.config import EnvConfig
 from magail_sumo.errors import MagailSumoError
 from magail_sumo.evaluation.protocol import DEFAULT_TIMEOUT_S, EvaluationError, log, rollout_seed
@@ -341,8 +342,7 @@ def _sumo_default(sumocfg: Path, out_dir: Path, run: PolicyRun, st: CitySettings
              str(sess.time_to_teleport), "--collision.action", sess.collision_action,
              "--fcd-output", str(fcd), "--device.fcd.period", f"{ACCEL_WINDOW_S:g}",
              "--fcd-output.attributes", "speed,type"]
-    if st.demand_scale != 1.0:  # the same demand as the policy's run
-        extra += ["--scale", f"{st.demand_scale:g}"]
+    extra += demand_args(st.demand_scale)  # the same demand as the policy's run
     if run.state is not None:
         extra += ["--load-state", run.state]  # the begin time is the state's
     begin = None if run.state is not None else run.begin_s

@@ -19,15 +19,18 @@ import gzip
 import re
 from collections.abc import Callable
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
+from xml.sax.saxutils import quoteattr, unescape
 
 _ROUTE = re.compile(r'<route id="([^"]*)"')
 _VEHICLE = re.compile(r'<vehicle id="([^"]*)"[^>]*?\sroute="([^"]*)"')
 
 
+#: the attribute-value entities XML writes beyond ``unescape``'s own (&amp; &lt; &gt;)
+_QUOTES = {"&quot;": '"', "&apos;": "'"}
+
+
 def _unescape(s: str) -> str:
-    return (s.replace("&quot;", '"').replace("&apos;", "'").replace("&lt;", "<")
-            .replace("&gt;", ">").replace("&amp;", "&"))
+    return unescape(s, _QUOTES)
 
 
 def lost_routes(text: str) -> dict[str, str]:
